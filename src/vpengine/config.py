@@ -1,0 +1,355 @@
+"""Typed, validated engine configuration, written by users as YAML or JSON.
+
+Every model has its own block (model name, checkpoint, options, rate, backend, precision); the engine block sets
+mode, device and the mailboxes. Unknown keys and bad values fail with the field's dotted path, the value given and
+what is accepted. Command lines override any field with dotted paths: ``heads.depth.rate_hz=5`` (a head may be named
+by its ``name`` or its index).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+Precision = Literal["fp32", "fp16", "bf16"]
+Backend = Literal["eager", "compile", "onnx"]
+_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
+_DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used; the message names the field, the value and what is accepted."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, protected_namespaces=())
+
+
+class InputConfig(_Strict):
+    """The camera frames given to ``Engine.submit``."""
+
+    height: int = Field(
+        480, ge=14, le=16384, description="Frame height in pixels (canonical; submit checks it)."
+    )
+    width: int = Field(640, ge=14, le=16384, description="Frame width in pixels.")
+    color: Literal["bgr", "rgb"] = Field(
+        "bgr", description="Channel order of submitted frames (OpenCV gives BGR)."
+    )
+    dtype: Literal["uint8", "float32"] = Field(
+        "uint8", description="Pixel type: uint8 0..255, or float32 0..1 (checked for NaN/inf at submit)."
+    )
+    slots: int = Field(3, ge=3, le=64, description="Input mailbox slots (>= 3: the foundation model + 2).")
+
+
+class PreprocessConfig(_Strict):
+    """How frames become the foundation model's input, on the model's device."""
+
+    resize: Literal["aspect", "square", "none"] = Field(
+        "aspect",
+        description="aspect: short side to `size`, long side scaled and rounded to the patch multiple (1920x1080 -> "
+        "924x518); square: `size` x `size` (the paper's setting, distorts the image); none: crop to the patch multiple.",
+    )
+    size: int = Field(
+        518, ge=14, le=8192, description="Target short side (aspect) or side (square) in pixels."
+    )
+    interpolation: Literal["bilinear", "bicubic"] = Field("bilinear", description="Resize filter.")
+    mean: tuple[float, float, float] = Field(
+        (0.485, 0.456, 0.406), description="Normalisation mean (RGB, 0..1)."
+    )
+    std: tuple[float, float, float] = Field(
+        (0.229, 0.224, 0.225), description="Normalisation std (RGB, 0..1)."
+    )
+
+
+class ModelConfig(_Strict):
+    """Fields common to the foundation model and every head."""
+
+    model: str = Field(..., description="Model recipe name from the catalog, or 'package.module:Class'.")
+    checkpoint: str | None = Field(
+        None, description="Checkpoint file path or catalog weight name; null: the recipe's default weights."
+    )
+    options: dict[str, Any] = Field(
+        default_factory=dict, description="Recipe options (validated by the recipe)."
+    )
+    rate_hz: float | None = Field(
+        None,
+        description="Rate limit in Hz; null: as fast as new data arrives; 0: paused. Changeable at run time.",
+    )
+    backend: Backend = Field(
+        "eager", description="Execution backend: eager PyTorch, torch.compile, ONNX Runtime."
+    )
+    precision: Precision | None = Field(None, description="fp32 | fp16 | bf16; null: the engine's precision.")
+    cpu_threads: int = Field(
+        1, ge=1, le=256, description="PyTorch intra-op threads in this model's worker (CPU)."
+    )
+    stream_priority: int = Field(
+        0,
+        ge=-8,
+        le=0,
+        description="CUDA stream priority (0 normal, negative = higher where the GPU supports it).",
+    )
+
+    @field_validator("rate_hz")
+    @classmethod
+    def _rate(cls, v: float | None) -> float | None:
+        if v is not None and (not math.isfinite(v) or v < 0 or v > 10000):
+            raise ValueError(f"rate_hz must be null or a number from 0 to 10000, got {v}")
+        return v
+
+
+class FoundationModelConfig(ModelConfig):
+    """The backbone that runs once per frame; its features go to every head."""
+
+    model: str = Field("dinov2_vits14", description="Backbone recipe name.")
+    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)  # type: ignore[arg-type]
+    feature_slots: int | None = Field(
+        None, ge=3, le=64, description="Feature mailbox slots; null: number of heads + 2 (the minimum)."
+    )
+
+
+class OutputConfig(_Strict):
+    """A head's output mailbox, read by ``Engine.latest/results/wait`` and the sinks."""
+
+    slots: int = Field(4, ge=4, le=256, description="Output slots (>= 4: two engine readers + 2).")
+    overflow: Literal["drop_oldest", "drop_newest", "block"] = Field(
+        "drop_oldest",
+        description="When results() falls behind: overwrite the oldest unread (counted), drop the newest "
+        "(counted), or make the head wait.",
+    )
+    location: Literal["host", "device"] = Field(
+        "host",
+        description="host: results land in shared host memory; device: stay on the GPU for GPU consumers.",
+    )
+
+
+class HeadConfig(ModelConfig):
+    """One task head reading the foundation model's features."""
+
+    name: str = Field(
+        ..., description="Unique head name (letters, digits, _ and -), used in results and topics."
+    )
+    postprocess: dict[str, Any] = Field(
+        default_factory=dict, description="Postprocessing options of the recipe."
+    )
+    output: OutputConfig = Field(default_factory=OutputConfig)  # type: ignore[arg-type]
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not _NAME_RE.match(v):
+            raise ValueError(
+                f"head name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)"
+            )
+        return v
+
+
+class RuntimeConfig(_Strict):
+    """Supervision and timing."""
+
+    ready_timeout_s: float = Field(300.0, gt=0, description="How long a worker may take to load and warm up.")
+    stop_timeout_s: float = Field(3.0, gt=0, description="Grace time at stop before workers are terminated.")
+    max_restarts: int = Field(
+        5, ge=0, description="Restarts of one crashed worker before it is marked failed."
+    )
+    restart_backoff_s: float = Field(0.5, ge=0, description="First restart delay; doubles each time.")
+    restart_backoff_max_s: float = Field(10.0, ge=0, description="Largest restart delay.")
+    hang_timeout_s: float | None = Field(
+        60.0, gt=0, description="A running worker silent this long is killed and restarted; null: never."
+    )
+    poll_s: float = Field(
+        0.5, gt=0, le=5, description="Longest sleep of any wait (stop and heartbeat latency)."
+    )
+
+
+class LoggingConfig(_Strict):
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    file: str | None = Field(None, description="Also log to this file.")
+
+
+class WeightsConfig(_Strict):
+    """Where checkpoints come from. Nothing is downloaded unless the catalog names it and offline is false."""
+
+    offline: bool = Field(
+        False, description="Never download; a missing checkpoint is an error naming its path."
+    )
+    random_weights: bool = Field(
+        False, description="Use random weights instead of checkpoints (tests, benchmarks). Loudly logged."
+    )
+    cache_dir: str | None = Field(None, description="Checkpoint cache; null: $VPENGINE_CACHE or XDG cache.")
+
+
+class EngineConfig(_Strict):
+    """The whole engine: one foundation model, any number of heads."""
+
+    name: str = Field("vpengine", description="Instance name (logs, topics).")
+    mode: Literal["process", "thread"] = Field(
+        "process",
+        description="process: every model in its own process (fault isolation, MPS); thread: one process.",
+    )
+    device: str = Field("cpu", description="cpu, cuda or cuda:N.")
+    precision: Precision = Field("fp32", description="Default precision of every model.")
+    mps: Literal["auto", "required", "off"] = Field(
+        "auto",
+        description="CUDA MPS: use when a daemon is reachable (auto), insist (required), or not (off).",
+    )
+    input: InputConfig = Field(default_factory=InputConfig)  # type: ignore[arg-type]
+    foundation_model: FoundationModelConfig = Field(default_factory=FoundationModelConfig)  # type: ignore[arg-type]
+    heads: list[HeadConfig] = Field(default_factory=list)
+    runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)  # type: ignore[arg-type]
+    logging: LoggingConfig = Field(default_factory=LoggingConfig)  # type: ignore[arg-type]
+    weights: WeightsConfig = Field(default_factory=WeightsConfig)  # type: ignore[arg-type]
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, v: str) -> str:
+        if not _DEVICE_RE.match(v):
+            raise ValueError(f"device {v!r} is not one of: cpu, cuda, cuda:N")
+        return v
+
+    @model_validator(mode="after")
+    def _unique_heads(self) -> EngineConfig:
+        names = [h.name for h in self.heads]
+        dup = sorted({n for n in names if names.count(n) > 1})
+        if dup:
+            raise ValueError(f"head names must be unique; repeated: {dup}")
+        if "foundation" in names:
+            raise ValueError("'foundation' is reserved for the foundation model; rename that head")
+        return self
+
+    def head(self, name: str) -> HeadConfig:
+        for h in self.heads:
+            if h.name == name:
+                return h
+        raise KeyError(f"no head named {name!r}; heads: {[h.name for h in self.heads]}")
+
+    def model_names(self) -> list[str]:
+        return ["foundation", *(h.name for h in self.heads)]
+
+
+# ------------------------------------------------------------------------------------------------- loading
+def _format_validation_error(err: ValidationError, source: str) -> str:
+    lines = [f"invalid configuration{f' in {source}' if source else ''}:"]
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        if e["type"] == "extra_forbidden":
+            parent = _model_at(EngineConfig, e["loc"][:-1])
+            accepted = sorted(parent.model_fields) if parent else []
+            lines.append(f"  {loc}: unknown key (accepted here: {', '.join(accepted)})")
+        else:
+            given = e.get("input")
+            shown = json.dumps(given, default=str) if not isinstance(given, dict) else "{...}"
+            lines.append(f"  {loc}: {e['msg']} (got {shown})")
+    return "\n".join(lines)
+
+
+def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
+    for part in loc:
+        if isinstance(part, int):
+            continue
+        field = model.model_fields.get(str(part))
+        if field is None:
+            return None
+        ann = field.annotation
+        args = getattr(ann, "__args__", None)
+        candidates = [ann, *(args or [])]
+        nxt = next((c for c in candidates if isinstance(c, type) and issubclass(c, BaseModel)), None)
+        if nxt is None:
+            return None
+        model = nxt
+    return model
+
+
+def parse_value(text: str) -> Any:
+    """A command-line value: YAML scalars and lists (``5``, ``null``, ``true``, ``[1, 2]``), else the string."""
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError:
+        return text
+
+
+def apply_override(data: dict[str, Any], dotted: str) -> None:
+    """Apply ``a.b.c=value`` to a raw config dict. Heads may be addressed by name or index."""
+    if "=" not in dotted:
+        raise ConfigError(f"override {dotted!r} must look like key.path=value")
+    path, _, raw = dotted.partition("=")
+    parts = [p for p in path.strip().split(".") if p]
+    if not parts:
+        raise ConfigError(f"override {dotted!r} has an empty key path")
+    node: Any = data
+    for i, part in enumerate(parts[:-1]):
+        if isinstance(node, list):
+            node = node[_list_index(node, part, ".".join(parts[: i + 1]))]
+        else:
+            node = node.setdefault(part, {})
+        if not isinstance(node, (dict, list)):
+            raise ConfigError(f"override {dotted!r}: {'.'.join(parts[: i + 1])} is a value, not a section")
+    last = parts[-1]
+    if isinstance(node, list):
+        node[_list_index(node, last, path)] = parse_value(raw)
+    else:
+        node[last] = parse_value(raw)
+
+
+def _list_index(items: list[Any], key: str, where: str) -> int:
+    if key.isdigit():
+        idx = int(key)
+        if idx >= len(items):
+            raise ConfigError(f"override path {where}: index {idx} out of range (there are {len(items)})")
+        return idx
+    for i, item in enumerate(items):
+        if isinstance(item, dict) and item.get("name") == key:
+            return i
+    names = [item.get("name") for item in items if isinstance(item, dict)]
+    raise ConfigError(f"override path {where}: no entry named {key!r}; names: {names}")
+
+
+def load_raw(path: str | Path) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file {str(path)!r} does not exist")
+    text = path.read_text()
+    try:
+        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as e:
+        kind = "JSON" if path.suffix == ".json" else "YAML"
+        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {e}") from None
+    if data is None:
+        data = {}
+    if not isinstance(data, dict):
+        raise ConfigError(
+            f"config file {str(path)!r} must hold a mapping at the top level, got {type(data).__name__}"
+        )
+    return data
+
+
+def load_config(
+    source: str | Path | dict[str, Any] | EngineConfig | None = None, overrides: list[str] | None = None
+) -> EngineConfig:
+    """Load and validate a config from a YAML/JSON file, a dict or an EngineConfig, then apply dotted overrides."""
+    if isinstance(source, EngineConfig):
+        if not overrides:
+            return source
+        data = source.model_dump()
+        where = ""
+    elif isinstance(source, dict):
+        data, where = json.loads(json.dumps(source)), ""
+    elif source is None:
+        data, where = {}, ""
+    else:
+        data, where = load_raw(source), str(source)
+    for o in overrides or []:
+        apply_override(data, o)
+    try:
+        return EngineConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(_format_validation_error(e, where)) from None
+
+
+def dump_config(cfg: EngineConfig) -> str:
+    return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)

@@ -1,0 +1,481 @@
+"""The public face: ``Engine(config)``.
+
+::
+
+    with Engine("configs/tiny.yaml") as engine:        # plans, allocates every buffer, starts every worker
+        fid = engine.submit(frame)                      # -> frame id; bad frames raise ValueError
+        out = engine.wait(fid, timeout=1.0)             # {head: Result} for that frame
+        engine.set_rate("depth", 5)                     # Hz, at run time; 0 pauses
+        print(engine.stats()["models"]["depth"])        # counters, achieved Hz, latencies
+
+Every result names its head, frame id, capture time and latency. Nothing is lost silently: frames a model never saw
+are counted as skipped, results nobody collected as missed, and ``stats()`` shows both.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+import weakref
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from vpengine.config import EngineConfig, load_config
+from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.plan import Plan, make_plan
+from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
+from vpengine.runtime.worker import WorkerSpec
+from vpengine.transport.ring import ReaderDecl, SlotInfo, SlotRing
+
+log = logging.getLogger("vpengine")
+
+__all__ = ["Engine", "EngineDeadError", "EngineStartError", "Result"]
+
+_ORIGINS_KEPT = 8192
+
+
+@dataclass
+class Result:
+    """One head's output for one frame."""
+
+    head: str
+    frame_id: int
+    #: The frame's capture time as given to submit (or the wall-clock time of submit), seconds since the epoch.
+    capture_time: float
+    #: Seconds from submit to this output being published.
+    latency: float
+    #: Output tensors: numpy arrays (host outputs) or torch tensors (device outputs, bfloat16).
+    outputs: dict[str, Any]
+    seq: int = 0
+    t_publish: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, key: str) -> Any:
+        return self.outputs[key]
+
+
+class _Resources:
+    """What must be released even if the user forgets stop(): workers, mailboxes, control block."""
+
+    def __init__(self) -> None:
+        self.runner: Runner | None = None
+        self.rings: dict[str, SlotRing] = {}
+        self.control: ControlBlock | None = None
+
+    def close(self) -> list[str]:
+        forced: list[str] = []
+        if self.runner is not None:
+            forced = self.runner.stop()
+            self.runner = None
+        for ring in self.rings.values():
+            ring.close()
+        self.rings = {}
+        if self.control is not None:
+            self.control.close()
+            self.control = None
+        return forced
+
+
+class Engine:
+    """One foundation model shared by many heads. See the module docstring for a tour."""
+
+    def __init__(
+        self,
+        config: EngineConfig | str | Path | dict[str, Any] | None = None,
+        overrides: list[str] | None = None,
+    ) -> None:
+        self.config = load_config(config, overrides)
+        self.plan: Plan = make_plan(self.config)
+        self._res = _Resources()
+        self._finalizer = weakref.finalize(self, _Resources.close, self._res)
+        self._state = "planned"
+        self._submit_lock = threading.Lock()
+        self._read_lock = threading.Lock()
+        self._next_id = 0
+        self._submitted = 0
+        self._rejected = 0
+        self._origins: collections.OrderedDict[int, int] = collections.OrderedDict()
+        self._results_active = False
+        self._t_start = 0.0
+        self.memory_report: dict[str, Any] = {}
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def start(self) -> Engine:
+        if self._state != "planned":
+            raise RuntimeError(f"engine is {self._state}; an Engine starts once")
+        cfg, plan = self.config, self.plan
+        device = torch.device(cfg.device)
+        shared = cfg.mode == "process"
+        heads = list(plan.heads)
+        res = self._res
+        try:
+            res.rings["input"] = SlotRing.create(
+                "input", plan.frame_spec, cfg.input.slots, [ReaderDecl("foundation")], "cpu", shared
+            )
+            n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2)
+            res.rings["features"] = SlotRing.create(
+                "features", plan.features, n_feat, [ReaderDecl(h) for h in heads], device, shared
+            )
+            for h in cfg.heads:
+                res.rings[f"out.{h.name}"] = SlotRing.create(
+                    f"out.{h.name}",
+                    plan.heads[h.name].output_spec,
+                    h.output.slots,
+                    [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek")],
+                    device if h.output.location == "device" else "cpu",
+                    shared,
+                    h.output.overflow,
+                )
+            if device.type == "cuda" and shared:
+                res.rings["input"].data_region.register_with_cuda()  # type: ignore[attr-defined]
+            res.control = ControlBlock.create(cfg.model_names())
+            res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
+            for h in cfg.heads:
+                res.control.set_rate(h.name, h.rate_hz)
+            specs = self._worker_specs()
+            if shared:
+                from vpengine.runtime.process import ProcessRunner
+
+                res.runner = ProcessRunner(specs, res.rings, res.control, cfg)
+            else:
+                from vpengine.runtime.threads import ThreadRunner
+
+                res.runner = ThreadRunner(specs, res.rings, res.control, cfg)
+            res.runner.start()
+        except BaseException:
+            self._state = "stopped"
+            res.close()
+            raise
+        self._input_writer = res.rings["input"].writer()
+        self._results_readers = {h: res.rings[f"out.{h}"].reader("results") for h in heads}
+        self._peek_readers = {h: res.rings[f"out.{h}"].reader("peek") for h in heads}
+        self._t_start = time.monotonic()
+        self._state = "running"
+        self.memory_report = self._memory_report()
+        log.info(
+            "engine %r running: %s mode on %s, foundation %s + heads %s; mailboxes %.1f MB host, %.1f MB device",
+            cfg.name,
+            cfg.mode,
+            cfg.device,
+            cfg.foundation_model.model,
+            heads,
+            self.memory_report["mailbox_host_bytes"] / 1e6,
+            self.memory_report["mailbox_device_bytes"] / 1e6,
+        )
+        return self
+
+    def _worker_specs(self) -> list[WorkerSpec]:
+        cfg, plan, rings = self.config, self.plan, self._res.rings
+        dump = cfg.model_dump(mode="json")
+        specs = [
+            WorkerSpec(
+                "foundation",
+                "foundation",
+                dump,
+                plan.frame_spec,
+                {},
+                rings["input"].desc,
+                "foundation",
+                rings["features"].desc,
+                notify_output=False,
+            )
+        ]
+        for name, _model in plan.heads.items():
+            specs.append(
+                WorkerSpec(
+                    name,
+                    "head",
+                    dump,
+                    plan.features,
+                    plan.feature_meta,
+                    rings["features"].desc,
+                    name,
+                    rings[f"out.{name}"].desc,
+                    notify_output=True,
+                )
+            )
+        return specs
+
+    def _memory_report(self) -> dict[str, Any]:
+        rings = self._res.rings
+        per = {
+            n: {
+                "bytes": r.layout.total_bytes,
+                "slots": r.n_slots,
+                "slot_bytes": r.layout.slot_bytes,
+                "location": str(r.data_region.device),
+            }
+            for n, r in rings.items()
+        }
+        host = sum(v["bytes"] for v in per.values() if v["location"] == "cpu")
+        dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
+        ctl = self._res.control
+        workers = {n: ctl.get(n, "device_mem_bytes") for n in ctl.names} if ctl else {}
+        return {"mailboxes": per, "mailbox_host_bytes": host, "mailbox_device_bytes": dev, "workers": workers}
+
+    def stop(self) -> None:
+        """Stop every worker and free every buffer. Always returns (within stop_timeout_s + a few seconds)."""
+        if self._state == "stopped":
+            return
+        self._state = "stopped"
+        forced = self._finalizer()  # runs _Resources.close exactly once
+        if forced:
+            log.warning("stopped; workers %s had to be terminated", forced)
+
+    def __enter__(self) -> Engine:
+        if self._state == "planned":
+            self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    @property
+    def running(self) -> bool:
+        return self._state == "running"
+
+    def _require_running(self) -> None:
+        if self._state != "running":
+            raise EngineDeadError(
+                f"engine is {self._state}; call start() first"
+                if self._state == "planned"
+                else "engine is stopped"
+            )
+        ctl = self._res.control
+        if ctl is not None and ctl.state("foundation") == "failed":
+            raise EngineDeadError(f"the foundation model has failed for good: {ctl.last_error('foundation')}")
+
+    # -------------------------------------------------------------------------------------------- input
+    def _check_frame(self, frame: Any) -> np.ndarray:
+        inp = self.config.input
+        want = f"a C-contiguous {inp.dtype} numpy array of shape ({inp.height}, {inp.width}, 3) ({inp.color.upper()})"
+        if isinstance(frame, torch.Tensor):
+            if frame.device.type != "cpu":
+                raise ValueError(f"expected {want}; got a tensor on {frame.device} (submit host frames)")
+            frame = frame.numpy()
+        if not isinstance(frame, np.ndarray):
+            raise ValueError(f"expected {want}; got {type(frame).__name__}")
+        if frame.size == 0:
+            raise ValueError(f"expected {want}; got an empty array of shape {frame.shape}")
+        if frame.ndim != 3 or frame.shape[2] != 3:
+            channels = frame.shape[2] if frame.ndim == 3 else "no channel axis"
+            raise ValueError(f"expected {want}; got shape {frame.shape} ({channels} channels)")
+        if frame.shape[:2] != (inp.height, inp.width):
+            raise ValueError(
+                f"expected {want}; got {frame.shape[0]}x{frame.shape[1]} (resize it, or set input.height/width)"
+            )
+        if frame.dtype != np.dtype(inp.dtype):
+            raise ValueError(f"expected {want}; got dtype {frame.dtype}")
+        if not frame.flags.c_contiguous:
+            raise ValueError(f"expected {want}; got a non-contiguous array (use np.ascontiguousarray)")
+        if frame.dtype.kind == "f" and not np.isfinite(frame).all():
+            raise ValueError(f"expected {want} with finite values; got NaN or inf")
+        return frame
+
+    def submit(self, frame: Any, frame_id: int | None = None, timestamp: float | None = None) -> int:
+        """Hand a frame to the engine. Returns its frame id (``frame_id`` or the next integer).
+
+        ``timestamp`` is the capture time in seconds (e.g. the camera's stamp); default: now. Never blocks on the
+        models: if the foundation model is busy, the newest frame wins and the overwritten one is counted as
+        skipped. Raises ValueError naming what was expected if the frame does not fit the configured input.
+        """
+        self._require_running()
+        try:
+            arr = self._check_frame(frame)
+        except ValueError:
+            self._rejected += 1
+            raise
+        t_submit = time.monotonic()
+        t_capture = time.time() if timestamp is None else float(timestamp)
+        with self._submit_lock:
+            fid = self._next_id if frame_id is None else int(frame_id)
+            self._next_id = fid + 1
+            slot = self._input_writer.acquire()
+            assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
+            slot.tensors["frame"].copy_(torch.from_numpy(arr))
+            seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
+            self._submitted += 1
+            self._origins[fid] = seq
+            if len(self._origins) > _ORIGINS_KEPT:
+                self._origins.popitem(last=False)
+        return fid
+
+    # ------------------------------------------------------------------------------------------- output
+    def _to_result(self, head: str, slot: SlotInfo) -> Result:
+        outputs: dict[str, Any] = {}
+        for k, t in slot.tensors.items():
+            if t.device.type != "cpu" or t.dtype == torch.bfloat16:
+                outputs[k] = t.clone()
+            else:
+                outputs[k] = t.numpy().copy()
+        if all(isinstance(v, np.ndarray) for v in outputs.values()):
+            outputs = self.plan.heads[head].finalize(outputs)
+        return Result(
+            head,
+            slot.frame_id,
+            slot.t_capture,
+            slot.t_publish - slot.t_submit,
+            outputs,
+            slot.seq,
+            slot.t_publish,
+        )
+
+    def _head(self, head: str) -> str:
+        if head not in self.plan.heads:
+            raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
+        return head
+
+    def latest(self, head: str) -> Result | None:
+        """The newest output of ``head`` (a copy), or None if it has produced nothing yet."""
+        self._require_running()
+        reader = self._peek_readers[self._head(head)]
+        with self._read_lock:
+            slot = reader.pin(peek=True)
+            if slot is None:
+                return None
+            try:
+                return self._to_result(head, slot)
+            finally:
+                reader.release(slot)
+
+    def results(self, timeout: float = 0.0, heads: list[str] | None = None) -> list[Result]:
+        """Every output published since the previous call, oldest first; waits up to ``timeout`` for at least one.
+
+        The first call starts the stream (earlier outputs are not returned). Call it regularly: if it falls
+        more than ``output.slots`` behind, the oldest unread outputs are overwritten and counted as missed in
+        ``stats()["results"]`` (or the head waits, with ``output.overflow: block``).
+        """
+        self._require_running()
+        ctl = self._res.control
+        assert ctl is not None
+        names = [self._head(h) for h in heads] if heads else list(self._results_readers)
+        deadline = time.monotonic() + timeout
+        with self._read_lock:
+            if not self._results_active:
+                for r in self._results_readers.values():
+                    r.activate(from_now=True)
+                self._results_active = True
+            while True:
+                word = ctl.output_word()
+                out = []
+                for h in names:
+                    reader = self._results_readers[h]
+                    for _ in range(reader.ring.n_slots):
+                        slot = reader.pin()
+                        if slot is None:
+                            break
+                        try:
+                            out.append(self._to_result(h, slot))
+                        finally:
+                            reader.release(slot)
+                remaining = deadline - time.monotonic()
+                if out or remaining <= 0 or self._state != "running":
+                    return sorted(out, key=lambda r: r.t_publish)
+                ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+
+    def wait(self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0) -> dict[str, Result]:
+        """The outputs of ``heads`` (default: all) for frame ``frame_id``, waiting up to ``timeout`` s.
+
+        Heads that skipped the frame (rate limit, newer frame) or whose output for it was already overwritten
+        are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout.
+        """
+        self._require_running()
+        ctl = self._res.control
+        assert ctl is not None
+        origin = self._origins.get(int(frame_id))
+        if origin is None:
+            raise ValueError(
+                f"frame id {frame_id} was not submitted (or is older than the last {_ORIGINS_KEPT})"
+            )
+        pending = [self._head(h) for h in heads] if heads else list(self.plan.heads)
+        done: dict[str, Result] = {}
+        deadline = time.monotonic() + timeout
+        while True:
+            word = ctl.output_word()
+            for h in list(pending):
+                reader = self._peek_readers[h]
+                with self._read_lock:
+                    slot, newest = reader.pin_origin(origin)
+                    if slot is not None:
+                        try:
+                            done[h] = self._to_result(h, slot)
+                        finally:
+                            reader.release(slot)
+                if slot is not None or newest > origin or ctl.state(h) == "failed":
+                    pending.remove(h)
+            remaining = deadline - time.monotonic()
+            if not pending:
+                return done
+            if remaining <= 0:
+                raise TimeoutError(
+                    f"frame {frame_id}: no output from {pending} within {timeout} s (got {sorted(done)})"
+                )
+            if self._state != "running":
+                raise EngineDeadError("engine stopped while waiting")
+            ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+
+    # ------------------------------------------------------------------------------------------ control
+    def set_rate(self, model: str, hz: float | None) -> None:
+        """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause."""
+        self._require_running()
+        ctl = self._res.control
+        assert ctl is not None
+        if model not in ctl.index:
+            raise KeyError(f"no model named {model!r}; models: {list(ctl.names)}")
+        if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
+            raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
+        ctl.set_rate(model, None if hz is None else float(hz))
+
+    def stats(self) -> dict[str, Any]:
+        """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""
+        if self._state != "running":
+            return {"engine": {"state": self._state}}
+        ctl = self._res.control
+        rings = self._res.rings
+        assert ctl is not None
+        models = {}
+        for name in ctl.names:
+            snap = ctl.snapshot(name)
+            ring = rings["input"] if name == "foundation" else rings["features"]
+            r = ring.stats()["readers"][name]  # type: ignore[index]
+            snap["frames_seen"] = r["reads"] + r["missed"]
+            snap["pending"] = r["pending"]
+            models[name] = snap
+        results = {}
+        for h in self.plan.heads:
+            st = rings[f"out.{h}"].stats()
+            rr = st["readers"]["results"]  # type: ignore[index]
+            results[h] = {
+                "published": st["published"],
+                "delivered": rr["reads"],
+                "missed": rr["missed"],
+                "pending": rr["pending"],
+                "dropped_newest": st["dropped_newest"],
+                "streaming": rr["active"],
+            }
+        return {
+            "engine": {
+                "state": self._state,
+                "mode": self.config.mode,
+                "device": self.config.device,
+                "uptime_s": time.monotonic() - self._t_start,
+                "submitted": self._submitted,
+                "rejected": self._rejected,
+            },
+            "models": models,
+            "results": results,
+            "mailboxes": {n: r.stats() for n, r in rings.items()},
+            "memory": self.memory_report,
+        }
+
+    def head_info(self, head: str) -> dict[str, Any]:
+        """Output specs and metadata (labels, capacity, backbone it was trained on) of a head."""
+        model = self.plan.heads[self._head(head)]
+        return {"outputs": {k: str(v) for k, v in model.output_spec.items()}, **model.meta}

@@ -1,0 +1,211 @@
+"""The model interface: named tensors in, named tensors out, with the specs declared up front.
+
+Every model the engine runs (preprocessing, the foundation model, heads, postprocessing, user heads) is a
+:class:`Model`. It declares ``input_spec`` and ``output_spec`` (``{name: TensorSpec}``) in its constructor, from its
+config alone, so the engine can build it on the ``meta`` device in the parent process, check the whole pipeline,
+and size every mailbox before any weight is loaded or any worker is started.
+
+A recipe (a ``Model`` subclass) is built through ``from_config(ctx)``, which may return a :class:`Pipeline` of
+several models (preprocess -> backbone, head -> postprocess); the engine runs one recipe per worker.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar, Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, ValidationError
+from torch import nn
+
+from vpengine.specs import SpecDict, format_specs
+
+if TYPE_CHECKING:
+    from vpengine.config import EngineConfig, ModelConfig
+
+Role = Literal["foundation", "head"]
+
+_PRECISION_DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
+
+
+class ModelBuildError(ValueError):
+    """A model cannot be built from its config (unknown recipe, bad options, mismatched inputs, bad checkpoint)."""
+
+
+class Options(BaseModel):
+    """Base of every recipe's options: unknown keys are errors."""
+
+    model_config = ConfigDict(extra="forbid", protected_namespaces=())
+
+
+@dataclass
+class BuildContext:
+    """What a recipe needs to build itself."""
+
+    role: Role
+    name: str
+    cfg: ModelConfig
+    engine: EngineConfig
+    #: What the model reads: ``{"frame": ...}`` for the foundation model, the features for heads.
+    upstream: SpecDict
+    #: Facts about the upstream model (feature grid, embed dim, layers, backbone recipe, preprocessed size).
+    upstream_meta: dict[str, Any] = field(default_factory=dict)
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    #: True in the parent while planning: build on the meta device, load no weights.
+    plan_only: bool = False
+    #: Recipe defaults merged under the user's options.
+    defaults: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def precision(self) -> str:
+        return self.cfg.precision or self.engine.precision
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return _PRECISION_DTYPES[self.precision]
+
+    @property
+    def dtype_name(self) -> str:
+        return {"fp32": "float32", "fp16": "float16", "bf16": "bfloat16"}[self.precision]
+
+    @property
+    def input_hw(self) -> tuple[int, int]:
+        return self.engine.input.height, self.engine.input.width
+
+    def options(self, cls: type[Options]) -> Any:
+        merged = {**self.defaults, **self.cfg.options}
+        try:
+            return cls.model_validate(merged)
+        except ValidationError as e:
+            problems = "; ".join(
+                f"{'.'.join(map(str, err['loc'])) or 'options'}: {err['msg']}"
+                + (
+                    f" (accepted: {', '.join(sorted(cls.model_fields))})"
+                    if err["type"] == "extra_forbidden"
+                    else ""
+                )
+                for err in e.errors()
+            )
+            raise ModelBuildError(f"{self.name} ({self.cfg.model}): bad options: {problems}") from None
+
+    def postprocess_options(self, cls: type[Options]) -> Any:
+        raw = getattr(self.cfg, "postprocess", {}) or {}
+        try:
+            return cls.model_validate(raw)
+        except ValidationError as e:
+            problems = "; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
+            raise ModelBuildError(
+                f"{self.name} ({self.cfg.model}): bad postprocess options: {problems} "
+                f"(accepted: {', '.join(sorted(cls.model_fields))})"
+            ) from None
+
+    def require(self, keys: list[str]) -> None:
+        """Fail with the names involved if the upstream model does not produce ``keys``."""
+        missing = [k for k in keys if k not in self.upstream]
+        if missing:
+            raise ModelBuildError(
+                f"{self.name} ({self.cfg.model}) needs inputs {missing} which the upstream model does not produce; "
+                f"it produces: {format_specs(self.upstream)}"
+            )
+
+
+class Model(nn.Module):
+    """Base class: ``forward(dict[str, Tensor]) -> dict[str, Tensor]`` with declared specs."""
+
+    #: Which slot of the pipeline a recipe can fill; None for building blocks (pre/postprocessing).
+    role: ClassVar[Role | None] = None
+
+    input_spec: SpecDict
+    output_spec: SpecDict
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.input_spec = {}
+        self.output_spec = {}
+        #: Facts for downstream models and users: grid size, labels, the backbone a head was trained on, ...
+        self.meta: dict[str, Any] = {}
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext) -> Model:
+        raise NotImplementedError(f"{cls.__name__} does not implement from_config")
+
+    def load_checkpoint(self, ctx: BuildContext) -> None:
+        """Load weights named by ``ctx.cfg.checkpoint`` (or the recipe's default). Default: nothing to load."""
+
+    def forward(
+        self, inputs: dict[str, torch.Tensor]
+    ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:
+        """Host-side view for users (e.g. trim fixed-capacity detections to their count). Default: unchanged."""
+        return outputs
+
+    def example_inputs(self, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
+        """Inputs of the declared specs, for warm-up and export (random, never zeros: zeros hide bugs)."""
+        g = torch.Generator().manual_seed(0)
+        out = {}
+        for k, s in self.input_spec.items():
+            if s.torch_dtype.is_floating_point:
+                t = torch.rand(s.shape, generator=g).to(s.torch_dtype)
+            else:
+                t = torch.randint(0, 255 if s.dtype == "uint8" else 8, s.shape, generator=g).to(s.torch_dtype)
+            out[k] = t.to(device)
+        return out
+
+
+class Pipeline(Model):
+    """Models run one after another; each later model may read any key produced so far."""
+
+    def __init__(self, *models: Model) -> None:
+        super().__init__()
+        if not models:
+            raise ModelBuildError("a pipeline needs at least one model")
+        self.stages = nn.ModuleList(models)
+        available = {**models[0].input_spec, **models[0].output_spec}
+        for m in models[1:]:
+            for k, spec in m.input_spec.items():
+                if k not in available:
+                    raise ModelBuildError(
+                        f"{type(m).__name__} needs input {k!r} ({spec}) that nothing before it produces; "
+                        f"available: {format_specs(available)}"
+                    )
+                if available[k] != spec:
+                    raise ModelBuildError(
+                        f"{type(m).__name__} needs {k!r} as {spec} but it is produced as {available[k]}"
+                    )
+            available.update(m.output_spec)
+        self.input_spec = dict(models[0].input_spec)
+        self.output_spec = dict(models[-1].output_spec)
+        for m in models:
+            self.meta.update(m.meta)
+
+    def load_checkpoint(self, ctx: BuildContext) -> None:
+        for m in self.stages:
+            m.load_checkpoint(ctx)  # type: ignore[operator]
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        values = dict(inputs)
+        out: dict[str, torch.Tensor] = {}
+        for m in self.stages:
+            out = m({k: values[k] for k in m.input_spec})
+            values.update(out)
+        return out
+
+    def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:
+        return self.stages[-1].finalize(outputs)  # type: ignore[operator]
+
+
+def check_outputs(name: str, spec: SpecDict, outputs: dict[str, torch.Tensor]) -> None:
+    """Raise naming the mismatch if a model's outputs differ from what it declared."""
+    missing = [k for k in spec if k not in outputs]
+    bad = [
+        f"{k}: declared {spec[k]}, got {outputs[k].dtype}{list(outputs[k].shape)}"
+        for k in spec
+        if k in outputs and not spec[k].matches(outputs[k])
+    ]
+    if missing or bad:
+        raise ModelBuildError(
+            f"{name}: outputs differ from the declared output_spec: missing {missing}; {bad}"
+        )

@@ -1,0 +1,86 @@
+"""Frame preprocessing on the model's device: uint8 HWC BGR/RGB -> float -> resize to a patch multiple -> normalise.
+
+Aspect ratio is preserved by default: the short side goes to ``size`` and the long side is scaled by the same factor
+and rounded to the nearest multiple of the patch size (1920x1080 -> 924x518 for ViT-*/14, 66x37 tokens). This is
+the resize Depth-Anything-V2 uses (``lower_bound`` with ``ensure_multiple_of=14``). ``square`` reproduces the
+paper's 518x518 setting, which squashes wide frames.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+
+from vpengine.config import PreprocessConfig
+from vpengine.models.base import Model
+from vpengine.specs import TensorSpec
+
+
+def target_size(height: int, width: int, cfg: PreprocessConfig, patch: int) -> tuple[int, int]:
+    """The (h, w) the model sees for a ``height`` x ``width`` frame."""
+    if cfg.resize == "square":
+        side = max(patch, round(cfg.size / patch) * patch)
+        return side, side
+    if cfg.resize == "none":
+        h, w = height // patch * patch, width // patch * patch
+        if h == 0 or w == 0:
+            raise ValueError(f"frame {height}x{width} is smaller than one {patch}x{patch} patch")
+        return h, w
+    scale = cfg.size / min(height, width)
+
+    def fit(x: float) -> int:
+        y = round(x / patch) * patch
+        if y < cfg.size and x >= cfg.size:  # never round the short side below the target
+            y = math.ceil(x / patch) * patch
+        return max(patch, int(y))
+
+    return fit(height * scale), fit(width * scale)
+
+
+class ImagePreprocess(Model):
+    """``frame: uint8[H, W, 3]`` (or float32 0..1) -> ``image: float[1, 3, h, w]`` normalised, in model dtype."""
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        cfg: PreprocessConfig,
+        patch: int,
+        color: str = "bgr",
+        in_dtype: str = "uint8",
+        dtype: str = "float32",
+    ) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.size = target_size(height, width, cfg, patch)
+        self.bgr = color == "bgr"
+        self.scale = 1.0 / 255.0 if in_dtype == "uint8" else 1.0
+        self.input_spec = {"frame": TensorSpec((height, width, 3), in_dtype)}
+        self.output_spec = {"image": TensorSpec((1, 3, *self.size), dtype)}
+        self.out_dtype = self.output_spec["image"].torch_dtype
+        self.register_buffer(
+            "mean", torch.tensor(cfg.mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
+        )
+        self.register_buffer(
+            "std", torch.tensor(cfg.std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
+        )
+        self.meta = {"image_size": self.size, "input_size": (height, width), "patch_size": patch}
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        x = inputs["frame"].permute(2, 0, 1).unsqueeze(0).float()  # 1,3,H,W
+        if self.bgr:
+            x = x.flip(1)
+        x = x * self.scale
+        h, w = self.size
+        if (x.shape[-2], x.shape[-1]) != (h, w):
+            if self.cfg.resize == "none":
+                x = x[..., :h, :w]
+            else:
+                # antialias: a 1080p frame shrinks ~2x, and without it thin structures alias.
+                x = F.interpolate(
+                    x, size=(h, w), mode=self.cfg.interpolation, align_corners=False, antialias=True
+                )
+        x = (x - self.mean) / self.std
+        return {"image": x.to(self.out_dtype).contiguous()}

@@ -1,0 +1,262 @@
+"""The control block: per-model rates, states, counters and recent latencies in shared memory.
+
+``Engine.stats()`` reads it and ``Engine.set_rate`` writes it; nothing parses logs. Every field has exactly one
+writer (the worker for its counters, the parent for rates and restart counts), and all fields are aligned 8-byte
+words, whose loads and stores are single-copy atomic on x86-64 and AArch64, so readers never see half a value and
+no lock is needed.
+
+Layout (host memfd)::
+
+    [0, 4)     u32 futex ``stop_word``     bumped at stop: every sleeper wakes
+    [4, 8)     u32 futex ``output_word``   bumped by every head publish: ``Engine.results`` sleeps on it
+    [8, 16)    i64 stopping flag
+    [64, ...)  one entry per model, ENTRY_BYTES each:
+                 [0, 4) u32 futex ``control_word`` bumped on rate changes; [8, ...) i64/f64 fields (_FIELDS),
+                 then LAT_N f64 compute latencies, LAT_N f64 end-to-end latencies, LAT_N f64 run start times,
+                 then ERR_BYTES of UTF-8 text: the last error.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from vpengine.transport import _linux
+from vpengine.transport.memory import HostRegion, RegionHandle
+
+LAT_N = 512
+ERR_BYTES = 2048
+_HEADER = 64
+_FIELDS = [
+    # name, kind: "q" int64 or "d" float64
+    ("state", "q"),
+    ("pid", "q"),
+    ("runs", "q"),
+    ("skipped", "q"),
+    ("dropped", "q"),
+    ("errors", "q"),
+    ("restarts", "q"),
+    ("crashes", "q"),
+    ("lat_count", "q"),
+    ("last_frame_id", "q"),
+    ("mps_active", "q"),
+    ("target_hz", "d"),  # NaN: unlimited
+    ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
+    ("started_at", "d"),
+    ("device_mem_bytes", "d"),
+]
+_F = {
+    name: (1 + i, kind) for i, (name, kind) in enumerate(_FIELDS)
+}  # word index inside an entry (word 0: futex)
+_LAT0 = 1 + len(_FIELDS)
+ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
+ENTRY_BYTES = ENTRY_WORDS * 8
+
+STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped"]
+STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED = range(len(STATES))
+
+
+@dataclass(frozen=True)
+class ControlDesc:
+    names: tuple[str, ...]
+    region: RegionHandle
+
+
+class ControlBlock:
+    def __init__(self, names: list[str] | tuple[str, ...], region: HostRegion) -> None:
+        self.names = tuple(names)
+        self.index = {n: i for i, n in enumerate(self.names)}
+        self._region = region
+        mv = memoryview(region.mm)
+        self._q = mv.cast("q")
+        self._d = mv.cast("d")
+        self._u = mv.cast("I")
+        self._base = region.address()
+
+    @classmethod
+    def create(cls, names: list[str], shared: bool = True) -> ControlBlock:
+        region = HostRegion("control", _HEADER + ENTRY_BYTES * len(names))
+        cb = cls(names, region)
+        for i in range(len(names)):
+            cb._set(i, "target_hz", math.nan)
+        return cb
+
+    def export(self, fds: list[int]) -> ControlDesc:
+        return ControlDesc(self.names, self._region.export(fds))
+
+    @classmethod
+    def attach(cls, desc: ControlDesc, fds: list[int]) -> ControlBlock:
+        return cls(desc.names, HostRegion.open(desc.region, fds))
+
+    def close(self) -> None:
+        for mv in (self._q, self._d, self._u):
+            mv.release()
+        self._region.close()
+
+    # ------------------------------------------------------------------------------------------ raw fields
+    def _w(self, i: int, name: str) -> tuple[int, str]:
+        word, kind = _F[name]
+        return (_HEADER // 8) + i * ENTRY_WORDS + word, kind
+
+    def _get(self, i: int, name: str) -> Any:
+        w, kind = self._w(i, name)
+        return self._q[w] if kind == "q" else self._d[w]
+
+    def _set(self, i: int, name: str, value: float) -> None:
+        w, kind = self._w(i, name)
+        if kind == "q":
+            self._q[w] = int(value)
+        else:
+            self._d[w] = float(value)
+
+    def _add(self, i: int, name: str, n: int = 1) -> None:
+        w, _ = self._w(i, name)
+        self._q[w] += n  # single writer per counter: no lock needed
+
+    def get(self, name: str, field: str) -> Any:
+        return self._get(self.index[name], field)
+
+    def set(self, name: str, field: str, value: float) -> None:
+        self._set(self.index[name], field, value)
+
+    def add(self, name: str, field: str, n: int = 1) -> None:
+        self._add(self.index[name], field, n)
+
+    # ---------------------------------------------------------------------------------------- wake words
+    def _control_addr(self, i: int) -> int:
+        return self._base + _HEADER + i * ENTRY_BYTES
+
+    def _bump(self, byte_off: int) -> None:
+        self._u[byte_off // 4] = (self._u[byte_off // 4] + 1) & 0xFFFFFFFF
+        _linux.futex_wake(self._base + byte_off)
+
+    def wait_control(self, name: str, timeout: float) -> None:
+        """Sleep up to ``timeout`` s or until this model's rate changes or the engine stops."""
+        i = self.index[name]
+        off = _HEADER + i * ENTRY_BYTES
+        word = self._u[off // 4]
+        if self.stopping:
+            return
+        _linux.futex_wait(self._control_addr(i), word, timeout)
+
+    def output_word(self) -> int:
+        return self._u[1]
+
+    def wait_output(self, word: int, timeout: float) -> None:
+        """Sleep until any head publishes (the output word moves away from ``word``) or ``timeout``."""
+        _linux.futex_wait(self._base + 4, word, timeout)
+
+    def notify_output(self) -> None:
+        self._bump(4)
+
+    # ------------------------------------------------------------------------------------------- control
+    def set_rate(self, name: str, hz: float | None) -> None:
+        i = self.index[name]
+        self._set(i, "target_hz", math.nan if hz is None else hz)
+        self._bump(_HEADER + i * ENTRY_BYTES)
+
+    def rate(self, name: str) -> float | None:
+        v = self._get(self.index[name], "target_hz")
+        return None if math.isnan(v) else v
+
+    @property
+    def stopping(self) -> bool:
+        return bool(self._q[1])
+
+    def request_stop(self) -> None:
+        self._q[1] = 1
+        self._bump(0)
+        for i in range(len(self.names)):
+            self._bump(_HEADER + i * ENTRY_BYTES)
+        self._bump(4)
+
+    def set_state(self, name: str, state: int) -> None:
+        self.set(name, "state", state)
+
+    def state(self, name: str) -> str:
+        return STATES[self.get(name, "state")]
+
+    def heartbeat(self, name: str) -> None:
+        self.set(name, "heartbeat", time.monotonic())
+
+    # ------------------------------------------------------------------------------------------ recording
+    def _lat_base(self, i: int) -> int:
+        return (_HEADER // 8) + i * ENTRY_WORDS + _LAT0
+
+    def record_run(self, name: str, t_start: float, compute_s: float, e2e_s: float, frame_id: int) -> None:
+        i = self.index[name]
+        n = self._get(i, "lat_count")
+        b = self._lat_base(i)
+        k = n % LAT_N
+        self._d[b + k] = compute_s
+        self._d[b + LAT_N + k] = e2e_s
+        self._d[b + 2 * LAT_N + k] = t_start
+        self._set(i, "last_frame_id", frame_id)
+        self._add(i, "runs")
+        self._set(i, "lat_count", n + 1)
+
+    def set_error(self, name: str, text: str) -> None:
+        i = self.index[name]
+        off = ((_HEADER // 8) + i * ENTRY_WORDS + _LAT0 + 3 * LAT_N) * 8
+        data = text.encode("utf-8", "replace")[: ERR_BYTES - 1]
+        mm = self._region.mm
+        mm[off : off + ERR_BYTES] = data + b"\0" * (ERR_BYTES - len(data))
+
+    def last_error(self, name: str) -> str:
+        i = self.index[name]
+        off = ((_HEADER // 8) + i * ENTRY_WORDS + _LAT0 + 3 * LAT_N) * 8
+        raw = bytes(self._region.mm[off : off + ERR_BYTES])
+        return raw.split(b"\0", 1)[0].decode("utf-8", "replace")
+
+    # -------------------------------------------------------------------------------------------- reading
+    def snapshot(self, name: str, window_s: float = 2.0) -> dict[str, Any]:
+        """Counters, achieved rate over the last ``window_s`` and latency percentiles (ms) for one model."""
+        i = self.index[name]
+        n = min(self._get(i, "lat_count"), LAT_N)
+        b = self._lat_base(i)
+        lat = np.asarray(self._d[b : b + n]) if n else np.empty(0)
+        e2e = np.asarray(self._d[b + LAT_N : b + LAT_N + n]) if n else np.empty(0)
+        starts = np.sort(np.asarray(self._d[b + 2 * LAT_N : b + 2 * LAT_N + n])) if n else np.empty(0)
+        now = time.monotonic()
+        recent = starts[starts >= now - window_s]
+        achieved = 0.0
+        if len(recent) >= 2 and now - recent[-1] < window_s:
+            achieved = (len(recent) - 1) / max(recent[-1] - recent[0], 1e-9)
+        hb = self._get(i, "heartbeat")
+
+        def pct(a: np.ndarray) -> dict[str, float]:
+            if not len(a):
+                return {"p50": math.nan, "p90": math.nan, "p99": math.nan, "mean": math.nan}
+            p = np.percentile(a, [50, 90, 99]) * 1e3
+            return {"p50": float(p[0]), "p90": float(p[1]), "p99": float(p[2]), "mean": float(a.mean() * 1e3)}
+
+        target = self._get(i, "target_hz")
+        return {
+            "state": STATES[self._get(i, "state")],
+            "pid": self._get(i, "pid"),
+            "target_hz": None if math.isnan(target) else target,
+            "achieved_hz": achieved,
+            "runs": self._get(i, "runs"),
+            "skipped": self._get(i, "skipped"),
+            "dropped": self._get(i, "dropped"),
+            "errors": self._get(i, "errors"),
+            "restarts": self._get(i, "restarts"),
+            "crashes": self._get(i, "crashes"),
+            "last_frame_id": self._get(i, "last_frame_id"),
+            "heartbeat_age_s": (now - hb) if hb > 0 else None,
+            "latency_ms": pct(lat),
+            "e2e_latency_ms": pct(e2e),
+            "mps": bool(self._get(i, "mps_active")),
+            "device_mem_bytes": self._get(i, "device_mem_bytes"),
+            "last_error": self.last_error(name) or None,
+        }
+
+    def recent_latencies(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        i = self.index[name]
+        n = min(self._get(i, "lat_count"), LAT_N)
+        b = self._lat_base(i)
+        return np.asarray(self._d[b : b + n]).copy(), np.asarray(self._d[b + LAT_N : b + LAT_N + n]).copy()

@@ -1,0 +1,304 @@
+"""Process mode: every model in its own child process.
+
+Note [Child lifecycle]
+~~~~~~~~~~~~~~~~~~~~~~
+* Children are fresh interpreters (``python -m vpengine.runtime.child``), never forks: the parent may have
+  initialised CUDA, and a forked CUDA context is unusable. Unlike multiprocessing's spawn, the user's ``__main__``
+  script is not re-imported in the child, so scripts need no ``if __name__ == "__main__"`` guard and a ROS node's
+  top-level code never runs twice. Children get their own session, so a Ctrl-C in the terminal reaches only the
+  parent, which then stops them in order.
+* Each child inherits exactly one file descriptor: its end of a UNIX socketpair. Over it the parent sends the
+  child's spec and then the file descriptors of every region it maps (memfds, CUDA VMM handles) with SCM_RIGHTS --
+  no socket file, no /dev/shm name, so no other process can attach -- and both ends check the peer's uid with
+  SO_PEERCRED. The child answers READY (or its traceback) once its model is loaded and warmed up; the parent waits
+  at most ``runtime.ready_timeout_s``.
+* The same socket is the death pipe: a watcher thread in the child blocks on it, and when the parent dies (even by
+  SIGKILL) the kernel closes the parent's end, the read returns EOF, and the child exits at once.
+* The parent's monitor thread waits on a pidfd of every child (EOF of its socket on kernels without pidfd); a
+  death is handled by ``Runner._on_exit``.
+* ``stop`` asks politely (stop flag + message), then terminate -> wait(timeout) -> kill. It always returns.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import replace
+from multiprocessing.connection import Connection, wait
+from pathlib import Path
+from typing import Any
+
+from vpengine.runtime.control import STOPPED
+from vpengine.runtime.supervisor import EngineStartError, Runner
+
+log = logging.getLogger("vpengine.process")
+
+
+def peer_uid(sock_fd: int) -> tuple[int, int]:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(sock_fd))
+    try:
+        raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    finally:
+        sock.close()
+    pid, uid, _gid = struct.unpack("3i", raw)
+    return pid, uid
+
+
+def send_fds(conn: Connection, fds: list[int]) -> None:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
+    try:
+        socket.send_fds(sock, [struct.pack("i", len(fds))], fds)
+    finally:
+        sock.close()
+
+
+def recv_fds(conn: Connection) -> list[int]:
+    _pid, uid = peer_uid(conn.fileno())
+    if uid != os.getuid():
+        raise PermissionError(
+            f"handle socket peer runs as uid {uid}, not {os.getuid()}; refusing its handles"
+        )
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
+    try:
+        msg, fds, _flags, _addr = socket.recv_fds(sock, 4, 256)
+    finally:
+        sock.close()
+    expected = struct.unpack("i", msg)[0] if len(msg) == 4 else -1
+    if len(fds) != expected:
+        raise RuntimeError(f"expected {expected} file descriptors from the engine, got {len(fds)}")
+    return fds
+
+
+def _child_env() -> dict[str, str]:
+    env = dict(os.environ)
+    src = str(Path(__file__).resolve().parents[2])  # the folder holding the vpengine package
+    env["PYTHONPATH"] = os.pathsep.join([src, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
+    return env
+
+
+class _Child:
+    def __init__(self, proc: subprocess.Popen[bytes], conn: Connection) -> None:
+        self.proc = proc
+        self.conn = conn
+        self.ready = False
+        self.error: str | None = None
+        self.eof = False
+        try:
+            self.pidfd: int | None = os.pidfd_open(proc.pid)
+        except (AttributeError, OSError):  # kernel < 5.3: the socket's EOF tells us instead
+            self.pidfd = None
+
+    @property
+    def sentinel(self) -> Any:
+        return self.pidfd if self.pidfd is not None else self.conn
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def join(self, timeout: float) -> bool:
+        try:
+            self.proc.wait(max(0.0, timeout))
+            return True
+        except subprocess.TimeoutExpired:
+            return False
+
+    def drain(self) -> None:
+        """Read any READY / error messages waiting on the socket."""
+        try:
+            while not self.eof and self.conn.poll():
+                msg = self.conn.recv()
+                if msg[0] == "ready":
+                    self.ready = True
+                elif msg[0] == "error":
+                    self.error = str(msg[1])
+        except (EOFError, OSError):
+            self.eof = True
+
+    def close(self) -> None:
+        for close in (self.conn.close, lambda: self.pidfd is not None and os.close(self.pidfd)):
+            with contextlib.suppress(OSError):
+                close()
+
+
+class ProcessRunner(Runner):
+    def __init__(self, *args, **kw) -> None:  # type: ignore[no-untyped-def]
+        super().__init__(*args, **kw)
+        self._children: dict[str, _Child] = {}
+        self._wake_r, self._wake_w = os.pipe()
+        self._monitor: threading.Thread | None = None
+
+    def _launch(self, name: str) -> None:
+        spec = self.specs[name]
+        fds: list[int] = []
+        in_ring = self.rings[spec.in_ring.name]
+        out_ring = self.rings[spec.out_ring.name]
+        child_spec = replace(
+            spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
+        )
+        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        try:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", "vpengine.runtime.child", str(theirs.fileno())],
+                pass_fds=[theirs.fileno()],
+                env=_child_env(),
+                start_new_session=True,
+            )
+        finally:
+            theirs.close()
+        conn = Connection(ours.detach())
+        _pid, uid = peer_uid(conn.fileno())
+        if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
+            proc.kill()
+            raise PermissionError(f"worker {name}: socket peer has uid {uid}")
+        conn.send(("init", list(sys.path), child_spec, self.cfg.logging.level))
+        send_fds(conn, fds)
+        self._children[name] = _Child(proc, conn)
+        os.write(self._wake_w, b"x")
+
+    # ------------------------------------------------------------------------------------------- start
+    def start(self) -> None:
+        for name in self.specs:
+            self._launch(name)
+        deadline = time.monotonic() + self.cfg.runtime.ready_timeout_s
+        waiting = set(self.specs)
+        errors: list[str] = []
+        while waiting:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self.stop()
+                raise EngineStartError(
+                    f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
+                    "(runtime.ready_timeout_s)"
+                )
+            by_obj: dict[Any, str] = {}
+            for name in waiting:
+                ch = self._children[name]
+                by_obj[ch.conn] = name
+                by_obj[ch.sentinel] = name
+            for obj in wait(list(by_obj), timeout=remaining):
+                name = by_obj[obj]
+                if name not in waiting:
+                    continue
+                ch = self._children[name]
+                ch.drain()
+                if ch.ready:
+                    waiting.discard(name)
+                elif ch.error is not None:
+                    errors.append(ch.error)
+                    waiting.discard(name)
+                elif ch.eof or not ch.alive():
+                    ch.join(1.0)
+                    errors.append(f"{name} exited with code {ch.proc.returncode} before it was ready")
+                    waiting.discard(name)
+        if errors:
+            self.stop()
+            raise EngineStartError("worker start-up failed:\n" + "\n".join(errors))
+        self._monitor = threading.Thread(target=self._watch, name="vpengine-monitor", daemon=True)
+        self._monitor.start()
+
+    # ----------------------------------------------------------------------------------------- monitor
+    def _watch(self) -> None:
+        cfg = self.cfg.runtime
+        while not self._stopping:
+            timeout = min(self._run_due_restarts(), cfg.poll_s)
+            by_obj: dict[Any, str] = {self._wake_r: ""}
+            with self._lock:
+                for name, ch in self._children.items():
+                    if name not in self._pending and not ch.eof:
+                        by_obj[ch.conn] = name
+                        by_obj[ch.sentinel] = name
+            for obj in wait(list(by_obj), timeout=max(0.01, timeout)):
+                name = by_obj[obj]
+                if not name:
+                    os.read(self._wake_r, 4096)
+                    continue
+                with self._lock:
+                    if self._stopping:
+                        return
+                    ch = self._children.get(name)
+                    if ch is None or name in self._pending:
+                        continue
+                    was_ready = ch.ready
+                    ch.drain()
+                    if ch.ready and not was_ready:
+                        log.info("%s is ready again (pid %d)", name, ch.proc.pid)
+                    if ch.alive() and not (ch.eof and ch.pidfd is None):
+                        continue
+                    if not ch.join(2.0):  # socket closed but the process lingers: make sure it is gone
+                        ch.proc.kill()
+                        ch.join(2.0)
+                    code = ch.proc.returncode
+                    reason = f"exit code {code}" if code is None or code >= 0 else f"killed by signal {-code}"
+                    if ch.error:
+                        reason += ": " + ch.error.strip().splitlines()[-1]
+                    ch.close()
+                    ch.eof = True
+                    self._on_exit(name, crashed=code != 0, reason=reason)
+            self._check_hangs()
+
+    def _check_hangs(self) -> None:
+        limit = self.cfg.runtime.hang_timeout_s
+        if limit is None:
+            return
+        now = time.monotonic()
+        with self._lock:
+            for name, ch in self._children.items():
+                if name in self._pending or not ch.ready or ch.eof or not ch.alive():
+                    continue
+                hb = self.control.get(name, "heartbeat")
+                if hb > 0 and now - hb > limit:
+                    log.error(
+                        "%s has not reported for %.0f s (runtime.hang_timeout_s); killing it", name, now - hb
+                    )
+                    ch.error = f"hung for {now - hb:.0f} s"
+                    ch.proc.kill()
+
+    # -------------------------------------------------------------------------------------------- stop
+    def stop(self) -> list[str]:
+        with self._lock:
+            self._stopping = True
+            self._pending.clear()
+        with contextlib.suppress(OSError):
+            os.write(self._wake_w, b"x")
+        self.control.request_stop()
+        for ring in self.rings.values():
+            ring.wake_all()
+        children = list(self._children.items())
+        for _, ch in children:
+            with contextlib.suppress(OSError, ValueError):
+                ch.conn.send(("stop",))
+        deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
+        for _, ch in children:
+            ch.join(deadline - time.monotonic())
+        forced = [name for name, ch in children if ch.alive()]
+        for name, ch in children:
+            if ch.alive():
+                ch.proc.terminate()
+        for _, ch in children:
+            if ch.alive():
+                ch.join(2.0)
+        for name, ch in children:
+            if ch.alive():
+                ch.proc.kill()
+                ch.join(2.0)
+            self.control.set_state(name, STOPPED)
+            ch.close()
+        if self._monitor is not None and self._monitor is not threading.current_thread():
+            self._monitor.join(2.0)
+        for fd in (self._wake_r, self._wake_w):
+            with contextlib.suppress(OSError):
+                os.close(fd)
+        if forced:
+            log.warning(
+                "workers %s did not stop within %.1f s and were terminated",
+                forced,
+                self.cfg.runtime.stop_timeout_s,
+            )
+        return forced

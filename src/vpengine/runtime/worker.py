@@ -1,0 +1,207 @@
+"""The one worker loop, used for the foundation model and every head, in a thread or in a child process.
+
+``WorkerCore`` holds the logic and no IPC (it is handed rings and a control block that are already mapped), so the
+same object runs in-process under tests and debuggers, in a thread (thread mode), or inside a spawned child
+(process mode, ``process.py``). One iteration::
+
+    rate gate -> pin newest input (with timeout) -> acquire output slot -> stage inputs on the device
+      -> model -> copy outputs into the slot -> device sync -> publish output -> release input -> counters
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+import traceback
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+
+from vpengine.config import EngineConfig, load_config
+from vpengine.models.base import BuildContext, Model, Role, check_outputs
+from vpengine.models.registry import resolve
+from vpengine.runtime.control import PAUSED, RUNNING, ControlBlock, ControlDesc
+from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.rate import RateGate
+from vpengine.specs import SpecDict
+from vpengine.transport.ring import RingDesc, SlotInfo, SlotRing
+
+log = logging.getLogger("vpengine.worker")
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything a worker needs, picklable so it can cross into a spawned child."""
+
+    name: str
+    role: Role
+    config: dict[str, Any]  # EngineConfig.model_dump(mode="json")
+    upstream: SpecDict
+    upstream_meta: dict[str, Any]
+    in_ring: RingDesc
+    in_reader: str
+    out_ring: RingDesc
+    notify_output: bool
+    control: ControlDesc | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def engine_config(self) -> EngineConfig:
+        return load_config(self.config)
+
+
+def model_config(cfg: EngineConfig, name: str) -> Any:
+    return cfg.foundation_model if name == "foundation" else cfg.head(name)
+
+
+def build_model(
+    cfg: EngineConfig,
+    name: str,
+    role: Role,
+    upstream: SpecDict,
+    upstream_meta: dict[str, Any],
+    device: torch.device,
+    plan_only: bool,
+) -> Model:
+    """Build one recipe. With ``plan_only`` it lands on the meta device with no weights (for planning)."""
+    mcfg = model_config(cfg, name)
+    cls, defaults = resolve(mcfg.model, role)
+    ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
+    with torch.device("meta" if plan_only else device):
+        model = cls.from_config(ctx)
+    if not plan_only:
+        model.load_checkpoint(ctx)
+        model.eval().requires_grad_(False)
+    return model
+
+
+class WorkerCore:
+    """The loop of one model. Construct with mapped rings; ``run`` until ``should_stop`` says so."""
+
+    def __init__(
+        self,
+        spec: WorkerSpec,
+        model: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]],
+        output_spec: SpecDict,
+        in_ring: SlotRing,
+        out_ring: SlotRing,
+        control: ControlBlock,
+        device: DeviceContext,
+        poll_s: float = 0.5,
+    ) -> None:
+        self.spec = spec
+        self.name = spec.name
+        self.model = model
+        self.output_spec = output_spec
+        self.reader = in_ring.reader(spec.in_reader)
+        self.writer = out_ring.writer()
+        self.control = control
+        self.dev = device
+        self.poll_s = poll_s
+        self.gate = RateGate()
+        self._checked = False
+        self._should_stop: Callable[[], bool] = lambda: False
+        self._keys = list(spec.upstream) or list(in_ring.layout.keys)
+        # Inputs live wherever their ring lives; a model on another device reads preallocated staging copies.
+        self._staging: dict[str, torch.Tensor] | None = None
+        if in_ring.data_region.device != device.device:
+            self._staging = {
+                k: torch.empty_like(in_ring.views[0][k], device=device.device) for k in self._keys
+            }
+
+    def _inputs(self, slot: SlotInfo) -> dict[str, torch.Tensor]:
+        if self._staging is None:
+            return {k: slot.tensors[k] for k in self._keys}
+        for k, t in self._staging.items():
+            t.copy_(slot.tensors[k], non_blocking=True)
+        return self._staging
+
+    def run(self, should_stop: Callable[[], bool]) -> None:
+        ctl, name = self.control, self.name
+        self._should_stop = should_stop
+        ctl.set_state(name, RUNNING)
+        while not should_stop():
+            now = time.monotonic()
+            ctl.heartbeat(name)
+            self.gate.update(ctl.rate(name), now)
+            wait = self.gate.wait_time(now)
+            if wait > 0:
+                ctl.set_state(name, PAUSED if math.isinf(wait) else RUNNING)
+                ctl.wait_control(name, min(wait, self.poll_s))
+                continue
+            ctl.set_state(name, RUNNING)
+            slot = self.reader.pin(timeout=self.poll_s, should_stop=should_stop)
+            if slot is None:
+                continue
+            try:
+                self._step(slot)
+            finally:
+                self.reader.release(slot)
+
+    def _step(self, slot: SlotInfo) -> None:
+        ctl, name = self.control, self.name
+        t_start = time.monotonic()
+        self.gate.started(t_start)
+        if slot.missed:
+            ctl.add(name, "skipped", slot.missed)
+        out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
+        if out is None:
+            ctl.add(name, "dropped")
+            return
+        try:
+            with self.dev.active(), torch.inference_mode():
+                outputs = self.model(self._inputs(slot))
+                if not self._checked:
+                    check_outputs(name, self.output_spec, outputs)
+                    self._checked = True
+                for k, t in out.tensors.items():
+                    t.copy_(outputs[k], non_blocking=True)
+            self.dev.complete()  # Note [Device sync]: publish only what is complete
+        except BaseException:
+            self.writer.abort(out)
+            raise
+        self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
+        if self.spec.notify_output:
+            ctl.notify_output()
+        t_end = time.monotonic()
+        ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
+
+
+def describe_exception(name: str, exc: BaseException) -> str:
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    return f"{name} (pid {os.getpid()}): {type(exc).__name__}: {exc}\n{tb}"
+
+
+def prepare_worker(
+    spec: WorkerSpec, in_ring: SlotRing, out_ring: SlotRing, control: ControlBlock, own_process: bool
+) -> WorkerCore:
+    """Build the model on its device, warm it up (allocations happen here, before READY), return its loop."""
+    from vpengine.backends import make_executor
+    from vpengine.runtime.control import LOADING, READY
+
+    cfg = spec.engine_config()
+    mcfg = model_config(cfg, spec.name)
+    device = torch.device(cfg.device)
+    if own_process and device.type == "cpu":
+        torch.set_num_threads(mcfg.cpu_threads)
+    control.set_state(spec.name, LOADING)
+    control.set(spec.name, "pid", os.getpid())
+    dev = DeviceContext(device, mcfg.stream_priority)
+    with dev.active():
+        model = build_model(
+            cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False
+        )
+        executor = make_executor(model, mcfg.backend, device, spec.name)
+        # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY, so
+        # the steady state allocates nothing (Invariant: constant memory).
+        with torch.inference_mode():
+            check_outputs(spec.name, model.output_spec, executor(model.example_inputs(device)))
+        dev.complete()
+    control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
+    control.set(spec.name, "started_at", time.monotonic())
+    control.heartbeat(spec.name)
+    control.set_state(spec.name, READY)
+    return WorkerCore(spec, executor, model.output_spec, in_ring, out_ring, control, dev, cfg.runtime.poll_s)

@@ -1,0 +1,34 @@
+"""Preallocated slot pools and mailboxes. Knows tensors, slots, sequence numbers, pins and wake-ups; no models."""
+
+from vpengine.transport.layout import SlotLayout
+from vpengine.transport.memory import HostRegion, LocalRegion, Region, RegionHandle, allocate, open_region
+from vpengine.transport.ring import (
+    ReaderDecl,
+    RingClosedError,
+    RingDesc,
+    RingReader,
+    RingWriter,
+    SlotInfo,
+    SlotRing,
+    fifo_queue,
+    latest_buffer,
+)
+
+__all__ = [
+    "HostRegion",
+    "LocalRegion",
+    "ReaderDecl",
+    "Region",
+    "RegionHandle",
+    "RingClosedError",
+    "RingDesc",
+    "RingReader",
+    "RingWriter",
+    "SlotInfo",
+    "SlotLayout",
+    "SlotRing",
+    "allocate",
+    "fifo_queue",
+    "latest_buffer",
+    "open_region",
+]

@@ -1,0 +1,182 @@
+"""Memory backends: where a slot pool lives, and how another process maps the same bytes.
+
+A :class:`Region` is one contiguous allocation (one per pool, carved into slots and keys by ``layout.py``) that can
+be viewed as a flat ``uint8`` torch tensor without a copy. Process mode needs regions that other processes can map:
+``export`` appends the file descriptors that stand for the region to a list (sent later over a UNIX socket with
+SCM_RIGHTS) and returns a small picklable :class:`RegionHandle`; ``open_region`` in the child turns both back into a
+mapped region.
+
+Backends:
+
+* ``host``: a memfd (anonymous shared memory, owner-only, never in /dev/shm) mapped with mmap. CPU mode, CI, input
+  frames and host-side result slots.
+* ``local``: a plain torch allocation on any device, for thread mode (one process, nothing to share).
+* ``cuda-vmm``: device memory from the CUDA virtual memory API, exported as a POSIX file descriptor
+  (``cuda_vmm.py``; imported lazily so CPU installs never touch CUDA).
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+
+import torch
+
+from vpengine.transport import _linux
+
+
+@dataclass(frozen=True)
+class RegionHandle:
+    """Picklable description of an exported region; the fd it needs travels separately at ``fd_index``."""
+
+    kind: str
+    name: str
+    nbytes: int
+    fd_index: int
+    device: int = -1
+    #: Backend-specific extras (the CUDA backend records its allocation granularity here).
+    alloc_bytes: int = 0
+
+
+class Region(ABC):
+    """One allocation, viewable as a flat uint8 tensor on ``device``."""
+
+    kind: str = ""
+
+    def __init__(self, name: str, nbytes: int, device: torch.device) -> None:
+        self.name = name
+        self.nbytes = nbytes
+        self.device = device
+
+    @abstractmethod
+    def tensor(self) -> torch.Tensor:
+        """The whole region as a flat uint8 tensor (zero-copy)."""
+
+    def export(self, fds: list[int]) -> RegionHandle:
+        raise TypeError(f"region {self.name!r} ({self.kind}) cannot be shared with another process")
+
+    @abstractmethod
+    def close(self) -> None:
+        """Unmap and free this process's references. Safe to call twice."""
+
+
+class HostRegion(Region):
+    """Shared host memory: memfd + mmap. Owner-only by construction, freed when the last process unmaps it."""
+
+    kind = "host"
+
+    def __init__(self, name: str, nbytes: int, fd: int | None = None, keep_fd: bool = True) -> None:
+        super().__init__(name, nbytes, torch.device("cpu"))
+        owns = fd is None
+        self._fd: int | None = _linux.memfd(name, max(nbytes, 1)) if fd is None else fd
+        try:
+            self._mm: mmap.mmap | None = mmap.mmap(self._fd, max(nbytes, 1))
+        except BaseException:
+            if owns:
+                os.close(self._fd)
+            raise
+        if not keep_fd:
+            os.close(self._fd)
+            self._fd = None
+        self._tensor: torch.Tensor | None = None
+        self.cuda_registered = False
+
+    @property
+    def mm(self) -> mmap.mmap:
+        if self._mm is None:
+            raise ValueError(f"region {self.name!r} is closed")
+        return self._mm
+
+    def tensor(self) -> torch.Tensor:
+        if self._tensor is None:
+            self._tensor = torch.frombuffer(self.mm, dtype=torch.uint8, count=self.nbytes)
+        return self._tensor
+
+    def address(self) -> int:
+        return _linux.address_of(self.mm, 0)
+
+    def export(self, fds: list[int]) -> RegionHandle:
+        if self._fd is None:
+            raise TypeError(
+                f"region {self.name!r} was opened without its descriptor and cannot be re-exported"
+            )
+        fds.append(self._fd)
+        return RegionHandle(self.kind, self.name, self.nbytes, len(fds) - 1)
+
+    @classmethod
+    def open(cls, handle: RegionHandle, fds: list[int]) -> HostRegion:
+        return cls(handle.name, handle.nbytes, fd=fds[handle.fd_index], keep_fd=False)
+
+    def register_with_cuda(self) -> None:
+        """Page-lock this mapping for the GPU (cudaHostRegister) so copies to and from it run asynchronously."""
+        if self.cuda_registered or not torch.cuda.is_available():
+            return
+        rc = torch.cuda.cudart().cudaHostRegister(self.address(), self.nbytes, 0)
+        if int(rc) != 0:
+            raise RuntimeError(
+                f"cudaHostRegister failed for region {self.name!r} ({self.nbytes} bytes): {rc}"
+            )
+        self.cuda_registered = True
+
+    def close(self) -> None:
+        if self.cuda_registered and self._mm is not None:
+            torch.cuda.cudart().cudaHostUnregister(self.address())
+            self.cuda_registered = False
+        self._tensor = None
+        if self._mm is not None:
+            try:
+                self._mm.close()
+            except BufferError:
+                # A view is still alive somewhere (a result the user kept); the mapping goes with it.
+                pass
+            self._mm = None
+        if self._fd is not None:
+            os.close(self._fd)
+            self._fd = None
+
+
+class LocalRegion(Region):
+    """A plain allocation in this process (thread mode): host or device, never shared."""
+
+    kind = "local"
+
+    def __init__(self, name: str, nbytes: int, device: torch.device) -> None:
+        super().__init__(name, nbytes, device)
+        self._tensor: torch.Tensor | None = torch.empty(max(nbytes, 1), dtype=torch.uint8, device=device)[
+            :nbytes
+        ]
+
+    def tensor(self) -> torch.Tensor:
+        if self._tensor is None:
+            raise ValueError(f"region {self.name!r} is closed")
+        return self._tensor
+
+    def close(self) -> None:
+        self._tensor = None
+
+
+def allocate(name: str, nbytes: int, device: torch.device | str, shared: bool) -> Region:
+    """Allocate a region on ``device``. ``shared`` regions can be exported to other processes."""
+    device = torch.device(device)
+    if device.type == "cpu":
+        return HostRegion(name, nbytes) if shared else LocalRegion(name, nbytes, device)
+    if device.type == "cuda":
+        if not shared:
+            return LocalRegion(name, nbytes, device)
+        from vpengine.transport.cuda_vmm import CudaVmmRegion
+
+        return CudaVmmRegion(name, nbytes, device)
+    raise ValueError(f"unsupported device {str(device)!r}; accepted: 'cpu', 'cuda', 'cuda:N'")
+
+
+def open_region(handle: RegionHandle, fds: list[int]) -> Region:
+    """Map a region exported by another process."""
+    if handle.kind == "host":
+        return HostRegion.open(handle, fds)
+    if handle.kind == "cuda-vmm":
+        from vpengine.transport.cuda_vmm import CudaVmmRegion
+
+        return CudaVmmRegion.open(handle, fds)
+    raise ValueError(f"unknown region kind {handle.kind!r} for region {handle.name!r}")

@@ -1,3 +1,25 @@
 """vpengine: one vision foundation model per frame, its features shared on the device with many task heads."""
 
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
 __version__ = "0.1.0"
+
+if TYPE_CHECKING:
+    from vpengine.config import EngineConfig, load_config
+    from vpengine.engine import Engine, EngineDeadError, EngineStartError, Result
+
+__all__ = ["Engine", "EngineConfig", "EngineDeadError", "EngineStartError", "Result", "load_config"]
+
+
+def __getattr__(name: str) -> Any:  # lazy: `import vpengine` stays light for worker start-up and the CLI
+    if name in ("Engine", "EngineDeadError", "EngineStartError", "Result"):
+        from vpengine import engine
+
+        return getattr(engine, name)
+    if name in ("EngineConfig", "load_config"):
+        from vpengine import config
+
+        return getattr(config, name)
+    raise AttributeError(f"module 'vpengine' has no attribute {name!r}")

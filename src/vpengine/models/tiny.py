@@ -167,6 +167,7 @@ class TinyDepthHead(_TinyHead):
         self.proj = nn.Linear(self.dim, 1)
         _seeded_(self, opts.seed)
         self.output_spec = {"depth": TensorSpec(self.out_hw, "float32")}
+        self.meta = {"kind": "depth"}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         m = self._tokens_to_map(self.proj(inputs[self.layer].float()))
@@ -182,12 +183,12 @@ class TinySegHead(_TinyHead):
         self.proj = nn.Linear(self.dim, opts.num_classes)
         _seeded_(self, opts.seed)
         self.output_spec = {"classes": TensorSpec(self.out_hw, "uint8")}
-        self.meta = {"labels": [f"class_{i}" for i in range(opts.num_classes)]}
+        self.meta = {"kind": "segmentation", "labels": [f"class_{i}" for i in range(opts.num_classes)]}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        m = self._tokens_to_map(self.proj(inputs[self.layer].float()))
-        logits = F.interpolate(m, size=self.out_hw, mode="bilinear", align_corners=False)
-        return {"classes": logits[0].argmax(0).to(torch.uint8)}
+        # argmax per token, then nearest upsampling: cheap, which is all a plumbing-test model needs
+        m = self._tokens_to_map(self.proj(inputs[self.layer].float())).argmax(1, keepdim=True).float()
+        return {"classes": F.interpolate(m, size=self.out_hw, mode="nearest")[0, 0].to(torch.uint8)}
 
 
 class TinyDetHead(_TinyHead):
@@ -212,7 +213,11 @@ class TinyDetHead(_TinyHead):
             -1, 4
         )
         self.register_buffer("cells", cells.float(), persistent=False)
-        self.meta = {"labels": [f"class_{i}" for i in range(opts.num_classes)], "max_detections": m}
+        self.meta = {
+            "kind": "detection",
+            "labels": [f"class_{i}" for i in range(opts.num_classes)],
+            "max_detections": m,
+        }
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         logits = self.proj(inputs[self.layer].float())[0]  # N, 1+K

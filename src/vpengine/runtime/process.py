@@ -89,7 +89,8 @@ class _Child:
         self.conn = conn
         self.ready = False
         self.error: str | None = None
-        self.eof = False
+        self.eof = False  # its socket reached EOF (it is exiting)
+        self.handled = False  # its death was handled (cleanup, restart scheduled)
         try:
             self.pidfd: int | None = os.pidfd_open(proc.pid)
         except (AttributeError, OSError):  # kernel < 5.3: the socket's EOF tells us instead
@@ -122,9 +123,12 @@ class _Child:
             self.eof = True
 
     def close(self) -> None:
-        for close in (self.conn.close, lambda: self.pidfd is not None and os.close(self.pidfd)):
+        with contextlib.suppress(OSError):
+            self.conn.close()
+        if self.pidfd is not None:
             with contextlib.suppress(OSError):
-                close()
+                os.close(self.pidfd)
+            self.pidfd = None
 
 
 class ProcessRunner(Runner):
@@ -211,9 +215,12 @@ class ProcessRunner(Runner):
             by_obj: dict[Any, str] = {self._wake_r: ""}
             with self._lock:
                 for name, ch in self._children.items():
-                    if name not in self._pending and not ch.eof:
+                    if name in self._pending or ch.handled:
+                        continue
+                    if not ch.eof:
                         by_obj[ch.conn] = name
-                        by_obj[ch.sentinel] = name
+                    if ch.pidfd is not None:  # keep watching past EOF: the socket closes before the reaping
+                        by_obj[ch.pidfd] = name
             for obj in wait(list(by_obj), timeout=max(0.01, timeout)):
                 name = by_obj[obj]
                 if not name:
@@ -222,16 +229,19 @@ class ProcessRunner(Runner):
                 with self._lock:
                     if self._stopping:
                         return
-                    ch = self._children.get(name)
-                    if ch is None or name in self._pending:
+                    child = self._children.get(name)
+                    if child is None or name in self._pending:
                         continue
+                    ch = child
                     was_ready = ch.ready
                     ch.drain()
                     if ch.ready and not was_ready:
                         log.info("%s is ready again (pid %d)", name, ch.proc.pid)
-                    if ch.alive() and not (ch.eof and ch.pidfd is None):
-                        continue
-                    if not ch.join(2.0):  # socket closed but the process lingers: make sure it is gone
+                    if ch.pidfd is not None and ch.alive():
+                        continue  # its pidfd becomes readable when it is gone
+                    if ch.pidfd is None and not ch.eof:
+                        continue  # no pidfd (old kernel): the socket's EOF is the sign of exit
+                    if not ch.join(2.0):  # exiting but lingering: make sure it is gone
                         ch.proc.kill()
                         ch.join(2.0)
                     code = ch.proc.returncode
@@ -239,7 +249,7 @@ class ProcessRunner(Runner):
                     if ch.error:
                         reason += ": " + ch.error.strip().splitlines()[-1]
                     ch.close()
-                    ch.eof = True
+                    ch.handled = True
                     self._on_exit(name, crashed=code != 0, reason=reason)
             self._check_hangs()
 
@@ -250,7 +260,7 @@ class ProcessRunner(Runner):
         now = time.monotonic()
         with self._lock:
             for name, ch in self._children.items():
-                if name in self._pending or not ch.ready or ch.eof or not ch.alive():
+                if name in self._pending or not ch.ready or ch.handled or not ch.alive():
                     continue
                 hb = self.control.get(name, "heartbeat")
                 if hb > 0 and now - hb > limit:
@@ -278,7 +288,7 @@ class ProcessRunner(Runner):
         for _, ch in children:
             ch.join(deadline - time.monotonic())
         forced = [name for name, ch in children if ch.alive()]
-        for name, ch in children:
+        for _, ch in children:
             if ch.alive():
                 ch.proc.terminate()
         for _, ch in children:

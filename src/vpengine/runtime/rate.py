@@ -1,13 +1,21 @@
 """The rate gate: a schedule of allowed start times, not a sleep after the fact.
 
 Each run advances the next allowed start by one period from the *previous allowed start* (not from when the run
-happened), so late runs do not push the schedule back and N seconds at R Hz give R*N +-1 runs. After an idle spell
-the schedule is not allowed to lag by more than half a period, so there is no burst of catch-up runs either.
+happened), so runs that start late do not push the schedule back and N seconds at R Hz give R*N +-1 runs.
+
+Lateness has two causes, told apart by the worker: the model was *starved* (no new input when the gate opened:
+just started, just resumed, the camera paused) or it was *descheduled* (input was there but the CPU was busy). A
+starved model was idle, so a schedule lagging by more than a period restarts from now (no burst of catch-up runs).
+A descheduled model keeps its schedule and catches up, up to ``MAX_DEBT_PERIODS`` runs, so a loaded machine does
+not silently lose runs.
 """
 
 from __future__ import annotations
 
 import math
+
+#: How many periods behind a busy (not starved) model may catch up before the schedule restarts.
+MAX_DEBT_PERIODS = 4
 
 
 class RateGate:
@@ -39,9 +47,16 @@ class RateGate:
             return math.inf
         return max(0.0, self.next_allowed - now)
 
-    def started(self, t: float) -> None:
-        """Record a run starting at ``t`` and schedule the next allowed start."""
+    def started(self, t: float, starved: bool = False) -> None:
+        """Record a run starting at ``t`` and schedule the next allowed start.
+
+        ``starved``: the input for this run arrived after the gate had opened (the model was idle, not late).
+        """
         self.last_start = t
         if self.hz:
             period = 1.0 / self.hz
-            self.next_allowed = max(self.next_allowed + period, t - 0.5 * period)
+            lag = t - self.next_allowed
+            if lag > period and (starved or lag > MAX_DEBT_PERIODS * period):
+                self.next_allowed = t + period  # idle: start the schedule afresh
+            else:
+                self.next_allowed += period  # on time, or late because busy: keep the schedule

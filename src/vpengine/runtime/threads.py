@@ -60,6 +60,11 @@ class ThreadRunner(Runner):
         t.start()
 
     def start(self) -> None:
+        import torch
+
+        if self.cfg.device == "cpu":
+            # Intra-op threads are per process: in thread mode all models share one pool, sized like a worker's.
+            torch.set_num_threads(self.cfg.foundation_model.cpu_threads)
         for name in self.specs:
             self._launch(name)
         waiting = set(self.specs)

@@ -133,18 +133,19 @@ class WorkerCore:
                 ctl.wait_control(name, min(wait, self.poll_s))
                 continue
             ctl.set_state(name, RUNNING)
+            gate_open = time.monotonic()
             slot = self.reader.pin(timeout=self.poll_s, should_stop=should_stop)
             if slot is None:
                 continue
             try:
-                self._step(slot)
+                self._step(slot, starved=slot.t_publish > gate_open)
             finally:
                 self.reader.release(slot)
 
-    def _step(self, slot: SlotInfo) -> None:
+    def _step(self, slot: SlotInfo, starved: bool) -> None:
         ctl, name = self.control, self.name
         t_start = time.monotonic()
-        self.gate.started(t_start)
+        self.gate.started(t_start, starved)
         if slot.missed:
             ctl.add(name, "skipped", slot.missed)
         out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
@@ -163,11 +164,12 @@ class WorkerCore:
         except BaseException:
             self.writer.abort(out)
             raise
+        # Counters first, then publish: whoever sees the output also sees it counted.
+        t_end = time.monotonic()
+        ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
         self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
         if self.spec.notify_output:
             ctl.notify_output()
-        t_end = time.monotonic()
-        ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
 
 
 def describe_exception(name: str, exc: BaseException) -> str:

@@ -1,0 +1,24 @@
+"""``vpengine bench``: the benchmark suite. Each benchmark writes a JSON results file (and figures where useful)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+
+BENCHES = {
+    "hop": ("vpengine.bench.hop", "mailbox hop latency: publish -> reader woken -> slot pinned"),
+    "pipeline": ("vpengine.bench.pipeline", "tiny pipeline throughput in process and thread mode"),
+}
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    sub = p.add_subparsers(dest="bench", metavar="BENCH", required=True)
+    for name, (module, help_text) in BENCHES.items():
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        sp.set_defaults(_bench=module)
+        sp.add_argument("--out", default="benchmarks/results", help="folder for the results JSON")
+        importlib.import_module(module).add_arguments(sp)
+
+
+def main(args: argparse.Namespace) -> int:
+    return int(importlib.import_module(args._bench).main(args) or 0)

@@ -1,0 +1,90 @@
+"""``vpengine info``: what this machine offers the engine."""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import json
+import os
+import platform
+import sys
+from typing import Any
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+
+
+def _version(dist: str) -> str | None:
+    try:
+        return importlib.metadata.version(dist)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+def collect() -> dict[str, Any]:
+    import torch
+
+    from vpengine import __version__
+    from vpengine.runtime import mps
+
+    versions = {"vpengine": __version__, "python": platform.python_version()}
+    for dist in (
+        "torch",
+        "torchvision",
+        "timm",
+        "numpy",
+        "opencv-python-headless",
+        "onnxruntime",
+        "onnx",
+        "cyclonedds",
+        "rosbags",
+        "transformers",
+        "cuda-bindings",
+    ):
+        versions[dist] = _version(dist)
+    devices: list[dict[str, Any]] = [
+        {"device": "cpu", "name": platform.processor() or platform.machine(), "cores": os.cpu_count()}
+    ]
+    cuda: dict[str, Any] = {"available": torch.cuda.is_available(), "torch_cuda": torch.version.cuda}
+    if torch.cuda.is_available():
+        for i in range(torch.cuda.device_count()):
+            prop = torch.cuda.get_device_properties(i)
+            devices.append(
+                {
+                    "device": f"cuda:{i}",
+                    "name": prop.name,
+                    "memory_gb": round(prop.total_memory / 2**30, 1),
+                    "compute_capability": f"{prop.major}.{prop.minor}",
+                    "multiprocessors": prop.multi_processor_count,
+                }
+            )
+    return {
+        "versions": versions,
+        "platform": platform.platform(),
+        "devices": devices,
+        "cuda": cuda,
+        "mps": mps.status(),
+    }
+
+
+def main(args: argparse.Namespace) -> int:
+    info = collect()
+    if args.json:
+        print(json.dumps(info, indent=2))
+        return 0
+    w = sys.stdout.write
+    w(f"vpengine {info['versions']['vpengine']} on {info['platform']}\n\nversions:\n")
+    for k, v in info["versions"].items():
+        w(f"  {k:24s} {v or '-'}\n")
+    w("\ndevices:\n")
+    for d in info["devices"]:
+        w("  " + ", ".join(f"{k}={v}" for k, v in d.items()) + "\n")
+    if not info["cuda"]["available"]:
+        w(f"  (no CUDA device visible; torch built with CUDA {info['cuda']['torch_cuda'] or 'none'})\n")
+    m = info["mps"]
+    w(
+        f"\nCUDA MPS: {'daemon reachable' if m['reachable'] else 'not reachable'} at {m['pipe_directory']}"
+        f"{'' if m['reachable'] else ' (' + m['reason'] + ')'}\n"
+    )
+    return 0

@@ -1,0 +1,55 @@
+"""``vpengine``: one console script, one subcommand per job. Subcommands import their heavy modules lazily."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+# subcommand -> module with add_arguments(parser) and main(args) -> int
+COMMANDS = {
+    "run": ("vpengine.cli.run", "run a pipeline on a video, an image folder, a camera or a synthetic scene"),
+    "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
+    "bench": ("vpengine.cli.bench", "benchmarks: mailbox hop, pipeline throughput"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from vpengine import __version__
+
+    p = argparse.ArgumentParser(
+        prog="vpengine", description="One foundation model per frame, many heads in parallel."
+    )
+    p.add_argument("--version", action="version", version=f"vpengine {__version__}")
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        sp = sub.add_parser(name, help=help_text, description=help_text)
+        sp.set_defaults(_module=module)
+        importlib.import_module(module).add_arguments(sp)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_module", None):
+        parser.print_help()
+        return 2
+    level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return int(importlib.import_module(args._module).main(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, KeyError, FileNotFoundError, RuntimeError) as e:
+        if args.verbose >= 2:
+            raise
+        print(f"vpengine {args.command}: error: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

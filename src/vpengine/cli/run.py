@@ -1,0 +1,262 @@
+"""``vpengine run``: a pipeline over a video, an image folder, a camera or the built-in synthetic scene.
+
+Pacing decides what happens when models are slower than the source:
+
+* ``lockstep`` (default for files): the next frame goes in once every running head has answered the previous one,
+  so nothing is skipped and the run is as fast as the slowest head allows;
+* ``realtime`` (default for cameras and the synthetic scene): frames go in at the source's rate like a live camera;
+  models take the newest frame and every frame they skip is counted in the summary.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import logging
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+log = logging.getLogger("vpengine.run")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", "-c", required=True, help="engine config (YAML or JSON)")
+    p.add_argument(
+        "--source",
+        "-s",
+        default="synthetic",
+        help="video file, image folder, camera:N, or synthetic[:WxH][@FPS][:FRAMES] (default: synthetic)",
+    )
+    p.add_argument(
+        "--out", "-o", help="output folder (per-head outputs and summary.json); omit to write nothing"
+    )
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config field, e.g. --set heads.depth.rate_hz=5 (repeatable)",
+    )
+    p.add_argument(
+        "--pace", choices=["lockstep", "realtime"], help="see `vpengine run --help` (default by source)"
+    )
+    p.add_argument("--fps", type=float, help="realtime pace for sources without a frame rate (default 30)")
+    p.add_argument("--max-frames", type=int, help="stop after this many frames")
+    p.add_argument("--save-every", type=int, default=1, help="write every Nth output per head (default: all)")
+    p.add_argument(
+        "--viz", action="store_true", help="also write pictures: colour-mapped depth, overlays, boxes"
+    )
+    p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
+    p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
+    p.add_argument(
+        "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
+    )
+    p.add_argument("--offline", action="store_true", help="never download checkpoints")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _percentiles(values: list[float]) -> dict[str, float | None]:
+    if not values:
+        return {"p50": None, "p99": None, "mean": None}
+    a = np.asarray(values) * 1e3
+    return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "mean": float(a.mean())}
+
+
+def run_pipeline(
+    config: Any,
+    source: Any,
+    out_dir: str | Path | None = None,
+    pace: str | None = None,
+    fps: float | None = None,
+    max_frames: int | None = None,
+    save_every: int = 1,
+    viz: bool = False,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Run ``config`` over ``source``; returns the summary (also written to ``out_dir/summary.json``)."""
+    from tqdm import tqdm
+
+    from vpengine.config import load_config
+    from vpengine.engine import Engine
+    from vpengine.io.sinks import FolderSink
+
+    cfg = load_config(
+        config,
+        [f"input.height={source.height}", f"input.width={source.width}", f"input.color={source.color}"],
+    )
+    live = getattr(source, "live", False) or type(source).__name__ == "SyntheticSource"
+    pace = pace or ("realtime" if live else "lockstep")
+    if pace not in ("realtime", "lockstep"):
+        raise ValueError(f"pace must be 'realtime' or 'lockstep', got {pace!r}")
+    period = 1.0 / (fps or source.fps or 30.0)
+    total = len(source) or None
+    if max_frames is not None:
+        total = min(total or max_frames, max_frames)
+
+    engine = Engine(cfg)
+    t0 = time.monotonic()
+    engine.start()
+    log.info("engine started in %.1f s", time.monotonic() - t0)
+    heads = list(engine.plan.heads)
+    sink = FolderSink(out_dir, {h: engine.head_info(h) for h in heads}, viz, save_every) if out_dir else None
+    recent: collections.OrderedDict[int, tuple[np.ndarray, str]] = collections.OrderedDict()
+    latencies: dict[str, list[float]] = {h: [] for h in heads}
+    received = dict.fromkeys(heads, 0)
+    bar = tqdm(total=total, unit="frame", disable=not progress, mininterval=0.5, dynamic_ncols=True)
+
+    def handle(results: list[Any]) -> None:
+        for r in results:
+            received[r.head] += 1
+            latencies[r.head].append(r.latency)
+            if sink is not None:
+                frame, name = recent.get(r.frame_id, (None, str(r.frame_id)))
+                sink.write(r, frame, name)
+
+    submitted = 0
+    t_start = time.monotonic()
+    next_t = t_start
+    try:
+        if pace == "realtime":
+            engine.results(0)  # start the result stream before the first frame
+        for frame in source:
+            if max_frames is not None and submitted >= max_frames:
+                break
+            if pace == "realtime":
+                now = time.monotonic()
+                if next_t > now:
+                    handle(engine.results(timeout=next_t - now))
+                    while (now := time.monotonic()) < next_t:
+                        handle(engine.results(timeout=next_t - now))
+                next_t = max(next_t + period, time.monotonic() - period)
+            fid = engine.submit(frame.image, timestamp=frame.timestamp)
+            recent[fid] = (frame.image, frame.name or f"{fid:06d}")
+            if len(recent) > 64:
+                recent.popitem(last=False)
+            submitted += 1
+            if pace == "lockstep":
+                active = [h for h in heads if engine.stats()["models"][h]["target_hz"] != 0.0]
+                try:
+                    handle(list(engine.wait(fid, heads=active, timeout=60.0).values()))
+                except TimeoutError as e:
+                    log.warning("%s", e)
+            else:
+                handle(engine.results(0))
+            bar.update(1)
+            if submitted % 10 == 0:
+                st = engine.stats()["models"]
+                bar.set_postfix_str(
+                    " ".join(f"{n}={m['achieved_hz']:.1f}Hz" for n, m in st.items()), refresh=False
+                )
+        if pace == "realtime":  # let in-flight frames finish
+            deadline = time.monotonic() + 2.0
+            while time.monotonic() < deadline:
+                res = engine.results(timeout=0.2)
+                handle(res)
+                if not res:
+                    break
+        wall = time.monotonic() - t_start
+        stats = engine.stats()
+    finally:
+        bar.close()
+        engine.stop()
+        if sink is not None:
+            sink.close()
+
+    models = {}
+    for name, m in stats["models"].items():
+        models[name] = {
+            "target_hz": m["target_hz"],
+            "achieved_hz": m["runs"] / wall if wall > 0 else 0.0,
+            "runs": m["runs"],
+            "skipped": m["skipped"],
+            "dropped": m["dropped"],
+            "errors": m["errors"],
+            "restarts": m["restarts"],
+            "latency_ms": {"p50": m["latency_ms"]["p50"], "p99": m["latency_ms"]["p99"]},
+        }
+        if name in latencies:
+            models[name]["e2e_latency_ms"] = _percentiles(latencies[name])
+            models[name]["results_received"] = received[name]
+            models[name]["results_missed"] = stats["results"][name]["missed"]
+    summary = {
+        "config": cfg.name,
+        "source": str(getattr(source, "path", type(source).__name__)),
+        "pace": pace,
+        "frames_submitted": submitted,
+        "wall_s": wall,
+        "input_hz": submitted / wall if wall > 0 else 0.0,
+        "mode": cfg.mode,
+        "device": cfg.device,
+        "models": models,
+        "warnings": engine.plan.warnings,
+    }
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    return summary
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, float) and not math.isfinite(o):
+        return None
+    return str(o)
+
+
+def format_summary(s: dict[str, Any]) -> str:
+    lines = [
+        f"{s['frames_submitted']} frames in {s['wall_s']:.1f} s ({s['input_hz']:.1f} Hz in, {s['pace']}, "
+        f"{s['mode']} mode on {s['device']})",
+        f"{'model':14s} {'target':>7s} {'achieved':>9s} {'runs':>6s} {'skipped':>8s} {'dropped':>8s} "
+        f"{'errors':>6s} {'p50 ms':>8s} {'p99 ms':>8s}",
+    ]
+    for name, m in s["models"].items():
+        lat = m.get("e2e_latency_ms") or m["latency_ms"]
+
+        def f(v: Any) -> str:
+            return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.1f}"
+
+        tgt = "max" if m["target_hz"] is None else f"{m['target_hz']:g}"
+        lines.append(
+            f"{name:14s} {tgt:>7s} {m['achieved_hz']:9.1f} {m['runs']:6d} {m['skipped']:8d} "
+            f"{m['dropped']:8d} {m['errors']:6d} {f(lat['p50']):>8s} {f(lat['p99']):>8s}"
+        )
+    lines.append("(latency: submit -> result for heads; model time for the foundation model)")
+    return "\n".join(lines)
+
+
+def main(args: argparse.Namespace) -> int:
+    from vpengine.config import load_config
+    from vpengine.io.sources import open_source
+
+    overrides = list(args.overrides)
+    if args.mode:
+        overrides.append(f"mode={args.mode}")
+    if args.device:
+        overrides.append(f"device={args.device}")
+    if args.random_weights:
+        overrides.append("weights.random_weights=true")
+    if args.offline:
+        overrides.append("weights.offline=true")
+    cfg = load_config(args.config, overrides)
+    with open_source(args.source) as source:
+        summary = run_pipeline(
+            cfg,
+            source,
+            args.out,
+            args.pace,
+            args.fps,
+            args.max_frames,
+            args.save_every,
+            args.viz,
+            progress=not args.no_progress,
+        )
+    print(format_summary(summary))
+    if args.out:
+        print(f"outputs and summary.json in {args.out}")
+    return 0

@@ -1,0 +1,151 @@
+"""Sinks: where results go. A folder of files per head, or a callback.
+
+Folder layout (``vpengine run --out DIR``)::
+
+    DIR/summary.json            achieved rates, skipped/dropped frames, latency percentiles per model
+    DIR/<head>/<frame>.npy      depth, float32 at input resolution (never quantised)
+    DIR/<head>/<frame>.png      segmentation class ids (uint8, uint16 beyond 256 classes)
+    DIR/<head>/detections.jsonl one line per frame: every detection with box, score, label and name
+    DIR/<head>/<frame>.npz      any other head: all its output arrays
+    DIR/<head>/viz/...          pictures (with --viz): colour-mapped depth, overlays, boxes
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vpengine.engine import Result
+from vpengine.io import visualize
+
+
+class Sink:
+    def write(
+        self, result: Result, frame: np.ndarray | None, name: str
+    ) -> None:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def close(self) -> None:
+        pass
+
+
+class CallbackSink(Sink):
+    def __init__(self, fn: Callable[[Result, np.ndarray | None], None]) -> None:
+        self.fn = fn
+
+    def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
+        self.fn(result, frame)
+
+
+def head_kind(info: dict[str, Any]) -> str:
+    """What a head produces, from its metadata (``kind``) or its output names."""
+    if info.get("kind"):
+        return str(info["kind"])
+    outs = set(info.get("outputs", {}))
+    if "depth" in outs:
+        return "depth"
+    if "classes" in outs:
+        return "segmentation"
+    if {"boxes", "scores", "labels"} <= outs:
+        return "detection"
+    return "generic"
+
+
+class FolderSink(Sink):
+    def __init__(
+        self, out_dir: str | Path, heads: dict[str, dict[str, Any]], viz: bool = False, save_every: int = 1
+    ) -> None:
+        if save_every < 1:
+            raise ValueError(f"save_every must be >= 1, got {save_every}")
+        self.dir = Path(out_dir)
+        self.heads = heads
+        self.viz = viz
+        self.save_every = save_every
+        self._count: dict[str, int] = dict.fromkeys(heads, 0)
+        self._jsonl: dict[str, Any] = {}
+        for h in heads:
+            (self.dir / h).mkdir(parents=True, exist_ok=True)
+            if viz:
+                (self.dir / h / "viz").mkdir(exist_ok=True)
+        self.written: dict[str, int] = dict.fromkeys(heads, 0)
+
+    def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
+        h = result.head
+        info = self.heads[h]
+        kind = head_kind(info)
+        out = result.outputs
+        if kind == "detection":  # one small line per frame: always written, whatever save_every says
+            f = self._jsonl.get(h)
+            if f is None:
+                f = self._jsonl[h] = open(self.dir / h / "detections.jsonl", "a")  # noqa: SIM115
+            names = info.get("labels")
+            labels = np.asarray(out["labels"]).tolist()
+            f.write(
+                json.dumps(
+                    {
+                        "frame": name,
+                        "frame_id": result.frame_id,
+                        "capture_time": result.capture_time,
+                        "boxes": np.asarray(out["boxes"]).round(2).tolist(),
+                        "scores": np.asarray(out["scores"]).round(4).tolist(),
+                        "labels": labels,
+                        "names": [names[i] if names and 0 <= i < len(names) else str(i) for i in labels],
+                    }
+                )
+                + "\n"
+            )
+        self._count[h] += 1
+        if (self._count[h] - 1) % self.save_every:
+            return
+        d = self.dir / h
+        if kind == "depth":
+            np.save(d / f"{name}.npy", np.asarray(out["depth"], dtype=np.float32))
+        elif kind == "segmentation":
+            import cv2
+
+            cls = np.asarray(out["classes"])
+            cv2.imwrite(
+                str(d / f"{name}.png"), cls.astype(np.uint8 if cls.max(initial=0) < 256 else np.uint16)
+            )
+        elif kind != "detection":
+            np.savez(d / f"{name}.npz", **{k: np.asarray(v) for k, v in out.items()})
+        self.written[h] += 1
+        if self.viz:
+            self._viz(kind, info, result, frame, d / "viz" / name)
+
+    def _viz(
+        self, kind: str, info: dict[str, Any], result: Result, frame: np.ndarray | None, stem: Path
+    ) -> None:
+        import cv2
+
+        out = result.outputs
+        if kind == "depth":
+            cv2.imwrite(f"{stem}.png", visualize.colorize_depth(np.asarray(out["depth"])))
+        elif kind == "segmentation" and frame is not None:
+            pal = info.get("palette")
+            cv2.imwrite(
+                f"{stem}.jpg",
+                visualize.overlay_segmentation(
+                    frame, np.asarray(out["classes"]), None if pal is None else np.asarray(pal, np.uint8)
+                ),
+            )
+        elif kind == "detection" and frame is not None:
+            cv2.imwrite(
+                f"{stem}.jpg",
+                visualize.draw_detections(
+                    frame,
+                    np.asarray(out["boxes"]),
+                    np.asarray(out["scores"]),
+                    np.asarray(out["labels"]),
+                    info.get("labels"),
+                ),
+            )
+
+    def close(self) -> None:
+        for f in self._jsonl.values():
+            f.close()
+        self._jsonl.clear()

@@ -1,0 +1,199 @@
+"""Frame sources: a built-in synthetic scene, image folders, video files and cameras.
+
+Every source yields :class:`Frame` objects: an HxWx3 uint8 image in the source's channel order (OpenCV order, BGR,
+for everything here) and a capture timestamp in seconds when the source has one.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
+VIDEO_EXTS = {".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"}
+
+
+@dataclass
+class Frame:
+    image: np.ndarray
+    timestamp: float | None = None
+    #: Where it came from (file name, frame index) for output naming.
+    name: str = ""
+
+
+class Source:
+    """Iterable of frames with a known size. ``fps`` is None when the source has no natural rate."""
+
+    color = "bgr"
+    height: int
+    width: int
+    fps: float | None = None
+
+    def __iter__(self) -> Iterator[Frame]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        """Number of frames, or 0 when unknown (live sources)."""
+        return 0
+
+    def close(self) -> None:
+        pass
+
+    def __enter__(self) -> Source:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+class SyntheticSource(Source):
+    """Moving shapes on a gradient: deterministic, any size and rate, no files needed.
+
+    ``synthetic``, ``synthetic:640x480``, ``synthetic:1920x1080@30`` or ``synthetic:640x480@30:300`` (frames).
+    """
+
+    _SPEC = re.compile(r"^synthetic(?::(\d+)x(\d+))?(?:@([\d.]+))?(?::(\d+))?$")
+
+    def __init__(
+        self, width: int = 640, height: int = 480, fps: float = 30.0, frames: int = 300, seed: int = 0
+    ):
+        if width < 14 or height < 14:
+            raise ValueError(f"synthetic source size {width}x{height} is too small (min 14x14)")
+        self.width, self.height, self.fps, self.frames = width, height, fps, frames
+        rng = np.random.default_rng(seed)
+        self._shapes = [
+            (
+                rng.uniform(0.1, 0.9, 2),
+                rng.uniform(-0.3, 0.3, 2),
+                rng.uniform(0.04, 0.15),
+                rng.integers(40, 255, 3),
+            )
+            for _ in range(6)
+        ]
+        yy, xx = np.mgrid[0:height, 0:width].astype(np.float32)
+        self._bg = np.stack([xx / width * 120, yy / height * 120, np.full_like(xx, 60)], -1).astype(np.uint8)
+        self._yy, self._xx = yy, xx
+
+    @classmethod
+    def parse(cls, spec: str) -> SyntheticSource:
+        m = cls._SPEC.match(spec)
+        if not m:
+            raise ValueError(
+                f"bad synthetic source {spec!r}; use synthetic[:WIDTHxHEIGHT][@FPS][:FRAMES], e.g. synthetic:640x480@30:300"
+            )
+        w, h, fps, n = m.groups()
+        return cls(int(w or 640), int(h or 480), float(fps or 30.0), int(n or 300))
+
+    def render(self, i: int) -> np.ndarray:
+        img = self._bg.copy()
+        t = i / self.fps
+        s = min(self.width, self.height)
+        for k, (p0, v, r, color) in enumerate(self._shapes):
+            p = (p0 + v * t) % 1.0
+            cx, cy, rad = p[0] * self.width, p[1] * self.height, r * s
+            if k % 2:
+                mask = (self._xx - cx) ** 2 + (self._yy - cy) ** 2 < rad**2
+            else:
+                mask = (np.abs(self._xx - cx) < rad) & (np.abs(self._yy - cy) < rad * 0.6)
+            img[mask] = color
+        return img
+
+    def __len__(self) -> int:
+        return self.frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(self.frames):
+            yield Frame(self.render(i), None, f"{i:06d}")
+
+
+class ImageFolderSource(Source):
+    """Every image in a folder, in name order."""
+
+    def __init__(self, folder: str | Path) -> None:
+        import cv2
+
+        self.folder = Path(folder)
+        self.files = sorted(p for p in self.folder.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+        if not self.files:
+            raise ValueError(f"no images ({', '.join(sorted(IMAGE_EXTS))}) in folder {str(self.folder)!r}")
+        first = cv2.imread(str(self.files[0]), cv2.IMREAD_COLOR)
+        if first is None:
+            raise ValueError(f"cannot read image {str(self.files[0])!r}")
+        self.height, self.width = first.shape[:2]
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __iter__(self) -> Iterator[Frame]:
+        import cv2
+
+        for p in self.files:
+            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if img is None:
+                raise ValueError(f"cannot read image {str(p)!r}")
+            if img.shape[:2] != (self.height, self.width):
+                img = cv2.resize(img, (self.width, self.height), interpolation=cv2.INTER_AREA)
+            yield Frame(img, None, p.stem)
+
+
+class VideoSource(Source):
+    """A video file (or camera index) through OpenCV."""
+
+    def __init__(self, path: str | Path | int) -> None:
+        import cv2
+
+        self.path = path
+        self._cap = cv2.VideoCapture(path if isinstance(path, int) else str(path))
+        if not self._cap.isOpened():
+            raise ValueError(f"cannot open video {str(path)!r} (missing file or unsupported codec)")
+        self.width = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+        self.height = int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        fps = self._cap.get(cv2.CAP_PROP_FPS)
+        self.fps = fps if fps and math.isfinite(fps) and fps > 0 else None
+        self._n = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT)) if not isinstance(path, int) else 0
+        self.live = isinstance(path, int)
+
+    def __len__(self) -> int:
+        return max(self._n, 0)
+
+    def __iter__(self) -> Iterator[Frame]:
+        import cv2
+
+        i = 0
+        while True:
+            ok, img = self._cap.read()
+            if not ok:
+                return
+            # live: wall-clock capture time; files: the frame's position in the video, in seconds
+            ts = time.time() if self.live else self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            yield Frame(np.ascontiguousarray(img), ts, f"{i:06d}")
+            i += 1
+
+    def close(self) -> None:
+        self._cap.release()
+
+
+def open_source(spec: str) -> Source:
+    """A source from a command-line spec: ``synthetic[...]``, a folder, a video file or ``camera:N``."""
+    if spec.startswith("synthetic"):
+        return SyntheticSource.parse(spec)
+    if spec.startswith("camera:"):
+        return VideoSource(int(spec.split(":", 1)[1]))
+    path = Path(spec)
+    if not path.exists():
+        raise ValueError(
+            f"source {spec!r} does not exist (expected a folder, a video, camera:N or synthetic)"
+        )
+    if path.is_dir():
+        return ImageFolderSource(path)
+    if path.suffix.lower() in VIDEO_EXTS:
+        return VideoSource(path)
+    if path.suffix.lower() in IMAGE_EXTS:
+        raise ValueError(f"source {spec!r} is a single image; give its folder instead")
+    raise ValueError(f"source {spec!r}: unknown kind (extensions: video {sorted(VIDEO_EXTS)}, or a folder)")

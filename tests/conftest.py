@@ -1,0 +1,27 @@
+"""Shared fixtures. Every test is checked for leaks: no new /dev/shm entries, no child process left alive."""
+
+from __future__ import annotations
+
+import os
+import time
+
+import psutil
+import pytest
+
+
+def _children() -> set[int]:
+    return {p.pid for p in psutil.Process().children(recursive=True)}
+
+
+@pytest.fixture(autouse=True)
+def no_leaks():
+    shm_before = set(os.listdir("/dev/shm"))
+    kids_before = _children()
+    yield
+    deadline = time.monotonic() + 10
+    while (left := _children() - kids_before) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = [p for p in left if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+    assert not alive, f"child processes left alive: {[psutil.Process(p).cmdline() for p in alive]}"
+    new_shm = set(os.listdir("/dev/shm")) - shm_before
+    assert not new_shm, f"/dev/shm entries left behind: {sorted(new_shm)}"

@@ -1,0 +1,1 @@
+"""Test helpers importable in worker processes (pytest puts tests/ on sys.path; children inherit it)."""

@@ -1,0 +1,56 @@
+"""Heads that misbehave on purpose, loaded by workers through the 'package.module:Class' route users have."""
+
+from __future__ import annotations
+
+import os
+import signal
+import time
+from pathlib import Path
+
+from vpengine.models.base import BuildContext, Model, Options
+from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions
+
+
+class FaultOptions(Options):
+    raise_at_run: int | None = None  # raise on this run (1-based) of this process
+    once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
+    hang_at_run: int | None = None  # sleep forever on this run
+    ignore_sigterm: bool = False
+    sleep_ms: float = 0.0  # every run takes at least this long
+    fail_build: bool = False
+
+
+class FaultyHead(TinyDepthHead):
+    """tiny_depth with injectable faults."""
+
+    def __init__(self, ctx: BuildContext, fault: FaultOptions) -> None:
+        super().__init__(ctx, TinyHeadOptions())
+        self.fault = fault
+        self.calls = 0
+        if fault.ignore_sigterm and not ctx.plan_only:
+            signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext) -> Model:
+        fault = ctx.options(FaultOptions)
+        if fault.fail_build and not ctx.plan_only:
+            raise RuntimeError("injected build failure")
+        return cls(ctx, fault)
+
+    def forward(self, inputs):
+        self.calls += 1
+        run = self.calls - 1  # call 1 is the engine's warm-up before READY
+        if run == 0:
+            return super().forward(inputs)
+        f = self.fault
+        if f.sleep_ms:
+            time.sleep(f.sleep_ms / 1000)
+        first_time = f.once_marker is None or not Path(f.once_marker).exists()
+        if f.raise_at_run is not None and run == f.raise_at_run and first_time:
+            if f.once_marker is not None:
+                Path(f.once_marker).touch()
+            raise RuntimeError(f"injected failure at run {run} (pid {os.getpid()})")
+        if f.hang_at_run is not None and run >= f.hang_at_run:
+            while True:
+                time.sleep(3600)
+        return super().forward(inputs)

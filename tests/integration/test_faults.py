@@ -1,0 +1,230 @@
+"""Faults in real processes: exceptions, SIGKILL of a head or of the parent, hangs, start-up failures."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import psutil
+import pytest
+
+from helpers.frames import frame
+from tests_paths import ROOT, tiny
+from vpengine.engine import Engine, EngineStartError
+
+pytestmark = pytest.mark.timeout(120)
+FAULTY = "helpers.faulty:FaultyHead"
+
+
+def faulty_cfg(tmp_path, mode="process", **options):
+    opts = json.dumps(options)
+    return tiny(
+        mode, f"heads.seg.model={FAULTY}", f"heads.seg.options={opts}", "runtime.restart_backoff_s=0.2"
+    )
+
+
+def pump(e: Engine, n: int, heads=("depth", "det"), start: int = 0) -> list[dict]:
+    out = []
+    for i in range(n):
+        fid = e.submit(frame(start + i))
+        out.append(e.wait(fid, heads=list(heads), timeout=10))
+    return out
+
+
+def wait_for(cond, timeout=15.0, what="condition", show=None):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.05)
+    raise AssertionError(f"timed out waiting for {what}" + (f": {show()}" if show else ""))
+
+
+@pytest.mark.parametrize("mode", ["process", "thread"])
+def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, mode):
+    cfg = faulty_cfg(tmp_path, mode, raise_at_run=5, once_marker=str(tmp_path / "raised"))
+    with Engine(cfg) as e:
+        got = pump(e, 30)
+        assert all(set(r) == {"depth", "det"} for r in got)  # the healthy heads never missed a beat
+        wait_for(
+            lambda: (
+                e.stats()["models"]["seg"]["state"] == "running"
+                and e.stats()["models"]["seg"]["restarts"] == 1
+            ),
+            what="seg restarted",
+            show=lambda: e.stats()["models"]["seg"],
+        )
+        seg = e.stats()["models"]["seg"]
+        assert seg["errors"] == 1 and seg["restarts"] == 1
+        assert "RuntimeError: injected failure at run 5" in seg["last_error"]
+        fid = e.submit(frame(99))
+        assert e.wait(fid, heads=["seg"], timeout=10)["seg"].frame_id == fid  # serving again
+
+
+def test_sigkill_of_a_head_restarts_it_releases_its_pins_and_never_blocks_the_backbone(tmp_path):
+    cfg = faulty_cfg(tmp_path, sleep_ms=150)  # slow: it holds a feature slot most of the time
+    cfg = cfg.model_copy(update={"runtime": cfg.runtime.model_copy(update={"restart_backoff_s": 2.0})})
+    with Engine(cfg) as e:
+        features = e._res.rings["features"]
+        pump(e, 5)
+        wait_for(lambda: features.pins()["seg"] >= 0, what="seg pinning a feature slot")
+        pid = e.stats()["models"]["seg"]["pid"]
+        os.kill(pid, signal.SIGKILL)
+        wait_for(lambda: e.stats()["models"]["seg"]["state"] == "restarting", what="death noticed")
+        assert features.pins()["seg"] == -1  # its pin was released on death
+        fm_before = e.stats()["models"]["foundation"]["runs"]
+        got = pump(e, 20, start=10)  # during the 2 s backoff the backbone and other heads go on
+        assert e.stats()["models"]["foundation"]["runs"] - fm_before == 20
+        assert all(set(r) == {"depth", "det"} for r in got)
+        wait_for(lambda: e.stats()["models"]["seg"]["state"] == "running", what="seg back")
+        seg = e.stats()["models"]["seg"]
+        assert seg["crashes"] == 1 and seg["restarts"] == 1 and seg["pid"] != pid
+        fid = e.submit(frame(50))
+        r = e.wait(fid, timeout=10)
+        assert set(r) == {"depth", "seg", "det"} and r["seg"].frame_id == fid
+
+
+def test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on(tmp_path):
+    cfg = faulty_cfg(tmp_path, raise_at_run=1)  # raises on its first frame, every time
+    cfg = cfg.model_copy(
+        update={"runtime": cfg.runtime.model_copy(update={"max_restarts": 2, "restart_backoff_s": 0.05})}
+    )
+    with Engine(cfg) as e:
+        deadline = time.monotonic() + 40  # each restart is a fresh interpreter: ~1-2 s
+        i = 0
+        while time.monotonic() < deadline and e.stats()["models"]["seg"]["state"] != "failed":
+            e.submit(frame(i))
+            i += 1
+            time.sleep(0.03)
+        seg = e.stats()["models"]["seg"]
+        assert seg["state"] == "failed" and seg["restarts"] == 2 and seg["errors"] == 3
+        fid = e.submit(frame(1))
+        assert set(e.wait(fid, timeout=10)) == {"depth", "det"}  # a failed head is not waited for
+
+
+def test_hung_head_is_killed_and_restarted_by_the_hang_timeout(tmp_path):
+    cfg = faulty_cfg(tmp_path, hang_at_run=2, once_marker=None)
+    cfg = cfg.model_copy(
+        update={"runtime": cfg.runtime.model_copy(update={"hang_timeout_s": 1.5, "max_restarts": 1})}
+    )
+    with Engine(cfg) as e:
+        pump(e, 3, heads=("depth",))
+        wait_for(lambda: e.stats()["models"]["seg"]["crashes"] >= 1, timeout=20, what="hang detected")
+        wait_for(lambda: e.stats()["models"]["seg"]["restarts"] >= 1, timeout=20, what="restart")
+
+
+def test_start_failure_reports_the_childs_traceback_and_leaves_nothing(tmp_path):
+    cfg = faulty_cfg(tmp_path, fail_build=True)
+    t = time.monotonic()
+    with pytest.raises(EngineStartError) as err:
+        Engine(cfg).start()
+    assert "RuntimeError: injected build failure" in str(err.value)
+    assert "Traceback" in str(err.value) and "faulty.py" in str(err.value)
+    assert time.monotonic() - t < 60
+
+
+def test_stop_returns_within_10_s_when_a_child_hangs_and_ignores_sigterm(tmp_path):
+    cfg = faulty_cfg(tmp_path, hang_at_run=1, ignore_sigterm=True)
+    e = Engine(cfg).start()
+    pids = [m["pid"] for m in e.stats()["models"].values()]
+    e.submit(frame(0))
+    e.wait(0, heads=["depth"], timeout=10)
+    time.sleep(0.3)  # seg is now stuck inside its model
+    t = time.monotonic()
+    e.stop()
+    assert time.monotonic() - t < 10
+    assert not [
+        p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+    ]
+
+
+PARENT = textwrap.dedent("""
+    import json, sys, time
+    from vpengine.engine import Engine
+    from vpengine.config import load_config
+    e = Engine(load_config(sys.argv[1], ["mode=process"])).start()
+    print(json.dumps([m["pid"] for m in e.stats()["models"].values()]), flush=True)
+    time.sleep(600)
+""")
+
+
+def test_sigkill_of_the_parent_leaves_no_child_alive_after_5_s(tmp_path):
+    script = tmp_path / "parent.py"
+    script.write_text(PARENT)  # note: no __main__ guard needed, children never re-import the user's script
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(ROOT / "configs" / "tiny.yaml")], stdout=subprocess.PIPE, text=True
+    )
+    try:
+        pids = json.loads(proc.stdout.readline())
+        assert len(pids) == 4 and all(psutil.pid_exists(p) for p in pids)
+        proc.kill()
+        proc.wait(5)
+        t = time.monotonic()
+        while time.monotonic() - t < 5:
+            alive = [
+                p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+            ]
+            if not alive:
+                break
+            time.sleep(0.05)
+        assert not alive, f"children still alive 5 s after the parent was killed: {alive}"
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.stdout.close()
+
+
+MUTEX_HOLDER = textwrap.dedent("""
+    import os, sys
+    from multiprocessing.connection import Connection
+    from vpengine.runtime.process import recv_fds
+    from vpengine.transport.ring import SlotRing
+    conn = Connection(int(sys.argv[1]))
+    desc = conn.recv()
+    ring = SlotRing.attach(desc, recv_fds(conn))
+    ring._mutex.__enter__()   # take the ring's lock ...
+    conn.send("locked")
+    conn.recv()
+    os._exit(0)               # ... and die holding it
+""")
+
+
+def test_a_process_dying_inside_the_ring_lock_does_not_hang_the_others(tmp_path):
+    import socket
+
+    from vpengine.runtime.process import _child_env, send_fds
+    from vpengine.specs import TensorSpec
+    from vpengine.transport.ring import latest_buffer
+
+    ring = latest_buffer("m", {"x": TensorSpec((4,), "float32")}, ["r"])
+    script = tmp_path / "holder.py"
+    script.write_text(MUTEX_HOLDER)
+    ours, theirs = socket.socketpair()
+    proc = subprocess.Popen(
+        [sys.executable, str(script), str(theirs.fileno())], pass_fds=[theirs.fileno()], env=_child_env()
+    )
+    theirs.close()
+    from multiprocessing.connection import Connection
+
+    conn = Connection(ours.detach())
+    try:
+        fds: list[int] = []
+        conn.send(ring.export(fds))
+        send_fds(conn, fds)
+        assert conn.recv() == "locked"
+        conn.send("die")
+        proc.wait(10)
+        t = time.monotonic()
+        w = ring.writer()
+        s = w.acquire()  # would hang forever with a plain mutex
+        w.publish(s, 1, 0.0, 0.0)
+        assert time.monotonic() - t < 1.0
+        assert ring._mutex.owner_died == 1
+    finally:
+        conn.close()
+        ring.close()

@@ -1,0 +1,101 @@
+"""Config loading: YAML/JSON, validation messages that name field, value and what is accepted, overrides."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from tests_paths import ROOT
+from vpengine.config import ConfigError, EngineConfig, dump_config, load_config
+
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=[p.name for p in CONFIGS])
+def test_every_shipped_config_is_valid(path):
+    cfg = load_config(path)
+    assert isinstance(cfg, EngineConfig)
+    assert load_config(json.loads(json.dumps(cfg.model_dump(mode="json")))) == cfg  # round trip
+
+
+def test_yaml_and_json_give_the_same_config(tmp_path):
+    raw = {"mode": "thread", "heads": [{"name": "d", "model": "tiny_depth", "rate_hz": 5}]}
+    (tmp_path / "a.json").write_text(json.dumps(raw))
+    (tmp_path / "a.yaml").write_text("mode: thread\nheads:\n  - {name: d, model: tiny_depth, rate_hz: 5}\n")
+    assert load_config(tmp_path / "a.json") == load_config(tmp_path / "a.yaml")
+
+
+def test_unknown_key_names_the_path_and_the_accepted_keys():
+    with pytest.raises(ConfigError) as e:
+        load_config({"heads": [{"name": "d", "model": "tiny_depth", "rate": 5}]})
+    msg = str(e.value)
+    assert "heads.0.rate: unknown key" in msg and "rate_hz" in msg and "postprocess" in msg
+
+
+def test_bad_values_name_field_value_and_what_is_accepted():
+    with pytest.raises(ConfigError) as e:
+        load_config(
+            {
+                "mode": "fiber",
+                "device": "gpu0",
+                "input": {"height": 5},
+                "heads": [{"name": "d", "model": "tiny_depth", "rate_hz": -3}],
+            }
+        )
+    msg = str(e.value)
+    assert "mode: Input should be 'process' or 'thread' (got \"fiber\")" in msg
+    assert "device" in msg and "'gpu0' is not one of: cpu, cuda, cuda:N" in msg
+    assert "input.height: Input should be greater than or equal to 14 (got 5)" in msg
+    assert "heads.0.rate_hz" in msg and "got -3" in msg
+
+
+def test_duplicate_and_reserved_head_names_fail():
+    with pytest.raises(ConfigError, match=r"repeated: \['d'\]"):
+        load_config({"heads": [{"name": "d", "model": "tiny_depth"}, {"name": "d", "model": "tiny_seg"}]})
+    with pytest.raises(ConfigError, match="'foundation' is reserved"):
+        load_config({"heads": [{"name": "foundation", "model": "tiny_depth"}]})
+    with pytest.raises(ConfigError, match="must start with a letter"):
+        load_config({"heads": [{"name": "1x", "model": "tiny_depth"}]})
+
+
+def test_overrides_by_head_name_and_index_with_yaml_values():
+    cfg = load_config(
+        ROOT / "configs" / "tiny.yaml",
+        [
+            "heads.seg.rate_hz=5",
+            "heads.0.rate_hz=null",
+            "mode=thread",
+            "input.width=320",
+            "foundation_model.preprocess.mean=[0.5, 0.5, 0.5]",
+        ],
+    )
+    assert cfg.head("seg").rate_hz == 5 and cfg.head("depth").rate_hz is None
+    assert cfg.mode == "thread" and cfg.input.width == 320
+    assert cfg.foundation_model.preprocess.mean == (0.5, 0.5, 0.5)
+
+
+def test_bad_overrides_are_clear():
+    with pytest.raises(ConfigError, match="no entry named 'nope'; names: \\['depth', 'seg', 'det'\\]"):
+        load_config(ROOT / "configs" / "tiny.yaml", ["heads.nope.rate_hz=5"])
+    with pytest.raises(ConfigError, match="must look like key.path=value"):
+        load_config(None, ["mode"])
+    with pytest.raises(ConfigError, match="index 7 out of range"):
+        load_config(ROOT / "configs" / "tiny.yaml", ["heads.7.rate_hz=1"])
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(tmp_path / "nope.yaml")
+    (tmp_path / "bad.yaml").write_text("mode: [unclosed\n")
+    with pytest.raises(ConfigError, match="is not valid YAML"):
+        load_config(tmp_path / "bad.yaml")
+    (tmp_path / "list.yaml").write_text("- 1\n- 2\n")
+    with pytest.raises(ConfigError, match="must hold a mapping"):
+        load_config(tmp_path / "list.yaml")
+
+
+def test_dump_is_loadable(tmp_path):
+    cfg = load_config(ROOT / "configs" / "tiny.yaml")
+    (tmp_path / "d.yaml").write_text(dump_config(cfg))
+    assert load_config(tmp_path / "d.yaml") == cfg

@@ -1,0 +1,144 @@
+"""The Engine API in thread mode (one process): input checks, results, waits, rates, stats, lifecycle."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.engine import Engine, EngineDeadError
+
+
+@pytest.fixture(scope="module")
+def engine():
+    with Engine(tiny("thread")) as e:
+        yield e
+
+
+BAD_FRAMES = [
+    (np.zeros((120, 160), np.uint8), r"got shape \(120, 160\) \(no channel axis channels\)"),
+    (np.zeros((120, 160, 4), np.uint8), r"got shape \(120, 160, 4\) \(4 channels\)"),
+    (np.zeros((100, 160, 3), np.uint8), r"got 100x160 \(resize it, or set input.height/width\)"),
+    (np.zeros((120, 160, 3), np.float32), r"got dtype float32"),
+    (np.zeros((0, 160, 3), np.uint8), r"got an empty array"),
+    (np.zeros((120, 320, 3), np.uint8)[:, ::2], r"got a non-contiguous array \(use np.ascontiguousarray\)"),
+    ([[1, 2, 3]], r"got list"),
+]
+
+
+@pytest.mark.parametrize(("bad", "why"), BAD_FRAMES, ids=[b[1][:24] for b in BAD_FRAMES])
+def test_bad_frames_raise_value_error_naming_expectation_and_engine_keeps_running(engine, bad, why):
+    with pytest.raises(
+        ValueError,
+        match=r"expected a C-contiguous uint8 numpy array of shape \(120, 160, 3\) \(BGR\)"
+        r"; " + why,
+    ):
+        engine.submit(bad)
+    fid = engine.submit(frame(1))
+    assert set(engine.wait(fid, timeout=5)) == {"depth", "seg", "det"}
+
+
+def test_nan_in_a_float_frame_is_rejected():
+    with Engine(tiny("thread", "input.dtype=float32")) as e:
+        f = np.random.default_rng(0).random((120, 160, 3), dtype=np.float32)
+        f[3, 4, 1] = np.nan
+        with pytest.raises(ValueError, match="with finite values; got NaN or inf"):
+            e.submit(f)
+        f[3, 4, 1] = 0.5
+        fid = e.submit(f)
+        assert e.wait(fid, timeout=5)["depth"].frame_id == fid
+        assert e.stats()["engine"]["rejected"] == 1
+
+
+def test_wait_returns_each_head_with_frame_id_capture_time_and_latency(engine):
+    fid = engine.submit(frame(2), frame_id=1234, timestamp=1700000000.25)
+    out = engine.wait(fid, timeout=5)
+    assert set(out) == {"depth", "seg", "det"}
+    for head, r in out.items():
+        assert r.head == head and r.frame_id == 1234 and r.capture_time == 1700000000.25
+        assert 0 < r.latency < 5
+    assert out["depth"]["depth"].shape == (120, 160) and out["depth"]["depth"].dtype == np.float32
+    assert out["seg"]["classes"].dtype == np.uint8
+    det = out["det"].outputs
+    assert len(det["boxes"]) == det["count"] <= 16  # trimmed to the count, never above capacity
+    assert engine.submit(frame(3)) == 1235  # automatic ids continue after a given one
+
+
+def test_latest_returns_the_newest_output(engine):
+    for i in range(3):
+        fid = engine.submit(frame(10 + i))
+        engine.wait(fid, timeout=5)
+    r = engine.latest("depth")
+    assert r is not None and r.frame_id == fid
+    with pytest.raises(KeyError, match="no head named 'nope'"):
+        engine.latest("nope")
+
+
+def test_results_stream_in_order_and_counts_what_was_not_collected():
+    with Engine(tiny("thread")) as e:
+        assert e.results() == []  # starts the stream
+        ids = [e.submit(frame(i)) for i in range(1)]
+        e.wait(ids[-1], timeout=5)
+        res = e.results(timeout=1)
+        assert sorted((r.head, r.frame_id) for r in res) == [("depth", 0), ("det", 0), ("seg", 0)]
+        for i in range(20):  # nobody calls results(): only the last output.slots (4) per head survive
+            e.wait(e.submit(frame(i)), timeout=5)
+        res = e.results(timeout=1)
+        per_head = {h: [r.frame_id for r in res if r.head == h] for h in ("depth", "seg", "det")}
+        assert all(v == [17, 18, 19, 20] for v in per_head.values()), per_head
+        st = e.stats()["results"]["depth"]
+        assert (st["delivered"], st["missed"], st["pending"]) == (5, 16, 0)
+
+
+def test_set_rate_validates_and_stats_show_it(engine):
+    engine.set_rate("seg", 12.5)
+    assert engine.stats()["models"]["seg"]["target_hz"] == 12.5
+    engine.set_rate("seg", None)
+    assert engine.stats()["models"]["seg"]["target_hz"] is None
+    with pytest.raises(
+        KeyError, match=r"no model named 'segm'; models: \['foundation', 'depth', 'seg', 'det'\]"
+    ):
+        engine.set_rate("segm", 5)
+    for bad in (-1, float("nan"), float("inf"), "fast"):
+        with pytest.raises(ValueError, match="must be None or a finite number >= 0 Hz"):
+            engine.set_rate("seg", bad)
+
+
+def test_stats_report_counters_and_memory(engine):
+    fid = engine.submit(frame(5))
+    engine.wait(fid, timeout=5)
+    st = engine.stats()
+    assert st["engine"]["mode"] == "thread" and st["engine"]["submitted"] >= 1
+    for name in ("foundation", "depth", "seg", "det"):
+        m = st["models"][name]
+        assert m["state"] == "running" and m["runs"] >= 1 and m["errors"] == 0
+        assert m["runs"] + m["skipped"] + m["dropped"] == m["frames_seen"]
+        assert m["latency_ms"]["p50"] > 0
+    mem = st["memory"]
+    assert mem["mailbox_host_bytes"] == sum(v["bytes"] for v in mem["mailboxes"].values())
+    assert set(mem["mailboxes"]) == {"input", "features", "out.depth", "out.seg", "out.det"}
+
+
+def test_wait_on_unknown_frame_and_timeout():
+    with Engine(tiny("thread", "heads.seg.rate_hz=0")) as e:
+        with pytest.raises(ValueError, match="frame id 99 was not submitted"):
+            e.wait(99)
+        fid = e.submit(frame(1))
+        with pytest.raises(TimeoutError, match=r"no output from \['seg'\] within 0.3 s"):
+            e.wait(fid, timeout=0.3)
+        assert set(e.wait(fid, heads=["depth", "det"], timeout=5)) == {"depth", "det"}
+
+
+def test_lifecycle_stop_is_idempotent_and_a_stopped_engine_says_so():
+    e = Engine(tiny("thread"))
+    with pytest.raises(EngineDeadError, match="call start"):
+        e.submit(frame(0))
+    e.start()
+    with pytest.raises(RuntimeError, match="starts once"):
+        e.start()
+    e.stop()
+    e.stop()
+    with pytest.raises(EngineDeadError, match="stopped"):
+        e.submit(frame(0))
+    assert e.stats() == {"engine": {"state": "stopped"}}

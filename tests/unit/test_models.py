@@ -1,0 +1,128 @@
+"""Model interface, preprocessing and build-time pipeline checks (no processes)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tests_paths import tiny
+from vpengine.config import PreprocessConfig, load_config
+from vpengine.models.base import ModelBuildError, Pipeline
+from vpengine.models.preprocess import ImagePreprocess, target_size
+from vpengine.runtime.plan import make_plan
+from vpengine.runtime.worker import build_model
+from vpengine.specs import TensorSpec
+
+
+@pytest.mark.parametrize(
+    ("hw", "cfg", "expected"),
+    [
+        ((1080, 1920), {}, (518, 924)),  # the documented 1080p case: 37 x 66 tokens
+        ((1080, 1920), {"resize": "square"}, (518, 518)),
+        ((480, 640), {}, (518, 686)),
+        ((576, 768), {}, (518, 686)),
+        ((1920, 1080), {}, (924, 518)),  # portrait
+        ((100, 100), {"resize": "none"}, (98, 98)),
+    ],
+)
+def test_target_size_preserves_aspect_and_patch_multiple(hw, cfg, expected):
+    size = target_size(*hw, PreprocessConfig(**cfg), 14)
+    assert size == expected and size[0] % 14 == 0 and size[1] % 14 == 0
+
+
+def test_preprocess_matches_a_hand_computation():
+    frame = np.random.default_rng(0).integers(0, 256, (28, 42, 3), dtype=np.uint8)
+    cfg = PreprocessConfig(resize="none")
+    pre = ImagePreprocess(28, 42, cfg, 14, color="bgr")
+    out = pre({"frame": torch.from_numpy(frame)})["image"]
+    rgb = frame[..., ::-1].astype(np.float32) / 255
+    ref = (rgb - np.array(cfg.mean)) / np.array(cfg.std)
+    assert out.shape == (1, 3, 28, 42)
+    np.testing.assert_allclose(out[0].permute(1, 2, 0).numpy(), ref, rtol=1e-5, atol=1e-5)
+    rgb_pre = ImagePreprocess(28, 42, cfg, 14, color="rgb")
+    out_rgb = rgb_pre({"frame": torch.from_numpy(np.ascontiguousarray(frame[..., ::-1]))})["image"]
+    torch.testing.assert_close(out, out_rgb)
+
+
+def test_plan_builds_on_meta_device_and_declares_specs():
+    plan = make_plan(tiny())
+    assert plan.frame_spec == {"frame": TensorSpec((120, 160, 3), "uint8")}
+    assert set(plan.features) == {f"{k}.{i}" for k in ("patch", "cls") for i in range(4)}
+    assert all(p.device.type == "meta" for p in plan.foundation.parameters())
+    assert plan.heads["depth"].output_spec == {"depth": TensorSpec((120, 160), "float32")}
+    assert plan.heads["det"].output_spec["count"] == TensorSpec((), "int32")
+    assert plan.feature_meta["grid"] == (8, 11)  # 120x160 -> 112x154 -> 8x11 tokens
+
+
+def test_real_build_runs_and_matches_declared_specs():
+    cfg = tiny()
+    plan = make_plan(cfg)
+    fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, torch.device("cpu"), False)
+    feats = fm(fm.example_inputs())
+    for k, spec in plan.features.items():
+        assert spec.matches(feats[k])
+    for name, meta_model in plan.heads.items():
+        head = build_model(cfg, name, "head", plan.features, plan.feature_meta, torch.device("cpu"), False)
+        out = head({k: feats[k] for k in head.input_spec})
+        for k, spec in meta_model.output_spec.items():
+            assert spec.matches(out[k]), (name, k)
+
+
+def test_same_recipe_gives_same_weights_in_every_build():
+    cfg = tiny()
+    plan = make_plan(cfg)
+    a = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, torch.device("cpu"), False)
+    b = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, torch.device("cpu"), False)
+    for (ka, va), (kb, vb) in zip(a.state_dict().items(), b.state_dict().items()):
+        assert ka == kb and torch.equal(va, vb)
+
+
+def test_unknown_model_names_the_known_ones():
+    with pytest.raises(ModelBuildError, match=r"unknown head model 'tiny_dpth'; known: .*tiny_depth"):
+        make_plan(tiny("process", "heads.depth.model=tiny_dpth"))
+    with pytest.raises(ModelBuildError, match="is a head model and cannot be used as a foundation"):
+        make_plan(tiny("process", "foundation_model.model=tiny_depth"))
+    with pytest.raises(ModelBuildError, match="cannot be imported"):
+        make_plan(tiny("process", "heads.depth.model=nowhere.mod:Thing"))
+
+
+def test_head_needing_a_feature_the_backbone_lacks_fails_with_names():
+    cfg = load_config(
+        {
+            "input": {"height": 56, "width": 56},
+            "foundation_model": {"model": "tiny_vit"},
+            "heads": [{"name": "x", "model": "helpers.models:NeedsMissingFeature"}],
+        }
+    )
+    with pytest.raises(ModelBuildError) as e:
+        make_plan(cfg)
+    assert "'x'" in str(e.value) and "'patch.9'" in str(e.value) and "tiny_vit" in str(e.value)
+
+
+def test_bad_recipe_options_name_the_accepted_ones():
+    with pytest.raises(
+        ModelBuildError, match=r"depth \(tiny_depth\): bad options: colour.*accepted: .*num_classes"
+    ):
+        make_plan(tiny("process", "heads.depth.options={colour: red}"))
+
+
+def test_pipeline_rejects_mismatched_links():
+    pre = ImagePreprocess(28, 28, PreprocessConfig(resize="none"), 14)
+    other = ImagePreprocess(56, 56, PreprocessConfig(resize="none"), 14)
+    with pytest.raises(
+        ModelBuildError, match=r"needs 'frame' as uint8\[56, 56, 3\] but it is produced as uint8\[28, 28, 3\]"
+    ):
+        Pipeline(pre, other)
+
+
+def test_backbone_mismatch_warns_at_build():
+    cfg = load_config(
+        {
+            "input": {"height": 56, "width": 56},
+            "foundation_model": {"model": "tiny_vit"},
+            "heads": [{"name": "x", "model": "helpers.models:TrainedElsewhere"}],
+        }
+    )
+    plan = make_plan(cfg)
+    assert any("trained on backbone 'dinov2_vitl14'" in w and "tiny_vit" in w for w in plan.warnings)

@@ -1,0 +1,306 @@
+"""Slot ring semantics in one process: LatestBuffer and FifoQueue behaviour, pins, overflow policies, accounting."""
+
+from __future__ import annotations
+
+import itertools
+import threading
+import time
+
+import pytest
+import torch
+
+from vpengine.specs import TensorSpec
+from vpengine.transport import ReaderDecl, SlotLayout, SlotRing, fifo_queue, latest_buffer
+from vpengine.transport.layout import ALIGN
+
+SPECS = {"x": TensorSpec((4, 4), "float32"), "n": TensorSpec((), "int64"), "tiny": TensorSpec((3,), "uint8")}
+
+
+def write(ring: SlotRing, value: int, frame_id: int | None = None) -> int | None:
+    w = ring.writer()
+    slot = w.acquire(timeout=0)
+    if slot is None:
+        return None
+    slot.tensors["x"].fill_(value)
+    slot.tensors["n"].fill_(value)
+    return w.publish(slot, value if frame_id is None else frame_id, float(value), time.monotonic())
+
+
+def test_latest_reader_gets_newest_and_counts_what_it_missed():
+    ring = latest_buffer("t", SPECS, ["a", "b"])
+    try:
+        for v in range(1, 6):
+            write(ring, v)
+        a = ring.reader("a")
+        s = a.pin()
+        assert (s.seq, s.frame_id, s.missed) == (5, 5, 4)
+        assert s.tensors["x"][0, 0].item() == 5
+        a.release(s)
+        assert a.pin() is None  # nothing newer than what it saw
+        write(ring, 6)
+        s = a.pin()
+        assert (s.seq, s.missed) == (6, 0)
+        a.release(s)
+        st = ring.stats()["readers"]
+        assert st["a"] == {"active": True, "reads": 2, "missed": 4, "pending": 0, "pinned": False}
+        assert st["b"]["pending"] == 6 and st["b"]["reads"] == 0  # b has not looked yet
+    finally:
+        ring.close()
+
+
+def test_fifo_reads_in_order_and_drop_oldest_counts_exactly():
+    ring = fifo_queue("t", SPECS, ["r"], n_slots=4)
+    try:
+        for v in range(1, 7):  # 6 writes into 4 slots, nobody reading: 2 overwritten
+            assert write(ring, v) is not None
+        r = ring.reader("r")
+        got = []
+        while (s := r.pin()) is not None:
+            got.append((s.seq, s.missed, int(s.tensors["n"])))
+            r.release(s)
+        assert got == [(3, 2, 3), (4, 0, 4), (5, 0, 5), (6, 0, 6)]
+        st = ring.stats()["readers"]["r"]
+        assert st["reads"] + st["missed"] == 6 and st["missed"] == 2
+    finally:
+        ring.close()
+
+
+def test_fifo_drop_newest_refuses_and_counts():
+    ring = fifo_queue("t", SPECS, ["r"], n_slots=3, overflow="drop_newest")
+    try:
+        assert [write(ring, v) for v in (1, 2, 3)] == [1, 2, 3]
+        assert write(ring, 4) is None and write(ring, 5) is None
+        assert ring.stats()["dropped_newest"] == 2
+        r = ring.reader("r")
+        s = r.pin()
+        assert (s.seq, s.missed) == (1, 0)
+        r.release(s)
+        assert write(ring, 6) == 4  # one slot read, so one more fits
+        seqs = []
+        while (s := r.pin()) is not None:
+            seqs.append(int(s.tensors["n"]))
+            r.release(s)
+        assert seqs == [2, 3, 6]
+        assert ring.stats()["readers"]["r"]["missed"] == 0  # refused items were never published
+    finally:
+        ring.close()
+
+
+def test_fifo_block_waits_for_the_reader():
+    ring = fifo_queue("t", SPECS, ["r"], n_slots=3, overflow="block")
+    try:
+        for v in (1, 2, 3):
+            write(ring, v)
+        w = ring.writer()
+        assert w.acquire(timeout=0.05) is None  # full: it waited and timed out
+        got = {}
+
+        def blocked_writer():
+            t = time.monotonic()
+            got["slot"] = w.acquire(timeout=5.0)
+            got["waited"] = time.monotonic() - t
+
+        th = threading.Thread(target=blocked_writer)
+        th.start()
+        time.sleep(0.2)
+        assert th.is_alive()
+        r = ring.reader("r")
+        s = r.pin()
+        r.release(s)
+        th.join(2)
+        assert got["slot"] is not None and 0.15 < got["waited"] < 1.0
+    finally:
+        ring.close()
+
+
+def test_pinned_slot_is_never_overwritten():
+    ring = latest_buffer("t", SPECS, ["a", "b"])  # 4 slots
+    try:
+        write(ring, 1)
+        a = ring.reader("a")
+        s = a.pin()
+        for v in range(2, 40):
+            write(ring, v)
+            assert s.tensors["x"].eq(1).all()  # content intact while pinned
+            assert ring.pins()["a"] == s.index
+        a.release(s)
+        s2 = a.pin()
+        assert s2.seq == 39 and s2.missed == 37
+        a.release(s2)
+    finally:
+        ring.close()
+
+
+def test_writer_never_waits_with_readers_plus_two_slots():
+    readers = ["a", "b", "c"]
+    ring = latest_buffer("t", SPECS, readers)  # 5 slots
+    try:
+        handles = [ring.reader(r) for r in readers]
+        pinned: dict[str, object] = {}
+        for v in range(1, 300):
+            slot = ring.writer().acquire(timeout=0)  # must never need to wait
+            assert slot is not None, f"writer had to wait at write {v}"
+            held = {p.index for p in pinned.values()}  # type: ignore[attr-defined]
+            assert slot.index not in held
+            ring.writer().publish(slot, v, 0.0, 0.0)
+            r = handles[v % 3]  # readers take turns re-pinning the newest: worst case for the writer
+            if r.name in pinned:
+                r.release(pinned.pop(r.name))
+            pinned[r.name] = r.pin()
+    finally:
+        ring.close()
+
+
+def test_too_few_slots_is_a_clear_error():
+    with pytest.raises(ValueError, match=r"n_slots=3 is too small for 2 readers; need at least 4"):
+        SlotRing.create("t", SPECS, 3, [ReaderDecl("a"), ReaderDecl("b")])
+    with pytest.raises(ValueError, match="unknown overflow policy 'spill'"):
+        SlotRing.create("t", SPECS, 3, [ReaderDecl("a")], overflow="spill")  # type: ignore[arg-type]
+
+
+def test_reader_holds_one_pin_and_release_checks_the_slot():
+    ring = latest_buffer("t", SPECS, ["a"])
+    try:
+        write(ring, 1)
+        a = ring.reader("a")
+        s = a.pin()
+        write(ring, 2)
+        with pytest.raises(RuntimeError, match="already pins"):
+            a.pin()
+        other = type(s)(index=(s.index + 1) % ring.n_slots, tensors={})
+        with pytest.raises(RuntimeError, match="does not pin slot"):
+            a.release(other)
+        a.release(s)
+    finally:
+        ring.close()
+
+
+def test_peek_returns_newest_even_if_seen_and_counts_nothing():
+    ring = latest_buffer("t", SPECS, ["a"])
+    try:
+        assert ring.reader("a").pin(peek=True) is None
+        write(ring, 1)
+        write(ring, 2)
+        a = ring.reader("a")
+        for _ in range(3):
+            s = a.pin(peek=True)
+            assert s.seq == 2
+            a.release(s)
+        assert ring.stats()["readers"]["a"]["reads"] == 0
+    finally:
+        ring.close()
+
+
+def test_origin_carries_frame_identity_and_pin_origin_finds_it():
+    src = latest_buffer("in", SPECS, ["fm"])
+    dst = latest_buffer("out", SPECS, ["peek"])
+    try:
+        for v in range(1, 4):
+            write(src, v, frame_id=100 + v)
+        fm = src.reader("fm")
+        s = fm.pin()
+        assert (s.origin, s.frame_id) == (3, 103)  # input ring: origin is its own seq
+        w = dst.writer()
+        o = w.acquire()
+        w.publish(o, s.frame_id, s.t_capture, s.t_submit, s.origin)
+        fm.release(s)
+        peek = dst.reader("peek")
+        slot, newest = peek.pin_origin(3)
+        assert slot is not None and slot.frame_id == 103 and newest == 3
+        peek.release(slot)
+        slot, newest = peek.pin_origin(2)  # origin 2 was skipped: the newest is past it
+        assert slot is None and newest == 3
+    finally:
+        src.close()
+        dst.close()
+
+
+def test_release_reader_and_reset_writer_repair_a_dead_process():
+    ring = latest_buffer("t", SPECS, ["a"])  # 3 slots
+    try:
+        write(ring, 1)
+        a = ring.reader("a")
+        a.pin()  # "dies" holding the pin
+        half = ring.writer().acquire()  # writer "dies" mid-write
+        assert half is not None
+        assert ring.release_reader("a") is True
+        assert ring.reset_writer() == 1
+        assert ring.pins()["a"] == -1
+        for v in range(2, 10):  # everything usable again
+            assert write(ring, v) is not None
+        s = a.pin()
+        assert s.seq == 9
+        a.release(s)
+    finally:
+        ring.close()
+
+
+def test_abort_gives_the_slot_back_unpublished():
+    ring = latest_buffer("t", SPECS, ["a"])
+    try:
+        w = ring.writer()
+        s = w.acquire()
+        w.abort(s)
+        assert ring.reader("a").pin() is None
+        assert ring.stats()["published"] == 0
+    finally:
+        ring.close()
+
+
+def test_wait_sleeps_until_publish_without_spinning():
+    ring = latest_buffer("t", SPECS, ["a"])
+    try:
+        a = ring.reader("a")
+        t0 = time.monotonic()
+        threading.Timer(0.2, lambda: write(ring, 1)).start()
+        cpu0 = time.process_time()
+        s = a.pin(timeout=5.0)
+        cpu = time.process_time() - cpu0
+        waited = time.monotonic() - t0
+        assert s is not None and 0.15 < waited < 1.0
+        assert cpu < 0.05, f"waiting burned {cpu:.3f} s of CPU"
+        a.release(s)
+        assert a.pin(timeout=0.1) is None  # times out when nothing comes
+    finally:
+        ring.close()
+
+
+def test_inactive_reader_counts_from_activation():
+    ring = SlotRing.create("t", SPECS, 4, [ReaderDecl("res", "fifo", active=False), ReaderDecl("peek")])
+    try:
+        for v in range(1, 4):
+            write(ring, v)
+        res = ring.reader("res")
+        assert ring.stats()["readers"]["res"]["pending"] == 0  # inactive: nothing owed
+        res.activate(from_now=True)
+        assert res.pin() is None  # earlier items are not part of its stream
+        write(ring, 4)
+        s = res.pin()
+        assert (s.seq, s.missed) == (4, 0)
+        res.release(s)
+    finally:
+        ring.close()
+
+
+def test_layout_is_one_allocation_with_aligned_non_overlapping_views():
+    specs = {
+        "a": TensorSpec((1, 1369, 384), "float32"),
+        "cls": TensorSpec((1, 384), "float32"),
+        "count": TensorSpec((), "int32"),
+        "img": TensorSpec((7, 5, 3), "uint8"),
+    }
+    layout = SlotLayout.from_specs(specs, 4)
+    flat = torch.zeros(layout.total_bytes, dtype=torch.uint8)
+    views = layout.views(flat)
+    spans = []
+    for slot in views:
+        for k, t in slot.items():
+            assert t.untyped_storage().data_ptr() == flat.untyped_storage().data_ptr()  # one allocation
+            off = t.data_ptr() - flat.data_ptr()
+            assert off % ALIGN == 0
+            assert tuple(t.shape) == specs[k].shape and t.dtype == specs[k].torch_dtype
+            spans.append((off, off + specs[k].nbytes))
+    spans.sort()
+    assert all(a[1] <= b[0] for a, b in itertools.pairwise(spans))  # no overlap
+    # tiny tensors share the slot: far less than one 2 MiB page per tensor
+    assert layout.slot_bytes < 1369 * 384 * 4 + 384 * 4 + 3 * ALIGN + 105

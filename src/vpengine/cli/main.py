@@ -12,6 +12,10 @@ COMMANDS = {
     "run": ("vpengine.cli.run", "run a pipeline on a video, an image folder, a camera or a synthetic scene"),
     "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
     "bench": ("vpengine.cli.bench", "benchmarks: mailbox hop, pipeline throughput"),
+    # weights (models/catalog): add its entry here
+    # train (detection head training): add its entry here
+    # mps (CUDA MPS control): add its entry here
+    # ros2 (DDS bridge): add its entry here
 }
 
 

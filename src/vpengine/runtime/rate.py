@@ -5,9 +5,9 @@ happened), so runs that start late do not push the schedule back and N seconds a
 
 Lateness has two causes, told apart by the worker: the model was *starved* (no new input when the gate opened:
 just started, just resumed, the camera paused) or it was *descheduled* (input was there but the CPU was busy). A
-starved model was idle, so a schedule lagging by more than a period restarts from now (no burst of catch-up runs).
-A descheduled model keeps its schedule and catches up, up to ``MAX_DEBT_PERIODS`` runs, so a loaded machine does
-not silently lose runs.
+starved model was idle, so its schedule restarts from the run that ended the wait (no early second run, no burst of
+catch-up runs). A descheduled model keeps its schedule and catches up, up to ``MAX_DEBT_PERIODS`` runs, so a loaded
+machine does not silently lose runs.
 """
 
 from __future__ import annotations
@@ -55,8 +55,9 @@ class RateGate:
         self.last_start = t
         if self.hz:
             period = 1.0 / self.hz
-            lag = t - self.next_allowed
-            if lag > period and (starved or lag > MAX_DEBT_PERIODS * period):
-                self.next_allowed = t + period  # idle: start the schedule afresh
-            else:
-                self.next_allowed += period  # on time, or late because busy: keep the schedule
+            if starved:  # idle until this input came: the schedule starts afresh from this run
+                self.next_allowed = max(self.next_allowed + period, t + period)
+            elif t - self.next_allowed > MAX_DEBT_PERIODS * period:  # far behind: give up the debt
+                self.next_allowed = t + period
+            else:  # on time, or late because busy: keep the schedule (catch up)
+                self.next_allowed += period

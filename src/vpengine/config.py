@@ -84,6 +84,11 @@ class ModelConfig(_Strict):
     backend: Backend = Field(
         "eager", description="Execution backend: eager PyTorch, torch.compile, ONNX Runtime."
     )
+    backend_options: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Options of the backend (validated by it, see vpengine/backends/options.py), e.g. compile: "
+        "{mode: max-autotune, cudagraphs: true}; onnx: {opset: 18, providers: [CUDAExecutionProvider]}.",
+    )
     precision: Precision | None = Field(None, description="fp32 | fp16 | bf16; null: the engine's precision.")
     cpu_threads: int = Field(
         1, ge=1, le=256, description="PyTorch intra-op threads in this model's worker (CPU)."
@@ -93,6 +98,9 @@ class ModelConfig(_Strict):
         ge=-8,
         le=0,
         description="CUDA stream priority (0 normal, negative = higher where the GPU supports it).",
+    )
+    mps_priority: Literal["normal", "below_normal"] = Field(
+        "normal", description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY)."
     )
 
     @field_validator("rate_hz")
@@ -197,6 +205,11 @@ class EngineConfig(_Strict):
     mps: Literal["auto", "required", "off"] = Field(
         "auto",
         description="CUDA MPS: use when a daemon is reachable (auto), insist (required), or not (off).",
+    )
+    mps_pipe_directory: str | None = Field(
+        None,
+        description="Where to look for the MPS control daemon; null: $CUDA_MPS_PIPE_DIRECTORY, then the directory "
+        "`vpengine mps start` uses, then /tmp/nvidia-mps.",
     )
     input: InputConfig = Field(default_factory=InputConfig)  # type: ignore[arg-type]
     foundation_model: FoundationModelConfig = Field(default_factory=FoundationModelConfig)  # type: ignore[arg-type]

@@ -17,6 +17,8 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import shutil
+import tempfile
 import threading
 import time
 import weakref
@@ -68,6 +70,7 @@ class _Resources:
         self.runner: Runner | None = None
         self.rings: dict[str, SlotRing] = {}
         self.control: ControlBlock | None = None
+        self.dirs: list[str] = []  # private temporary directories (e.g. the no-MPS pipe directory)
 
     def close(self) -> list[str]:
         forced: list[str] = []
@@ -80,6 +83,9 @@ class _Resources:
         if self.control is not None:
             self.control.close()
             self.control = None
+        for d in self.dirs:
+            shutil.rmtree(d, ignore_errors=True)
+        self.dirs = []
         return forced
 
 
@@ -105,6 +111,9 @@ class Engine:
         self._results_active = False
         self._t_start = 0.0
         self.memory_report: dict[str, Any] = {}
+        self._mps_dir: str | None = None
+        self._nomps_dir = ""
+        self._finalizer_dirs = self._res.dirs
 
     # ------------------------------------------------------------------------------------------ lifecycle
     def start(self) -> Engine:
@@ -116,6 +125,8 @@ class Engine:
         heads = list(plan.heads)
         res = self._res
         try:
+            if device.type == "cuda":
+                self._prepare_cuda(device, shared)
             res.rings["input"] = SlotRing.create(
                 "input", plan.frame_spec, cfg.input.slots, [ReaderDecl("foundation")], "cpu", shared
             )
@@ -133,8 +144,6 @@ class Engine:
                     shared,
                     h.output.overflow,
                 )
-            if device.type == "cuda" and shared:
-                res.rings["input"].data_region.register_with_cuda()  # type: ignore[attr-defined]
             res.control = ControlBlock.create(cfg.model_names())
             res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
             for h in cfg.heads:
@@ -143,7 +152,7 @@ class Engine:
             if shared:
                 from vpengine.runtime.process import ProcessRunner
 
-                res.runner = ProcessRunner(specs, res.rings, res.control, cfg)
+                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=self._worker_env)
             else:
                 from vpengine.runtime.threads import ThreadRunner
 
@@ -170,6 +179,64 @@ class Engine:
             self.memory_report["mailbox_device_bytes"] / 1e6,
         )
         return self
+
+    def _prepare_cuda(self, device: torch.device, shared: bool) -> None:
+        """Check the device, find the MPS daemon, and initialise CUDA here (in the parent) off MPS.
+
+        See Note [MPS and ownership of device memory] in runtime/mps.py.
+        """
+        from vpengine.runtime import mps
+
+        cfg = self.config
+        if not torch.cuda.is_available():
+            raise EngineStartError(f"device {cfg.device!r} was asked for but PyTorch sees no CUDA device")
+        index = device.index or 0
+        if index >= torch.cuda.device_count():
+            raise EngineStartError(
+                f"device {cfg.device!r}: only {torch.cuda.device_count()} CUDA device(s) visible"
+            )
+        self._mps_dir = mps.find_daemon(cfg.mps_pipe_directory) if cfg.mps != "off" else None
+        if cfg.mps == "required" and self._mps_dir is None:
+            raise EngineStartError(
+                f"mps: required, but no MPS control daemon answers in {mps.candidate_dirs(cfg.mps_pipe_directory)}; "
+                "start one with `vpengine mps start` or set mps: auto"
+            )
+        if not torch.cuda.is_initialized():
+            with mps.off_mps():
+                torch.cuda.init()
+                torch.cuda.set_device(index)
+                torch.empty(1, device=device)  # create the context now, while MPS is out of reach
+        if shared:
+            from vpengine.transport.cuda_vmm import CudaVmmError, vmm_support
+
+            try:
+                support = vmm_support(index)
+            except CudaVmmError as e:
+                raise EngineStartError(str(e)) from None
+            if not all(support.values()):
+                raise EngineStartError(
+                    f"{cfg.device} cannot share device memory between processes through the CUDA VMM API "
+                    f"({support}); use mode: thread"
+                )
+        self._nomps_dir = tempfile.mkdtemp(prefix="vpengine-nomps-")
+        self._finalizer_dirs.append(self._nomps_dir)
+        if self._mps_dir:
+            log.info("CUDA MPS daemon found at %s: model workers will be MPS clients", self._mps_dir)
+
+    def _worker_env(self, name: str) -> dict[str, str]:
+        """Environment overrides for a worker process, decided at each (re)start."""
+        if torch.device(self.config.device).type != "cuda":
+            return {}
+        from vpengine.runtime import mps
+
+        use = self._mps_dir if self._mps_dir and mps.status(self._mps_dir)["reachable"] else None
+        env = {"CUDA_MPS_PIPE_DIRECTORY": use or self._nomps_dir}
+        if use:
+            mcfg = self.config.foundation_model if name == "foundation" else self.config.head(name)
+            env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
+        elif self._mps_dir:
+            log.warning("MPS daemon at %s no longer answers: %s starts without MPS", self._mps_dir, name)
+        return env
 
     def _worker_specs(self) -> list[WorkerSpec]:
         cfg, plan, rings = self.config, self.plan, self._res.rings
@@ -218,7 +285,20 @@ class Engine:
         dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
         ctl = self._res.control
         workers = {n: ctl.get(n, "device_mem_bytes") for n in ctl.names} if ctl else {}
-        return {"mailboxes": per, "mailbox_host_bytes": host, "mailbox_device_bytes": dev, "workers": workers}
+        report: dict[str, Any] = {"mailboxes": per, "mailbox_host_bytes": host, "mailbox_device_bytes": dev,
+                                  "workers_torch_reserved_bytes": workers}
+        device = torch.device(self.config.device)
+        if device.type == "cuda" and ctl is not None:
+            from vpengine.runtime.gpu import process_memory
+
+            by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
+            if by_pid:
+                import os
+
+                pids = {n: ctl.get(n, "pid") for n in ctl.names}
+                report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
+                report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
+        return report
 
     def stop(self) -> None:
         """Stop every worker and free every buffer. Always returns (within stop_timeout_s + a few seconds)."""
@@ -468,6 +548,11 @@ class Engine:
                 "uptime_s": time.monotonic() - self._t_start,
                 "submitted": self._submitted,
                 "rejected": self._rejected,
+                "mps": {
+                    "setting": self.config.mps,
+                    "daemon": self._mps_dir,
+                    "workers_on_mps": [n for n, m in models.items() if m["mps"]],
+                },
             },
             "models": models,
             "results": results,

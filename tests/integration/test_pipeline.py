@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from helpers.frames import frame
-from tests_paths import tiny
+from tests_paths import DEVICE, tiny
 from vpengine.engine import Engine
 from vpengine.runtime.plan import make_plan
 from vpengine.runtime.worker import build_model
@@ -21,28 +21,35 @@ class Reference:
     """The same recipes built in this process: recompute what any frame's outputs must be."""
 
     def __init__(self, cfg):
-        torch.set_num_threads(1)  # as in the workers, so float results are bit-identical
+        torch.set_num_threads(1)  # as in the workers, so float results are bit-identical on the CPU
         plan = make_plan(cfg)
-        cpu = torch.device("cpu")
-        self.fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, cpu, False)
+        self.device = torch.device(cfg.device)
+        self.fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
         self.heads = {
-            n: build_model(cfg, n, "head", plan.features, plan.feature_meta, cpu, False) for n in plan.heads
+            n: build_model(cfg, n, "head", plan.features, plan.feature_meta, self.device, False) for n in plan.heads
         }
 
     @torch.inference_mode()
     def __call__(self, img: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
-        feats = self.fm({"frame": torch.from_numpy(img)})
+        feats = self.fm({"frame": torch.from_numpy(img).to(self.device)})
         out = {}
         for name, head in self.heads.items():
             res = head({k: feats[k] for k in head.input_spec})
-            out[name] = head.finalize({k: v.numpy() for k, v in res.items()})
+            out[name] = head.finalize({k: v.cpu().numpy() for k, v in res.items()})
         return out
 
 
 def assert_same(got: dict, want: dict, what: str) -> None:
+    """Bit-identical on the CPU; on a GPU, kernels may differ between processes in the last bits of floats."""
     assert set(got) == set(want), what
     for k in want:
-        np.testing.assert_array_equal(np.asarray(got[k]), np.asarray(want[k]), err_msg=f"{what}: {k}")
+        a, b = np.asarray(got[k]), np.asarray(want[k])
+        if DEVICE == "cpu":
+            np.testing.assert_array_equal(a, b, err_msg=f"{what}: {k}")
+        elif a.dtype.kind == "f":
+            np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5, err_msg=f"{what}: {k}")
+        else:  # class ids / labels from an argmax: a near-tie may flip on a GPU
+            assert a.shape == b.shape and (a == b).mean() >= 0.999, f"{what}: {k}"
 
 
 def test_200_frames_three_heads_every_output_matches_its_frame():

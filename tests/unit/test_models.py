@@ -126,3 +126,33 @@ def test_backbone_mismatch_warns_at_build():
     )
     plan = make_plan(cfg)
     assert any("trained on backbone 'dinov2_vitl14'" in w and "tiny_vit" in w for w in plan.warnings)
+
+
+def test_models_built_in_parallel_threads_get_the_same_seeded_weights():
+    """Thread mode builds every model at once; construction uses PyTorch's global RNG, so builds must not mix."""
+    import threading
+
+    cfg = load_config({"input": {"height": 56, "width": 84}, "weights": {"random_weights": True},
+                       "foundation_model": {"model": "dinov2_vits14",
+                                            "options": {"size": "custom", "embed_dim": 32, "depth": 4, "heads": 2}},
+                       "heads": [{"name": f"h{i}", "model": "tiny_depth"} for i in range(3)]})
+    plan = make_plan(cfg)
+    cpu = torch.device("cpu")
+    reference = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, cpu, False).state_dict()
+    for _ in range(3):
+        built = {}
+
+        def fm(built=built):
+            built["fm"] = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, cpu, False)
+
+        def head(n):
+            for _ in range(20):  # default layer init draws from the global RNG meanwhile
+                build_model(cfg, n, "head", plan.features, plan.feature_meta, cpu, False)
+
+        threads = [threading.Thread(target=fm)] + [threading.Thread(target=head, args=(f"h{i}",)) for i in range(3)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        for k, v in built["fm"].state_dict().items():
+            assert torch.equal(v, reference[k]), k

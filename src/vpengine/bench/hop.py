@@ -16,17 +16,25 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
+import torch
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hops", type=int, default=10000, help="number of hops (default 10000)")
     p.add_argument("--mbytes", type=float, default=4.0, help="payload size in MB (default 4)")
     p.add_argument("--device", default="cpu", help="where the slots live: cpu (host shared memory) or cuda")
+    p.add_argument("--layout", choices=["flat", "vits-1080p"], default="flat",
+                   help="flat: four tensors of --mbytes in all; vits-1080p: DINOv2 ViT-S features of a 1080p frame "
+                        "(4 layers x [1, 2442, 384] patch + CLS tokens, float32, 15 MB)")
 
 
-def _specs(mbytes: float) -> dict[str, Any]:
+def _specs(mbytes: float, layout: str = "flat") -> dict[str, Any]:
     from vpengine.specs import TensorSpec
 
+    if layout == "vits-1080p":  # 1920x1080 -> 924x518 -> 66x37 tokens
+        specs = {f"patch.{i}": TensorSpec((1, 66 * 37, 384), "float32") for i in range(4)}
+        specs.update({f"cls.{i}": TensorSpec((1, 384), "float32") for i in range(4)})
+        return specs
     per = int(mbytes * 1e6 / 4 / 4)  # four float32 tensors
     return {f"patch.{i}": TensorSpec((per,), "float32") for i in range(4)}
 
@@ -54,11 +62,12 @@ def _reader(fd: int) -> None:
     conn.send(("hops", hops))
 
 
-def measure(n: int, mbytes: float, device: str = "cpu") -> dict[str, Any]:
+def measure(n: int, mbytes: float, device: str = "cpu", layout: str = "flat") -> dict[str, Any]:
     from vpengine.runtime.process import _child_env, send_fds
     from vpengine.transport.ring import ReaderDecl, SlotRing
 
-    ring = SlotRing.create("hop", _specs(mbytes), 3, [ReaderDecl("head")], device, shared=True)
+    specs = _specs(mbytes, layout)
+    ring = SlotRing.create("hop", specs, 3, [ReaderDecl("head")], device, shared=True)
     ours, theirs = socket.socketpair()
     proc = subprocess.Popen(
         [sys.executable, "-m", "vpengine.bench.hop", "--child", str(theirs.fileno())],
@@ -79,6 +88,8 @@ def measure(n: int, mbytes: float, device: str = "cpu") -> dict[str, Any]:
             assert slot is not None
             for t in slot.tensors.values():
                 t.fill_(float(i))
+            if device != "cpu":
+                torch.cuda.synchronize()  # publish only complete work (not part of the hop)
             writer.publish(slot, i, 0.0, time.monotonic())
             conn.recv_bytes()
         kind, hops = conn.recv()
@@ -91,8 +102,9 @@ def measure(n: int, mbytes: float, device: str = "cpu") -> dict[str, Any]:
     us = hops * 1e6
     return {
         "hops": n,
-        "payload_bytes": int(sum(s.nbytes for s in _specs(mbytes).values())),
+        "payload_bytes": int(sum(s.nbytes for s in specs.values())),
         "device": device,
+        "layout": layout,
         "median_us": float(np.median(us)),
         "p90_us": float(np.percentile(us, 90)),
         "p99_us": float(np.percentile(us, 99)),
@@ -105,9 +117,10 @@ def measure(n: int, mbytes: float, device: str = "cpu") -> dict[str, Any]:
 def main(args: argparse.Namespace) -> int:
     from vpengine.bench.common import write_results
 
-    r = measure(args.hops, args.mbytes, args.device)
+    r = measure(args.hops, args.mbytes, args.device, args.layout)
     samples = r.pop("samples_us")
-    path = write_results(args.out, f"hop_{args.device.replace(':', '')}", r)
+    suffix = "" if args.layout == "flat" else f"_{args.layout}"
+    path = write_results(args.out, f"hop_{args.device.replace(':', '')}{suffix}", r)
     _figure(samples, r, path.with_suffix(".png"))
     print(
         f"mailbox hop over {r['hops']} hops, {r['payload_bytes'] / 1e6:.1f} MB slots on {args.device}: "

@@ -8,6 +8,8 @@ import importlib
 BENCHES = {
     "hop": ("vpengine.bench.hop", "mailbox hop latency: publish -> reader woken -> slot pinned"),
     "pipeline": ("vpengine.bench.pipeline", "tiny pipeline throughput in process and thread mode"),
+    "resources": ("vpengine.bench.resources", "GPU: device memory per extra head, CPU idle and at 30 Hz"),
+    "paper": ("vpengine.bench.paper", "the VPEngine paper's experiments E1-E6 and the device-time floor"),
 }
 
 

@@ -13,6 +13,21 @@ from typing import Any
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    # --models: parameter accounting of a config (models/accounting.py)
+    p.add_argument(
+        "--models",
+        action="store_true",
+        help="parameters per model of a config and what sharing the backbone saves (instead of the machine info)",
+    )
+    p.add_argument("--config", "-c", help="engine config for --models (default: the built-in defaults)")
+    p.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config field for --models, e.g. --set foundation_model.model=dinov2_vitb14",
+    )
 
 
 def _version(dist: str) -> str | None:
@@ -68,7 +83,19 @@ def collect() -> dict[str, Any]:
     }
 
 
+def models_main(args: argparse.Namespace) -> int:
+    """``vpengine info --models``: parameter accounting, every model built on the meta device."""
+    from vpengine.config import load_config
+    from vpengine.models.accounting import format_report, parameter_report
+
+    report = parameter_report(load_config(args.config, args.overrides))
+    print(json.dumps(report, indent=2) if args.json else format_report(report))
+    return 0
+
+
 def main(args: argparse.Namespace) -> int:
+    if getattr(args, "models", False):
+        return models_main(args)
     info = collect()
     if args.json:
         print(json.dumps(info, indent=2))

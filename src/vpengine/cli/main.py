@@ -12,10 +12,9 @@ COMMANDS = {
     "run": ("vpengine.cli.run", "run a pipeline on a video, an image folder, a camera or a synthetic scene"),
     "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
     "bench": ("vpengine.cli.bench", "benchmarks: mailbox hop, pipeline throughput"),
-    # weights (models/catalog): add its entry here
-    # train (detection head training): add its entry here
-    # mps (CUDA MPS control): add its entry here
-    # ros2 (DDS bridge): add its entry here
+    "weights": ("vpengine.cli.weights", "checkpoint catalog: list, fetch, verify, path"),
+    "train": ("vpengine.cli.train", "train a detection head on frozen foundation-model features (COCO boxes)"),
+    "mps": ("vpengine.cli.mps", "start, stop or check a CUDA MPS control daemon (private pipe directory)"),
 }
 
 

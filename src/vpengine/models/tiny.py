@@ -82,7 +82,7 @@ class TinyViT(Model):
         if self.patch_embed.weight.device.type != "meta":
             with torch.no_grad():
                 for prm in self.parameters():
-                    prm.copy_(torch.randn(prm.shape, generator=g) * 0.2)
+                    prm.copy_(torch.randn(prm.shape, generator=g, device="cpu") * 0.2)
         self.input_spec = {"image": TensorSpec((1, 3, *image_hw), dtype)}
         self.output_spec = feature_specs(n, c, dtype)
         self.meta = {
@@ -128,7 +128,7 @@ def _seeded_(module: nn.Module, seed: int, scale: float = 0.3) -> None:
     with torch.no_grad():
         for prm in module.parameters():
             if prm.device.type != "meta":
-                prm.copy_(torch.randn(prm.shape, generator=g) * scale)
+                prm.copy_(torch.randn(prm.shape, generator=g, device="cpu") * scale)
 
 
 class TinyHeadOptions(Options):

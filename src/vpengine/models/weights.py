@@ -78,13 +78,14 @@ def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
         return path
     from vpengine.models import catalog
 
-    entry = catalog.find(name)
+    cache = cache_dir(wcfg.cache_dir)
+    entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
     if entry is None:
         raise CheckpointError(
             f"{ctx.name} ({ctx.cfg.model}): checkpoint {name!r} is neither an existing file nor a catalog name "
             f"(`vpengine weights list` shows the catalog)"
         )
-    return catalog.ensure(entry, cache_dir(wcfg.cache_dir), offline(wcfg.offline), for_model=ctx.name)
+    return catalog.ensure(entry, cache, offline(wcfg.offline), for_model=ctx.name)
 
 
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:

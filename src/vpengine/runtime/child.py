@@ -51,10 +51,7 @@ def main(fd: int) -> None:
     try:
         in_ring = SlotRing.attach(spec.in_ring, fds)
         out_ring = SlotRing.attach(spec.out_ring, fds)
-        control = ControlBlock.attach(spec.control, fds)
-        for f in set(fds):
-            with contextlib.suppress(OSError):
-                os.close(f)
+        control = ControlBlock.attach(spec.control, fds)  # opening a region consumes (closes) its descriptor
         core = prepare_worker(spec, in_ring, out_ring, control, own_process=True)
     except BaseException as e:
         try:

@@ -22,6 +22,8 @@ class DeviceContext:
         self.device = torch.device(device)
         self.cuda = self.device.type == "cuda"
         if self.cuda:
+            if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
+                self.device = torch.device("cuda", torch.cuda.current_device())
             torch.cuda.set_device(self.device)
             lo, hi = (
                 torch.cuda.get_stream_priority_range()

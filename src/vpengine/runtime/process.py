@@ -30,6 +30,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
@@ -132,8 +133,9 @@ class _Child:
 
 
 class ProcessRunner(Runner):
-    def __init__(self, *args, **kw) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, *args, env_for: Callable[[str], dict[str, str]] | None = None, **kw) -> None:  # type: ignore[no-untyped-def]
         super().__init__(*args, **kw)
+        self._env_for = env_for or (lambda name: {})
         self._children: dict[str, _Child] = {}
         self._wake_r, self._wake_w = os.pipe()
         self._monitor: threading.Thread | None = None
@@ -151,7 +153,7 @@ class ProcessRunner(Runner):
             proc = subprocess.Popen(
                 [sys.executable, "-m", "vpengine.runtime.child", str(theirs.fileno())],
                 pass_fds=[theirs.fileno()],
-                env=_child_env(),
+                env={**_child_env(), **self._env_for(name)},
                 start_new_session=True,
             )
         finally:

@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import threading
 import time
 import traceback
 from collections.abc import Callable
@@ -53,6 +54,9 @@ class WorkerSpec:
         return load_config(self.config)
 
 
+_build_lock = threading.Lock()
+
+
 def model_config(cfg: EngineConfig, name: str) -> Any:
     return cfg.foundation_model if name == "foundation" else cfg.head(name)
 
@@ -70,7 +74,10 @@ def build_model(
     mcfg = model_config(cfg, name)
     cls, defaults = resolve(mcfg.model, role)
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
-    with torch.device("meta" if plan_only else device):
+    # One model at a time per process: construction draws from PyTorch's process-global RNG (default layer init,
+    # seeded random weights), so thread-mode workers building at once would interleave their draws and get weights
+    # that differ from run to run (and from process mode).
+    with _build_lock, torch.device("meta" if plan_only else device):
         model = cls.from_config(ctx)
     if not plan_only:
         model.load_checkpoint(ctx)
@@ -177,6 +184,23 @@ def describe_exception(name: str, exc: BaseException) -> str:
     return f"{name} (pid {os.getpid()}): {type(exc).__name__}: {exc}\n{tb}"
 
 
+_register_lock = threading.Lock()
+
+
+def _register_host_rings(*rings: SlotRing) -> None:
+    """Page-lock host mailboxes this process copies to or from, so the copies run asynchronously on our stream.
+
+    Registration is per process (it pins this process's mapping), so every worker does it for its own rings.
+    """
+    from vpengine.transport.memory import HostRegion
+
+    with _register_lock:
+        for ring in rings:
+            region = ring.data_region
+            if isinstance(region, HostRegion) and not region.cuda_registered:
+                region.register_with_cuda()
+
+
 def prepare_worker(
     spec: WorkerSpec, in_ring: SlotRing, out_ring: SlotRing, control: ControlBlock, own_process: bool
 ) -> WorkerCore:
@@ -192,6 +216,14 @@ def prepare_worker(
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
     dev = DeviceContext(device, mcfg.stream_priority)
+    if dev.cuda:
+        _register_host_rings(in_ring, out_ring)
+        from vpengine.transport.cuda_vmm import mps_enabled
+
+        try:
+            control.set(spec.name, "mps_active", int(mps_enabled(device.index or 0)))
+        except Exception:  # the bindings are optional in thread mode; MPS status is informational
+            control.set(spec.name, "mps_active", 0)
     with dev.active():
         model = build_model(
             cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False

@@ -172,7 +172,7 @@ def allocate(name: str, nbytes: int, device: torch.device | str, shared: bool) -
 
 
 def open_region(handle: RegionHandle, fds: list[int]) -> Region:
-    """Map a region exported by another process."""
+    """Map a region exported by another process. Consumes (closes) the descriptor it uses from ``fds``."""
     if handle.kind == "host":
         return HostRegion.open(handle, fds)
     if handle.kind == "cuda-vmm":

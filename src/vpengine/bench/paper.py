@@ -1,0 +1,576 @@
+"""The VPEngine paper's experiments, one protocol on any device, each comparison measured side by side in one run.
+
+E1  shared backbone + N depth heads (engine) vs N independent full models vs one process running the heads one after
+    another, N = 1..8 (paper: 2.3x over independent at 8 heads); plus the ideal ratio N(b+h)/(b+Nh) from the measured
+    backbone time b and head time h.
+E2  N detection heads: engine (parallel processes) vs one process running them one after another (paper: 3.3x at 8).
+E3  CUDA MPS off vs on at N = 4 and 8 (paper: +39%, +77%).
+E4  rate limits 5..30 Hz over 10 s of 30 Hz input: runs per head vs ideal (paper: +-1).
+E5  a 30 Hz stream of 1080p frames with depth, segmentation and detection: per-head latency, frames lost, device
+    memory over time (must stay flat).
+E6  device memory and CPU per N, process and thread mode.
+floor  the same models' summed device time (CUDA events, one process, CUDA graphs where possible), and the engine's
+    overhead over it.
+
+Latency is submit -> every head's result on the host, one frame in flight (lockstep), as in the paper; E5 measures it
+under a continuous 30 Hz stream. Frames are synthetic 1080p scenes (content does not change the timing of dense
+models). Models use random weights (the timing of a network does not depend on its weights).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--experiments", default="E1,E2,E3,E4,E5,E6,floor", help="comma-separated subset")
+    p.add_argument("--device", default="cuda")
+    p.add_argument("--precision", default="fp16")
+    p.add_argument("--heads", default="1,2,4,8", help="head counts for E1/E2/E6")
+    p.add_argument("--frames", type=int, default=100, help="lockstep frames per measurement")
+    p.add_argument("--e5-frames", type=int, default=10000, help="frames in the E5 stream (30 Hz)")
+    p.add_argument("--height", type=int, default=1080)
+    p.add_argument("--width", type=int, default=1920)
+    p.add_argument("--backbone", default="dinov2_vits14_dav2")
+    p.add_argument("--depth-head", default="dav2_depth_s")
+    p.add_argument("--seg-head", default="dinov2_linear_ade20k_s")
+    p.add_argument("--det-head", default="frcnn_dinov2")
+    p.add_argument("--backend", default="eager", help="backend of every model (eager, compile, onnx)")
+    p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
+    p.add_argument("--tag", default="", help="suffix of the results file name")
+
+
+@dataclass
+class Setup:
+    device: str = "cuda"
+    precision: str = "fp16"
+    height: int = 1080
+    width: int = 1920
+    backbone: str = "dinov2_vits14_dav2"
+    depth: str = "dav2_depth_s"
+    seg: str = "dinov2_linear_ade20k_s"
+    det: str = "frcnn_dinov2"
+    det_options: dict[str, Any] = field(default_factory=lambda: {"num_classes": 80})
+    backbone_options: dict[str, Any] = field(default_factory=dict)
+    backend: str = "eager"
+    frames: int = 100
+    tiny: bool = False
+
+    @classmethod
+    def from_args(cls, a: argparse.Namespace) -> Setup:
+        if a.tiny:
+            return cls(device=a.device, precision="fp32", height=120, width=160, backbone="tiny_vit",
+                       depth="tiny_depth", seg="tiny_seg", det="tiny_det", det_options={}, frames=a.frames,
+                       backbone_options={}, backend=a.backend, tiny=True)
+        return cls(device=a.device, precision=a.precision, height=a.height, width=a.width, backbone=a.backbone,
+                   depth=a.depth_head, seg=a.seg_head, det=a.det_head, backend=a.backend, frames=a.frames)
+
+    def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
+        model = {"depth": self.depth, "seg": self.seg, "det": self.det}[kind]
+        opts = self.det_options if kind == "det" else {}
+        return {"name": name, "model": model, "options": opts, "backend": self.backend, **extra}
+
+    def config(self, heads: list[dict[str, Any]], mode: str = "process", **top: Any) -> Any:
+        from vpengine.config import load_config
+
+        raw = {
+            "name": "bench", "mode": mode, "device": self.device, "precision": self.precision, "mps": "off",
+            "input": {"height": self.height, "width": self.width},
+            "foundation_model": {"model": self.backbone, "options": self.backbone_options, "backend": self.backend},
+            "heads": heads, "weights": {"random_weights": True},
+            "logging": {"level": "WARNING"},
+            **top,
+        }
+        if self.tiny:
+            raw["foundation_model"]["preprocess"] = {"size": 112}
+        return load_config(raw)
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+def frames(setup: Setup, n: int = 8) -> list[np.ndarray]:
+    from vpengine.io.sources import SyntheticSource
+
+    src = SyntheticSource(setup.width, setup.height, 30.0, n)
+    return [src.render(i * 3) for i in range(n)]
+
+
+def pct(values: list[float] | np.ndarray) -> dict[str, float]:
+    a = np.asarray(values, dtype=float) * 1e3
+    if not len(a):
+        return {"p50": math.nan, "p90": math.nan, "p99": math.nan, "mean": math.nan, "n": 0}
+    return {"p50": float(np.percentile(a, 50)), "p90": float(np.percentile(a, 90)),
+            "p99": float(np.percentile(a, 99)), "mean": float(a.mean()), "n": len(a)}
+
+
+def lockstep(engine: Any, imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
+    """submit -> all heads' results on the host, one frame in flight."""
+    for i in range(warmup):
+        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120)
+    lat = []
+    for i in range(n):
+        t = time.perf_counter()
+        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120)
+        lat.append(time.perf_counter() - t)
+    out = pct(lat)
+    out["hz"] = 1e3 / out["mean"]
+    return out
+
+
+def _sync(device: Any) -> None:
+    import torch
+
+    if torch.device(device).type == "cuda":
+        torch.cuda.synchronize()
+
+
+class InProcess:
+    """The same recipes built in this process (no engine): the sequential baseline and the device-time floor."""
+
+    def __init__(self, setup: Setup, heads: list[dict[str, Any]]) -> None:
+        import torch
+
+        from vpengine.backends import make_executor
+        from vpengine.runtime.plan import make_plan
+        from vpengine.runtime.worker import build_model
+
+        self.cfg = setup.config(heads, mode="thread")
+        self.device = torch.device(setup.device)
+        plan = make_plan(self.cfg)
+        fm = build_model(self.cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
+        self.fm = make_executor(fm, self.cfg.foundation_model.backend, self.device, "foundation")
+        self.heads = {}
+        for h in self.cfg.heads:
+            m = build_model(self.cfg, h.name, "head", plan.features, plan.feature_meta, self.device, False)
+            self.heads[h.name] = (make_executor(m, h.backend, self.device, h.name), list(m.input_spec))
+        self.torch = torch
+
+    def run(self, img: np.ndarray) -> dict[str, Any]:
+        """Backbone once, then every head one after another, outputs copied to the host."""
+        torch = self.torch
+        with torch.inference_mode():
+            x = torch.from_numpy(img).to(self.device, non_blocking=True)
+            feats = self.fm({"frame": x})
+            outs = {}
+            for name, (head, keys) in self.heads.items():
+                out = head({k: feats[k] for k in keys})
+                outs[name] = {k: v.cpu() for k, v in out.items()}
+        return outs
+
+    def latency(self, imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
+        for i in range(warmup):
+            self.run(imgs[i % len(imgs)])
+        lat = []
+        for i in range(n):
+            t = time.perf_counter()
+            self.run(imgs[i % len(imgs)])
+            lat.append(time.perf_counter() - t)
+        out = pct(lat)
+        out["hz"] = 1e3 / out["mean"]
+        return out
+
+    def device_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
+        """Median device time (ms) of the backbone and of each head, with CUDA graphs where they capture."""
+        torch = self.torch
+        if self.device.type != "cuda":
+            return {}
+        with torch.inference_mode():
+            x = torch.from_numpy(img).to(self.device)
+            feats = self.fm({"frame": x})
+            parts: dict[str, Any] = {"foundation": (self.fm, {"frame": x})}
+            for name, (head, keys) in self.heads.items():
+                parts[name] = (head, {k: feats[k] for k in keys})
+            out = {}
+            for name, (fn, inputs) in parts.items():
+                run = _graphed(fn, inputs, torch)
+                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+                times = []
+                for _ in range(n):
+                    start.record()
+                    run()
+                    end.record()
+                    end.synchronize()
+                    times.append(start.elapsed_time(end))
+                out[name] = float(np.median(times))
+            return out
+
+
+def _graphed(fn: Any, inputs: dict[str, Any], torch: Any) -> Any:
+    """A CUDA-graph replay of ``fn(inputs)`` if it captures (static shapes, no host syncs), else the plain call."""
+    try:
+        s = torch.cuda.Stream()
+        s.wait_stream(torch.cuda.current_stream())
+        with torch.cuda.stream(s):
+            for _ in range(3):
+                fn(inputs)
+        torch.cuda.current_stream().wait_stream(s)
+        g = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g):
+            fn(inputs)
+        return g.replay
+    except Exception:
+        torch.cuda.synchronize()
+        return lambda: fn(inputs)
+
+
+@contextlib.contextmanager
+def engines(cfgs: list[Any]) -> Iterator[list[Any]]:
+    """Start several engines at once (in threads: their workers load in parallel), stop them all at the end."""
+    from vpengine.engine import Engine
+
+    es = [Engine(c) for c in cfgs]
+    errors: list[BaseException] = []
+
+    def start(e: Any) -> None:
+        try:
+            e.start()
+        except BaseException as exc:  # reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=start, args=(e,)) for e in es]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    try:
+        if errors:
+            raise errors[0]
+        yield es
+    finally:
+        for e in es:
+            e.stop()
+
+
+def independent_latency(es: list[Any], imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
+    """N independent full pipelines (each its own backbone): a frame goes to all, latency = the slowest."""
+    def one(i: int) -> None:
+        fids = [e.submit(imgs[i % len(imgs)]) for e in es]
+        for e, fid in zip(es, fids):
+            e.wait(fid, timeout=120)
+
+    for i in range(warmup):
+        one(i)
+    lat = []
+    for i in range(n):
+        t = time.perf_counter()
+        one(i)
+        lat.append(time.perf_counter() - t)
+    out = pct(lat)
+    out["hz"] = 1e3 / out["mean"]
+    return out
+
+
+def log(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+# ------------------------------------------------------------------------------------------- experiments
+def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
+    rows = []
+    for n in ns:
+        heads = [setup.head("depth", f"depth{i}") for i in range(n)]
+        with engines([setup.config(heads)]) as (eng,):
+            shared = lockstep(eng, imgs, setup.frames)
+        seq = InProcess(setup, heads)
+        sequential = seq.latency(imgs, setup.frames)
+        dt = seq.device_times(imgs[0])
+        del seq
+        with engines([setup.config([setup.head("depth", "depth")]) for _ in range(n)]) as es:
+            indep = independent_latency(es, imgs, setup.frames)
+        row = {"heads": n, "engine": shared, "independent": indep, "sequential": sequential, "device_ms": dt,
+               "speedup_vs_independent": indep["mean"] / shared["mean"],
+               "speedup_vs_sequential": sequential["mean"] / shared["mean"]}
+        if dt:
+            b, h = dt["foundation"], dt["depth0"]
+            row["ideal_vs_independent"] = n * (b + h) / (b + n * h)
+        rows.append(row)
+        log(f"E1 N={n}: engine {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
+            f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
+            f"({row['speedup_vs_sequential']:.2f}x)" + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else ""))
+    return {"rows": rows}
+
+
+def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
+    rows = []
+    for n in ns:
+        heads = [setup.head("det", f"det{i}") for i in range(n)]
+        with engines([setup.config(heads)]) as (eng,):
+            parallel = lockstep(eng, imgs, setup.frames)
+        seq = InProcess(setup, heads)
+        sequential = seq.latency(imgs, setup.frames)
+        dt = seq.device_times(imgs[0])
+        del seq
+        row = {"heads": n, "engine": parallel, "sequential": sequential, "device_ms": dt,
+               "speedup_vs_sequential": sequential["mean"] / parallel["mean"]}
+        rows.append(row)
+        log(f"E2 N={n}: engine {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
+            f"({row['speedup_vs_sequential']:.2f}x)")
+    return {"rows": rows}
+
+
+def e3(setup: Setup, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> dict[str, Any]:
+    from vpengine.runtime import mps
+
+    rows = []
+    daemon = mps.find_daemon()
+    started = None
+    if daemon is None:
+        started = mps.start()
+        daemon = started["pipe_directory"]
+    try:
+        for kind in ("det", "depth"):
+            for n in ns:
+                heads = [setup.head(kind, f"{kind}{i}") for i in range(n)]
+                res = {}
+                for setting in ("off", "required"):
+                    cfg = setup.config(heads, mps=setting, mps_pipe_directory=daemon)
+                    with engines([cfg]) as (eng,):
+                        res[setting] = lockstep(eng, imgs, setup.frames)
+                        res[setting]["workers_on_mps"] = len(eng.stats()["engine"]["mps"]["workers_on_mps"])
+                gain = res["off"]["mean"] / res["required"]["mean"] - 1
+                rows.append({"head": kind, "heads": n, "mps_off": res["off"], "mps_on": res["required"],
+                             "throughput_gain": gain})
+                log(f"E3 {kind} N={n}: MPS off {res['off']['hz']:.1f} Hz, on {res['required']['hz']:.1f} Hz "
+                    f"({gain:+.0%}, {res['required']['workers_on_mps']} workers on MPS)")
+    finally:
+        if started and started.get("started"):
+            mps.stop(daemon)
+    return {"rows": rows, "mps_pipe_directory": daemon}
+
+
+def e4(setup: Setup, imgs: list[np.ndarray], seconds: float = 10.0) -> dict[str, Any]:
+    rates = [5, 10, 15, 20, 25, 30]
+    heads = [setup.head("depth", f"r{r}", rate_hz=r) for r in rates]
+    with engines([setup.config(heads)]) as (eng,):
+        for i in range(5):
+            eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=120)
+        before = {k: v["runs"] for k, v in eng.stats()["models"].items()}
+        time.sleep(1.0)  # idle gap: the schedule must restart cleanly
+        t0 = time.monotonic()
+        n = 0
+        while True:
+            t = t0 + n / 30.0
+            if t - t0 >= seconds:
+                break
+            d = t - time.monotonic()
+            if d > 0:
+                time.sleep(d)
+            eng.submit(imgs[n % len(imgs)])
+            n += 1
+        time.sleep(0.5)
+        st = eng.stats()["models"]
+    rows = []
+    for r in rates:
+        runs = st[f"r{r}"]["runs"] - before[f"r{r}"]
+        rows.append({"rate_hz": r, "runs": runs, "ideal": r * seconds, "error": runs - r * seconds})
+    log("E4 " + ", ".join(f"{x['rate_hz']} Hz: {x['runs']} ({x['error']:+.0f})" for x in rows))
+    return {"rows": rows, "input_frames": n, "seconds": seconds}
+
+
+def e5(setup: Setup, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
+    from vpengine.runtime.gpu import device_memory_used, process_memory
+
+    heads = [setup.head("depth", "depth"), setup.head("seg", "seg"), setup.head("det", "det")]
+    lat: dict[str, list[float]] = {"depth": [], "seg": [], "det": []}
+    per_frame: dict[int, dict[str, float]] = {}
+    memory: list[dict[str, Any]] = []
+    with engines([setup.config(heads)]) as (eng,):
+        for i in range(30):
+            eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=120)
+        eng.results()
+        pids = [m["pid"] for m in eng.stats()["models"].values()]
+        index = 0 if setup.device == "cuda" else None
+        t0 = time.monotonic()
+        next_mem = t0
+        first_id = None
+        for k in range(n_frames):
+            t = t0 + k / 30.0
+            while (now := time.monotonic()) < t:
+                for r in eng.results(timeout=t - now):
+                    lat[r.head].append(r.latency)
+                    per_frame.setdefault(r.frame_id, {})[r.head] = r.latency
+            fid = eng.submit(imgs[k % len(imgs)])
+            first_id = fid if first_id is None else first_id
+            if index is not None and time.monotonic() >= next_mem:
+                per = process_memory(index)
+                memory.append({"t": time.monotonic() - t0, "frame": k, "device_used": device_memory_used(index),
+                               "workers": [per.get(p) for p in pids]})
+                next_mem += 1.0
+            if k and k % 1000 == 0:
+                log(f"E5 {k}/{n_frames} frames")
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            rs = eng.results(timeout=0.5)
+            for r in rs:
+                lat[r.head].append(r.latency)
+                per_frame.setdefault(r.frame_id, {})[r.head] = r.latency
+            if not rs:
+                break
+        st = eng.stats()
+    complete = [max(v.values()) for v in per_frame.values() if len(v) == 3]
+    lost = {h: n_frames - len(v) for h, v in lat.items()}
+    res_missed = {h: st["results"][h]["missed"] for h in lat}
+    mem_used = [m["device_used"] for m in memory if m["device_used"] is not None]
+    out = {
+        "frames": n_frames,
+        "per_head_latency_ms": {h: pct(v) for h, v in lat.items()},
+        "all_three_latency_ms": pct(complete),
+        "frames_lost": lost,
+        "loss_pct": {h: 100.0 * v / n_frames for h, v in lost.items()},
+        "results_missed": res_missed,
+        "skipped": {h: st["models"][h]["skipped"] for h in lat} | {"foundation": st["models"]["foundation"]["skipped"]},
+        "memory": memory,
+        "memory_flat": bool(mem_used) and (max(mem_used[len(mem_used) // 10:]) - min(mem_used[len(mem_used) // 10:])) == 0,
+    }
+    a3 = out["all_three_latency_ms"]
+    log(f"E5 {n_frames} frames at 30 Hz: all three heads p50 {a3['p50']:.1f} ms p99 {a3['p99']:.1f} ms; "
+        f"lost {out['loss_pct']}; memory flat: {out['memory_flat']}")
+    return out
+
+
+def e6(setup: Setup, ns: list[int]) -> dict[str, Any]:
+    from vpengine.bench.resources import measure as resources
+
+    rows = []
+    base = setup.config([setup.head("depth", "depth")])
+    import tempfile
+
+    with tempfile.NamedTemporaryFile("w", suffix=".json", delete=False) as f:
+        f.write(json.dumps(base.model_dump(mode="json")))
+        path = f.name
+    for mode in ("process", "thread"):
+        for n in ns:
+            r = resources(path, n, mode, setup.height, setup.width, 5.0, [], cpu=True)
+            rows.append(r)
+            log(f"E6 {mode} N={n}: device +{r['device_mem_mb']:.0f} MB, CPU idle {r['cpu_idle_pct']:.1f}%, "
+                f"30 Hz {r['cpu_30hz_pct']:.0f}%")
+    return {"rows": rows}
+
+
+def floor(setup: Setup, imgs: list[np.ndarray], n_heads: int = 3) -> dict[str, Any]:
+    """Engine (thread mode, same backend) vs the device-time floor of the same models in one process."""
+    heads = [setup.head("depth", "depth"), setup.head("seg", "seg"), setup.head("det", "det")][:n_heads]
+    seq = InProcess(setup, heads)
+    dt = seq.device_times(imgs[0])
+    del seq
+    out: dict[str, Any] = {"device_ms": dt}
+    if dt:
+        out["floor_sum_ms"] = sum(dt.values())
+    for mode in ("thread", "process"):
+        with engines([setup.config(heads, mode=mode)]) as (eng,):
+            out[mode] = lockstep(eng, imgs, setup.frames)
+        if dt:
+            out[f"{mode}_overhead_vs_floor"] = out[mode]["mean"] / out["floor_sum_ms"] - 1
+    log(f"floor: device time {dt} -> sum {out.get('floor_sum_ms', float('nan')):.1f} ms; engine thread "
+        f"{out['thread']['mean']:.1f} ms, process {out['process']['mean']:.1f} ms")
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ figures
+def figures(res: dict[str, Any], path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [k for k in ("E1", "E2", "E3", "E4", "E5", "E6") if k in res]
+    if not panels:
+        return
+    cols = 3
+    rows = math.ceil(len(panels) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.8 * rows), dpi=110, squeeze=False)
+    for ax in axes.flat[len(panels):]:
+        ax.axis("off")
+    for ax, key in zip(axes.flat, panels):
+        r = res[key]
+        if key in ("E1", "E2"):
+            ns = [x["heads"] for x in r["rows"]]
+            series = ["engine", "sequential"] + (["independent"] if key == "E1" else [])
+            for s in series:
+                ax.plot(ns, [x[s]["hz"] for x in r["rows"]], marker="o", label=s)
+            ax.set_xlabel("heads")
+            ax.set_ylabel("frames/s (one in flight)")
+            ax.set_title(f"{key}: {'depth' if key == 'E1' else 'detection'} heads")
+            ax.legend()
+        elif key == "E3":
+            labels = [f"{x['head']} x{x['heads']}" for x in r["rows"]]
+            x = np.arange(len(labels))
+            ax.bar(x - 0.2, [y["mps_off"]["hz"] for y in r["rows"]], 0.4, label="MPS off")
+            ax.bar(x + 0.2, [y["mps_on"]["hz"] for y in r["rows"]], 0.4, label="MPS on")
+            ax.set_xticks(x, labels)
+            ax.set_ylabel("frames/s")
+            ax.set_title("E3: CUDA MPS")
+            ax.legend()
+        elif key == "E4":
+            rates = [x["rate_hz"] for x in r["rows"]]
+            ax.plot(rates, [x["ideal"] for x in r["rows"]], "k--", label="ideal R x 10 s")
+            ax.plot(rates, [x["runs"] for x in r["rows"]], "o", label="measured")
+            ax.set_xlabel("rate limit (Hz)")
+            ax.set_ylabel("runs in 10 s")
+            ax.set_title("E4: rate limits")
+            ax.legend()
+        elif key == "E5":
+            mem = r["memory"]
+            if mem and mem[0]["device_used"] is not None:
+                ax.plot([m["t"] for m in mem], [m["device_used"] / 2**30 for m in mem])
+                ax.set_xlabel("seconds")
+                ax.set_ylabel("device memory used (GiB)")
+            lat = r["per_head_latency_ms"]
+            ax.set_title("E5: 30 Hz stream; p50 " + ", ".join(f"{h} {v['p50']:.1f}" for h, v in lat.items())
+                         + " ms", fontsize=9)
+        elif key == "E6":
+            for mode in ("process", "thread"):
+                pts = [(x["heads"], x["device_mem_mb"]) for x in r["rows"] if x["mode"] == mode]
+                if pts:
+                    ax.plot(*zip(*pts), marker="o", label=mode)
+            ax.set_xlabel("heads")
+            ax.set_ylabel("device memory (MB)")
+            ax.set_title("E6: memory per head count")
+            ax.legend()
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(args: argparse.Namespace) -> int:
+    from vpengine.bench.common import machine_info, write_results
+
+    setup = Setup.from_args(args)
+    ns = [int(x) for x in args.heads.split(",")]
+    want = [x.strip() for x in args.experiments.split(",") if x.strip()]
+    imgs = frames(setup)
+    res: dict[str, Any] = {"setup": asdict(setup)}
+    log(f"machine: {machine_info()}")
+    for key in want:
+        t = time.monotonic()
+        if key == "E1":
+            res[key] = e1(setup, ns, imgs)
+        elif key == "E2":
+            res[key] = e2(setup, ns, imgs)
+        elif key == "E3":
+            res[key] = e3(setup, imgs)
+        elif key == "E4":
+            res[key] = e4(setup, imgs)
+        elif key == "E5":
+            res[key] = e5(setup, imgs, args.e5_frames)
+        elif key == "E6":
+            res[key] = e6(setup, ns)
+        elif key == "floor":
+            res[key] = floor(setup, imgs)
+        else:
+            raise ValueError(f"unknown experiment {key!r}; accepted: E1..E6, floor")
+        res[key]["seconds"] = time.monotonic() - t
+        name = f"paper_{setup.device}{('_' + args.tag) if args.tag else ''}"
+        path = write_results(args.out, name, res)  # after every experiment: a crash keeps what was measured
+    figures(res, str(path.with_suffix(".png")))
+    log(f"-> {path} and {path.with_suffix('.png')}")
+    return 0

@@ -1,0 +1,276 @@
+"""``vpengine weights``: the checkpoint catalog and the local cache.
+
+* ``list``: every catalog entry with its size, licence and whether it is cached;
+* ``fetch NAME [NAME...]``: download, verify (sha256) and cache; resumes interrupted downloads;
+* ``verify [NAME...]``: re-hash cached files, report OK / MISMATCH / MISSING, exit 1 on any problem;
+* ``path NAME``: where the file of NAME lives (exit 1 if it is not there yet).
+
+Entries without a published sha256 are refused unless the user gives one (``--sha256 HEX``) or accepts the digest of
+what is downloaded (``--trust-on-first-use``); either is recorded in the cache and used from then on.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument(
+        "--cache",
+        metavar="DIR",
+        help="checkpoint cache (default: $VPENGINE_CACHE, else $XDG_CACHE_HOME/vpengine)",
+    )
+    common.add_argument("--no-progress", action="store_true", help="no progress bars")
+    sub = p.add_subparsers(dest="weights_command", metavar="ACTION")
+
+    ls = sub.add_parser("list", parents=[common], help="catalog entries: size, licence, cached or not")
+    ls.add_argument("--json", action="store_true", help="print JSON instead of a table")
+
+    f = sub.add_parser(
+        "fetch", parents=[common], help="download, verify and cache checkpoints (resumes partial downloads)"
+    )
+    f.add_argument("names", nargs="+", metavar="NAME", help="catalog names (`vpengine weights list`)")
+    f.add_argument(
+        "--sha256",
+        metavar="HEX",
+        help="expected sha256 for an entry the catalog has none for (or a custom --url entry); recorded in the cache",
+    )
+    f.add_argument(
+        "--trust-on-first-use",
+        action="store_true",
+        help="for an entry without a sha256: accept the digest of what is downloaded now, print and record it",
+    )
+    f.add_argument(
+        "--url", help="download a custom entry NAME from this URL (needs --sha256 or --trust-on-first-use)"
+    )
+    f.add_argument("--file", help="file name of a custom --url entry (default: the URL's last path part)")
+    f.add_argument("--force", action="store_true", help="download again even if a verified copy is cached")
+    f.add_argument(
+        "--offline",
+        action="store_true",
+        help="never download (also $VPENGINE_OFFLINE=1 or $HF_HUB_OFFLINE=1)",
+    )
+    f.add_argument("--timeout", type=float, default=60.0, help="network timeout in seconds (default 60)")
+
+    v = sub.add_parser("verify", parents=[common], help="re-hash cached checkpoints; exit 1 on any problem")
+    v.add_argument(
+        "names", nargs="*", metavar="NAME", help="entries to check (default: every cached or partial one)"
+    )
+
+    pa = sub.add_parser("path", parents=[common], help="the cache path of a checkpoint (exit 1 if not there)")
+    pa.add_argument("name", metavar="NAME")
+    p.set_defaults(_weights_help=p.format_help)
+
+
+def _cache(args: argparse.Namespace) -> Path:
+    from vpengine.models.weights import cache_dir
+
+    return cache_dir(args.cache)
+
+
+def _entries(cache: Path) -> list[Any]:
+    """The active catalog followed by the custom entries recorded in this cache."""
+    from vpengine.models import catalog
+
+    cat = catalog.active()
+    return [*cat, *(e for e in catalog.local_catalog(cache) if e.name not in cat)]
+
+
+def _lookup(name: str, cache: Path) -> Any:
+    from vpengine.models import catalog
+    from vpengine.models.weights import CheckpointError
+
+    entry = catalog.find(name, cache)
+    if entry is None:
+        known = ", ".join(e.name for e in _entries(cache))
+        raise CheckpointError(f"{name!r} is not a catalog name; known: {known}")
+    return entry
+
+
+def _size(n: int | None) -> str:
+    from vpengine.models.catalog import _human
+
+    return "?" if n is None else _human(n)
+
+
+def _cached_text(entry: Any, cache: Path) -> str:
+    from vpengine.models import catalog
+
+    state = catalog.cache_status(entry, cache)
+    if state == "partial":
+        part = entry.path(cache).with_name(entry.file + ".part").stat().st_size
+        size = catalog.effective(entry, cache).size
+        return f"partial {100 * part // size}%" if size else f"partial {_size(part)}"
+    return {"cached": "yes", "missing": "no"}[state]
+
+
+def _digest_kind(entry: Any, cache: Path) -> str:
+    from vpengine.models import catalog
+
+    if entry.sha256 is not None:
+        return "catalog"
+    return "pinned" if catalog.effective(entry, cache).sha256 else "none"
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    from vpengine.models import catalog
+
+    cache = _cache(args)
+    rows = []
+    for e in _entries(cache):
+        eff = catalog.effective(e, cache)
+        rows.append(
+            {
+                "name": e.name,
+                "size": eff.size,
+                "licence": e.licence,
+                "cached": _cached_text(e, cache),
+                "sha256": eff.sha256,
+                "digest": _digest_kind(e, cache),
+                "recipes": list(e.recipes),
+                "url": e.url,
+                "path": str(e.path(cache)),
+            }
+        )
+    if args.json:
+        print(json.dumps({"cache": str(cache), "entries": rows}, indent=2))
+        return 0
+    w = max(len(r["name"]) for r in rows) if rows else 4
+    print(f"cache: {cache}")
+    print(f"{'name':{w}s}  {'size':>10s}  {'licence':12s}  {'cached':11s}  {'sha256':7s}  recipes")
+    for r in rows:
+        print(
+            f"{r['name']:{w}s}  {_size(r['size']):>10s}  {r['licence']:12s}  {r['cached']:11s}  "
+            f"{r['digest']:7s}  {', '.join(r['recipes']) or '-'}"
+        )
+    print(
+        "(sha256: catalog = published digest, pinned = recorded by you, none = fetch needs --sha256 or "
+        "--trust-on-first-use)"
+    )
+    return 0
+
+
+def cmd_fetch(args: argparse.Namespace) -> int:
+    from vpengine.models import catalog
+    from vpengine.models.weights import CheckpointError, offline
+
+    cache = _cache(args)
+    is_offline = offline(args.offline)
+    if (args.sha256 or args.url or args.file) and len(args.names) != 1:
+        print(
+            "vpengine weights fetch: --sha256, --url and --file apply to one NAME at a time", file=sys.stderr
+        )
+        return 2
+    if args.file and not args.url:
+        print("vpengine weights fetch: --file only applies to a custom --url entry", file=sys.stderr)
+        return 2
+    failed = 0
+    for name in args.names:
+        try:
+            if args.url:
+                if is_offline:
+                    raise CheckpointError(f"offline mode: not downloading {name} from {args.url}")
+                entry = catalog.add_custom(name, args.url, cache, file=args.file)
+            else:
+                entry = _lookup(name, cache)
+            if is_offline and (args.force or not entry.path(cache).is_file()):
+                raise catalog.offline_error(entry, cache)
+            res = catalog.fetch(
+                entry,
+                cache,
+                sha256=args.sha256,
+                trust_on_first_use=args.trust_on_first_use,
+                force=args.force,
+                progress=not args.no_progress,
+                timeout=args.timeout,
+            )
+        except CheckpointError as e:
+            print(f"vpengine weights fetch: {name}: {e}", file=sys.stderr)
+            failed += 1
+            continue
+        how = "downloaded" if res.downloaded else "already cached"
+        print(f"{entry.name}: {how}, sha256 {res.sha256} verified: {res.path}")
+        if res.pinned == "trust-on-first-use":
+            print(
+                f"{entry.name}: trusted on first use: sha256 {res.sha256} is now recorded in {cache} and every "
+                "later use is checked against it; compare it with the publisher's digest if one exists"
+            )
+        elif res.pinned:
+            print(f"{entry.name}: sha256 from --sha256 recorded in {cache}")
+        if entry.licence not in ("Apache-2.0", "MIT", "BSD-3-Clause") and res.downloaded:
+            print(f"{entry.name}: licence {entry.licence}: check that your use is allowed")
+    return 1 if failed else 0
+
+
+def cmd_verify(args: argparse.Namespace) -> int:
+    from vpengine.models import catalog
+    from vpengine.models.weights import CheckpointError
+
+    cache = _cache(args)
+    named = bool(args.names)
+    problems = 0
+    if named:
+        entries = []
+        for name in args.names:
+            try:
+                entries.append(_lookup(name, cache))
+            except CheckpointError as e:
+                print(f"UNKNOWN      {name}: {e}")
+                problems += 1
+    else:
+        entries = [e for e in _entries(cache) if catalog.cache_status(e, cache) != "missing"]
+        if not entries:
+            print(f"no checkpoint is cached in {cache}")
+            return 0
+    for e in entries:
+        r = catalog.verify(e, cache, progress=not args.no_progress)
+        if r.status == "OK":
+            line = f"{r.path}"
+        elif r.status == "MISMATCH":
+            line = (
+                f"expected sha256 {r.expected}, got {r.actual} ({r.path}); "
+                f"`vpengine weights fetch {e.name} --force` replaces it"
+            )
+        elif r.status == "MISSING":
+            line = f"not in the cache ({r.path}); `vpengine weights fetch {e.name}` gets it"
+        elif r.status == "PARTIAL":
+            line = f"interrupted download only; `vpengine weights fetch {e.name}` resumes it"
+        else:
+            line = (
+                f"sha256 {r.actual} cannot be checked: no digest is known; pin one with "
+                f"`vpengine weights fetch {e.name} --sha256 HEX` or `--trust-on-first-use`"
+            )
+        print(f"{r.status:12s} {e.name}: {line}")
+        if r.problem or (named and r.status == "PARTIAL"):
+            problems += 1
+    if problems:
+        print(f"{problems} problem(s)", file=sys.stderr)
+    return 1 if problems else 0
+
+
+def cmd_path(args: argparse.Namespace) -> int:
+    cache = _cache(args)
+    entry = _lookup(args.name, cache)
+    path = entry.path(cache)
+    print(path)
+    if not path.is_file():
+        print(
+            f"{entry.name} is not cached yet: `vpengine weights fetch {entry.name}`, or place the file at the "
+            f"path above (from {entry.url})",
+            file=sys.stderr,
+        )
+        return 1
+    return 0
+
+
+def main(args: argparse.Namespace) -> int:
+    commands = {"list": cmd_list, "fetch": cmd_fetch, "verify": cmd_verify, "path": cmd_path}
+    if not getattr(args, "weights_command", None):
+        print(args._weights_help())
+        return 2
+    return commands[args.weights_command](args)

@@ -1,0 +1,234 @@
+"""`vpengine train detector` end to end: synthetic shapes + COCO JSON -> trained head -> engine detections."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+pytestmark = pytest.mark.timeout(240)
+
+CLASSES = ["box", "disc"]
+FILE_HW = (240, 320)  # image files: twice the engine's input size, so training must scale boxes
+INPUT_HW = (120, 160)
+
+
+def make_dataset(
+    root: Path, n: int = 8, seed: int = 0
+) -> tuple[Path, Path, list[list[tuple[list[float], int]]]]:
+    """``n`` images of filled rectangles (class 0) and ellipses (class 1) and their COCO JSON.
+
+    Returns the image folder, the JSON path and, per image, its boxes (x1, y1, x2, y2 in file pixels) and labels.
+    """
+    rng = np.random.default_rng(seed)
+    img_dir = root / "images"
+    img_dir.mkdir(parents=True)
+    fh, fw = FILE_HW
+    images, annotations, truth = [], [], []
+    for i in range(n):
+        img = rng.integers(0, 50, (fh, fw, 3), dtype=np.uint8)
+        objects: list[tuple[list[float], int]] = []
+        for _ in range(rng.integers(2, 4)):
+            for _attempt in range(50):
+                bw, bh = (int(v) for v in rng.integers(50, 110, 2))
+                x, y = int(rng.integers(0, fw - bw)), int(rng.integers(0, fh - bh))
+                box = [x, y, x + bw, y + bh]
+                if all(_iou(box, o[0]) == 0 for o in objects):
+                    break
+            else:
+                continue
+            label = int(rng.integers(0, 2))
+            color = tuple(int(c) for c in rng.integers(120, 256, 3))
+            if label == 0:
+                cv2.rectangle(img, (x, y), (x + bw - 1, y + bh - 1), color, thickness=-1)
+            else:
+                cv2.ellipse(
+                    img, (x + bw // 2, y + bh // 2), (bw // 2, bh // 2), 0, 0, 360, color, thickness=-1
+                )
+            objects.append((box, label))
+        name = f"img_{i:02d}.png"
+        cv2.imwrite(str(img_dir / name), img)
+        images.append({"id": 100 + i, "file_name": name, "width": fw, "height": fh})
+        for box, label in objects:
+            x1, y1, x2, y2 = box
+            annotations.append(
+                {
+                    "id": len(annotations) + 1,
+                    "image_id": 100 + i,
+                    "category_id": 7 + label,  # non-contiguous ids: the trainer must map them to 0..K-1
+                    "bbox": [x1, y1, x2 - x1, y2 - y1],
+                    "area": (x2 - x1) * (y2 - y1),
+                    "iscrowd": 0,
+                }
+            )
+        truth.append(objects)
+    cats = [{"id": 7 + k, "name": name} for k, name in enumerate(CLASSES)]
+    ann = root / "train.json"
+    ann.write_text(json.dumps({"images": images, "annotations": annotations, "categories": cats}))
+    return img_dir, ann, truth
+
+
+def _iou(a, b) -> float:
+    ix = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    iy = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = ix * iy
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return inter / union if union > 0 else 0.0
+
+
+HEAD_OPTIONS = {
+    "out_channels": 32,
+    "representation_size": 64,
+    "rpn_batch_size_per_image": 64,
+    "rpn_pre_nms_top_n_train": 300,
+    "rpn_post_nms_top_n_train": 200,
+    "rpn_pre_nms_top_n_test": 200,
+    "rpn_post_nms_top_n_test": 100,
+    "box_batch_size_per_image": 64,
+    "max_detections": 10,
+    "score_threshold": 0.3,
+}
+
+
+def write_config(path: Path) -> Path:
+    cfg = {
+        "name": "train-test",
+        "mode": "thread",
+        "device": "cpu",
+        "input": {"height": INPUT_HW[0], "width": INPUT_HW[1]},
+        "foundation_model": {"model": "tiny_vit", "preprocess": {"resize": "square", "size": 112}},
+        "heads": [{"name": "det", "model": "frcnn_dinov2", "options": HEAD_OPTIONS}],
+    }
+    path.write_text(yaml.safe_dump(cfg))
+    return path
+
+
+def test_train_detector_cli_loss_falls_and_engine_detects_with_the_checkpoint(tmp_path, capsys):
+    from vpengine.cli.main import main
+    from vpengine.engine import Engine
+
+    img_dir, ann, truth = make_dataset(tmp_path)
+    cfg_path = write_config(tmp_path / "train.yaml")
+    out = tmp_path / "ckpt" / "head.pth"
+    rc = main(
+        [
+            "train",
+            "detector",
+            "--config",
+            str(cfg_path),
+            "--images",
+            str(img_dir),
+            "--annotations",
+            str(ann),
+            "--out",
+            str(out),
+            "--epochs",
+            "30",
+            "--lr",
+            "2e-3",
+            "--batch-size",
+            "4",
+            "--no-progress",
+            "--threads",
+            "1",  # two OpenMP threads on a busy 2-core machine are many times slower than one
+        ]
+    )
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    assert out.is_file()
+    log = json.loads((out.parent / "head.train.json").read_text())
+    losses = log["epoch_loss"]
+    assert len(losses) == 30 and all(np.isfinite(losses))
+    assert losses[-1] < 0.7 * losses[0], losses
+    assert log["class_names"] == CLASSES
+    assert "epoch 30/30: loss" in printed and "wrote" in printed
+
+    # The checkpoint runs in the engine exactly as the printed head entry says. Preprocessing squashes the 4:3
+    # frames to a square, so boxes left in preprocessed pixels would miss the objects: matching the drawn shapes
+    # in input pixels checks the whole coordinate path.
+    head_cfg = log["head_config"]
+    assert head_cfg["checkpoint"] == str(out.resolve()) and head_cfg["options"]["trained_on"] == "tiny_vit"
+    assert yaml.safe_load(printed[printed.index("heads:") :]) == {"heads": [head_cfg]}
+    cfg = yaml.safe_load(cfg_path.read_text())
+    cfg["heads"] = [head_cfg]
+    h, w = INPUT_HW
+    sx, sy = w / FILE_HW[1], h / FILE_HW[0]
+    matched, total = 0, 0
+    with Engine(cfg) as engine:
+        assert engine.head_info("det")["labels"] == CLASSES
+        for i, objects in enumerate(truth):
+            frame = cv2.resize(
+                cv2.imread(str(img_dir / f"img_{i:02d}.png")), (w, h), interpolation=cv2.INTER_AREA
+            )
+            r = engine.wait(engine.submit(frame), timeout=30)["det"]
+            n = r["count"]
+            boxes = r["boxes"]
+            assert 1 <= n <= HEAD_OPTIONS["max_detections"] and boxes.shape == (n, 4)
+            assert np.all(boxes[:, :2] >= 0) and np.all(boxes[:, 2] <= w) and np.all(boxes[:, 3] <= h)
+            assert np.all(boxes[:, 2:] > boxes[:, :2])
+            assert np.all(np.diff(r["scores"]) <= 0) and np.all(r["scores"] > HEAD_OPTIONS["score_threshold"])
+            assert set(r["labels"].tolist()) <= {0, 1}
+            for box, _label in objects:
+                gt = [box[0] * sx, box[1] * sy, box[2] * sx, box[3] * sy]
+                total += 1
+                matched += max(_iou(gt, b) for b in boxes.tolist()) >= 0.5
+    assert matched >= 0.7 * total, f"{matched} of {total} drawn shapes found (IoU >= 0.5)"
+
+
+def test_coco_loader_maps_category_ids_to_labels_and_skips_crowd(tmp_path):
+    from vpengine.cli.train import load_coco
+
+    img_dir, ann, truth = make_dataset(tmp_path, n=3)
+    data = json.loads(ann.read_text())
+    data["categories"].reverse()  # order in the file does not matter: labels follow category ids
+    crowd = {**data["annotations"][0], "id": 999, "iscrowd": 1}
+    data["annotations"].append(crowd)
+    data["images"].append({"id": 555, "file_name": "img_00.png", "width": 320, "height": 240})  # no boxes
+    ann.write_text(json.dumps(data))
+    names, samples = load_coco(ann, img_dir)
+    assert names == CLASSES
+    assert len(samples) == 4 and samples[3].boxes.shape == (0, 4)
+    for s, objects in zip(samples, truth):
+        np.testing.assert_array_equal(s.boxes, np.array([b for b, _ in objects], np.float32))
+        assert s.labels.tolist() == [lab for _, lab in objects]
+
+
+@pytest.mark.parametrize(
+    ("edit", "message"),
+    [
+        (lambda d: d["annotations"][0].update(category_id=99), "category_id 99"),
+        (lambda d: d["images"][0].update(file_name="missing.png"), "missing.png"),
+        (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), "is not [x, y, w, h]"),
+        (lambda d: d.pop("categories"), "not COCO detection JSON"),
+        (lambda d: d["images"][1].pop("file_name"), "images[1]"),
+    ],
+)
+def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, message):
+    from vpengine.cli.main import main
+
+    img_dir, ann, _ = make_dataset(tmp_path, n=2)
+    data = json.loads(ann.read_text())
+    edit(data)
+    ann.write_text(json.dumps(data))
+    cfg = write_config(tmp_path / "c.yaml")
+    args = ["train", "detector", "-c", str(cfg), "--images", str(img_dir), "--annotations", str(ann)]
+    assert main([*args, "--out", str(tmp_path / "h.pth")]) == 1
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "h.pth").exists()
+
+
+def test_train_refuses_a_head_whose_classes_differ_from_the_annotations(tmp_path):
+    from vpengine.cli.train import train_detector
+
+    img_dir, ann, _ = make_dataset(tmp_path, n=2)
+    cfg = write_config(tmp_path / "c.yaml")
+    with pytest.raises(
+        ValueError, match=r"class_names \['cat', 'dog'\] but the annotations define \['box', 'disc'\]"
+    ):
+        train_detector(
+            cfg, img_dir, ann, tmp_path / "h.pth", overrides=["heads.det.options.class_names=[cat, dog]"]
+        )

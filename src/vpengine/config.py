@@ -65,6 +65,11 @@ class PreprocessConfig(_Strict):
     std: tuple[float, float, float] = Field(
         (0.229, 0.224, 0.225), description="Normalisation std (RGB, 0..1)."
     )
+    fast_uint8_resize: bool = Field(
+        True,
+        description="CPU only: resize 8-bit frames before converting them to float (~40x faster for 1080p, under one "
+        "grey level of difference); false: the exact float path everywhere (GPUs and ONNX exports always use it).",
+    )
 
 
 class ModelConfig(_Strict):

@@ -46,8 +46,9 @@ def _spawn(script: str):
     from vpengine.runtime.process import _child_env
 
     ours, theirs = socket.socketpair()
-    proc = subprocess.Popen([sys.executable, "-c", script, str(theirs.fileno())], pass_fds=[theirs.fileno()],
-                            env=_child_env())
+    proc = subprocess.Popen(
+        [sys.executable, "-c", script, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=_child_env()
+    )
     theirs.close()
     return proc, Connection(ours.detach())
 
@@ -67,13 +68,17 @@ def test_vmm_region_is_shared_between_processes_without_copies():
         assert kind == "written"
         n = region.tensor().numel() // 4
         got = region.tensor().view(torch.int32)[:n]
-        assert torch.equal(got, torch.arange(n, dtype=torch.int32, device="cuda") * 7)  # the child's writes, here
+        assert torch.equal(
+            got, torch.arange(n, dtype=torch.int32, device="cuda") * 7
+        )  # the child's writes, here
         conn.send("done")
         proc.wait(30)
         assert proc.returncode == 0
         # the child is gone; the memory is ours still
-        assert torch.equal(region.tensor().view(torch.int32)[:n][-3:],
-                           torch.arange(n - 3, n, dtype=torch.int32, device="cuda") * 7)
+        assert torch.equal(
+            region.tensor().view(torch.int32)[:n][-3:],
+            torch.arange(n - 3, n, dtype=torch.int32, device="cuda") * 7,
+        )
     finally:
         conn.close()
         region.close()
@@ -103,7 +108,9 @@ def test_device_memory_is_flat_between_frame_1000_and_10000(mode):
         st = e.stats()
     assert all(v is not None for v in samples[1000].values()), f"NVML did not report every process: {samples}"
     assert samples[1000] == samples[10000], f"device memory changed: {samples}"
-    assert all(m["runs"] >= 10000 for m in st["models"].values()), {k: m["runs"] for k, m in st["models"].items()}
+    assert all(m["runs"] >= 10000 for m in st["models"].values()), {
+        k: m["runs"] for k, m in st["models"].items()
+    }
 
 
 def test_stop_leaves_no_process_and_gives_the_device_memory_back():
@@ -120,7 +127,9 @@ def test_stop_leaves_no_process_and_gives_the_device_memory_back():
     e.stop()
     time.sleep(1.0)
     after = device_memory_used(0)
-    assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
+    assert not [
+        p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
+    ]
     assert during > before
     assert abs(after - before) <= 4 * 2**20, f"device memory before {before}, after {after} (during {during})"
 
@@ -138,8 +147,9 @@ def test_sigkilled_head_on_gpu_restarts_and_the_others_stay_correct():
             got = e.wait(fid, heads=["depth", "det"], timeout=10)
             for h in ("depth", "det"):
                 for k, v in got[h].outputs.items():
-                    np.testing.assert_allclose(np.asarray(v), np.asarray(ref[i % 5][h].outputs[k]), rtol=1e-4,
-                                               atol=1e-5)
+                    np.testing.assert_allclose(
+                        np.asarray(v), np.asarray(ref[i % 5][h].outputs[k]), rtol=1e-4, atol=1e-5
+                    )
             time.sleep(0.05)
         deadline = time.monotonic() + 60
         while e.stats()["models"]["seg"]["state"] != "running" and time.monotonic() < deadline:
@@ -168,8 +178,14 @@ def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path):
     mps.start(pipe)
     try:
         # clients of a dead MPS server may hang inside CUDA rather than fail: the hang timeout catches those
-        cfg = tiny("process", "device=cuda", "mps=required", f"mps_pipe_directory={pipe}",
-                   "runtime.restart_backoff_s=0.2", "runtime.hang_timeout_s=5")
+        cfg = tiny(
+            "process",
+            "device=cuda",
+            "mps=required",
+            f"mps_pipe_directory={pipe}",
+            "runtime.restart_backoff_s=0.2",
+            "runtime.hang_timeout_s=5",
+        )
         with Engine(cfg) as e:
             for i in range(20):
                 e.wait(e.submit(frame(i)), timeout=10)

@@ -26,7 +26,8 @@ class Reference:
         self.device = torch.device(cfg.device)
         self.fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
         self.heads = {
-            n: build_model(cfg, n, "head", plan.features, plan.feature_meta, self.device, False) for n in plan.heads
+            n: build_model(cfg, n, "head", plan.features, plan.feature_meta, self.device, False)
+            for n in plan.heads
         }
 
     @torch.inference_mode()

@@ -132,10 +132,17 @@ def test_models_built_in_parallel_threads_get_the_same_seeded_weights():
     """Thread mode builds every model at once; construction uses PyTorch's global RNG, so builds must not mix."""
     import threading
 
-    cfg = load_config({"input": {"height": 56, "width": 84}, "weights": {"random_weights": True},
-                       "foundation_model": {"model": "dinov2_vits14",
-                                            "options": {"size": "custom", "embed_dim": 32, "depth": 4, "heads": 2}},
-                       "heads": [{"name": f"h{i}", "model": "tiny_depth"} for i in range(3)]})
+    cfg = load_config(
+        {
+            "input": {"height": 56, "width": 84},
+            "weights": {"random_weights": True},
+            "foundation_model": {
+                "model": "dinov2_vits14",
+                "options": {"size": "custom", "embed_dim": 32, "depth": 4, "heads": 2},
+            },
+            "heads": [{"name": f"h{i}", "model": "tiny_depth"} for i in range(3)],
+        }
+    )
     plan = make_plan(cfg)
     cpu = torch.device("cpu")
     reference = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, cpu, False).state_dict()
@@ -149,10 +156,25 @@ def test_models_built_in_parallel_threads_get_the_same_seeded_weights():
             for _ in range(20):  # default layer init draws from the global RNG meanwhile
                 build_model(cfg, n, "head", plan.features, plan.feature_meta, cpu, False)
 
-        threads = [threading.Thread(target=fm)] + [threading.Thread(target=head, args=(f"h{i}",)) for i in range(3)]
+        threads = [threading.Thread(target=fm)] + [
+            threading.Thread(target=head, args=(f"h{i}",)) for i in range(3)
+        ]
         for t in threads:
             t.start()
         for t in threads:
             t.join()
         for k, v in built["fm"].state_dict().items():
             assert torch.equal(v, reference[k]), k
+
+
+def test_cpu_uint8_fast_resize_stays_within_one_grey_level_of_the_float_path():
+    frame = torch.from_numpy(np.random.default_rng(3).integers(0, 256, (270, 480, 3), dtype=np.uint8))
+    cfg = PreprocessConfig(size=112)
+    pre = ImagePreprocess(270, 480, cfg, 14)
+    fast = pre({"frame": frame})["image"]  # uint8 on the CPU: resized before the float conversion
+    pre_f = ImagePreprocess(270, 480, cfg, 14, in_dtype="float32")  # float frames take the float path
+    slow = pre_f({"frame": frame.float() / 255})["image"]
+    assert fast.shape == slow.shape == (1, 3, 112, 196)
+    one_level = (1 / 255) / min(cfg.std)  # one grey level in normalised units
+    assert (fast - slow).abs().max().item() <= one_level
+    assert (fast - slow).abs().mean().item() < 0.5 * one_level

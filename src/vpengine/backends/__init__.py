@@ -1,18 +1,64 @@
-"""Execution backends: how a model runs. Each returns a callable with the model's dict-in/dict-out contract."""
+"""Execution backends: how a model runs. Each returns an executor with the model's dict-in/dict-out contract.
+
+* ``eager``: the PyTorch model as written.
+* ``compile``: ``torch.compile`` (inductor); on CUDA replayed as one CUDA graph over static buffers
+  (Note [CUDA graphs] in ``compiled.py``).
+* ``onnx``: an ONNX export, cached on disk (Note [ONNX cache key] in ``onnx_export.py``), run by ONNX Runtime with
+  IO binding.
+
+Every backend honours the model's precision (Note [Precision] in ``base.py``) and does all its compilation,
+export, autotuning and graph capture inside ``make_executor``, which the worker calls before it reports READY.
+Options per model come from the config's ``backend_options`` and are validated by the backend (``options.py``).
+Backends are imported lazily, so onnxruntime is only needed by models that use it.
+"""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
 
 import torch
 
+from vpengine.backends.base import PRECISION_DTYPES, Executor, precision_dtype
+from vpengine.backends.options import BackendError, backend_names, parse_options
 from vpengine.models.base import Model
 
-Executor = Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]]
+__all__ = ["PRECISION_DTYPES", "BackendError", "Executor", "backend_names", "make_executor", "parse_options"]
 
 
-def make_executor(model: Model, backend: str, device: torch.device, name: str) -> Executor:
-    """The callable that runs ``model`` with ``backend`` ("eager", "compile", "onnx")."""
+def make_executor(
+    model: Model,
+    backend: str,
+    device: torch.device | str,
+    name: str,
+    *,
+    options: Mapping[str, Any] | None = None,
+    precision: str = "fp32",
+    cache_dir: str | Path | None = None,
+) -> Executor:
+    """The executor that runs ``model`` (built on ``device``, in eval mode) with ``backend``.
+
+    ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` the
+    configured ``weights.cache_dir`` (ONNX exports go to its ``onnx`` subfolder; None: the default cache).
+    Compilation, export and CUDA graph capture happen here. The eager and compile backends cast ``model`` to the
+    precision in place and keep it; the onnx backend leaves it untouched and does not keep it.
+    Raises BackendError (a ValueError) naming the model and the accepted values for a bad backend, option or
+    precision, and carrying the underlying error when an export, compilation or capture fails.
+    """
+    opts = parse_options(backend, options, name)
+    precision_dtype(precision, name)
     if backend == "eager":
-        return model
-    raise ValueError(f"{name}: backend {backend!r} is not available in this build; accepted: 'eager'")
+        from vpengine.backends.eager import EagerExecutor
+
+        return EagerExecutor(model, device, precision, name, opts)
+    if backend == "compile":
+        from vpengine.backends.compiled import CompiledExecutor
+
+        return CompiledExecutor(model, device, precision, name, opts)
+    from vpengine.backends.onnxrt import OnnxExecutor
+    from vpengine.models.weights import cache_dir as vpengine_cache
+
+    return OnnxExecutor(
+        model, device, precision, name, opts, vpengine_cache(str(cache_dir) if cache_dir else None) / "onnx"
+    )

@@ -23,9 +23,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--hops", type=int, default=10000, help="number of hops (default 10000)")
     p.add_argument("--mbytes", type=float, default=4.0, help="payload size in MB (default 4)")
     p.add_argument("--device", default="cpu", help="where the slots live: cpu (host shared memory) or cuda")
-    p.add_argument("--layout", choices=["flat", "vits-1080p"], default="flat",
-                   help="flat: four tensors of --mbytes in all; vits-1080p: DINOv2 ViT-S features of a 1080p frame "
-                        "(4 layers x [1, 2442, 384] patch + CLS tokens, float32, 15 MB)")
+    p.add_argument(
+        "--layout",
+        choices=["flat", "vits-1080p"],
+        default="flat",
+        help="flat: four tensors of --mbytes in all; vits-1080p: DINOv2 ViT-S features of a 1080p frame "
+        "(4 layers x [1, 2442, 384] patch + CLS tokens, float32, 15 MB)",
+    )
 
 
 def _specs(mbytes: float, layout: str = "flat") -> dict[str, Any]:

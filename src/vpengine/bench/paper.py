@@ -46,6 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seg-head", default="dinov2_linear_ade20k_s")
     p.add_argument("--det-head", default="frcnn_dinov2")
     p.add_argument("--backend", default="eager", help="backend of every model (eager, compile, onnx)")
+    p.add_argument("--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)")
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
     p.add_argument("--tag", default="", help="suffix of the results file name")
 
@@ -69,25 +70,58 @@ class Setup:
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
         if a.tiny:
-            return cls(device=a.device, precision="fp32", height=120, width=160, backbone="tiny_vit",
-                       depth="tiny_depth", seg="tiny_seg", det="tiny_det", det_options={}, frames=a.frames,
-                       backbone_options={}, backend=a.backend, tiny=True)
-        return cls(device=a.device, precision=a.precision, height=a.height, width=a.width, backbone=a.backbone,
-                   depth=a.depth_head, seg=a.seg_head, det=a.det_head, backend=a.backend, frames=a.frames)
+            return cls(
+                device=a.device,
+                precision="fp32",
+                height=120,
+                width=160,
+                backbone="tiny_vit",
+                depth="tiny_depth",
+                seg="tiny_seg",
+                det="tiny_det",
+                det_options={},
+                frames=a.frames,
+                backbone_options={},
+                backend=a.backend,
+                tiny=True,
+            )
+        return cls(
+            device=a.device,
+            precision=a.precision,
+            height=a.height,
+            width=a.width,
+            backbone=a.backbone,
+            depth=a.depth_head,
+            seg=a.seg_head,
+            det=a.det_head,
+            backend=a.backend,
+            frames=a.frames,
+        )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
         model = {"depth": self.depth, "seg": self.seg, "det": self.det}[kind]
         opts = self.det_options if kind == "det" else {}
-        return {"name": name, "model": model, "options": opts, "backend": self.backend, **extra}
+        # Faster R-CNN's NMS has data-dependent shapes: it neither compiles into a CUDA graph nor exports; eager
+        backend = "eager" if kind == "det" and self.backend != "eager" else self.backend
+        return {"name": name, "model": model, "options": opts, "backend": backend, **extra}
 
     def config(self, heads: list[dict[str, Any]], mode: str = "process", **top: Any) -> Any:
         from vpengine.config import load_config
 
         raw = {
-            "name": "bench", "mode": mode, "device": self.device, "precision": self.precision, "mps": "off",
+            "name": "bench",
+            "mode": mode,
+            "device": self.device,
+            "precision": self.precision,
+            "mps": "off",
             "input": {"height": self.height, "width": self.width},
-            "foundation_model": {"model": self.backbone, "options": self.backbone_options, "backend": self.backend},
-            "heads": heads, "weights": {"random_weights": True},
+            "foundation_model": {
+                "model": self.backbone,
+                "options": self.backbone_options,
+                "backend": self.backend,
+            },
+            "heads": heads,
+            "weights": {"random_weights": True},
             "logging": {"level": "WARNING"},
             **top,
         }
@@ -108,8 +142,13 @@ def pct(values: list[float] | np.ndarray) -> dict[str, float]:
     a = np.asarray(values, dtype=float) * 1e3
     if not len(a):
         return {"p50": math.nan, "p90": math.nan, "p99": math.nan, "mean": math.nan, "n": 0}
-    return {"p50": float(np.percentile(a, 50)), "p90": float(np.percentile(a, 90)),
-            "p99": float(np.percentile(a, 99)), "mean": float(a.mean()), "n": len(a)}
+    return {
+        "p50": float(np.percentile(a, 50)),
+        "p90": float(np.percentile(a, 90)),
+        "p99": float(np.percentile(a, 99)),
+        "mean": float(a.mean()),
+        "n": len(a),
+    }
 
 
 def lockstep(engine: Any, imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
@@ -143,15 +182,29 @@ class InProcess:
         from vpengine.runtime.plan import make_plan
         from vpengine.runtime.worker import build_model
 
-        self.cfg = setup.config(heads, mode="thread")
+        self.cfg = cfg = setup.config(heads, mode="thread")
         self.device = torch.device(setup.device)
-        plan = make_plan(self.cfg)
-        fm = build_model(self.cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
-        self.fm = make_executor(fm, self.cfg.foundation_model.backend, self.device, "foundation")
+        plan = make_plan(cfg)
+
+        def executor(model: Any, mcfg: Any, name: str) -> Any:  # exactly as a worker builds it
+            return make_executor(
+                model,
+                mcfg.backend,
+                self.device,
+                name,
+                options=mcfg.backend_options,
+                precision=mcfg.precision or cfg.precision,
+                cache_dir=cfg.weights.cache_dir,
+            )
+
+        fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
+        self.fm = executor(fm, cfg.foundation_model, "foundation")
         self.heads = {}
-        for h in self.cfg.heads:
-            m = build_model(self.cfg, h.name, "head", plan.features, plan.feature_meta, self.device, False)
-            self.heads[h.name] = (make_executor(m, h.backend, self.device, h.name), list(m.input_spec))
+        self.graphed = {"foundation": cfg.foundation_model.backend == "compile"}
+        for h in cfg.heads:
+            m = build_model(cfg, h.name, "head", plan.features, plan.feature_meta, self.device, False)
+            self.heads[h.name] = (executor(m, h, h.name), list(m.input_spec))
+            self.graphed[h.name] = h.backend == "compile"
         self.torch = torch
 
     def run(self, img: np.ndarray) -> dict[str, Any]:
@@ -191,7 +244,12 @@ class InProcess:
                 parts[name] = (head, {k: feats[k] for k in keys})
             out = {}
             for name, (fn, inputs) in parts.items():
-                run = _graphed(fn, inputs, torch)
+                # compiled executors replay their own CUDA graph; eager ones are captured here if they can be
+                run = (
+                    (lambda fn=fn, inputs=inputs: fn(inputs))
+                    if self.graphed[name]
+                    else _graphed(fn, inputs, torch)
+                )
                 start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
                 times = []
                 for _ in range(n):
@@ -252,6 +310,7 @@ def engines(cfgs: list[Any]) -> Iterator[list[Any]]:
 
 def independent_latency(es: list[Any], imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
     """N independent full pipelines (each its own backbone): a frame goes to all, latency = the slowest."""
+
     def one(i: int) -> None:
         fids = [e.submit(imgs[i % len(imgs)]) for e in es]
         for e, fid in zip(es, fids):
@@ -286,16 +345,25 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
         del seq
         with engines([setup.config([setup.head("depth", "depth")]) for _ in range(n)]) as es:
             indep = independent_latency(es, imgs, setup.frames)
-        row = {"heads": n, "engine": shared, "independent": indep, "sequential": sequential, "device_ms": dt,
-               "speedup_vs_independent": indep["mean"] / shared["mean"],
-               "speedup_vs_sequential": sequential["mean"] / shared["mean"]}
+        row = {
+            "heads": n,
+            "engine": shared,
+            "independent": indep,
+            "sequential": sequential,
+            "device_ms": dt,
+            "speedup_vs_independent": indep["mean"] / shared["mean"],
+            "speedup_vs_sequential": sequential["mean"] / shared["mean"],
+        }
         if dt:
             b, h = dt["foundation"], dt["depth0"]
             row["ideal_vs_independent"] = n * (b + h) / (b + n * h)
         rows.append(row)
-        log(f"E1 N={n}: engine {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
+        log(
+            f"E1 N={n}: engine {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
             f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
-            f"({row['speedup_vs_sequential']:.2f}x)" + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else ""))
+            f"({row['speedup_vs_sequential']:.2f}x)"
+            + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")
+        )
     return {"rows": rows}
 
 
@@ -309,11 +377,18 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
         sequential = seq.latency(imgs, setup.frames)
         dt = seq.device_times(imgs[0])
         del seq
-        row = {"heads": n, "engine": parallel, "sequential": sequential, "device_ms": dt,
-               "speedup_vs_sequential": sequential["mean"] / parallel["mean"]}
+        row = {
+            "heads": n,
+            "engine": parallel,
+            "sequential": sequential,
+            "device_ms": dt,
+            "speedup_vs_sequential": sequential["mean"] / parallel["mean"],
+        }
         rows.append(row)
-        log(f"E2 N={n}: engine {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
-            f"({row['speedup_vs_sequential']:.2f}x)")
+        log(
+            f"E2 N={n}: engine {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
+            f"({row['speedup_vs_sequential']:.2f}x)"
+        )
     return {"rows": rows}
 
 
@@ -337,10 +412,19 @@ def e3(setup: Setup, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> di
                         res[setting] = lockstep(eng, imgs, setup.frames)
                         res[setting]["workers_on_mps"] = len(eng.stats()["engine"]["mps"]["workers_on_mps"])
                 gain = res["off"]["mean"] / res["required"]["mean"] - 1
-                rows.append({"head": kind, "heads": n, "mps_off": res["off"], "mps_on": res["required"],
-                             "throughput_gain": gain})
-                log(f"E3 {kind} N={n}: MPS off {res['off']['hz']:.1f} Hz, on {res['required']['hz']:.1f} Hz "
-                    f"({gain:+.0%}, {res['required']['workers_on_mps']} workers on MPS)")
+                rows.append(
+                    {
+                        "head": kind,
+                        "heads": n,
+                        "mps_off": res["off"],
+                        "mps_on": res["required"],
+                        "throughput_gain": gain,
+                    }
+                )
+                log(
+                    f"E3 {kind} N={n}: MPS off {res['off']['hz']:.1f} Hz, on {res['required']['hz']:.1f} Hz "
+                    f"({gain:+.0%}, {res['required']['workers_on_mps']} workers on MPS)"
+                )
     finally:
         if started and started.get("started"):
             mps.stop(daemon)
@@ -369,11 +453,24 @@ def e4(setup: Setup, imgs: list[np.ndarray], seconds: float = 10.0) -> dict[str,
         time.sleep(0.5)
         st = eng.stats()["models"]
     rows = []
+    fm_runs = st["foundation"]["runs"] - before["foundation"]
     for r in rates:
         runs = st[f"r{r}"]["runs"] - before[f"r{r}"]
-        rows.append({"rate_hz": r, "runs": runs, "ideal": r * seconds, "error": runs - r * seconds})
-    log("E4 " + ", ".join(f"{x['rate_hz']} Hz: {x['runs']} ({x['error']:+.0f})" for x in rows))
-    return {"rows": rows, "input_frames": n, "seconds": seconds}
+        ideal = min(r * seconds, fm_runs)  # a head cannot run on frames the backbone skipped
+        rows.append(
+            {
+                "rate_hz": r,
+                "runs": runs,
+                "ideal": ideal,
+                "error": runs - ideal,
+                "skipped": st[f"r{r}"]["skipped"],
+            }
+        )
+    log(
+        f"E4 (backbone ran {fm_runs} of {n} frames) "
+        + ", ".join(f"{x['rate_hz']} Hz: {x['runs']} ({x['error']:+.0f})" for x in rows)
+    )
+    return {"rows": rows, "input_frames": n, "foundation_runs": fm_runs, "seconds": seconds}
 
 
 def e5(setup: Setup, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
@@ -402,8 +499,14 @@ def e5(setup: Setup, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
             first_id = fid if first_id is None else first_id
             if index is not None and time.monotonic() >= next_mem:
                 per = process_memory(index)
-                memory.append({"t": time.monotonic() - t0, "frame": k, "device_used": device_memory_used(index),
-                               "workers": [per.get(p) for p in pids]})
+                memory.append(
+                    {
+                        "t": time.monotonic() - t0,
+                        "frame": k,
+                        "device_used": device_memory_used(index),
+                        "workers": [per.get(p) for p in pids],
+                    }
+                )
                 next_mem += 1.0
             if k and k % 1000 == 0:
                 log(f"E5 {k}/{n_frames} frames")
@@ -427,18 +530,22 @@ def e5(setup: Setup, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
         "frames_lost": lost,
         "loss_pct": {h: 100.0 * v / n_frames for h, v in lost.items()},
         "results_missed": res_missed,
-        "skipped": {h: st["models"][h]["skipped"] for h in lat} | {"foundation": st["models"]["foundation"]["skipped"]},
+        "skipped": {h: st["models"][h]["skipped"] for h in lat}
+        | {"foundation": st["models"]["foundation"]["skipped"]},
         "memory": memory,
-        "memory_flat": bool(mem_used) and (max(mem_used[len(mem_used) // 10:]) - min(mem_used[len(mem_used) // 10:])) == 0,
+        "memory_flat": bool(mem_used)
+        and (max(mem_used[len(mem_used) // 10 :]) - min(mem_used[len(mem_used) // 10 :])) == 0,
     }
     a3 = out["all_three_latency_ms"]
-    log(f"E5 {n_frames} frames at 30 Hz: all three heads p50 {a3['p50']:.1f} ms p99 {a3['p99']:.1f} ms; "
-        f"lost {out['loss_pct']}; memory flat: {out['memory_flat']}")
+    log(
+        f"E5 {n_frames} frames at 30 Hz: all three heads p50 {a3['p50']:.1f} ms p99 {a3['p99']:.1f} ms; "
+        f"lost {out['loss_pct']}; memory flat: {out['memory_flat']}"
+    )
     return out
 
 
 def e6(setup: Setup, ns: list[int]) -> dict[str, Any]:
-    from vpengine.bench.resources import measure as resources
+    from vpengine.bench.resources import isolated as resources
 
     rows = []
     base = setup.config([setup.head("depth", "depth")])
@@ -451,14 +558,19 @@ def e6(setup: Setup, ns: list[int]) -> dict[str, Any]:
         for n in ns:
             r = resources(path, n, mode, setup.height, setup.width, 5.0, [], cpu=True)
             rows.append(r)
-            log(f"E6 {mode} N={n}: device +{r['device_mem_mb']:.0f} MB, CPU idle {r['cpu_idle_pct']:.1f}%, "
-                f"30 Hz {r['cpu_30hz_pct']:.0f}%")
+            log(
+                f"E6 {mode} N={n}: device +{r['device_mem_mb']:.0f} MB, CPU idle {r['cpu_idle_pct']:.1f}%, "
+                f"30 Hz {r['cpu_30hz_pct']:.0f}%"
+            )
     return {"rows": rows}
 
 
-def floor(setup: Setup, imgs: list[np.ndarray], n_heads: int = 3) -> dict[str, Any]:
-    """Engine (thread mode, same backend) vs the device-time floor of the same models in one process."""
-    heads = [setup.head("depth", "depth"), setup.head("seg", "seg"), setup.head("det", "det")][:n_heads]
+def floor(setup: Setup, imgs: list[np.ndarray], kinds: tuple[str, ...] = ("depth", "seg", "det")) -> dict[str, Any]:
+    """Engine (thread and process mode, same backend) vs the device-time floor of the same models in one process."""
+    bad = sorted(set(kinds) - {"depth", "seg", "det"})
+    if bad or not kinds:
+        raise ValueError(f"floor heads {list(kinds)}: accepted are depth, seg, det (at least one)")
+    heads = [setup.head(k, k) for k in kinds]
     seq = InProcess(setup, heads)
     dt = seq.device_times(imgs[0])
     del seq
@@ -470,8 +582,10 @@ def floor(setup: Setup, imgs: list[np.ndarray], n_heads: int = 3) -> dict[str, A
             out[mode] = lockstep(eng, imgs, setup.frames)
         if dt:
             out[f"{mode}_overhead_vs_floor"] = out[mode]["mean"] / out["floor_sum_ms"] - 1
-    log(f"floor: device time {dt} -> sum {out.get('floor_sum_ms', float('nan')):.1f} ms; engine thread "
-        f"{out['thread']['mean']:.1f} ms, process {out['process']['mean']:.1f} ms")
+    log(
+        f"floor: device time {dt} -> sum {out.get('floor_sum_ms', float('nan')):.1f} ms; engine thread "
+        f"{out['thread']['mean']:.1f} ms, process {out['process']['mean']:.1f} ms"
+    )
     return out
 
 
@@ -485,10 +599,10 @@ def figures(res: dict[str, Any], path: str) -> None:
     panels = [k for k in ("E1", "E2", "E3", "E4", "E5", "E6") if k in res]
     if not panels:
         return
-    cols = 3
+    cols = min(3, len(panels))
     rows = math.ceil(len(panels) / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.8 * rows), dpi=110, squeeze=False)
-    for ax in axes.flat[len(panels):]:
+    for ax in axes.flat[len(panels) :]:
         ax.axis("off")
     for ax, key in zip(axes.flat, panels):
         r = res[key]
@@ -521,12 +635,16 @@ def figures(res: dict[str, Any], path: str) -> None:
         elif key == "E5":
             mem = r["memory"]
             if mem and mem[0]["device_used"] is not None:
-                ax.plot([m["t"] for m in mem], [m["device_used"] / 2**30 for m in mem])
+                base = mem[0]["device_used"]
+                ax.plot([m["t"] for m in mem], [(m["device_used"] - base) / 2**20 for m in mem])
                 ax.set_xlabel("seconds")
-                ax.set_ylabel("device memory used (GiB)")
+                ax.set_ylabel("device memory change (MiB)")
+                ax.ticklabel_format(useOffset=False)
             lat = r["per_head_latency_ms"]
-            ax.set_title("E5: 30 Hz stream; p50 " + ", ".join(f"{h} {v['p50']:.1f}" for h, v in lat.items())
-                         + " ms", fontsize=9)
+            ax.set_title(
+                "E5: 30 Hz stream; p50 " + ", ".join(f"{h} {v['p50']:.1f}" for h, v in lat.items()) + " ms",
+                fontsize=9,
+            )
         elif key == "E6":
             for mode in ("process", "thread"):
                 pts = [(x["heads"], x["device_mem_mb"]) for x in r["rows"] if x["mode"] == mode]
@@ -565,7 +683,7 @@ def main(args: argparse.Namespace) -> int:
         elif key == "E6":
             res[key] = e6(setup, ns)
         elif key == "floor":
-            res[key] = floor(setup, imgs)
+            res[key] = floor(setup, imgs, tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
         else:
             raise ValueError(f"unknown experiment {key!r}; accepted: E1..E6, floor")
         res[key]["seconds"] = time.monotonic() - t

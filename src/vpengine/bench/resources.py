@@ -15,19 +15,25 @@ import numpy as np
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default="configs/tiny.yaml", help="engine config; its first head is the template")
+    p.add_argument(
+        "--config", default="configs/tiny.yaml", help="engine config; its first head is the template"
+    )
     p.add_argument("--heads", default="1,2,3,4", help="head counts to measure (comma separated)")
     p.add_argument("--modes", default="process,thread")
     p.add_argument("--height", type=int, default=1080)
     p.add_argument("--width", type=int, default=1920)
     p.add_argument("--seconds", type=float, default=10.0, help="duration of each CPU measurement")
+    p.add_argument("--device", default="cuda", help="cuda (default) or cpu (only to try the harness)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    p.add_argument("--single", metavar="MODE:N", help=argparse.SUPPRESS)  # one measurement, JSON on stdout
 
 
 def _config(base: str, n_heads: int, mode: str, h: int, w: int, overrides: list[str]) -> Any:
     from vpengine.config import load_config
 
-    cfg = load_config(base, [*overrides, f"mode={mode}", "device=cuda", f"input.height={h}", f"input.width={w}"])
+    cfg = load_config(
+        base, [f"mode={mode}", "device=cuda", f"input.height={h}", f"input.width={w}", *overrides]
+    )
     template = cfg.heads[0].model_dump()
     heads = [{**template, "name": f"head{i}"} for i in range(n_heads)]
     return load_config(cfg.model_dump() | {"heads": heads})
@@ -44,15 +50,17 @@ def _cpu(procs: list[Any]) -> float:
     return total
 
 
-def measure(config: str, n_heads: int, mode: str, h: int, w: int, seconds: float, overrides: list[str],
-            cpu: bool) -> dict[str, Any]:
+def measure(
+    config: str, n_heads: int, mode: str, h: int, w: int, seconds: float, overrides: list[str], cpu: bool
+) -> dict[str, Any]:
     import psutil
     import torch
 
     from vpengine.engine import Engine
     from vpengine.runtime.gpu import device_memory_used, process_memory
 
-    torch.cuda.synchronize()
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
     before = device_memory_used(0)
     frames = [np.random.default_rng(i).integers(0, 255, (h, w, 3), dtype=np.uint8) for i in range(4)]
     out: dict[str, Any] = {"mode": mode, "heads": n_heads}
@@ -62,16 +70,21 @@ def measure(config: str, n_heads: int, mode: str, h: int, w: int, seconds: float
         time.sleep(0.5)
         used = device_memory_used(0)
         out["device_mem_mb"] = (used - before) / 2**20 if used is not None and before is not None else None
-        pids = {m["pid"] for m in e.stats()["models"].values()}
+        models = e.stats()["models"]
+        pids = {m["pid"] for m in models.values()}
         per = process_memory(0)
         out["per_process_mb"] = {str(p): per[p] / 2**20 for p in pids | {psutil.Process().pid} if p in per}
+        out["per_model_driver_mb"] = {n: per.get(m["pid"], 0) / 2**20 for n, m in models.items()}
+        out["per_model_torch_reserved_mb"] = {n: m["device_mem_bytes"] / 2**20 for n, m in models.items()}
         if cpu:
             procs = [psutil.Process(p) for p in pids | {psutil.Process().pid}]
+            names = {m["pid"]: n for n, m in models.items()} | {psutil.Process().pid: "engine (parent)"}
             time.sleep(1.0)
             c0, t0 = _cpu(procs), time.monotonic()
             time.sleep(seconds)
             out["cpu_idle_pct"] = 100 * (_cpu(procs) - c0) / (time.monotonic() - t0)
             e.results()
+            each0 = {p.pid: _cpu([p]) for p in procs}
             c0, t0 = _cpu(procs), time.monotonic()
             n = 0
             while time.monotonic() - t0 < seconds:
@@ -82,34 +95,111 @@ def measure(config: str, n_heads: int, mode: str, h: int, w: int, seconds: float
                 e.submit(frames[n % 4])
                 n += 1
                 e.results()
-            out["cpu_30hz_pct"] = 100 * (_cpu(procs) - c0) / (time.monotonic() - t0)
+            dt = time.monotonic() - t0
+            out["cpu_30hz_pct"] = 100 * (_cpu(procs) - c0) / dt
+            out["cpu_30hz_pct_by_process"] = {
+                names.get(p.pid, str(p.pid)): 100 * (_cpu([p]) - each0[p.pid]) / dt for p in procs
+            }
             st = e.stats()["models"]
             out["runs_30hz"] = {k: v["runs"] for k, v in st.items()}
             out["frames_30hz"] = n
     return out
 
 
+def isolated(
+    config: str, n_heads: int, mode: str, h: int, w: int, seconds: float, overrides: list[str], cpu: bool
+) -> dict[str, Any]:
+    """``measure`` in a fresh process, so no allocator cache or CUDA context of an earlier run is counted."""
+    import json
+    import subprocess
+    import sys
+
+    cmd = [
+        sys.executable,
+        "-m",
+        "vpengine.cli.main",
+        "bench",
+        "resources",
+        "--config",
+        config,
+        "--single",
+        f"{mode}:{n_heads}:{int(cpu)}",
+        "--height",
+        str(h),
+        "--width",
+        str(w),
+        "--seconds",
+        str(seconds),
+    ]
+    for o in overrides:
+        cmd += ["--set", o]
+    p = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    lines = [ln for ln in p.stdout.splitlines() if ln.startswith("{")]
+    if p.returncode != 0 or not lines:
+        raise RuntimeError(f"resources measurement {mode} x{n_heads} failed:\n{p.stderr[-3000:]}")
+    return dict(json.loads(lines[-1]))
+
+
 def main(args: argparse.Namespace) -> int:
+    import json
+
     from vpengine.bench.common import write_results
 
+    if args.single:
+        mode, n, cpu = args.single.split(":")
+        r = measure(
+            args.config,
+            int(n),
+            mode,
+            args.height,
+            args.width,
+            args.seconds,
+            args.overrides,
+            cpu=bool(int(cpu)),
+        )
+        print(json.dumps(r), flush=True)
+        return 0
     counts = [int(x) for x in args.heads.split(",")]
     rows = []
     for mode in args.modes.split(","):
         for n in counts:
-            r = measure(args.config, n, mode, args.height, args.width, args.seconds, args.overrides,
-                        cpu=(n == max(counts)))
+            overrides = [*args.overrides, *([f"device={args.device}"] if args.device != "cuda" else [])]
+            r = isolated(
+                args.config, n, mode, args.height, args.width, args.seconds, overrides, cpu=(n == max(counts))
+            )
             rows.append(r)
-            extra = "" if "cpu_idle_pct" not in r else (
-                f", CPU idle {r['cpu_idle_pct']:.1f}% / at 30 Hz {r['cpu_30hz_pct']:.0f}% of one core")
-            print(f"{mode:8s} heads={n}: device memory +{r['device_mem_mb']:.0f} MB{extra}", flush=True)
+            extra = (
+                ""
+                if "cpu_idle_pct" not in r
+                else (
+                    f", CPU idle {r['cpu_idle_pct']:.1f}% / at 30 Hz {r['cpu_30hz_pct']:.0f}% of one core "
+                    f"({', '.join(f'{k} {v:.0f}%' for k, v in r['cpu_30hz_pct_by_process'].items())})"
+                )
+            )
+            mem = "n/a" if r["device_mem_mb"] is None else f"+{r['device_mem_mb']:.0f} MB"
+            print(f"{mode:8s} heads={n}: device memory {mem}{extra}", flush=True)
     summary = {}
     for mode in args.modes.split(","):
-        pts = [(r["heads"], r["device_mem_mb"]) for r in rows if r["mode"] == mode and r["device_mem_mb"] is not None]
+        pts = [
+            (r["heads"], r["device_mem_mb"])
+            for r in rows
+            if r["mode"] == mode and r["device_mem_mb"] is not None
+        ]
         if len(pts) >= 2:
             xs, ys = zip(*pts)
             summary[mode] = {"mb_per_extra_head": float(np.polyfit(xs, ys, 1)[0])}
-    path = write_results(args.out, "resources_gpu", {"config": args.config, "input": [args.height, args.width],
-                                                     "rows": rows, "summary": summary})
+    tag = "_".join(o.replace("=", "-") for o in args.overrides if o.startswith("mps="))
+    path = write_results(
+        args.out,
+        "resources_gpu" + (f"_{tag}" if tag else ""),
+        {
+            "config": args.config,
+            "input": [args.height, args.width],
+            "overrides": args.overrides,
+            "rows": rows,
+            "summary": summary,
+        },
+    )
     for mode, s in summary.items():
         print(f"{mode}: +{s['mb_per_extra_head']:.0f} MB device memory per extra head")
     print(f"-> {path}")

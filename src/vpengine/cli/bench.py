@@ -8,8 +8,13 @@ import importlib
 BENCHES = {
     "hop": ("vpengine.bench.hop", "mailbox hop latency: publish -> reader woken -> slot pinned"),
     "pipeline": ("vpengine.bench.pipeline", "tiny pipeline throughput in process and thread mode"),
+    "ros2-bridge": (
+        "vpengine.bench.ros2_bridge",
+        "ROS 2 DDS bridge: 1080p frames in at 30 Hz, all outputs out",
+    ),
     "resources": ("vpengine.bench.resources", "GPU: device memory per extra head, CPU idle and at 30 Hz"),
     "paper": ("vpengine.bench.paper", "the VPEngine paper's experiments E1-E6 and the device-time floor"),
+    "report": ("vpengine.bench.report", "summary figure and table from a folder of results files"),
 }
 
 
@@ -18,7 +23,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     for name, (module, help_text) in BENCHES.items():
         sp = sub.add_parser(name, help=help_text, description=help_text)
         sp.set_defaults(_bench=module)
-        sp.add_argument("--out", default="benchmarks/results", help="folder for the results JSON")
+        if name != "report":
+            sp.add_argument("--out", default="benchmarks/results", help="folder for the results JSON")
         importlib.import_module(module).add_arguments(sp)
 
 

@@ -12,9 +12,14 @@ COMMANDS = {
     "run": ("vpengine.cli.run", "run a pipeline on a video, an image folder, a camera or a synthetic scene"),
     "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
     "bench": ("vpengine.cli.bench", "benchmarks: mailbox hop, pipeline throughput"),
+    "export": ("vpengine.cli.export", "export a model of a config to ONNX"),
     "weights": ("vpengine.cli.weights", "checkpoint catalog: list, fetch, verify, path"),
-    "train": ("vpengine.cli.train", "train a detection head on frozen foundation-model features (COCO boxes)"),
+    "train": (
+        "vpengine.cli.train",
+        "train a detection head on frozen foundation-model features (COCO boxes)",
+    ),
     "mps": ("vpengine.cli.mps", "start, stop or check a CUDA MPS control daemon (private pipe directory)"),
+    "ros2": ("vpengine.cli.ros2", "the engine on a ROS 2 graph through a CycloneDDS bridge"),
 }
 
 

@@ -16,6 +16,7 @@ import json
 import logging
 import math
 import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,7 +31,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--source",
         "-s",
         default="synthetic",
-        help="video file, image folder, camera:N, or synthetic[:WxH][@FPS][:FRAMES] (default: synthetic)",
+        help="video file, image folder, rosbag2 bag (folder or .mcap/.db3), camera:N, or "
+        "synthetic[:WxH][@FPS][:FRAMES] (default: synthetic)",
+    )
+    p.add_argument("--topic", help="image topic of a bag source (sensor_msgs/Image or CompressedImage)")
+    p.add_argument(
+        "--out-bag", help="also record every head's outputs to this new rosbag2 bag (ROS 2 message types)"
+    )
+    p.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap", help="--out-bag storage")
+    p.add_argument(
+        "--bag-distro",
+        choices=["humble", "jazzy"],
+        default="jazzy",
+        help="--out-bag message definitions and bag version (humble: v8, jazzy: v9)",
     )
     p.add_argument(
         "--out", "-o", help="output folder (per-head outputs and summary.json); omit to write nothing"
@@ -78,8 +91,12 @@ def run_pipeline(
     save_every: int = 1,
     viz: bool = False,
     progress: bool = True,
+    sink_factories: Sequence[Callable[[dict[str, dict[str, Any]]], Any]] = (),
 ) -> dict[str, Any]:
-    """Run ``config`` over ``source``; returns the summary (also written to ``out_dir/summary.json``)."""
+    """Run ``config`` over ``source``; returns the summary (also written to ``out_dir/summary.json``).
+
+    ``sink_factories`` make extra sinks (e.g. a rosbag2 BagSink) from the heads' ``head_info``; each gets every
+    result with its input frame and name, like the folder sink."""
     from tqdm import tqdm
 
     from vpengine.config import load_config
@@ -105,6 +122,11 @@ def run_pipeline(
     log.info("engine started in %.1f s", time.monotonic() - t0)
     heads = list(engine.plan.heads)
     sink = FolderSink(out_dir, {h: engine.head_info(h) for h in heads}, viz, save_every) if out_dir else None
+    try:
+        extra_sinks = [make({h: engine.head_info(h) for h in heads}) for make in sink_factories]
+    except BaseException:
+        engine.stop()
+        raise
     recent: collections.OrderedDict[int, tuple[np.ndarray, str]] = collections.OrderedDict()
     latencies: dict[str, list[float]] = {h: [] for h in heads}
     received = dict.fromkeys(heads, 0)
@@ -114,9 +136,11 @@ def run_pipeline(
         for r in results:
             received[r.head] += 1
             latencies[r.head].append(r.latency)
+            frame, name = recent.get(r.frame_id, (None, str(r.frame_id)))
             if sink is not None:
-                frame, name = recent.get(r.frame_id, (None, str(r.frame_id)))
                 sink.write(r, frame, name)
+            for s in extra_sinks:
+                s.write(r, frame, name)
 
     submitted = 0
     t_start = time.monotonic()
@@ -167,6 +191,8 @@ def run_pipeline(
         engine.stop()
         if sink is not None:
             sink.close()
+        for s in extra_sinks:
+            s.close()
 
     models = {}
     for name, m in stats["models"].items():
@@ -244,7 +270,25 @@ def main(args: argparse.Namespace) -> int:
     if args.offline:
         overrides.append("weights.offline=true")
     cfg = load_config(args.config, overrides)
-    with open_source(args.source) as source:
+    if args.out_bag and Path(args.out_bag).exists():
+        raise ValueError(f"output bag {args.out_bag!r} exists already; bags are never overwritten")
+    with open_source(args.source, topic=args.topic) as source:
+        factories = []
+        if args.out_bag:
+            from vpengine.io.bag import BagSink
+
+            def bag_sink(heads: dict[str, dict[str, Any]]) -> Any:
+                return BagSink(
+                    args.out_bag,
+                    heads,
+                    storage=args.bag_storage,
+                    distro=args.bag_distro,
+                    depth_color=args.viz,
+                    seg_overlay=args.viz,
+                    header_for=getattr(source, "header_for", None),  # bag sources keep exact input headers
+                )
+
+            factories.append(bag_sink)
         summary = run_pipeline(
             cfg,
             source,
@@ -255,8 +299,11 @@ def main(args: argparse.Namespace) -> int:
             args.save_every,
             args.viz,
             progress=not args.no_progress,
+            sink_factories=factories,
         )
     print(format_summary(summary))
     if args.out:
         print(f"outputs and summary.json in {args.out}")
+    if args.out_bag:
+        print(f"outputs recorded to bag {args.out_bag}")
     return 0

@@ -103,7 +103,12 @@ class FolderSink(Sink):
             return
         d = self.dir / h
         if kind == "depth":
-            np.save(d / f"{name}.npy", np.asarray(out["depth"], dtype=np.float32))
+            if "depth" in out:
+                np.save(d / f"{name}.npy", np.asarray(out["depth"], dtype=np.float32))
+            if "depth_color" in out:  # the head colour-mapped it already (postprocess output: colormap|both)
+                import cv2
+
+                cv2.imwrite(str(d / f"{name}_color.png"), np.asarray(out["depth_color"]))
         elif kind == "segmentation":
             import cv2
 
@@ -123,7 +128,7 @@ class FolderSink(Sink):
         import cv2
 
         out = result.outputs
-        if kind == "depth":
+        if kind == "depth" and "depth" in out:
             cv2.imwrite(f"{stem}.png", visualize.colorize_depth(np.asarray(out["depth"])))
         elif kind == "segmentation" and frame is not None:
             pal = info.get("palette")

@@ -1,4 +1,4 @@
-"""Frame sources: a built-in synthetic scene, image folders, video files and cameras.
+"""Frame sources: a built-in synthetic scene, image folders, video files, cameras and rosbag2 bags (io/bag.py).
 
 Every source yields :class:`Frame` objects: an HxWx3 uint8 image in the source's channel order (OpenCV order, BGR,
 for everything here) and a capture timestamp in seconds when the source has one.
@@ -179,21 +179,36 @@ class VideoSource(Source):
         self._cap.release()
 
 
-def open_source(spec: str) -> Source:
-    """A source from a command-line spec: ``synthetic[...]``, a folder, a video file or ``camera:N``."""
+def open_source(spec: str, topic: str | None = None) -> Source:
+    """A source from a command-line spec: ``synthetic[...]``, a folder, a video file, ``camera:N``, or a rosbag2 bag
+    (a folder with metadata.yaml, or a .mcap / .db3 file; ``topic`` names its image topic)."""
     if spec.startswith("synthetic"):
-        return SyntheticSource.parse(spec)
-    if spec.startswith("camera:"):
-        return VideoSource(int(spec.split(":", 1)[1]))
-    path = Path(spec)
-    if not path.exists():
-        raise ValueError(
-            f"source {spec!r} does not exist (expected a folder, a video, camera:N or synthetic)"
-        )
-    if path.is_dir():
-        return ImageFolderSource(path)
-    if path.suffix.lower() in VIDEO_EXTS:
-        return VideoSource(path)
-    if path.suffix.lower() in IMAGE_EXTS:
-        raise ValueError(f"source {spec!r} is a single image; give its folder instead")
-    raise ValueError(f"source {spec!r}: unknown kind (extensions: video {sorted(VIDEO_EXTS)}, or a folder)")
+        source: Source = SyntheticSource.parse(spec)
+    elif spec.startswith("camera:"):
+        source = VideoSource(int(spec.split(":", 1)[1]))
+    else:
+        path = Path(spec)
+        if not path.exists():
+            raise ValueError(
+                f"source {spec!r} does not exist (expected a folder, a video, a rosbag2 bag, camera:N or synthetic)"
+            )
+        if (path.is_dir() and (path / "metadata.yaml").is_file()) or (
+            path.is_file() and path.suffix.lower() in (".mcap", ".db3")
+        ):
+            from vpengine.io.bag import BagSource  # rosbags is an optional dependency
+
+            return BagSource(path, topic)
+        if path.is_dir():
+            source = ImageFolderSource(path)
+        elif path.suffix.lower() in VIDEO_EXTS:
+            source = VideoSource(path)
+        elif path.suffix.lower() in IMAGE_EXTS:
+            raise ValueError(f"source {spec!r} is a single image; give its folder instead")
+        else:
+            raise ValueError(
+                f"source {spec!r}: unknown kind (extensions: video {sorted(VIDEO_EXTS)}, bag .mcap/.db3, or a folder)"
+            )
+    if topic is not None:
+        source.close()
+        raise ValueError(f"--topic {topic!r} applies to rosbag2 bags only; source {spec!r} is not a bag")
+    return source

@@ -150,7 +150,9 @@ class Model(nn.Module):
             if s.torch_dtype.is_floating_point:
                 t = torch.rand(s.shape, generator=g, device="cpu").to(s.torch_dtype)
             else:
-                t = torch.randint(0, 255 if s.dtype == "uint8" else 8, s.shape, generator=g, device="cpu").to(s.torch_dtype)
+                t = torch.randint(0, 255 if s.dtype == "uint8" else 8, s.shape, generator=g, device="cpu").to(
+                    s.torch_dtype
+                )
             out[k] = t.to(device)
         return out
 

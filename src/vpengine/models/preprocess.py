@@ -8,7 +8,10 @@ paper's 518x518 setting, which squashes wide frames.
 
 from __future__ import annotations
 
+import contextlib
 import math
+import threading
+from collections.abc import Iterator
 
 import torch
 import torch.nn.functional as F
@@ -37,6 +40,21 @@ def target_size(height: int, width: int, cfg: PreprocessConfig, patch: int) -> t
         return max(patch, int(y))
 
     return fit(height * scale), fit(width * scale)
+
+
+_exact = threading.local()
+
+
+@contextlib.contextmanager
+def exact_preprocessing() -> Iterator[None]:
+    """Within the block, preprocessing takes the exact float path even on the CPU (ONNX export and its
+    verification use this, because ONNX Runtime's 8-bit antialiased resize rounds differently from PyTorch's)."""
+    prev = getattr(_exact, "on", False)
+    _exact.on = True
+    try:
+        yield
+    finally:
+        _exact.on = prev
 
 
 class ImagePreprocess(Model):
@@ -69,11 +87,33 @@ class ImagePreprocess(Model):
         self.meta = {"image_size": self.size, "input_size": (height, width), "patch_size": patch}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        x = inputs["frame"].permute(2, 0, 1).unsqueeze(0).float()  # 1,3,H,W
+        frame = inputs["frame"]
+        h, w = self.size
+        if (
+            self.cfg.fast_uint8_resize
+            and frame.device.type == "cpu"
+            and frame.dtype == torch.uint8
+            and self.cfg.resize != "none"
+            and (frame.shape[0], frame.shape[1]) != (h, w)
+            and not getattr(_exact, "on", False)
+            and not torch.onnx.is_in_onnx_export()
+        ):
+            # On the CPU, shrink the 8-bit frame first: PyTorch's uint8 antialiased resize is ~40x faster than
+            # converting a 1080p frame to float and resizing that (1 ms vs 43 ms), and differs by under one grey
+            # level. GPUs take the float path below, which matches the reference implementations exactly.
+            x = frame.permute(2, 0, 1).unsqueeze(0)
+            x = F.interpolate(
+                x, size=(h, w), mode=self.cfg.interpolation, align_corners=False, antialias=True
+            )
+            x = x.float()
+            if self.bgr:
+                x = x.flip(1)
+            x = (x * self.scale - self.mean) / self.std
+            return {"image": x.to(self.out_dtype).contiguous()}
+        x = frame.permute(2, 0, 1).unsqueeze(0).float()  # 1,3,H,W
         if self.bgr:
             x = x.flip(1)
         x = x * self.scale
-        h, w = self.size
         if (x.shape[-2], x.shape[-1]) != (h, w):
             if self.cfg.resize == "none":
                 x = x[..., :h, :w]

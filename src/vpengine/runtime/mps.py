@@ -104,8 +104,15 @@ def start(directory: str | None = None, timeout: float = 10.0) -> dict[str, Any]
     os.chmod(d, 0o700)
     (Path(d) / "log").mkdir(mode=0o700, exist_ok=True)
     # -d daemonises; its output goes to the log directory (no pipes: the daemon would inherit and hold them)
-    proc = subprocess.run([exe, "-d"], env=_env(d), stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                          stderr=subprocess.PIPE, timeout=timeout, check=False)
+    proc = subprocess.run(
+        [exe, "-d"],
+        env=_env(d),
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        timeout=timeout,
+        check=False,
+    )
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         st = status(d)

@@ -3,11 +3,12 @@
 Each run advances the next allowed start by one period from the *previous allowed start* (not from when the run
 happened), so runs that start late do not push the schedule back and N seconds at R Hz give R*N +-1 runs.
 
-Lateness has two causes, told apart by the worker: the model was *starved* (no new input when the gate opened:
-just started, just resumed, the camera paused) or it was *descheduled* (input was there but the CPU was busy). A
-starved model was idle, so its schedule restarts from the run that ended the wait (no early second run, no burst of
-catch-up runs). A descheduled model keeps its schedule and catches up, up to ``MAX_DEBT_PERIODS`` runs, so a loaded
-machine does not silently lose runs.
+The schedule starts at the first run after start-up, a resume or a rate change from "unlimited" -- not when the
+worker begins to wait -- so a model that waited for its first frame does not get an early second run. Later, a run
+whose input arrived more than a whole period after the gate opened means the model was idle (the camera paused):
+the schedule restarts from that run, with no burst of catch-up runs. Shorter waits keep the schedule (no drift when
+the limit equals the input rate), and a model that was late because the CPU was busy catches up, up to
+``MAX_DEBT_PERIODS`` runs, so a loaded machine does not silently lose runs.
 """
 
 from __future__ import annotations
@@ -30,10 +31,8 @@ class RateGate:
             return
         old = self.hz
         self.hz = hz
-        if hz is None or hz == 0:
-            self.next_allowed = -math.inf
-        elif old == 0 or self.last_start == -math.inf:
-            self.next_allowed = now  # resume: run as soon as there is data
+        if hz is None or hz == 0 or old in (None, 0) or self.last_start == -math.inf:
+            self.next_allowed = -math.inf  # (re)start: the schedule begins at the next run
         else:
             self.next_allowed = self.last_start + 1.0 / hz
 
@@ -50,14 +49,17 @@ class RateGate:
     def started(self, t: float, starved: bool = False) -> None:
         """Record a run starting at ``t`` and schedule the next allowed start.
 
-        ``starved``: the input for this run arrived after the gate had opened (the model was idle, not late).
+        ``starved``: the input for this run arrived after the gate had opened.
         """
         self.last_start = t
         if self.hz:
             period = 1.0 / self.hz
-            if starved:  # idle until this input came: the schedule starts afresh from this run
-                self.next_allowed = max(self.next_allowed + period, t + period)
-            elif t - self.next_allowed > MAX_DEBT_PERIODS * period:  # far behind: give up the debt
-                self.next_allowed = t + period
-            else:  # on time, or late because busy: keep the schedule (catch up)
-                self.next_allowed += period
+            lag = t - self.next_allowed
+            if (
+                self.next_allowed == -math.inf
+                or (starved and lag > period)
+                or lag > MAX_DEBT_PERIODS * period
+            ):
+                self.next_allowed = t + period  # first run, or after an idle spell: the schedule starts here
+            else:
+                self.next_allowed += period  # on time, a little late, or busy: keep the schedule (no drift)

@@ -211,7 +211,9 @@ def prepare_worker(
     cfg = spec.engine_config()
     mcfg = model_config(cfg, spec.name)
     device = torch.device(cfg.device)
-    if own_process and device.type == "cpu":
+    if own_process:
+        # A GPU worker needs no CPU thread pool: left at its default (one thread per core, in every worker), the
+        # OpenMP threads spin after any small CPU op and burn cores for nothing.
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
@@ -228,11 +230,22 @@ def prepare_worker(
         model = build_model(
             cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False
         )
-        executor = make_executor(model, mcfg.backend, device, spec.name)
-        # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY, so
-        # the steady state allocates nothing (Invariant: constant memory).
-        with torch.inference_mode():
-            check_outputs(spec.name, model.output_spec, executor(model.example_inputs(device)))
+        # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
+        # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
+        with _build_lock:
+            executor = make_executor(
+                model,
+                mcfg.backend,
+                device,
+                spec.name,
+                options=mcfg.backend_options,
+                precision=mcfg.precision or cfg.precision,
+                cache_dir=cfg.weights.cache_dir,
+            )
+            # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,
+            # so the steady state allocates nothing (Invariant: constant memory).
+            with torch.inference_mode():
+                check_outputs(spec.name, model.output_spec, executor(model.example_inputs(device)))
         dev.complete()
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())

@@ -1,0 +1,139 @@
+"""What every backend shares: the executor contract and precision handling.
+
+Note [Executor contract]
+~~~~~~~~~~~~~~~~~~~~~~~~
+An executor is called with ``{name: tensor}`` matching the model's ``input_spec`` and returns ``{name: tensor}``
+matching its ``output_spec`` (same names, shapes and dtypes). The returned tensors may be the executor's own static
+buffers (CUDA graphs, ONNX Runtime IO binding): they are valid until the next call, and the caller copies them out
+before calling again -- the worker copies them into the output slot at once (``WorkerCore._step``). Inputs are only
+read, never kept: the worker passes views into mailbox slots whose addresses change from call to call. Executors are
+called from one thread at a time.
+
+Note [Precision]
+~~~~~~~~~~~~~~~~
+``precision`` (fp32 | fp16 | bf16) is the dtype a model computes in. Recipes declare their specs in that dtype
+(``ctx.dtype_name``) but may build their weights in float32, and many keep host-facing outputs in float32 or
+integers (depth maps, class ids, boxes) and call ``.float()`` on their inputs for numerically touchy parts. A backend
+honours the precision by (1) casting the model's floating-point parameters to the dtype (half the memory and
+bandwidth), with the buffers of the modules that own them (batch-norm statistics), while buffers of parameter-free
+modules stay as built: normalisation means and anchor grids lose nothing to fp16/bf16 rounding (``cast_model_``),
+(2) running it under ``torch.autocast`` for that dtype, so matmuls and convolutions run in the low precision even
+where the model mixes in float32 tensors, while autocast keeps reductions such as softmax in float32 where it knows
+they need it, and (3) casting every output to its declared dtype, so the mailbox layout planned from the specs holds
+whatever autocast chose inside. Recipes that cast themselves to ``ctx.dtype`` lose nothing: step (1) is then a no-op.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import torch
+
+from vpengine.backends.options import BackendError
+from vpengine.models.base import Model
+from vpengine.specs import SpecDict, format_specs
+
+PRECISION_DTYPES: dict[str, torch.dtype] = {
+    "fp32": torch.float32,
+    "fp16": torch.float16,
+    "bf16": torch.bfloat16,
+}
+
+
+def precision_dtype(precision: str, name: str) -> torch.dtype:
+    """The torch dtype of a precision name; BackendError naming the accepted ones otherwise."""
+    try:
+        return PRECISION_DTYPES[precision]
+    except KeyError:
+        raise BackendError(
+            f"{name}: unknown precision {precision!r}; accepted: {', '.join(PRECISION_DTYPES)}"
+        ) from None
+
+
+def resolve_device(device: torch.device | str) -> torch.device:
+    """``cuda`` -> ``cuda:N`` (the current device), so it compares equal to a tensor's device."""
+    device = torch.device(device)
+    if device.type == "cuda" and device.index is None:
+        return torch.device("cuda", torch.cuda.current_device())
+    return device
+
+
+class PrecisionRunner:
+    """Run ``fn`` under autocast for ``dtype`` and cast its outputs to their declared dtypes (Note [Precision])."""
+
+    def __init__(
+        self,
+        fn: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]],
+        output_spec: SpecDict,
+        dtype: torch.dtype,
+        device_type: str,
+    ) -> None:
+        self.fn = fn
+        self.out_dtypes = {k: s.torch_dtype for k, s in output_spec.items()}
+        self.dtype = dtype
+        self.device_type = device_type
+        self.autocast = dtype != torch.float32
+
+    def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        with torch.autocast(self.device_type, dtype=self.dtype, enabled=self.autocast):
+            out = self.fn(inputs)
+        # .to() returns the tensor itself when the dtype already matches: free in the fp32 case.
+        return {k: (v.to(self.out_dtypes[k]) if k in self.out_dtypes else v) for k, v in out.items()}
+
+
+def cast_model_(model: Model, dtype: torch.dtype) -> Model:
+    """Cast ``model`` to ``dtype`` in place, the way Note [Precision] says: floating-point parameters, and the
+    floating-point buffers of modules that own parameters (batch-norm statistics must match their weights).
+    Buffers of parameter-free modules -- normalisation constants, anchor grids -- stay as the recipe built them."""
+    if dtype == torch.float32:
+        return model
+    for module in model.modules():
+        params = [p for _, p in module.named_parameters(recurse=False)]
+        if not params:
+            continue
+        for p in params:
+            if p.is_floating_point():
+                p.data = p.data.to(dtype)
+        for name, b in list(module.named_buffers(recurse=False)):
+            if b.is_floating_point():
+                setattr(module, name, b.to(dtype))
+    return model
+
+
+class Executor(abc.ABC):
+    """Runs one model: ``executor(inputs) -> outputs`` with the model's named specs (Note [Executor contract])."""
+
+    backend: ClassVar[str]
+
+    def __init__(self, model: Model, device: torch.device | str, precision: str, name: str) -> None:
+        self.name = name
+        self.device = resolve_device(device)
+        self.precision = precision
+        self.dtype = precision_dtype(precision, name)
+        self.input_spec: SpecDict = dict(model.input_spec)
+        self.output_spec: SpecDict = dict(model.output_spec)
+
+    @abc.abstractmethod
+    def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Run the model on ``inputs``; see Note [Executor contract] for the lifetime of the outputs."""
+
+    def describe(self) -> dict[str, Any]:
+        """Facts for logs and stats (backend, precision, and what the backend chose)."""
+        return {"backend": self.backend, "precision": self.precision, "device": str(self.device)}
+
+    def _check_input(self, key: str, t: torch.Tensor | None) -> torch.Tensor:
+        spec = self.input_spec[key]
+        if t is None:
+            raise BackendError(
+                f"{self.name}: input {key!r} is missing; the model reads {format_specs(self.input_spec)}"
+            )
+        if t.shape != spec.shape or t.dtype != spec.torch_dtype:
+            raise BackendError(
+                f"{self.name}: input {key!r} is {t.dtype}{list(t.shape)}, the model was built for {spec}"
+            )
+        return t
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r}, {', '.join(f'{k}={v}' for k, v in self.describe().items())})"

@@ -1,0 +1,188 @@
+"""``torch.compile``: inductor kernels, replayed as one CUDA graph on CUDA devices.
+
+Note [CUDA graphs]
+~~~~~~~~~~~~~~~~~~
+On a CUDA device the compiled model is captured once, at warm-up, into a ``torch.cuda.CUDAGraph`` over static
+buffers: each call copies the inputs into static input tensors, replays the graph and returns the static output
+tensors, which the worker copies into its output slot (Note [Executor contract]). We capture explicitly instead of
+using ``mode="reduce-overhead"`` (inductor's CUDA graph trees) because a robot process runs for days and must behave
+the same on frame 10 and frame 10 million:
+
+* Failure is loud and early. Graph trees skip CUDA graphs with a log line when they meet something they cannot
+  capture (CPU tensors, input mutation, a host sync) and the steady state then allocates per frame; an explicit
+  capture either succeeds before READY or fails the worker's start with the reason.
+* Nothing is re-recorded. Graph trees re-record on new static-input addresses or shapes, on a new "generation", or
+  when outputs of an earlier replay are still alive; each re-recording costs a stall and pool memory. Our graph is
+  recorded once into its own private memory pool; a replay allocates nothing, so ``memory_allocated`` stays flat
+  (Invariant: constant memory).
+* No thread affinity. Graph trees keep per-thread state and assert when a graph recorded in one thread is replayed
+  from another (pytorch/pytorch#123177); thread mode runs every model in its own thread. A CUDAGraph object can be
+  replayed from any thread.
+* Plain stream semantics. ``replay()`` enqueues on the caller's current stream -- the worker's own stream
+  (``DeviceContext.active``) -- after the copies into the static inputs and before the worker's copies out of the
+  static outputs, so stream order alone makes it correct. Capture happens on a private side stream nobody else uses,
+  after ``warmup_iters`` runs on that stream (lazy cuBLAS/cuDNN set-up must not happen inside a capture).
+* Captures use ``capture_error_mode="thread_local"``: other workers' threads (thread mode) may keep calling the CUDA
+  API (allocations, event waits) while one captures; captures within a process take a lock so pools never interleave.
+
+The price is one device-to-device copy of the inputs per frame, small next to a backbone (features of a ViT-S at
+518x518 are ~8 MB). Inductor's own CUDA graphs are never enabled (``max-autotune`` maps to
+``max-autotune-no-cudagraphs``), so there are never two layers of graphs.
+
+The CPU path compiles the same way (inductor generates C++, built with the system compiler) and also feeds the
+compiled code from static input buffers: it always sees the same tensors, so dynamo's guards (dtype, shape, strides,
+whether a tensor is an inference tensor) cannot fail and recompile in the steady state, and inductor's alignment
+assumptions hold (per-key views carved out of one mailbox allocation need not be 16-byte aligned).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+import torch
+
+from vpengine.backends.base import Executor, PrecisionRunner, cast_model_
+from vpengine.backends.options import BackendError, CompileOptions
+from vpengine.models.base import Model
+
+log = logging.getLogger("vpengine.backends")
+
+# One CUDA graph capture at a time per process (thread mode warms several models up concurrently).
+_CAPTURE_LOCK = threading.Lock()
+
+
+def _short(exc: BaseException, limit: int = 600) -> str:
+    text = f"{type(exc).__name__}: {exc}".strip()
+    return text if len(text) <= limit else text[:limit] + " ..."
+
+
+def _reset_capture_state(device: torch.device) -> None:
+    """After a failed capture, bring the CUDA generator out of capture mode.
+
+    A capture that fails half-way may never run its epilogue, leaving the device's RNG registered with the dead graph;
+    every later random op in the process then fails ("Offset increment outside graph capture"). One empty capture
+    runs the prologue/epilogue pair again and leaves the generator in its normal state. (Written after that failure
+    was seen on an H100; this reset itself has not yet run on a GPU.)
+    """
+    try:
+        torch.cuda.synchronize(device)
+        g = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(g):
+            pass
+        del g
+    except Exception:  # best effort: the original error is what the user needs to see
+        pass
+
+
+class CompiledExecutor(Executor):
+    """``torch.compile`` of the model, compiled and (on CUDA) graph-captured at construction, before READY.
+
+    The model is cast to the precision in place: the executor owns it from here on.
+    """
+
+    backend = "compile"
+
+    def __init__(
+        self,
+        model: Model,
+        device: torch.device | str,
+        precision: str,
+        name: str,
+        opts: CompileOptions | None = None,
+    ) -> None:
+        super().__init__(model, device, precision, name)
+        self.opts = opts or CompileOptions.model_validate({})
+        self.model = cast_model_(model, self.dtype)
+        self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
+        mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
+        self._compiled = torch.compile(
+            self.model, fullgraph=self.opts.fullgraph, dynamic=False, backend=self.opts.compiler, mode=mode
+        )
+        self._run = PrecisionRunner(self._compiled, self.output_spec, self.dtype, self.device.type)
+        self._keys = list(self.input_spec)
+        self._static = {
+            k: torch.empty(s.shape, dtype=s.torch_dtype, device=self.device)
+            for k, s in self.input_spec.items()
+        }
+        example = model.example_inputs(self.device)
+        for k in self._keys:
+            self._static[k].copy_(example[k])
+        self._graph: torch.cuda.CUDAGraph | None = None
+        self._graph_out: dict[str, torch.Tensor] = {}
+        self._side: torch.cuda.Stream | None = None
+        t0 = time.perf_counter()
+        self._compile()
+        if self.cudagraphs:
+            self._capture()
+        self.warmup_s = time.perf_counter() - t0
+        log.info(
+            "%s: compiled (%s) in %.1f s",
+            name,
+            ", ".join(f"{k}={v}" for k, v in self.describe().items()),
+            self.warmup_s,
+        )
+
+    def _compile(self) -> None:
+        try:
+            with torch.inference_mode():
+                self._run(self._static)
+        except Exception as e:
+            hint = (
+                "; backend_options.fullgraph: false runs graph breaks eagerly"
+                if self.opts.fullgraph and self.opts.compiler != "eager"
+                else ""
+            )
+            raise BackendError(
+                f"{self.name}: torch.compile (compiler {self.opts.compiler!r}) failed at warm-up: {_short(e)}{hint}"
+            ) from e
+
+    def _capture(self) -> None:
+        cur = torch.cuda.current_stream(self.device)
+        side = torch.cuda.Stream(self.device)
+        side.wait_stream(cur)
+        with torch.inference_mode(), torch.cuda.stream(side):
+            for _ in range(self.opts.warmup_iters):
+                self._run(self._static)
+        graph = torch.cuda.CUDAGraph()
+        with _CAPTURE_LOCK:
+            try:
+                with (
+                    torch.inference_mode(),
+                    torch.cuda.graph(graph, stream=side, capture_error_mode="thread_local"),
+                ):
+                    out = self._run(self._static)
+            except Exception as e:
+                _reset_capture_state(self.device)
+                raise BackendError(
+                    f"{self.name}: CUDA graph capture failed: {_short(e)}. The model synchronises with the host or "
+                    "has data-dependent shapes (e.g. .item(), nonzero, NMS); set backend_options.cudagraphs: false "
+                    "to run it compiled without a graph"
+                ) from e
+        cur.wait_stream(side)
+        # The graph reads the weights (self.model), the static inputs and workspaces set up for the side stream in
+        # place, and writes the outputs into its private pool: all of them must live as long as the graph does.
+        self._graph, self._graph_out, self._side = graph, out, side
+
+    def _load(self, inputs: dict[str, torch.Tensor]) -> None:
+        for k in self._keys:
+            self._static[k].copy_(self._check_input(k, inputs.get(k)), non_blocking=True)
+
+    def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        self._load(inputs)
+        if self._graph is not None:
+            self._graph.replay()
+            return dict(self._graph_out)
+        with torch.inference_mode():
+            return self._run(self._static)
+
+    def describe(self) -> dict[str, Any]:
+        return {
+            **super().describe(),
+            "compiler": self.opts.compiler,
+            "mode": self.opts.mode,
+            "fullgraph": self.opts.fullgraph,
+            "cudagraphs": self._graph is not None,
+        }

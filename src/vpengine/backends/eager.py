@@ -1,0 +1,34 @@
+"""Eager PyTorch: the model as written, at its precision (Note [Precision])."""
+
+from __future__ import annotations
+
+import torch
+
+from vpengine.backends.base import Executor, PrecisionRunner, cast_model_
+from vpengine.backends.options import EagerOptions
+from vpengine.models.base import Model
+
+
+class EagerExecutor(Executor):
+    """Calls the model directly. Outputs are fresh tensors from the caching allocator (reused blocks after warm-up).
+
+    The model is cast to the precision in place: the executor owns it from here on.
+    """
+
+    backend = "eager"
+
+    def __init__(
+        self,
+        model: Model,
+        device: torch.device | str,
+        precision: str,
+        name: str,
+        opts: EagerOptions | None = None,
+    ) -> None:
+        super().__init__(model, device, precision, name)
+        self.model = cast_model_(model, self.dtype)
+        self._run = PrecisionRunner(self.model, self.output_spec, self.dtype, self.device.type)
+
+    def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        with torch.inference_mode():
+            return self._run(inputs)

@@ -1,0 +1,229 @@
+"""Turn a folder of benchmark results (JSON) into one figure and one markdown table, for the README.
+
+    vpengine bench report --results benchmarks/results/h100
+
+Every number it prints is read from a results file in that folder; nothing is typed in by hand.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--results", default="benchmarks/results/h100", help="folder of results files")
+    p.set_defaults(out=None)
+
+
+def _load(folder: Path, name: str) -> dict[str, Any] | None:
+    path = folder / name
+    return json.loads(path.read_text()) if path.exists() else None
+
+
+def _find(folder: Path, key: str) -> tuple[str, dict[str, Any]] | None:
+    """The newest paper results file holding experiment ``key``."""
+    best = None
+    for path in sorted(folder.glob("paper_*.json")):
+        data = json.loads(path.read_text())
+        if key in data and (best is None or data.get("date", "") >= best[1].get("date", "")):
+            best = (path.name, data)
+    return best
+
+
+def _find_all(folder: Path, key: str) -> list[dict[str, Any]]:
+    """Paper results files holding experiment ``key``, oldest first, each with its file name and setup.
+
+    A run superseded by a newer one of the same setup (backbone, backend, heads) is left out.
+    """
+    newest: dict[str, dict[str, Any]] = {}
+    for path in sorted(folder.glob("paper_*.json")):
+        data = json.loads(path.read_text())
+        if key not in data:
+            continue
+        run = {"file": path.name, **data[key], "setup": data.get("setup", {}), "date": data.get("date", "")}
+        heads = [x.get("heads") for x in run.get("rows", [])] or sorted(run.get("device_ms", {}))
+        same = f"{_setup_label(run['setup'])} {heads}"
+        if same not in newest or run["date"] >= newest[same]["date"]:
+            newest[same] = run
+    return sorted(newest.values(), key=lambda x: x["date"])
+
+
+def _setup_label(setup: dict[str, Any]) -> str:
+    return f"{setup.get('backbone', '?')}, {setup.get('backend', '?')}"
+
+
+def collect(folder: Path) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key in ("E1", "E2", "E3", "E4", "E5", "floor"):
+        found = _find(folder, key)
+        if found:
+            out[key] = {"file": found[0], **found[1][key], "machine": found[1].get("machine", {})}
+    # E1 and the floor are run for several backbones and backends: every run gets a row; the figure shows the E1 run
+    # with the most head counts.
+    out["E1_all"] = _find_all(folder, "E1")
+    out["floor_all"] = _find_all(folder, "floor")
+    if out["E1_all"]:
+        best = max(out["E1_all"], key=lambda x: (len(x["rows"]), x["date"]))
+        out["E1"] = {**best, "machine": out.get("E1", {}).get("machine", {})}
+    for name in ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"):
+        data = _load(folder, name)
+        if data:
+            out[name] = data
+    return out
+
+
+def table(r: dict[str, Any]) -> str:
+    rows = ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]
+    for e1 in r.get("E1_all", []):
+        last = e1["rows"][-1]
+        rows.append(
+            f"| E1 shared backbone + {last['heads']} depth heads ({_setup_label(e1['setup'])}) | "
+            f"{last['speedup_vs_independent']:.2f}x vs independent models (ideal from device times "
+            f"{last.get('ideal_vs_independent', float('nan')):.2f}x), {last['speedup_vs_sequential']:.2f}x vs "
+            f"sequential | 2.3x vs independent | {e1['file']} |"
+        )
+    if "E2" in r:
+        last = r["E2"]["rows"][-1]
+        dt = last["device_ms"]
+        floor = dt["foundation"] + sum(v for k, v in dt.items() if k != "foundation")
+        rows.append(
+            f"| E2 {last['heads']} detection heads | {last['speedup_vs_sequential']:.2f}x vs sequential (engine "
+            f"{last['engine']['mean']:.1f} ms vs GPU-time floor {floor:.1f} ms) | 3.3x | {r['E2']['file']} |"
+        )
+    if "E3" in r:
+        g = {(x["head"], x["heads"]): x["throughput_gain"] for x in r["E3"]["rows"]}
+        det = ", ".join(f"{n} heads {g[('det', n)]:+.0%}" for n in (4, 8) if ("det", n) in g)
+        dep = ", ".join(f"{n} heads {g[('depth', n)]:+.0%}" for n in (4, 8) if ("depth", n) in g)
+        rows.append(
+            f"| E3 CUDA MPS on vs off | detection: {det}; depth: {dep} | +39% (4), +77% (8) | "
+            f"{r['E3']['file']} |"
+        )
+    if "E4" in r:
+        errs = ", ".join(f"{x['rate_hz']} Hz {x['error']:+.0f}" for x in r["E4"]["rows"])
+        rows.append(
+            f"| E4 rate limits, 10 s of 30 Hz input | runs vs ideal: {errs} | +-1 | {r['E4']['file']} |"
+        )
+    if "E5" in r:
+        e = r["E5"]
+        a = e["all_three_latency_ms"]
+        lost = max(e["loss_pct"].values())
+        rows.append(
+            f"| E5 {e['frames']} frames at 30 Hz, depth+seg+det | submit -> all three on host: p50 {a['p50']:.1f} ms, "
+            f"p99 {a['p99']:.1f} ms; lost {lost:.2f}%; memory flat: {e['memory_flat']} | ~0.02% lost | {e['file']} |"
+        )
+    for f in r.get("floor_all", []):
+        if "floor_sum_ms" not in f:
+            continue
+        heads = "+".join(k for k in f["device_ms"] if k != "foundation")
+        rows.append(
+            f"| engine vs device-time floor ({_setup_label(f['setup'])}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
+            "thread mode "
+            f"{f['thread']['mean']:.1f} ms ({f['thread_overhead_vs_floor']:+.0%}), process mode "
+            f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}) | - | {f['file']} |"
+        )
+    res = r.get("resources_gpu.json")
+    if res:
+        s = res["summary"]
+        cpu = {x["mode"]: x for x in res["rows"] if "cpu_30hz_pct" in x}
+        rows.append(
+            "| E6 device memory per extra head (DINOv2-S + DA-V2 depth, 1080p, fp16) | process mode "
+            f"+{s['process']['mb_per_extra_head']:.0f} MB, thread mode +{s['thread']['mb_per_extra_head']:.0f} MB "
+            "| +214-295 MB | resources_gpu.json |"
+        )
+        rows.append(
+            f"| E6 CPU, {max(x['heads'] for x in cpu.values())} heads | idle {cpu['process']['cpu_idle_pct']:.1f}% / "
+            f"{cpu['thread']['cpu_idle_pct']:.1f}%, at 30 Hz {cpu['process']['cpu_30hz_pct']:.0f}% / "
+            f"{cpu['thread']['cpu_30hz_pct']:.0f}% of one core (process / thread mode) | 440-465% | resources_gpu.json |"
+        )
+    hop = r.get("hop_cuda_vits-1080p.json")
+    if hop:
+        rows.append(
+            f"| mailbox hop backbone -> head process, ViT-S features of a 1080p frame on the GPU | median "
+            f"{hop['median_us']:.1f} us, p99 {hop['p99_us']:.1f} us | ~2 ms | hop_cuda_vits-1080p.json |"
+        )
+    return "\n".join(rows)
+
+
+def figure(r: dict[str, Any], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(2, 3, figsize=(15, 8), dpi=110)
+    ax = axes[0, 0]
+    if "E1" in r:
+        rows = r["E1"]["rows"]
+        ns = [x["heads"] for x in rows]
+        for s, style in (("engine", "o-"), ("independent", "s--"), ("sequential", "^:")):
+            ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
+        ax.set(
+            xlabel="depth heads", ylabel="frames/s, one frame in flight", title="E1: shared backbone vs not"
+        )
+        ax.legend()
+    ax = axes[0, 1]
+    if "E2" in r:
+        rows = r["E2"]["rows"]
+        ns = [x["heads"] for x in rows]
+        for s, style in (("engine", "o-"), ("sequential", "^:")):
+            ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
+        ax.set(xlabel="detection heads", ylabel="frames/s", title="E2: parallel vs sequential heads")
+        ax.legend()
+    ax = axes[0, 2]
+    if "E3" in r:
+        rows = r["E3"]["rows"]
+        labels = [f"{x['head']} x{x['heads']}" for x in rows]
+        x = np.arange(len(labels))
+        ax.bar(x - 0.2, [y["mps_off"]["hz"] for y in rows], 0.4, label="MPS off")
+        ax.bar(x + 0.2, [y["mps_on"]["hz"] for y in rows], 0.4, label="MPS on")
+        ax.set_xticks(x, labels)
+        ax.set(ylabel="frames/s", title="E3: CUDA MPS")
+        ax.legend()
+    ax = axes[1, 0]
+    if "E4" in r:
+        rows = r["E4"]["rows"]
+        rates = [x["rate_hz"] for x in rows]
+        ax.plot(rates, [x["ideal"] for x in rows], "k--", label="ideal")
+        ax.plot(rates, [x["runs"] for x in rows], "o", label="measured")
+        ax.set(xlabel="rate limit (Hz)", ylabel="runs in 10 s", title="E4: rate limits (30 Hz input)")
+        ax.legend()
+    ax = axes[1, 1]
+    if "E5" in r:
+        lat = r["E5"]["per_head_latency_ms"]
+        names = list(lat)
+        ax.bar(np.arange(len(names)) - 0.2, [lat[n]["p50"] for n in names], 0.4, label="p50")
+        ax.bar(np.arange(len(names)) + 0.2, [lat[n]["p99"] for n in names], 0.4, label="p99")
+        ax.set_xticks(np.arange(len(names)), names)
+        ax.set(ylabel="submit -> result (ms)", title=f"E5: {r['E5']['frames']} frames at 30 Hz")
+        ax.axhline(33.3, color="grey", lw=0.8, ls=":")
+        ax.legend()
+    ax = axes[1, 2]
+    if "E5" in r and r["E5"]["memory"] and r["E5"]["memory"][0]["device_used"] is not None:
+        mem = r["E5"]["memory"]
+        base = mem[0]["device_used"]
+        ax.plot([m["t"] for m in mem], [(m["device_used"] - base) / 2**20 for m in mem])
+        ax.set(
+            xlabel="seconds", ylabel="device memory change (MiB)", title="E5: device memory over the stream"
+        )
+        ax.set_ylim(-8, 8)
+        ax.ticklabel_format(useOffset=False)
+    fig.suptitle(f"vpengine on {r.get('E5', r.get('E1', {})).get('machine', {}).get('gpu', '?')}")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main(args: argparse.Namespace) -> int:
+    folder = Path(args.results)
+    r = collect(folder)
+    md = table(r)
+    (folder / "summary.md").write_text(md + "\n")
+    figure(r, folder / "summary.png")
+    print(md)
+    print(f"-> {folder / 'summary.md'}, {folder / 'summary.png'}")
+    return 0

@@ -1,0 +1,274 @@
+"""rosbag2 bags (sqlite3 and MCAP, any rosbag2 version rosbags reads: Foxy to Jazzy and later) as a frame source, and
+as a sink that records every head's outputs with the same message types and header rules as the ROS 2 bridge.
+
+``vpengine run --source BAG --topic /camera/image_raw --out-bag OUT``:
+
+* the source reads ``sensor_msgs/msg/Image`` (rgb8, bgr8, mono8) or ``sensor_msgs/msg/CompressedImage`` (jpeg,
+  png) from one topic, in log-time order; each frame's timestamp is its message's ``header.stamp``. A bag is a folder
+  with ``metadata.yaml`` or a bare ``.mcap`` / ``.db3`` file.
+* the sink writes ``<ns>/<head>/depth`` (32FC1), ``<ns>/<head>/classes`` (mono8), ``<ns>/<head>/detections``
+  (vision_msgs/Detection2DArray 4.x) and, with ``viz``, ``depth_color`` / ``overlay`` (bgr8); every output's
+  header (stamp and frame_id) is its input message's header, and its log time is that stamp.
+  ``distro="humble"`` writes Humble message definitions in a version-8 bag, ``"jazzy"`` Jazzy's in a version-9 bag
+  (rosbags writes no older versions).
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from vpengine.engine import Result
+from vpengine.io.sinks import Sink
+from vpengine.io.sources import Frame, Source
+from vpengine.ros2.core import (
+    COMPRESSED_TYPE,
+    IMAGE_TYPE,
+    Header,
+    InputError,
+    OutputTopic,
+    compressed_to_frame,
+    image_to_frame,
+    payload_for,
+    plan_outputs,
+)
+
+log = logging.getLogger("vpengine.bag")
+
+BAG_FILE_EXTS = (".mcap", ".db3")
+STORAGES = ("mcap", "sqlite3")
+IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
+_HEADERS_KEPT = 4096
+
+
+def is_bag(path: str | Path) -> bool:
+    """A rosbag2 bag: a folder with metadata.yaml, or a .mcap / .db3 file."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    return p.is_file() and p.suffix.lower() in BAG_FILE_EXTS
+
+
+def _topic_list(conns: list[Any]) -> str:
+    seen = sorted({(c.topic, c.msgtype) for c in conns})
+    return ", ".join(f"{t} ({m})" for t, m in seen) or "(none)"
+
+
+class BagSource(Source):
+    """Camera frames from one Image or CompressedImage topic of a rosbag2 bag.
+
+    ``topic`` may be omitted when the bag has exactly one image topic. Frames are in ``color`` order (the engine's
+    ``input.color``); a frame whose size differs from the first one is resized to it (counted in ``resized`` and
+    logged once per size). The exact input header of each frame is kept by its frame name for the bag sink
+    (:meth:`header_for`).
+    """
+
+    def __init__(self, path: str | Path, topic: str | None = None, color: str = "bgr") -> None:
+        from rosbags.rosbag2 import Reader
+
+        from vpengine.ros2.rosbags_msgs import DISTROS, typestore
+
+        self.path = Path(path)
+        self.color = color
+        try:
+            self._reader = Reader(self.path)
+            self._reader.open()
+        except Exception as e:  # rosbags raises its own error types; name the bag either way
+            raise ValueError(f"cannot open bag {str(self.path)!r}: {e}") from None
+        try:
+            conns = list(self._reader.connections)
+            images = sorted({c.topic for c in conns if c.msgtype in IMAGE_TYPES})
+            if topic is None:
+                if len(images) != 1:
+                    raise ValueError(
+                        f"bag {str(self.path)!r}: give the image topic (--topic); image topics: "
+                        f"{', '.join(images) or '(none)'}; all topics: {_topic_list(conns)}"
+                    )
+                topic = images[0]
+            self.topic = topic
+            self._conns = [c for c in conns if c.topic == topic]
+            if not self._conns:
+                raise ValueError(
+                    f"bag {str(self.path)!r} has no topic {topic!r}; topics: {_topic_list(conns)}"
+                )
+            types = {c.msgtype for c in self._conns}
+            if len(types) != 1 or not types <= set(IMAGE_TYPES):
+                raise ValueError(
+                    f"bag {str(self.path)!r}: topic {topic!r} carries {', '.join(sorted(types))}; accepted: "
+                    f"{', '.join(IMAGE_TYPES)}"
+                )
+            self.msgtype = types.pop()
+            distro = (self._reader.ros_distro or "").lower()
+            self._ts = typestore(distro if distro in DISTROS else "jazzy")
+            self._n = sum(c.msgcount for c in self._conns)
+            if self._n == 0:
+                raise ValueError(f"bag {str(self.path)!r}: topic {topic!r} has no messages")
+            messages = self._messages()
+            first = next(messages)
+            messages.close()  # release the storage cursor; iteration starts afresh
+            _, img = self._decode(first, 0)
+            self.height, self.width = img.shape[:2]
+        except BaseException:
+            self._reader.close()
+            raise
+        self.resized = 0
+        self._sizes: set[tuple[int, int]] = set()
+        self._headers: collections.OrderedDict[str, Header] = collections.OrderedDict()
+
+    def _messages(self) -> Iterator[bytes]:
+        for _conn, _t, raw in self._reader.messages(connections=self._conns):
+            yield raw
+
+    def _decode(self, raw: bytes, index: int) -> tuple[Header, np.ndarray]:
+        try:
+            msg = self._ts.deserialize_cdr(raw, self.msgtype)
+            decode = image_to_frame if self.msgtype == IMAGE_TYPE else compressed_to_frame
+            return Header.of(msg.header), decode(msg, self.color)
+        except InputError as e:
+            raise ValueError(f"bag {str(self.path)!r}, topic {self.topic!r}, message {index}: {e}") from None
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __iter__(self) -> Iterator[Frame]:
+        import cv2
+
+        for i, raw in enumerate(self._messages()):
+            header, img = self._decode(raw, i)
+            if img.shape[:2] != (self.height, self.width):
+                h, w = img.shape[:2]
+                if (w, h) not in self._sizes:
+                    self._sizes.add((w, h))
+                    log.warning(
+                        "bag %s: %dx%d frames on %s are resized to the first frame's %dx%d",
+                        self.path,
+                        w,
+                        h,
+                        self.topic,
+                        self.width,
+                        self.height,
+                    )
+                self.resized += 1
+                img = cv2.resize(img, (self.width, self.height), interpolation=cv2.INTER_AREA)
+            name = f"{i:06d}"
+            self._headers[name] = header
+            if len(self._headers) > _HEADERS_KEPT:
+                self._headers.popitem(last=False)
+            yield Frame(img, header.seconds, name)
+
+    def header_for(self, result: Result, name: str) -> Header:
+        """The exact input header of the frame named ``name`` (see Note [Output headers] in vpengine.ros2.core)."""
+        h = self._headers.get(name)
+        return h if h is not None else Header.from_seconds(result.capture_time)
+
+    def close(self) -> None:
+        self._reader.close()
+
+
+def default_qos() -> list[Any]:
+    """ROS 2's default publisher QoS (reliable, volatile, keep last 10), as the offered profile of each topic."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    zero = QosTime(0, 0)  # 0 = unspecified (the rmw default: infinite)
+    return [
+        Qos(
+            QosHistory.KEEP_LAST,
+            10,
+            QosReliability.RELIABLE,
+            QosDurability.VOLATILE,
+            zero,
+            zero,
+            QosLiveliness.AUTOMATIC,
+            zero,
+            False,
+        )
+    ]
+
+
+class BagSink(Sink):
+    """Every head's outputs into a new rosbag2 bag (see the module docstring for topics and header rules).
+
+    ``header_for(result, frame_name)`` gives each output's header; by default the result's capture time (from the
+    source's timestamps) and ``frame_id``. With a :class:`BagSource`, pass its ``header_for`` to keep the input
+    headers exactly.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        heads: dict[str, dict[str, Any]],
+        *,
+        storage: str = "mcap",
+        distro: str = "jazzy",
+        namespace: str = "/vpengine",
+        depth_color: bool = False,
+        seg_overlay: bool = False,
+        header_for: Callable[[Result, str], Header] | None = None,
+        frame_id: str = "camera",
+    ) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        from vpengine.ros2.rosbags_msgs import DISTROS, typestore
+
+        if storage not in STORAGES:
+            raise ValueError(f"bag storage {storage!r} is not supported; accepted: {', '.join(STORAGES)}")
+        if distro not in DISTROS:
+            raise ValueError(
+                f"ROS 2 distribution {distro!r} is not supported; accepted: {', '.join(DISTROS)}"
+            )
+        self.path = Path(path)
+        if self.path.exists():
+            raise ValueError(f"output bag {str(self.path)!r} exists already; bags are never overwritten")
+        self.heads = heads
+        self.ts = typestore(distro)
+        self.topics, unmapped = plan_outputs(heads, namespace, depth_color, seg_overlay)
+        for h in unmapped:
+            log.warning("head %r has no ROS 2 message mapping (kind 'generic'); not written to the bag", h)
+        self._by_head: dict[str, list[OutputTopic]] = collections.defaultdict(list)
+        for t in self.topics:
+            self._by_head[t.head].append(t)
+        self._header_for = header_for or (lambda r, _n: Header.from_seconds(r.capture_time, frame_id))
+        plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+        self._writer = Writer(self.path, version=DISTROS[distro][1], storage_plugin=plugin)  # type: ignore[arg-type]
+        self._writer.open()
+        try:
+            self._conns = {
+                t.topic: self._writer.add_connection(
+                    t.topic, t.msgtype, typestore=self.ts, offered_qos_profiles=default_qos()
+                )
+                for t in self.topics
+            }
+        except BaseException:
+            self._writer.close()
+            raise
+        self.written: collections.Counter[str] = collections.Counter()
+        self.skipped: collections.Counter[str] = collections.Counter()
+
+    def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
+        topics = self._by_head.get(result.head)
+        if not topics:
+            return
+        header = self._header_for(result, name)
+        info = self.heads[result.head]
+        for t in topics:
+            payload = payload_for(t, result.outputs, info, header, frame)
+            if payload is None:  # an overlay whose input frame the pipeline no longer holds
+                self.skipped[t.topic] += 1
+                continue
+            from vpengine.ros2.rosbags_msgs import to_rosbags
+
+            raw = self.ts.serialize_cdr(to_rosbags(self.ts, payload), t.msgtype)
+            self._writer.write(self._conns[t.topic], header.ns, raw)
+            self.written[t.topic] += 1
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.close()
+            self._writer = None  # type: ignore[assignment]
+        if sum(self.skipped.values()):
+            log.warning("bag %s: overlays skipped (input frame gone): %s", self.path, dict(self.skipped))

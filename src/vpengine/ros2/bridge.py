@@ -1,0 +1,269 @@
+"""The DDS bridge: the engine on a ROS 2 graph through CycloneDDS, with no ROS 2 installation.
+
+Topics (``<ns>`` is the namespace, ``/vpengine`` by default; every type is the ROS 2 one, on the wire as ROS 2 sends
+it, see :mod:`vpengine.ros2.dds` and :mod:`vpengine.ros2.dds_types`):
+
+==================================  =================================  =========================================
+topic                               type                               QoS
+==================================  =================================  =========================================
+input topic (``--input-topic``)     sensor_msgs/Image                  sensor data (best effort, keep last 5) or
+                                    (CompressedImage with              default (reliable, keep last 10)
+                                    ``--compressed``, on
+                                    ``<input>/compressed``)
+``<ns>/<head>/depth``               sensor_msgs/Image 32FC1            default
+``<ns>/<head>/depth_color``         sensor_msgs/Image bgr8             default (``--depth-color``)
+``<ns>/<head>/classes``             sensor_msgs/Image mono8            default
+``<ns>/<head>/overlay``             sensor_msgs/Image bgr8             default (``--seg-overlay``)
+``<ns>/<head>/detections``          vision_msgs/Detection2DArray       default
+``<ns>/set_rate``                   diagnostic_msgs/KeyValue (in)      default
+``<ns>/model_names``                std_msgs/String (JSON list)        latched (transient local, keep last 1)
+``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, ~1 Hz
+==================================  =================================  =========================================
+
+Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
+"{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit).
+
+Two threads: one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
+every result (``Engine.results``), applies rate commands and publishes diagnostics. All decisions about content live
+in :class:`vpengine.ros2.core.Ros2Core`.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from vpengine.engine import EngineDeadError
+from vpengine.ros2 import cdr
+from vpengine.ros2 import dds_types as T
+from vpengine.ros2.core import (
+    DETECTIONS_TYPE,
+    DetectionsOut,
+    DiagnosticsOut,
+    Header,
+    ImageOut,
+    OutputTopic,
+    Ros2Core,
+    model_names_text,
+)
+from vpengine.ros2.dds import DdsContext, Reader, Writer, dds_topic
+
+log = logging.getLogger("vpengine.ros2.bridge")
+
+
+@dataclass
+class BridgeOptions:
+    """Where the bridge listens and publishes."""
+
+    #: The camera topic, e.g. /camera/image_raw.
+    input_topic: str
+    #: Read sensor_msgs/CompressedImage (jpeg/png) from ``<input_topic>/compressed`` (image_transport's name; a
+    #: topic already ending in /compressed is used as is).
+    compressed: bool = False
+    #: QoS of the input subscription: "sensor" (best effort, keep last 5: what camera drivers publish) or "default"
+    #: (reliable, keep last 10; matches only reliable publishers).
+    input_qos: Literal["sensor", "default"] = "sensor"
+    domain_id: int = 0
+    #: CycloneDDS XML configuration; None: $CYCLONEDDS_URI or cyclonedds' defaults.
+    dds_config: str | None = None
+    diagnostics_topic: str = "/diagnostics"
+    diagnostics_period_s: float = 1.0
+
+    @property
+    def subscribed_topic(self) -> str:
+        if self.compressed and not self.input_topic.rstrip("/").endswith("/compressed"):
+            return self.input_topic.rstrip("/") + "/compressed"
+        return self.input_topic
+
+
+def _header(h: Header) -> T.Header_:
+    return T.Header_(T.Time_(h.sec, h.nanosec), h.frame_id)
+
+
+def detections_to_dds(d: DetectionsOut) -> T.Detection2DArray_:
+    header = _header(d.header)
+    return T.Detection2DArray_(
+        header,
+        [
+            T.Detection2D_(
+                header,
+                [T.ObjectHypothesisWithPose_(T.ObjectHypothesis_(det.class_id, det.score))],
+                T.BoundingBox2D_(
+                    T.Pose2D_(T.Point2D_(det.center_x, det.center_y), 0.0), det.size_x, det.size_y
+                ),
+                "",
+            )
+            for det in d.detections
+        ],
+    )
+
+
+def diagnostics_to_dds(d: DiagnosticsOut) -> T.DiagnosticArray_:
+    return T.DiagnosticArray_(
+        _header(d.header),
+        [
+            T.DiagnosticStatus_(
+                s.level, s.name, s.message, s.hardware_id, [T.KeyValue_(k, v) for k, v in s.values]
+            )
+            for s in d.status
+        ],
+    )
+
+
+class Ros2Bridge:
+    """Runs a :class:`Ros2Core` on CycloneDDS. ``start()``, then ``wait()`` / ``stop()``; or use it as a context
+    manager. ``error`` holds the first exception of a worker thread (the bridge stops on it)."""
+
+    def __init__(self, core: Ros2Core, options: BridgeOptions) -> None:
+        # bad names and domains fail here, before an engine is started
+        dds_topic(options.subscribed_topic)
+        dds_topic(options.diagnostics_topic)
+        if not 0 <= options.domain_id <= 232:
+            raise ValueError(f"DDS domain id must be 0..232 (the RTPS port mapping), got {options.domain_id}")
+        if options.input_qos not in ("sensor", "default"):
+            raise ValueError(f"input QoS {options.input_qos!r} is not known; accepted: sensor, default")
+        self.core = core
+        self.opts = options
+        self.dds: DdsContext | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._writers: dict[str, Writer] = {}
+        self._diag_now = threading.Event()
+        self.error: BaseException | None = None
+        self.ns = core.namespace
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def start(self) -> Ros2Bridge:
+        """Start the engine (unless it waits for the first message), then every DDS entity and both threads.
+
+        On any failure everything started so far is stopped again before the error propagates."""
+        try:
+            return self._start()
+        except BaseException:
+            self.stop()
+            raise
+
+    def _start(self) -> Ros2Bridge:
+        self.core.start()
+        o = self.opts
+        self.dds = ctx = DdsContext(o.domain_id, o.dds_config)
+        for t in self.core.topics:
+            dtype = T.Detection2DArray_ if t.msgtype == DETECTIONS_TYPE else T.Image_
+            self._writers[t.topic] = ctx.writer(t.topic, dtype, "default")
+        self._diag = ctx.writer(o.diagnostics_topic, T.DiagnosticArray_, "default")
+        self._names = ctx.writer(f"{self.ns}/model_names", T.String_, "latched")
+        self._names.write(T.String_(model_names_text(self.core.model_names)))
+        self._rates: Reader = ctx.reader(f"{self.ns}/set_rate", T.KeyValue_, "default")
+        in_type = T.CompressedImage_ if o.compressed else T.Image_
+        self._input: Reader = ctx.reader(o.subscribed_topic, in_type, o.input_qos)
+        self._threads = [
+            threading.Thread(target=self._guard, args=(self._input_loop,), name="ros2-input", daemon=True),
+            threading.Thread(target=self._guard, args=(self._output_loop,), name="ros2-output", daemon=True),
+        ]
+        for th in self._threads:
+            th.start()
+        log.info(
+            "bridge up on DDS domain %d: %s %s -> %s",
+            o.domain_id,
+            "CompressedImage" if o.compressed else "Image",
+            o.subscribed_topic,
+            ", ".join(t.topic for t in self.core.topics),
+        )
+        return self
+
+    def _guard(self, loop: Any) -> None:
+        try:
+            loop()
+        except BaseException as e:
+            if self.error is None:
+                self.error = e
+            log.exception("bridge thread %s failed; stopping", threading.current_thread().name)
+            self._stop.set()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the bridge stops (stop() or a failed thread); True if it has stopped."""
+        return self._stop.wait(timeout)
+
+    def stop(self) -> None:
+        """Stop both threads, the engine and every DDS entity. Safe to call twice."""
+        self._stop.set()
+        for th in self._threads:
+            th.join(timeout=5.0)
+        self._threads = []
+        self.core.stop()
+        if self.dds is not None:
+            self.dds.close()
+            self.dds = None
+        self._writers.clear()
+
+    def __enter__(self) -> Ros2Bridge:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # ---------------------------------------------------------------------------------------------- loops
+    def _input_loop(self) -> None:
+        compressed = self.opts.compressed
+        decode = cdr.decode_compressed_image if compressed else cdr.decode_image
+        handle = self.core.handle_compressed if compressed else self.core.handle_image
+        while not self._stop.is_set():
+            if not self._input.wait(0.2):
+                continue
+            raws = self._input.take_raw(64)
+            # When frames queue up (the process was descheduled), only the newest goes to the engine: the engine
+            # would take only the newest anyway, and skipping the others saves a frame copy each. Counted.
+            if len(raws) > 1:
+                self.core.count_superseded(len(raws) - 1)
+            for raw in raws[-1:]:
+                try:
+                    msg = decode(raw)
+                except cdr.CdrError as e:
+                    self.core.counters["received"] += 1
+                    self.core.counters["decode_errors"] += 1
+                    log.error("malformed input sample: %s", e)
+                    continue
+                handle(msg)
+
+    def _output_loop(self) -> None:
+        period = self.opts.diagnostics_period_s
+        next_diag = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                items = self.core.poll_outputs(timeout=0.05)
+            except EngineDeadError:
+                # the foundation model failed for good: say so on /diagnostics (ERROR) before the bridge stops
+                self._diag.write(diagnostics_to_dds(self.core.diagnostics()))
+                raise
+            for topic, payload in items:
+                self._publish(topic, payload)
+            for kv in self._rates.take(16):
+                try:
+                    self.core.set_rate(kv.key, kv.value)
+                    self._diag_now.set()
+                except ValueError as e:
+                    log.warning("rate command {key: %r, value: %r} ignored: %s", kv.key, kv.value, e)
+            now = time.monotonic()
+            if now >= next_diag or self._diag_now.is_set():
+                self._diag_now.clear()
+                self._diag.write(diagnostics_to_dds(self.core.diagnostics()))
+                next_diag = now + period
+
+    def _publish(self, topic: OutputTopic, payload: Any) -> None:
+        w = self._writers[topic.topic]
+        busy = self.core.busy
+        t0 = time.thread_time()
+        if isinstance(payload, ImageOut):
+            data = cdr.encode_image(payload)
+            t1 = time.thread_time()
+            w.write_raw(data)
+        else:
+            sample = detections_to_dds(payload)
+            t1 = time.thread_time()
+            w.write(sample)  # small: the IDL serializer is fine here
+        busy["encode"] += t1 - t0
+        busy["write"] += time.thread_time() - t1
+        self.core.count_published(topic)

@@ -1,0 +1,807 @@
+"""The transport-agnostic core of the ROS 2 interfaces: what goes on the wire, decided once.
+
+The DDS bridge (:mod:`vpengine.ros2.bridge`), the rclpy node (:mod:`vpengine.ros2.node`) and the rosbag2 source and
+sink (:mod:`vpengine.io.bag`) all call this module; none of it imports a middleware. Messages are read duck-typed
+(``msg.height``, ``msg.encoding``, ``msg.data``, ``msg.header.stamp.sec`` ...), so a cyclonedds IDL object, an rclpy
+message, a rosbags message or :class:`vpengine.ros2.cdr.ImageView` all work. Outputs are produced as small neutral
+objects (:class:`ImageOut`, :class:`DetectionsOut`, :class:`DiagnosticsOut`) that each transport turns into its own
+message objects or bytes.
+
+Note [Output headers]: every output of a head carries the ``header`` (stamp *and* frame_id) of the input message it
+was computed from, never the time of publishing. The engine only knows integer frame ids and a float capture time;
+a float cannot hold a ROS stamp exactly (1.7e9 s has a resolution of ~240 ns), so :class:`FrameBook` keeps the exact
+input header per engine frame id, and outputs look their header up by the result's frame id. Only if the book has
+already forgotten that frame (more than ``FrameBook.headers`` frames in flight, which the engine never has) does the
+header fall back to the float capture time, which is still the input's time; that is counted
+(``header_fallbacks``).
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import logging
+import math
+import sys
+import threading
+import time
+import warnings
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+log = logging.getLogger("vpengine.ros2")
+
+# Input frames are zero-copy, read-only views of received message bytes; Engine.submit only copies *from* them, so
+# PyTorch's warning about wrapping a non-writable array (torch.from_numpy) does not apply. Filter exactly that one.
+warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning)
+
+#: sensor_msgs/Image encodings accepted as input, with their channel counts.
+INPUT_ENCODINGS: dict[str, int] = {"rgb8": 3, "bgr8": 3, "mono8": 1}
+#: sensor_msgs/CompressedImage codecs accepted as input (decoded by OpenCV).
+COMPRESSED_CODECS = ("jpeg", "png")
+
+IMAGE_TYPE = "sensor_msgs/msg/Image"
+COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
+DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
+DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
+KEYVALUE_TYPE = "diagnostic_msgs/msg/KeyValue"
+STRING_TYPE = "std_msgs/msg/String"
+
+# diagnostic_msgs/DiagnosticStatus levels
+OK, WARN, ERROR, STALE = 0, 1, 2, 3
+
+#: Rate values (case-insensitive) that mean "no limit", in rate commands.
+UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
+
+SizePolicy = Literal["resize", "reject"]
+
+
+class InputError(ValueError):
+    """An input message the engine cannot use; the message names what was wrong and what is accepted."""
+
+
+# ------------------------------------------------------------------------------------------------- headers
+@dataclass(frozen=True)
+class Header:
+    """A std_msgs/Header: stamp (builtin_interfaces/Time) and frame_id, kept exactly (integers, not a float)."""
+
+    sec: int
+    nanosec: int
+    frame_id: str = ""
+
+    @classmethod
+    def of(cls, header: Any) -> Header:
+        """From any ROS header object (``header.stamp.sec``, ``header.stamp.nanosec``, ``header.frame_id``)."""
+        if isinstance(header, Header):
+            return header
+        return cls(int(header.stamp.sec), int(header.stamp.nanosec), str(header.frame_id))
+
+    @classmethod
+    def from_seconds(cls, t: float, frame_id: str = "") -> Header:
+        ns = round(float(t) * 1e9)
+        return cls(ns // 1_000_000_000, ns % 1_000_000_000, frame_id)
+
+    @classmethod
+    def from_ns(cls, ns: int, frame_id: str = "") -> Header:
+        return cls(int(ns) // 1_000_000_000, int(ns) % 1_000_000_000, frame_id)
+
+    @property
+    def seconds(self) -> float:
+        return self.sec + self.nanosec * 1e-9
+
+    @property
+    def ns(self) -> int:
+        return self.sec * 1_000_000_000 + self.nanosec
+
+
+class FrameBook:
+    """Engine frame id -> the input's exact :class:`Header` (and the input frame, for overlays). Bounded, thread-safe.
+
+    See Note [Output headers]. ``frames`` > 0 keeps that many recent input frames (segmentation overlays need the
+    picture the classes were computed from); 0 keeps none.
+    """
+
+    def __init__(self, headers: int = 4096, frames: int = 0) -> None:
+        if headers < 1 or frames < 0:
+            raise ValueError(f"FrameBook needs headers >= 1 and frames >= 0, got {headers} and {frames}")
+        self._headers: collections.OrderedDict[int, Header] = collections.OrderedDict()
+        self._frames: collections.OrderedDict[int, np.ndarray] = collections.OrderedDict()
+        self._n_headers, self._n_frames = headers, frames
+        self._lock = threading.Lock()
+
+    @property
+    def keeps_frames(self) -> bool:
+        return self._n_frames > 0
+
+    def add(self, frame_id: int, header: Header, frame: np.ndarray | None = None) -> None:
+        with self._lock:
+            self._headers[frame_id] = header
+            if len(self._headers) > self._n_headers:
+                self._headers.popitem(last=False)
+            if self._n_frames and frame is not None:
+                self._frames[frame_id] = frame
+                if len(self._frames) > self._n_frames:
+                    self._frames.popitem(last=False)
+
+    def header(self, frame_id: int) -> Header | None:
+        with self._lock:
+            return self._headers.get(frame_id)
+
+    def frame(self, frame_id: int) -> np.ndarray | None:
+        with self._lock:
+            return self._frames.get(frame_id)
+
+
+# ------------------------------------------------------------------------------------------------ decoding
+def as_uint8(data: Any) -> np.ndarray:
+    """A flat uint8 view of message data (bytes, bytearray, memoryview, array.array, numpy), copying only lists."""
+    if isinstance(data, np.ndarray):
+        return np.ascontiguousarray(data).reshape(-1).view(np.uint8)
+    if isinstance(data, (list, tuple)):  # cyclonedds' own deserializer gives lists; small test messages only
+        return np.asarray(data, dtype=np.uint8)
+    return np.frombuffer(data, dtype=np.uint8)
+
+
+def image_to_frame(msg: Any, color: str = "bgr") -> np.ndarray:
+    """A sensor_msgs/Image as an HxWx3 uint8 frame in ``color`` order ("bgr" or "rgb").
+
+    Accepts rgb8, bgr8 and mono8 (grey is replicated to three channels). Rows may be padded (``step`` larger than
+    width x channels). ``is_bigendian`` only orders the bytes of multi-byte pixels; every accepted encoding has one
+    byte per channel, so both values decode the same. The result is a view of the message data when no conversion
+    is needed (bgr8 in, bgr wanted, unpadded rows), else one copy.
+    """
+    encoding = str(msg.encoding)
+    channels = INPUT_ENCODINGS.get(encoding)
+    if channels is None:
+        raise InputError(
+            f"sensor_msgs/Image encoding {encoding!r} is not supported; accepted: {', '.join(INPUT_ENCODINGS)}"
+        )
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    if h <= 0 or w <= 0:
+        raise InputError(f"sensor_msgs/Image is empty ({w}x{h}, encoding {encoding})")
+    row = w * channels
+    if step < row:
+        raise InputError(
+            f"sensor_msgs/Image step {step} is smaller than width x channels = {w} x {channels} = {row} ({encoding})"
+        )
+    data = as_uint8(msg.data)
+    if data.size < step * (h - 1) + row:
+        raise InputError(
+            f"sensor_msgs/Image data holds {data.size} bytes; a {w}x{h} {encoding} image with step {step} "
+            f"needs {step * h}"
+        )
+    if step == row:
+        img = data[: h * row].reshape(h, w, channels)
+    else:  # padded rows: a strided view, no copy yet
+        img = np.lib.stride_tricks.as_strided(data, shape=(h, w, channels), strides=(step, channels, 1))
+    if channels == 1:
+        return np.ascontiguousarray(np.broadcast_to(img, (h, w, 3)))
+    if encoding[:3] != color:
+        img = img[..., ::-1]
+    return np.ascontiguousarray(img)
+
+
+def compressed_codec(fmt: str, data: np.ndarray) -> str:
+    """The codec of a CompressedImage from its ``format`` (``jpeg``, ``png``, or image_transport's
+    ``"bgr8; jpeg compressed bgr8"``), or from the data's magic bytes when ``format`` is empty."""
+    f = fmt.lower()
+    if "compresseddepth" in f:
+        raise InputError(
+            f"sensor_msgs/CompressedImage format {fmt!r} (depth) is not a camera image; accepted: "
+            f"{', '.join(COMPRESSED_CODECS)}"
+        )
+    if "jpeg" in f or "jpg" in f:
+        return "jpeg"
+    if "png" in f:
+        return "png"
+    if not f.strip():
+        head = bytes(data[:8])
+        if head[:3] == b"\xff\xd8\xff":
+            return "jpeg"
+        if head == b"\x89PNG\r\n\x1a\n":
+            return "png"
+    raise InputError(
+        f"sensor_msgs/CompressedImage format {fmt!r} is not supported; accepted: "
+        f"{', '.join(COMPRESSED_CODECS)} (e.g. 'jpeg', 'png', 'bgr8; jpeg compressed bgr8')"
+    )
+
+
+def compressed_to_frame(msg: Any, color: str = "bgr") -> np.ndarray:
+    """A sensor_msgs/CompressedImage (jpeg or png) as an HxWx3 uint8 frame in ``color`` order.
+
+    image_transport always compresses colour images in BGR order (``"rgb8; jpeg compressed bgr8"`` says so), and
+    OpenCV decodes to BGR, so the decoded pixels are BGR whatever the original encoding was.
+    """
+    import cv2
+
+    data = as_uint8(msg.data)
+    codec = compressed_codec(str(msg.format), data)
+    if data.size == 0:
+        raise InputError(f"sensor_msgs/CompressedImage ({codec}) has no data")
+    img = cv2.imdecode(data, cv2.IMREAD_COLOR)
+    if img is None:
+        raise InputError(
+            f"sensor_msgs/CompressedImage: {data.size} bytes of {codec} data could not be decoded"
+        )
+    if color == "rgb":
+        img = np.ascontiguousarray(img[..., ::-1])
+    return img
+
+
+# -------------------------------------------------------------------------------------------------- output
+@dataclass(frozen=True)
+class OutputTopic:
+    """One published stream: a head's output in one role, on one ROS topic, with one message type."""
+
+    head: str
+    #: depth | depth_color | classes | overlay | detections
+    role: str
+    topic: str
+    msgtype: str
+
+
+@dataclass
+class ImageOut:
+    """A sensor_msgs/Image to publish; ``data`` is a flat uint8 view of the pixels (no copy)."""
+
+    header: Header
+    height: int
+    width: int
+    encoding: str
+    is_bigendian: int
+    step: int
+    data: np.ndarray
+
+
+@dataclass
+class Detection:
+    """One vision_msgs/Detection2D: an axis-aligned box (centre, size, pixels) and one class hypothesis."""
+
+    center_x: float
+    center_y: float
+    size_x: float
+    size_y: float
+    class_id: str
+    score: float
+
+
+@dataclass
+class DetectionsOut:
+    """A vision_msgs/Detection2DArray to publish."""
+
+    header: Header
+    detections: list[Detection]
+
+
+@dataclass
+class Status:
+    """One diagnostic_msgs/DiagnosticStatus."""
+
+    level: int
+    name: str
+    message: str
+    hardware_id: str
+    values: list[tuple[str, str]] = field(default_factory=list)
+
+
+@dataclass
+class DiagnosticsOut:
+    """A diagnostic_msgs/DiagnosticArray to publish."""
+
+    header: Header
+    status: list[Status]
+
+
+Payload = ImageOut | DetectionsOut
+
+
+def ros_name(text: str) -> str:
+    """A ROS name token from a head name: ROS names allow letters, digits and '_' only ('-' becomes '_')."""
+    out = "".join(c if c.isalnum() or c == "_" else "_" for c in text)
+    return out if out and not out[0].isdigit() else f"_{out}"
+
+
+def normalize_namespace(ns: str) -> str:
+    """``vpengine`` / ``/vpengine/`` -> ``/vpengine``; ``/`` or empty -> ``""`` (topics at the root)."""
+    parts = [p for p in ns.strip().split("/") if p]
+    for p in parts:
+        if ros_name(p) != p:
+            raise ValueError(f"namespace {ns!r}: {p!r} is not a valid ROS name (letters, digits and '_')")
+    return "".join(f"/{p}" for p in parts)
+
+
+def head_kind(info: Mapping[str, Any]) -> str:
+    """depth | segmentation | detection | generic, from a head's meta (see vpengine.io.sinks.head_kind)."""
+    from vpengine.io.sinks import head_kind as kind
+
+    return kind(dict(info))
+
+
+def plan_outputs(
+    heads: Mapping[str, Mapping[str, Any]],
+    namespace: str = "/vpengine",
+    depth_color: bool = False,
+    seg_overlay: bool = False,
+) -> tuple[list[OutputTopic], list[str]]:
+    """The topics every head publishes on, by its kind; and the heads that have no ROS mapping (kind "generic").
+
+    ``<ns>/<head>/depth`` (32FC1) [+ ``depth_color`` (bgr8)], ``<ns>/<head>/classes`` (mono8) [+ ``overlay``
+    (bgr8)], ``<ns>/<head>/detections`` (vision_msgs/Detection2DArray).
+    """
+    ns = normalize_namespace(namespace)
+    topics: list[OutputTopic] = []
+    unmapped: list[str] = []
+    seen: dict[str, str] = {}
+    for head, info in heads.items():
+        base = f"{ns}/{ros_name(head)}"
+        if base in seen:
+            raise ValueError(f"heads {seen[base]!r} and {head!r} map to the same ROS topic prefix {base!r}")
+        seen[base] = head
+        kind = head_kind(info)
+        if kind == "depth":
+            topics.append(OutputTopic(head, "depth", f"{base}/depth", IMAGE_TYPE))
+            if depth_color:
+                topics.append(OutputTopic(head, "depth_color", f"{base}/depth_color", IMAGE_TYPE))
+        elif kind == "segmentation":
+            topics.append(OutputTopic(head, "classes", f"{base}/classes", IMAGE_TYPE))
+            if seg_overlay:
+                topics.append(OutputTopic(head, "overlay", f"{base}/overlay", IMAGE_TYPE))
+        elif kind == "detection":
+            topics.append(OutputTopic(head, "detections", f"{base}/detections", DETECTIONS_TYPE))
+        else:
+            unmapped.append(head)
+    return topics, unmapped
+
+
+def image_out(array: np.ndarray, encoding: str, header: Header) -> ImageOut:
+    """Wrap an HxW or HxWxC array as an :class:`ImageOut` (a view when the array is contiguous)."""
+    a = np.ascontiguousarray(array)
+    if a.ndim not in (2, 3):
+        raise ValueError(f"an image must be HxW or HxWxC, got shape {a.shape}")
+    h, w = a.shape[:2]
+    row = w * (a.shape[2] if a.ndim == 3 else 1) * a.dtype.itemsize
+    big = int(a.dtype.byteorder == ">" or (a.dtype.byteorder == "=" and sys.byteorder == "big"))
+    return ImageOut(
+        header, h, w, encoding, big if a.dtype.itemsize > 1 else 0, row, a.reshape(-1).view(np.uint8)
+    )
+
+
+def detections_out(
+    outputs: Mapping[str, Any], label_names: Sequence[str] | None, header: Header
+) -> DetectionsOut:
+    """Detections (``boxes`` x1,y1,x2,y2 in input pixels, ``scores``, ``labels``) as a Detection2DArray.
+
+    The class id is the head's label name for that class (the numeric id as text when the head has no names).
+    """
+    boxes = np.asarray(outputs["boxes"], dtype=np.float64).reshape(-1, 4)
+    scores = np.asarray(outputs["scores"], dtype=np.float64).reshape(-1)
+    labels = np.asarray(outputs["labels"]).astype(np.int64).reshape(-1)
+    n = min(len(boxes), len(scores), len(labels))
+    if "count" in outputs:
+        n = min(n, int(outputs["count"]))
+    dets = []
+    for (x1, y1, x2, y2), score, label in zip(boxes[:n].tolist(), scores[:n].tolist(), labels[:n].tolist()):
+        name = label_names[label] if label_names is not None and 0 <= label < len(label_names) else str(label)
+        dets.append(Detection((x1 + x2) / 2, (y1 + y2) / 2, x2 - x1, y2 - y1, name, score))
+    return DetectionsOut(header, dets)
+
+
+def payload_for(
+    topic: OutputTopic,
+    outputs: Mapping[str, Any],
+    info: Mapping[str, Any],
+    header: Header,
+    frame_bgr: np.ndarray | None,
+) -> Payload | None:
+    """The message of one output topic for one result (None: an overlay whose input frame is gone)."""
+    from vpengine.io import visualize
+
+    role = topic.role
+    if role == "depth":
+        return image_out(np.asarray(outputs["depth"], dtype=np.float32), "32FC1", header)
+    if role == "depth_color":
+        return image_out(visualize.colorize_depth(np.asarray(outputs["depth"])), "bgr8", header)
+    if role == "classes":
+        cls = np.asarray(outputs["classes"])
+        if cls.dtype == np.uint8:
+            return image_out(cls, "mono8", header)
+        if cls.size and (cls.min() < 0 or cls.max() > 65535):
+            raise ValueError(
+                f"head {topic.head!r}: class ids {cls.min()}..{cls.max()} do not fit mono8/mono16"
+            )
+        big = cls.size and cls.max() > 255
+        return image_out(cls.astype(np.uint16 if big else np.uint8), "mono16" if big else "mono8", header)
+    if role == "overlay":
+        if frame_bgr is None:
+            return None
+        pal = info.get("palette")
+        picture = visualize.overlay_segmentation(
+            frame_bgr, np.asarray(outputs["classes"]), None if pal is None else np.asarray(pal, np.uint8)
+        )
+        return image_out(picture, "bgr8", header)
+    if role == "detections":
+        return detections_out(outputs, info.get("labels"), header)
+    raise ValueError(f"unknown output role {role!r}")
+
+
+# ------------------------------------------------------------------------------------------------- control
+def parse_rate(text: str) -> float | None:
+    """A rate from a command: Hz as a number >= 0 (``"5"``, ``"2.5"``; ``"0"`` pauses), or ``max`` / ``none`` /
+    ``unlimited`` / ``inf`` / ``-1`` for no limit. Raises ValueError naming the bad value and what is accepted."""
+    t = str(text).strip().lower()
+    if t in UNLIMITED_WORDS:
+        return None
+    try:
+        hz = float(t)
+    except ValueError:
+        hz = math.nan
+    if not math.isfinite(hz) or hz < 0:
+        raise ValueError(
+            f"rate {text!r} is not a rate; accepted: a number of Hz >= 0 (0 pauses) or one of "
+            f"{', '.join(UNLIMITED_WORDS)} (no limit)"
+        )
+    return hz
+
+
+def parse_rate_command(key: str, value: str, models: Sequence[str]) -> tuple[str, float | None]:
+    """A rate command (diagnostic_msgs/KeyValue ``{key: model, value: rate}``) -> (model, Hz or None)."""
+    model = str(key).strip()
+    if model not in models:
+        raise ValueError(f"rate command for unknown model {key!r}; models: {', '.join(models)}")
+    return model, parse_rate(value)
+
+
+def model_names_text(names: Iterable[str]) -> str:
+    """The model-names topic's text: a JSON list, e.g. ``["foundation", "depth", "seg", "det"]``."""
+    return json.dumps(list(names))
+
+
+# --------------------------------------------------------------------------------------------- diagnostics
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "none"
+    if isinstance(v, float):
+        return "nan" if math.isnan(v) else f"{v:.2f}"
+    return str(v)
+
+
+def model_status(name: str, m: Mapping[str, Any], prefix: str, hardware_id: str) -> Status:
+    """One model's health from ``Engine.stats()["models"][name]``: OK; WARN while restarting or paused (also
+    starting/loading); ERROR when failed for good."""
+    state = str(m.get("state", "unknown"))
+    target = m.get("target_hz")
+    achieved = float(m.get("achieved_hz") or 0.0)
+    tgt = "unlimited" if target is None else f"{target:g} Hz"
+    lat = m.get("latency_ms") or {}
+    paused = state == "paused" or target == 0
+    if state == "failed":
+        level, msg = ERROR, f"failed: {m.get('last_error') or 'no error text'}"
+    elif state == "restarting":
+        level, msg = WARN, f"restarting after a crash ({m.get('restarts', 0)} restarts so far)"
+    elif paused:
+        level, msg = WARN, "paused (rate 0)"
+    elif state in ("starting", "loading"):
+        level, msg = WARN, f"{state}"
+    else:
+        level, msg = OK, f"{state}, {achieved:.1f} Hz (target {tgt})"
+    values = [
+        ("state", state),
+        ("target_hz", "unlimited" if target is None else _fmt(float(target))),
+        ("achieved_hz", _fmt(achieved)),
+        ("runs", _fmt(m.get("runs", 0))),
+        ("skipped", _fmt(m.get("skipped", 0))),
+        ("drops", _fmt(m.get("dropped", 0))),
+        ("errors", _fmt(m.get("errors", 0))),
+        ("restarts", _fmt(m.get("restarts", 0))),
+        ("latency_p50_ms", _fmt(lat.get("p50"))),
+        ("latency_p99_ms", _fmt(lat.get("p99"))),
+    ]
+    return Status(level, f"{prefix}: {name}", msg, hardware_id, values)
+
+
+# ------------------------------------------------------------------------------------------------- the core
+class Ros2Core:
+    """The engine behind a ROS 2 interface, with no middleware: messages in, neutral outputs out.
+
+    A transport (DDS bridge, rclpy node) feeds input messages to :meth:`handle_image` / :meth:`handle_compressed`
+    from its receive thread, publishes what :meth:`poll_outputs` returns from another thread, forwards rate
+    commands to :meth:`set_rate`, and publishes :meth:`diagnostics` about once a second. Uses the public Engine API
+    only (submit, results, set_rate, stats, head_info).
+
+    Input size (the engine's is fixed at start): ``input_size="config"`` starts the engine at once with the
+    config's ``input.height/width``; ``"first"`` starts it when the first message arrives, at that message's size
+    (messages arriving during start-up are not seen). Frames of another size are resized
+    (``on_size_mismatch="resize"``) or rejected (``"reject"``); either way they are counted, and each new size is
+    logged once.
+    """
+
+    def __init__(
+        self,
+        config: Any,
+        *,
+        namespace: str = "/vpengine",
+        input_size: Literal["config", "first"] = "config",
+        on_size_mismatch: SizePolicy = "resize",
+        depth_color: bool = False,
+        seg_overlay: bool = False,
+        overrides: Sequence[str] = (),
+    ) -> None:
+        from vpengine.config import load_config
+
+        if input_size not in ("config", "first"):
+            raise ValueError(f"input_size must be 'config' or 'first', got {input_size!r}")
+        if on_size_mismatch not in ("resize", "reject"):
+            raise ValueError(f"on_size_mismatch must be 'resize' or 'reject', got {on_size_mismatch!r}")
+        self.config = load_config(config, list(overrides))
+        self.namespace = normalize_namespace(namespace)
+        self.input_size = input_size
+        self.on_size_mismatch = on_size_mismatch
+        planner = self._new_engine(self.config)  # planned only: head metadata without starting anything
+        self.model_names: list[str] = self.config.model_names()
+        self.head_infos: dict[str, dict[str, Any]] = {
+            h.name: planner.head_info(h.name) for h in self.config.heads
+        }
+        self.topics, self.unmapped = plan_outputs(self.head_infos, self.namespace, depth_color, seg_overlay)
+        for h in self.unmapped:
+            log.warning(
+                "head %r has no ROS 2 message mapping (kind 'generic'); its outputs are not published", h
+            )
+        self._by_head: dict[str, list[OutputTopic]] = collections.defaultdict(list)
+        for t in self.topics:
+            self._by_head[t.head].append(t)
+        self.book = FrameBook(frames=16 if seg_overlay else 0)
+        self._next_fid = 0  # engine frame ids are ours, so a header is booked before its frame is submitted
+        self.engine: Any = None
+        self._engine_ready = threading.Event()
+        self._start_lock = threading.Lock()
+        self._seen_sizes: set[tuple[int, int]] = set()
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.published: collections.Counter[str] = collections.Counter()
+        #: CPU seconds (of the calling thread: time.thread_time, so neither waiting for data nor for the GIL counts)
+        #: per stage: decode, resize, submit (per input frame); results, convert (per output); transports add
+        #: encode, write. Where the interface's time goes; reported in /diagnostics as busy_s.<stage>.
+        self.busy: collections.Counter[str] = collections.Counter()
+        self.hardware_id = f"vpengine {self.config.name} ({self.config.device})"
+        self.status_prefix = self.namespace.strip("/").replace("/", ".") or "vpengine"
+
+    def _new_engine(self, cfg: Any) -> Any:
+        from vpengine.engine import Engine
+
+        return Engine(cfg)
+
+    # ------------------------------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Start the engine now (``input_size="config"``); with ``"first"`` it starts on the first message."""
+        if self.input_size == "config":
+            self._start_engine(self.config)
+
+    def _start_engine(self, cfg: Any) -> None:
+        with self._start_lock:
+            if self.engine is not None:
+                return
+            t0 = time.monotonic()
+            eng = self._new_engine(cfg)
+            eng.start()
+            eng.results(0)  # start the result stream before the first frame goes in
+            self.engine = eng
+            self._engine_ready.set()
+            log.info(
+                "engine started in %.1f s (input %dx%d)",
+                time.monotonic() - t0,
+                cfg.input.width,
+                cfg.input.height,
+            )
+
+    def wait_ready(self, timeout: float | None = None) -> bool:
+        return self._engine_ready.wait(timeout)
+
+    def stop(self) -> None:
+        eng, self.engine = self.engine, None
+        self._engine_ready.clear()
+        if eng is not None:
+            eng.stop()
+
+    # --------------------------------------------------------------------------------------------- input
+    def handle_image(self, msg: Any) -> int | None:
+        """Submit a sensor_msgs/Image. Returns the engine frame id, or None when rejected (counted and logged)."""
+        return self._handle(msg, image_to_frame)
+
+    def handle_compressed(self, msg: Any) -> int | None:
+        """Submit a sensor_msgs/CompressedImage (jpeg/png). Returns the frame id, or None when rejected."""
+        return self._handle(msg, compressed_to_frame)
+
+    def _handle(self, msg: Any, decode: Callable[[Any, str], np.ndarray]) -> int | None:
+        self.counters["received"] += 1
+        t0 = time.thread_time()
+        try:
+            header = Header.of(msg.header)
+            frame = decode(msg, self.config.input.color)
+            self.busy["decode"] += time.thread_time() - t0
+        except (InputError, ValueError, AttributeError, TypeError) as e:
+            self.counters["decode_errors"] += 1
+            if self.counters["decode_errors"] == 1 or self.counters["decode_errors"] % 100 == 0:
+                log.error("input message rejected (%d so far): %s", self.counters["decode_errors"], e)
+            return None
+        if self.engine is None:
+            if self.input_size == "first":
+                from vpengine.config import load_config
+
+                h, w = frame.shape[:2]
+                self._start_engine(load_config(self.config, [f"input.height={h}", f"input.width={w}"]))
+            else:
+                self.counters["not_ready"] += 1
+                return None
+        eng = self.engine
+        if eng is None:  # stopped meanwhile
+            self.counters["not_ready"] += 1
+            return None
+        want = (eng.config.input.height, eng.config.input.width)
+        if frame.shape[:2] != want:
+            t0 = time.thread_time()
+            frame = self._fit(frame, want)
+            self.busy["resize"] += time.thread_time() - t0
+            if frame is None:
+                return None
+        # The header goes into the book *before* the frame goes into the engine: a fast head's output can reach
+        # the output thread before submit() even returns here, and must find its header (Note [Output headers]).
+        fid = self._next_fid
+        self._next_fid += 1
+        bgr = None
+        if self.book.keeps_frames:
+            bgr = frame if eng.config.input.color == "bgr" else frame[..., ::-1]
+        self.book.add(fid, header, bgr)
+        t0 = time.thread_time()
+        try:
+            eng.submit(frame, frame_id=fid, timestamp=header.seconds)
+        except ValueError as e:
+            self.counters["decode_errors"] += 1
+            log.error("engine rejected a frame: %s", e)
+            return None
+        self.busy["submit"] += time.thread_time() - t0
+        self.counters["submitted"] += 1
+        return fid
+
+    def _fit(self, frame: np.ndarray, want: tuple[int, int]) -> np.ndarray | None:
+        h, w = frame.shape[:2]
+        first = (w, h) not in self._seen_sizes
+        self._seen_sizes.add((w, h))
+        if self.on_size_mismatch == "reject":
+            self.counters["size_rejected"] += 1
+            if first:
+                log.warning(
+                    "rejecting %dx%d frames: the engine runs at %dx%d (on_size_mismatch=reject; counted as "
+                    "size_rejected in /diagnostics)",
+                    w,
+                    h,
+                    want[1],
+                    want[0],
+                )
+            return None
+        import cv2
+
+        self.counters["resized"] += 1
+        if first:
+            log.warning(
+                "resizing %dx%d frames to the engine's %dx%d (counted as resized in /diagnostics)",
+                w,
+                h,
+                want[1],
+                want[0],
+            )
+        interp = cv2.INTER_AREA if h > want[0] else cv2.INTER_LINEAR
+        return cv2.resize(frame, (want[1], want[0]), interpolation=interp)
+
+    # -------------------------------------------------------------------------------------------- output
+    def poll_outputs(self, timeout: float = 0.1) -> list[tuple[OutputTopic, Payload]]:
+        """Every head output since the last call as (topic, message), oldest first; waits up to ``timeout``."""
+        eng = self.engine
+        if eng is None:
+            self._engine_ready.wait(timeout)
+            return []
+        out: list[tuple[OutputTopic, Payload]] = []
+        t0 = time.thread_time()
+        results = eng.results(timeout=timeout)
+        self.busy["results"] += time.thread_time() - t0  # the engine API's copies out of its mailboxes
+        for r in results:
+            topics = self._by_head.get(r.head)
+            if not topics:
+                continue
+            header = self.book.header(r.frame_id)
+            if header is None:  # see Note [Output headers]
+                self.counters["header_fallbacks"] += 1
+                header = Header.from_seconds(r.capture_time)
+            frame = self.book.frame(r.frame_id)
+            info = self.head_infos[r.head]
+            t0 = time.thread_time()
+            for t in topics:
+                try:
+                    p = payload_for(t, r.outputs, info, header, frame)
+                except (ValueError, KeyError) as e:
+                    self.counters["output_errors"] += 1
+                    log.error("head %r output %s could not be converted: %s", r.head, t.role, e)
+                    continue
+                if p is None:
+                    self.counters["overlays_skipped"] += 1
+                    continue
+                out.append((t, p))
+            self.busy["convert"] += time.thread_time() - t0
+        return out
+
+    def count_superseded(self, n: int) -> None:
+        """``n`` input messages were received but not submitted because a newer one was already waiting."""
+        self.counters["received"] += n
+        self.counters["superseded"] += n
+
+    def count_published(self, topic: OutputTopic) -> None:
+        self.published[topic.topic] += 1
+
+    # ------------------------------------------------------------------------------------------- control
+    def set_rate(self, key: str, value: str) -> tuple[str, float | None]:
+        """Apply a rate command (model name, rate text). Raises ValueError naming what is wrong; counted."""
+        try:
+            model, hz = parse_rate_command(key, value, self.model_names)
+            if self.engine is None:
+                raise ValueError("the engine has not started yet (it starts on the first input message)")
+            self.engine.set_rate(model, hz)
+        except (ValueError, KeyError) as e:
+            self.counters["rate_commands_rejected"] += 1
+            raise ValueError(str(e).strip("'\"")) from None
+        self.counters["rate_commands"] += 1
+        log.info("rate of %s set to %s", model, "unlimited" if hz is None else f"{hz:g} Hz")
+        return model, hz
+
+    def set_rate_hz(self, model: str, hz: float | None) -> tuple[str, float | None]:
+        """Apply a numeric rate (services): Hz >= 0 (0 pauses); None, a negative number or inf = unlimited."""
+        if hz is not None and math.isnan(hz):
+            self.counters["rate_commands_rejected"] += 1
+            raise ValueError(f"rate for {model!r} is NaN; accepted: Hz >= 0, or negative/inf for no limit")
+        unlimited = hz is None or hz < 0 or math.isinf(hz)
+        return self.set_rate(model, "max" if unlimited else repr(float(hz)))  # type: ignore[arg-type]
+
+    def diagnostics(self, now: float | None = None) -> DiagnosticsOut:
+        """One status per model (see :func:`model_status`) and one for the interface itself."""
+        t = time.time() if now is None else now
+        header = Header.from_seconds(t)  # diagnostics describe "now", not an input frame
+        status: list[Status] = []
+        eng = self.engine
+        stats = eng.stats() if eng is not None else {}
+        models = stats.get("models", {})
+        results = stats.get("results", {})
+        for name in self.model_names:
+            if name in models:
+                status.append(model_status(name, models[name], self.status_prefix, self.hardware_id))
+            else:
+                status.append(
+                    Status(WARN, f"{self.status_prefix}: {name}", "engine not started", self.hardware_id)
+                )
+        c = self.counters
+        values = [
+            (k, str(c[k]))
+            for k in (
+                "received",
+                "submitted",
+                "superseded",
+                "decode_errors",
+                "resized",
+                "size_rejected",
+                "not_ready",
+                "header_fallbacks",
+                "overlays_skipped",
+                "output_errors",
+                "rate_commands",
+                "rate_commands_rejected",
+            )
+        ]
+        values += [(f"results_missed.{h}", str(r.get("missed", 0))) for h, r in results.items()]
+        values += [(f"published:{t.topic}", str(self.published[t.topic])) for t in self.topics]
+        values += [(f"busy_s.{k}", f"{v:.3f}") for k, v in sorted(self.busy.items())]
+        bad = c["decode_errors"] + c["size_rejected"] + c["output_errors"]
+        level = WARN if bad else OK
+        msg = f"{c['submitted']} frames in, {sum(self.published.values())} messages out"
+        if bad:
+            msg += f"; {bad} inputs/outputs rejected (see values)"
+        status.append(Status(level, f"{self.status_prefix}: interface", msg, self.hardware_id, values))
+        return DiagnosticsOut(header, status)

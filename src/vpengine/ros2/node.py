@@ -1,0 +1,326 @@
+"""An rclpy node for machines with ROS 2 installed: the bridge's topics, plus services.
+
+::
+
+    python -m vpengine.ros2.node --ros-args -p config:=configs/tiny.yaml -p input_topic:=/camera/image_raw
+
+Same topics, types, QoS and header rules as the DDS bridge (:mod:`vpengine.ros2.bridge`); every decision about
+content (decoding, output topics, input headers on outputs, rate parsing, diagnostics) is made by
+:class:`vpengine.ros2.core.Ros2Core`, shared with the bridge. This module only moves messages between rclpy and the
+core. NOT EXERCISED HERE: rclpy cannot be installed on the development machine; see docs/ros2.md.
+
+Services. The node serves the interface of the VPEngine paper's ROS node (nasa-jpl/visual-perception-engine) when a
+package providing it is installed (``vpengine_interfaces``, or the paper's own ``vp_engine_ros``)::
+
+    # ChangeModelRate.srv
+    string model_name
+    float64 new_rate      # Hz; 0 pauses; negative or inf: no limit (NaN is refused)
+    ---
+    bool success
+
+    # GetModelNames.srv
+    ---
+    string[] model_names
+
+Without such a package it falls back to standard interfaces: ``~/get_model_names`` (std_srvs/srv/Trigger; the
+names as a JSON list in ``message``) and one ROS parameter per model, ``rate.<model>`` (double, Hz; negative = no
+limit), set with ``ros2 param set /vpengine rate.depth 5``. The ``<ns>/set_rate`` topic (diagnostic_msgs/KeyValue)
+and the latched ``<ns>/model_names`` topic work in both cases.
+
+Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``compressed`` (false), ``input_qos``
+(sensor | default), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
+(config | first), ``on_size_mismatch`` (resize | reject), ``overrides`` (string array of KEY=VALUE).
+"""
+
+from __future__ import annotations
+
+import array
+import importlib
+import json
+import logging
+import sys
+import threading
+from typing import Any
+
+from vpengine.ros2.core import (
+    DETECTIONS_TYPE,
+    DetectionsOut,
+    DiagnosticsOut,
+    Header,
+    ImageOut,
+    Ros2Core,
+    model_names_text,
+)
+
+log = logging.getLogger("vpengine.ros2.node")
+
+#: packages searched, in order, for ChangeModelRate / GetModelNames
+SERVICE_PACKAGES = ("vpengine_interfaces", "vp_engine_ros")
+
+
+def _require_rclpy() -> Any:
+    try:
+        return importlib.import_module("rclpy")
+    except ImportError:
+        raise RuntimeError(
+            "rclpy is not installed (source a ROS 2 installation, e.g. /opt/ros/jazzy/setup.bash, in a Python that "
+            "also has vpengine); without ROS 2, `vpengine ros2` runs the same topics over CycloneDDS"
+        ) from None
+
+
+def find_services() -> tuple[Any, Any] | None:
+    """(ChangeModelRate, GetModelNames) from the first installed package that has both, else None."""
+    for pkg in SERVICE_PACKAGES:
+        try:
+            srv = importlib.import_module(f"{pkg}.srv")
+            return srv.ChangeModelRate, srv.GetModelNames
+        except (ImportError, AttributeError):
+            continue
+    return None
+
+
+# ------------------------------------------------------------------------------------ core output -> rclpy
+def ros_header(h: Header) -> Any:
+    from builtin_interfaces.msg import Time
+    from std_msgs.msg import Header as RosHeader
+
+    return RosHeader(stamp=Time(sec=h.sec, nanosec=h.nanosec), frame_id=h.frame_id)
+
+
+def ros_image(p: ImageOut) -> Any:
+    from sensor_msgs.msg import Image
+
+    data = array.array("B")
+    data.frombytes(
+        p.data
+    )  # one memcpy; rclpy's fast path for uint8[] is array.array('B'), not bytes or lists
+    return Image(
+        header=ros_header(p.header),
+        height=p.height,
+        width=p.width,
+        encoding=p.encoding,
+        is_bigendian=p.is_bigendian,
+        step=p.step,
+        data=data,
+    )
+
+
+def ros_detections(p: DetectionsOut) -> Any:
+    from vision_msgs.msg import (
+        BoundingBox2D,
+        Detection2D,
+        Detection2DArray,
+        ObjectHypothesis,
+        ObjectHypothesisWithPose,
+        Point2D,
+        Pose2D,
+    )
+
+    header = ros_header(p.header)
+    return Detection2DArray(
+        header=header,
+        detections=[
+            Detection2D(
+                header=header,
+                results=[
+                    ObjectHypothesisWithPose(hypothesis=ObjectHypothesis(class_id=d.class_id, score=d.score))
+                ],
+                bbox=BoundingBox2D(
+                    center=Pose2D(position=Point2D(x=d.center_x, y=d.center_y), theta=0.0),
+                    size_x=d.size_x,
+                    size_y=d.size_y,
+                ),
+                id="",
+            )
+            for d in p.detections
+        ],
+    )
+
+
+def ros_diagnostics(d: DiagnosticsOut) -> Any:
+    from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+
+    return DiagnosticArray(
+        header=ros_header(d.header),
+        status=[
+            DiagnosticStatus(
+                level=bytes([s.level]),  # `byte` fields are bytes of length 1 in rclpy
+                name=s.name,
+                message=s.message,
+                hardware_id=s.hardware_id,
+                values=[KeyValue(key=k, value=v) for k, v in s.values],
+            )
+            for s in d.status
+        ],
+    )
+
+
+# ------------------------------------------------------------------------------------------------ the node
+def build_node(argv: list[str] | None = None) -> Any:
+    """Create the node (rclpy must be initialised). Returns it; its ``shutdown()`` stops the engine."""
+    _require_rclpy()
+    from diagnostic_msgs.msg import DiagnosticArray, KeyValue
+    from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+    from rclpy.node import Node
+    from rclpy.parameter import Parameter
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+    from sensor_msgs.msg import CompressedImage, Image
+    from std_msgs.msg import String
+
+    class VpengineNode(Node):  # type: ignore[misc, valid-type]
+        def __init__(self) -> None:
+            super().__init__("vpengine")
+            p = self.declare_parameter
+            config = p("config", "").value
+            if not config:
+                raise RuntimeError("parameter 'config' (an engine config file) is required")
+            input_topic = p("input_topic", "/camera/image_raw").value
+            compressed = bool(p("compressed", False).value)
+            input_qos = p("input_qos", "sensor").value
+            if input_qos not in ("sensor", "default"):
+                raise ValueError(f"parameter input_qos={input_qos!r}; accepted: sensor, default")
+            self.core = Ros2Core(
+                config,
+                namespace=p("output_namespace", "/vpengine").value,
+                input_size=p("input_size", "config").value,
+                on_size_mismatch=p("on_size_mismatch", "resize").value,
+                depth_color=bool(p("depth_color", False).value),
+                seg_overlay=bool(p("seg_overlay", False).value),
+                # a STRING_ARRAY with no default: rclpy cannot infer the type of an empty list
+                overrides=[str(o) for o in (p("overrides", Parameter.Type.STRING_ARRAY).value or []) if o],
+            )
+            core = self.core
+            core.start()
+            default_qos = QoSProfile(depth=10)
+            latched = QoSProfile(
+                depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
+            )
+            self._pubs = {
+                t.topic: self.create_publisher(
+                    _detection_type() if t.msgtype == DETECTIONS_TYPE else Image, t.topic, default_qos
+                )
+                for t in core.topics
+            }
+            self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", default_qos)
+            self._names = self.create_publisher(String, f"{core.namespace}/model_names", latched)
+            self._names.publish(String(data=model_names_text(core.model_names)))
+            self.create_subscription(KeyValue, f"{core.namespace}/set_rate", self._on_rate, default_qos)
+            in_qos = qos_profile_sensor_data if input_qos == "sensor" else default_qos
+            if compressed:
+                topic = (
+                    input_topic
+                    if input_topic.rstrip("/").endswith("/compressed")
+                    else f"{input_topic}/compressed"
+                )
+                self.create_subscription(CompressedImage, topic, core.handle_compressed, in_qos)
+            else:
+                self.create_subscription(Image, input_topic, core.handle_image, in_qos)
+            self._services()
+            self.create_timer(1.0, lambda: self._diag.publish(ros_diagnostics(core.diagnostics())))
+            self._stop = threading.Event()
+            self._out = threading.Thread(target=self._output_loop, name="vpengine-outputs", daemon=True)
+            self._out.start()
+
+        def _services(self) -> None:
+            core = self.core
+            found = find_services()
+            if found is not None:
+                change, names = found
+
+                def on_change(req: Any, res: Any) -> Any:
+                    try:
+                        hz = float(req.new_rate)
+                        core.set_rate_hz(req.model_name, hz)
+                        res.success = True
+                    except ValueError as e:
+                        self.get_logger().warning(f"ChangeModelRate refused: {e}")
+                        res.success = False
+                    return res
+
+                def on_names(_req: Any, res: Any) -> Any:
+                    res.model_names = list(core.model_names)
+                    return res
+
+                self.create_service(change, "~/change_model_rate", on_change)
+                self.create_service(names, "~/get_model_names", on_names)
+                return
+            from std_srvs.srv import Trigger
+
+            def on_trigger(_req: Any, res: Any) -> Any:
+                res.success, res.message = True, json.dumps(core.model_names)
+                return res
+
+            self.create_service(Trigger, "~/get_model_names", on_trigger)
+            for m in core.model_names:
+                self.declare_parameter(
+                    f"rate.{m}",
+                    -1.0,
+                    ParameterDescriptor(description=f"rate limit of {m} in Hz; 0 pauses; negative: no limit"),
+                )
+
+            def on_params(params: list[Any]) -> Any:
+                for prm in params:
+                    if prm.name.startswith("rate."):
+                        try:
+                            core.set_rate_hz(prm.name[5:], float(prm.value))
+                        except (ValueError, TypeError) as e:
+                            return SetParametersResult(successful=False, reason=str(e))
+                return SetParametersResult(successful=True)
+
+            self.add_on_set_parameters_callback(on_params)
+
+        def _on_rate(self, msg: Any) -> None:
+            try:
+                self.core.set_rate(msg.key, msg.value)
+            except ValueError as e:
+                self.get_logger().warning(
+                    f"rate command {{key: {msg.key!r}, value: {msg.value!r}}} ignored: {e}"
+                )
+
+        def _output_loop(self) -> None:
+            while not self._stop.is_set():
+                for topic, payload in self.core.poll_outputs(timeout=0.05):
+                    msg = ros_image(payload) if isinstance(payload, ImageOut) else ros_detections(payload)
+                    self._pubs[topic.topic].publish(msg)
+                    self.core.count_published(topic)
+
+        def shutdown(self) -> None:
+            self._stop.set()
+            self._out.join(timeout=5.0)
+            self.core.stop()
+
+    def _detection_type() -> Any:
+        try:
+            from vision_msgs.msg import Detection2DArray
+        except ImportError:
+            raise RuntimeError(
+                "a detection head needs vision_msgs (>= 4.0), e.g. apt install ros-$ROS_DISTRO-vision-msgs"
+            ) from None
+        return Detection2DArray
+
+    return VpengineNode()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m vpengine.ros2.node --ros-args -p config:=FILE -p input_topic:=/camera/image_raw``."""
+    rclpy = _require_rclpy()
+    from rclpy.executors import MultiThreadedExecutor
+
+    rclpy.init(args=argv if argv is not None else sys.argv)
+    node = build_node()
+    executor = MultiThreadedExecutor()
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.shutdown()
+        node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

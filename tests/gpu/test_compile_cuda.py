@@ -1,0 +1,276 @@
+"""The compile backend on CUDA: torch.compile replayed as one CUDA graph over static buffers (Note [CUDA graphs]),
+and the ONNX backend on the CUDA provider. Run on the GPU machine: ``pytest -m gpu tests/gpu``.
+
+What must hold for a long-running robot process: same results as eager (fp32 tolerance), no device memory
+allocated by a replay, outputs copied out of the static buffers stay intact when the next frame replays, replays
+ordered on the caller's stream, and a model that cannot be captured fails at warm-up with the fix in the message.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.backends import BackendError, make_executor
+from vpengine.engine import Engine
+from vpengine.models.base import Model
+from vpengine.runtime.plan import make_plan
+from vpengine.runtime.worker import build_model
+from vpengine.specs import TensorSpec
+
+pytestmark = [pytest.mark.gpu, pytest.mark.timeout(900), pytest.mark.usefixtures("require_cuda")]
+
+CUDA = torch.device("cuda")
+TINY_MODELS = ["foundation", "depth", "seg", "det"]
+THRESHOLD = 0.5  # tiny_det's default score threshold
+
+
+@pytest.fixture(autouse=True)
+def inductor_in_process(monkeypatch):
+    # Inductor's parallel compile starts a pool of worker processes that lives as long as the process that compiled;
+    # the suite's leak check (no child process may outlive a test) would flag it. Compile in-process here and, via
+    # the environment, in engine workers.
+    import torch._inductor.config as inductor_config
+
+    monkeypatch.setenv("TORCHINDUCTOR_COMPILE_THREADS", "1")
+    with inductor_config.patch(compile_threads=1):
+        yield
+
+
+def build(cfg, name: str) -> Model:
+    plan = make_plan(cfg)
+    if name == "foundation":
+        return build_model(cfg, name, "foundation", plan.frame_spec, {}, CUDA, plan_only=False)
+    return build_model(cfg, name, "head", plan.features, plan.feature_meta, CUDA, plan_only=False)
+
+
+def inputs_for(cfg, name: str, i: int) -> dict[str, torch.Tensor]:
+    """Frame ``i`` on the GPU for the foundation model; its (eager) features for a head. Fresh tensors each time."""
+    h, w = cfg.input.height, cfg.input.width
+    x = {"frame": torch.from_numpy(frame(i, h, w)).to(CUDA)}
+    if name == "foundation":
+        return x
+    precision = cfg.foundation_model.precision or cfg.precision
+    feats = make_executor(build(cfg, "foundation"), "eager", CUDA, "foundation", precision=precision)(x)
+    return {k: feats[k].clone() for k in build(cfg, name).input_spec}
+
+
+def snapshot(out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in out.items()}
+
+
+def assert_same_results(name: str, got: dict, want: dict, rtol: float, what: str) -> None:
+    """Floats within ``rtol`` of the output's scale; class maps up to argmax near-ties; confident detections equal."""
+    assert set(got) == set(want), what
+    for k, w in want.items():
+        g = got[k]
+        assert g.dtype == w.dtype and g.shape == w.shape, f"{what}: {k}"
+        if w.dtype.is_floating_point:
+            scale = w.float().abs().max().item()
+            torch.testing.assert_close(
+                g, w, rtol=rtol, atol=rtol * scale, msg=lambda m, k=k: f"{what}: {k}: {m}"
+            )
+    if name == "seg":
+        differ = (got["classes"] != want["classes"]).float().mean().item()
+        assert differ <= 1e-3, f"{what}: {differ:.3%} of pixels differ"
+    if name == "det":
+
+        def confident(d):
+            keep = d["scores"] > THRESHOLD + 1e-3
+            return sorted(zip(map(tuple, d["boxes"][keep].tolist()), d["labels"][keep].tolist()))
+
+        assert confident(got) == confident(want), what
+
+
+# ------------------------------------------------------------------------------------------ correctness
+@pytest.mark.parametrize("name", TINY_MODELS)
+def test_compiled_cuda_graph_matches_eager(name):
+    cfg = tiny("thread", "device=cuda")
+    ex = make_executor(build(cfg, name), "compile", CUDA, name)
+    assert ex.describe()["cudagraphs"] is True
+    eager = make_executor(build(cfg, name), "eager", CUDA, name)
+    worker = torch.cuda.Stream()
+    for i in range(3):
+        x = inputs_for(cfg, name, i)
+        with torch.cuda.stream(worker):
+            worker.wait_stream(torch.cuda.default_stream())
+            got = snapshot(ex(x))
+        worker.synchronize()
+        assert_same_results(name, got, snapshot(eager(x)), 1e-4, f"{name} frame {i}")
+
+
+@pytest.mark.parametrize("precision", ["fp16", "bf16"])
+def test_compiled_cuda_graph_at_low_precision_stays_close_to_fp32(precision):
+    cfg32, cfg = tiny("thread", "device=cuda"), tiny("thread", "device=cuda", f"precision={precision}")
+    x32, x = inputs_for(cfg32, "foundation", 0), inputs_for(cfg, "foundation", 0)
+    want = snapshot(make_executor(build(cfg32, "foundation"), "eager", CUDA, "foundation")(x32))
+    ex = make_executor(build(cfg, "foundation"), "compile", CUDA, "foundation", precision=precision)
+    assert ex.describe()["cudagraphs"] is True
+    got = snapshot(ex(x))
+    dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}[precision]
+    tol = {"fp16": 1e-2, "bf16": 5e-2}[precision]
+    for k, w in want.items():
+        assert got[k].dtype == dtype
+        scale = w.abs().max().item()
+        assert (got[k].float() - w).abs().max().item() <= tol * scale, k
+
+
+# ------------------------------------------------------------------------------------------ memory and buffers
+def test_replays_allocate_no_device_memory():
+    """200 frames through every tiny model from rotating 'mailbox slots': allocated and reserved memory stay flat."""
+    cfg = tiny("thread", "device=cuda")
+    worker = torch.cuda.Stream()
+    executors = {}
+    with torch.cuda.stream(worker):
+        for name in TINY_MODELS:
+            executors[name] = make_executor(build(cfg, name), "compile", CUDA, name)
+    # Three preallocated input slots and one output slot per model, as the mailboxes hold them.
+    slots = {n: [inputs_for(cfg, n, i) for i in range(3)] for n in TINY_MODELS}
+    outs = {
+        n: {k: torch.empty(s.shape, dtype=s.torch_dtype, device=CUDA) for k, s in ex.output_spec.items()}
+        for n, ex in executors.items()
+    }
+    with torch.cuda.stream(worker):
+        for n, ex in executors.items():  # one call each outside the measurement, like the worker's warm-up
+            ex(slots[n][0])
+    torch.cuda.synchronize()
+    allocated, reserved = torch.cuda.memory_allocated(), torch.cuda.memory_reserved()
+    with torch.cuda.stream(worker), torch.inference_mode():
+        for i in range(200):
+            for n, ex in executors.items():
+                result = ex(slots[n][i % 3])
+                for k, t in outs[n].items():
+                    t.copy_(result[k], non_blocking=True)
+    torch.cuda.synchronize()
+    assert torch.cuda.memory_allocated() == allocated
+    assert torch.cuda.memory_reserved() == reserved
+
+
+def test_copied_outputs_survive_the_next_replay():
+    """Note [Executor contract]: a copy taken after frame A is intact after frame B replays into the same buffers."""
+    cfg = tiny("thread", "device=cuda")
+    ex = make_executor(build(cfg, "depth"), "compile", CUDA, "depth")
+    eager = make_executor(build(cfg, "depth"), "eager", CUDA, "depth")
+    a, b = inputs_for(cfg, "depth", 0), inputs_for(cfg, "depth", 1)
+    slot_a = torch.empty(ex.output_spec["depth"].shape, device=CUDA)
+    slot_b = torch.empty_like(slot_a)
+    out_a = ex(a)
+    slot_a.copy_(out_a["depth"])
+    out_b = ex(b)
+    slot_b.copy_(out_b["depth"])
+    torch.cuda.synchronize()
+    want_a, want_b = eager(a)["depth"].clone(), eager(b)["depth"].clone()
+    assert_same_results("depth", {"depth": slot_a}, {"depth": want_a}, 1e-4, "A's copy after B")
+    assert_same_results("depth", {"depth": slot_b}, {"depth": want_b}, 1e-4, "B")
+    assert not torch.allclose(want_a, want_b)  # the two frames really differ
+    assert out_a["depth"].data_ptr() == out_b["depth"].data_ptr()  # ... through the same static buffer
+
+
+def test_replay_is_ordered_on_the_callers_stream():
+    """Inputs written late on the worker's stream (after a long kernel) are what the replay reads."""
+    cfg = tiny("thread", "device=cuda")
+    worker = torch.cuda.Stream()
+    with torch.cuda.stream(worker):
+        ex = make_executor(build(cfg, "depth"), "compile", CUDA, "depth")
+    eager = make_executor(build(cfg, "depth"), "eager", CUDA, "depth")
+    a, b = inputs_for(cfg, "depth", 0), inputs_for(cfg, "depth", 1)
+    slot = {k: v.clone() for k, v in a.items()}
+    out = torch.empty(ex.output_spec["depth"].shape, device=CUDA)
+    torch.cuda.synchronize()
+    with torch.cuda.stream(worker):
+        torch.cuda._sleep(200_000_000)  # ~0.1 s of GPU time before the slot is refilled with frame B
+        for k, t in slot.items():
+            t.copy_(b[k])
+        out.copy_(ex(slot)["depth"])
+    worker.synchronize()
+    assert_same_results("depth", {"depth": out}, {"depth": eager(b)["depth"].clone()}, 1e-4, "late input")
+
+
+# ------------------------------------------------------------------------------------------ failures
+class _HostSync(Model):
+    """A head that reads a value back to the host mid-forward (.item()): legal eagerly, not inside a CUDA graph."""
+
+    role = "head"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.input_spec = {"x": TensorSpec((4, 8), "float32")}
+        self.output_spec = {"y": TensorSpec((4, 8), "float32")}
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        x = inputs["x"] * 2
+        return {"y": x + x.max().item()}
+
+
+def test_a_model_that_cannot_be_captured_fails_at_warm_up_with_the_fix():
+    opts = {"fullgraph": False}
+    with pytest.raises(BackendError, match=r"(?s)user: CUDA graph capture failed.*cudagraphs: false"):
+        make_executor(_HostSync().to(CUDA), "compile", CUDA, "user", options=opts)
+    ex = make_executor(_HostSync().to(CUDA), "compile", CUDA, "user", options={**opts, "cudagraphs": False})
+    assert ex.describe()["cudagraphs"] is False
+    x = {"x": torch.randn(4, 8, device=CUDA)}
+    torch.testing.assert_close(ex(x)["y"], x["x"] * 2 + (x["x"] * 2).max())
+
+
+# ------------------------------------------------------------------------------------------ ONNX on CUDA
+def test_onnx_on_cuda_runs_on_the_cuda_provider_or_says_what_is_missing(tmp_path):
+    import onnxruntime as ort
+
+    cfg = tiny("thread", "device=cuda")
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        with pytest.raises(
+            BackendError, match=r"needs ONNX Runtime's CUDAExecutionProvider.*onnxruntime-gpu"
+        ):
+            make_executor(build(cfg, "foundation"), "onnx", CUDA, "foundation", cache_dir=tmp_path)
+        return
+    worker = torch.cuda.Stream()
+    with torch.cuda.stream(worker):  # as in a worker: ONNX Runtime is handed the worker's stream
+        ex = make_executor(build(cfg, "foundation"), "onnx", CUDA, "foundation", cache_dir=tmp_path)
+    assert ex.describe()["providers"][0] == "CUDAExecutionProvider"
+    eager = make_executor(build(cfg, "foundation"), "eager", CUDA, "foundation")
+    slots = [inputs_for(cfg, "foundation", i) for i in range(3)]
+    torch.cuda.synchronize()
+    for i, x in enumerate(slots):
+        with torch.cuda.stream(worker):
+            got = snapshot(ex(x))
+        worker.synchronize()
+        assert_same_results("foundation", got, snapshot(eager(x)), 1e-3, f"onnx cuda frame {i}")
+    torch.cuda.synchronize()
+    free = torch.cuda.mem_get_info()[0]  # after warm-up ONNX Runtime's arena holds what a run needs
+    with torch.cuda.stream(worker):
+        for i in range(100):
+            ex(slots[i % 3])
+    worker.synchronize()
+    assert torch.cuda.mem_get_info()[0] == free
+
+
+# ------------------------------------------------------------------------------------------ in the engine
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_engine_with_compiled_models_on_cuda_matches_eager(mode):
+    """Every model compiled and graph-captured, concurrently in worker threads or processes, on their own streams."""
+    compiled = [f"heads.{h}.backend=compile" for h in ("depth", "seg", "det")]
+    runs = {}
+    for label, extra in (("eager", []), ("compile", ["foundation_model.backend=compile", *compiled])):
+        cfg = tiny(mode, "device=cuda", *extra)
+        out = {}
+        with Engine(cfg) as e:
+            for i in range(5):
+                fid = e.submit(frame(i), frame_id=i)
+                res = e.wait(fid, timeout=120)
+                assert set(res) == {"depth", "seg", "det"}, (label, i, sorted(res))
+                out[i] = {h: r.outputs for h, r in res.items()}
+            assert all(m["errors"] == 0 for m in e.stats()["models"].values())
+        runs[label] = out
+    for i in range(5):
+        got, want = runs["compile"][i], runs["eager"][i]
+        scale = np.abs(want["depth"]["depth"]).max()
+        np.testing.assert_allclose(
+            got["depth"]["depth"], want["depth"]["depth"], rtol=1e-4, atol=1e-4 * scale
+        )
+        assert (got["seg"]["classes"] != want["seg"]["classes"]).mean() <= 1e-3
+        keep_g = got["det"]["scores"] > THRESHOLD + 1e-3
+        keep_w = want["det"]["scores"] > THRESHOLD + 1e-3
+        np.testing.assert_allclose(got["det"]["boxes"][keep_g], want["det"]["boxes"][keep_w])

@@ -1,0 +1,81 @@
+"""Backends inside a running engine: an ONNX Runtime foundation model and a torch.compile head give the results an
+all-eager engine gives for the same frames, in thread mode and in process mode (where export and compilation happen
+in the worker processes, before READY)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.engine import Engine, EngineStartError
+
+pytestmark = pytest.mark.timeout(600)
+
+N_FRAMES = 6
+THRESHOLD = 0.5  # tiny_det's default score threshold
+
+
+def run_lockstep(cfg, n: int) -> dict[int, dict]:
+    """Submit frames one at a time and wait for every head, so every model sees every frame."""
+    out = {}
+    with Engine(cfg) as e:
+        heads = set(e.plan.heads)
+        for i in range(n):
+            fid = e.submit(frame(i), frame_id=100 + i)
+            res = e.wait(fid, timeout=120)
+            assert set(res) == heads, f"frame {fid}: results from {sorted(res)} only"
+            out[i] = {h: r.outputs for h, r in res.items()}
+        st = e.stats()
+    for name, m in st["models"].items():
+        assert m["errors"] == 0, (name, m)
+    return out
+
+
+def confident(det: dict, margin: float = 1e-3) -> list[tuple]:
+    """Detections whose score is clearly above the threshold (a 1e-5 feature difference cannot flip them)."""
+    keep = det["scores"] > THRESHOLD + margin
+    return sorted(zip(map(tuple, det["boxes"][keep].tolist()), det["labels"][keep].tolist()))
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, tmp_path):
+    exact = (
+        "foundation_model.preprocess.fast_uint8_resize=false"  # what an ONNX export computes, in both engines
+    )
+    want = run_lockstep(tiny(mode, exact), N_FRAMES)
+    cfg = tiny(
+        mode,
+        exact,
+        "foundation_model.backend=onnx",
+        "heads.depth.backend=compile",
+        f"weights.cache_dir={tmp_path}",
+    )
+    got = run_lockstep(cfg, N_FRAMES)
+
+    entries = list((tmp_path / "onnx").glob("*/model.onnx"))
+    assert (
+        len(entries) == 1 and "TinyViT" in entries[0].parent.name
+    )  # exported once, into the configured cache
+    for i in range(N_FRAMES):
+        g, w = got[i], want[i]
+        # ORT's features differ from PyTorch's by ~1e-5 of their scale (antialiased resize, reassociation).
+        depth_scale = np.abs(w["depth"]["depth"]).max()
+        np.testing.assert_allclose(
+            g["depth"]["depth"], w["depth"]["depth"], rtol=1e-4, atol=1e-4 * depth_scale, err_msg=f"depth {i}"
+        )
+        differ = (g["seg"]["classes"] != w["seg"]["classes"]).mean()
+        assert differ <= 1e-3, f"seg frame {i}: {differ:.3%} of pixels differ"  # argmax near-ties only
+        assert confident(g["det"]) == confident(w["det"]), f"det frame {i}"
+        assert abs(g["det"]["count"] - w["det"]["count"]) <= 1, f"det frame {i}"
+
+
+def test_bad_backend_options_fail_the_start_naming_the_accepted_ones():
+    cfg = tiny("thread", "heads.seg.backend=compile", "heads.seg.backend_options={cuda_graph: false}")
+    with pytest.raises(
+        EngineStartError,
+        match=r"seg: bad backend_options for backend 'compile': unknown key "
+        r"'cuda_graph' \(accepted: compiler, cudagraphs, fullgraph, mode, warmup_iters\)",
+    ):
+        Engine(cfg).start()

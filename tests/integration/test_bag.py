@@ -1,0 +1,234 @@
+"""rosbag2 in and out: ``vpengine run --source BAG --topic T --out-bag OUT`` for sqlite3 and MCAP bags with Humble and
+Jazzy message definitions, read back with rosbags and (MCAP) with the ``mcap`` reader.
+
+Input bags are written here with rosbags; a "Humble" input bag also gets Humble's metadata layout (version 5: no
+ros_distro, custom_data or type hashes), which is what Humble's rosbag2 records.
+"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from helpers.frames import frame
+from tests_paths import ROOT
+from vpengine.cli.main import main as cli
+from vpengine.ros2.rosbags_msgs import typestore
+
+pytestmark = pytest.mark.timeout(300)
+
+N = 4
+FRAME_ID = "camera_optical"
+STAMPS = [(1_700_000_000 + i, 100_000_007 * (i + 1) % 1_000_000_000) for i in range(N)]
+
+
+def write_bag(
+    path: Path,
+    storage: str,
+    distro: str,
+    *,
+    encoding: str = "bgr8",
+    compressed: bool = False,
+    topic: str = "/camera/image_raw",
+    extra_topic: bool = True,
+) -> None:
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = typestore(distro)
+    T = ts.types
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    with Writer(path, version=8 if distro == "humble" else 9, storage_plugin=plugin) as w:
+        msgtype = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
+        conn = w.add_connection(topic, msgtype, typestore=ts)
+        other = w.add_connection("/chatter", "std_msgs/msg/String", typestore=ts) if extra_topic else None
+        for i, (sec, nsec) in enumerate(STAMPS):
+            header = T["std_msgs/msg/Header"](
+                stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=FRAME_ID
+            )
+            img = frame(i)
+            if compressed:
+                import cv2
+
+                data = cv2.imencode(".png", img)[1].reshape(-1)
+                msg = T[msgtype](header=header, format="bgr8; png compressed bgr8", data=data)
+            else:
+                pixels = img if encoding != "rgb8" else np.ascontiguousarray(img[..., ::-1])
+                msg = T[msgtype](
+                    header=header,
+                    height=120,
+                    width=160,
+                    encoding=encoding,
+                    is_bigendian=0,
+                    step=480,
+                    data=pixels.reshape(-1),
+                )
+            # log time 50 ms after the stamp, like a recorder: outputs must carry the header stamp, not this
+            w.write(conn, sec * 10**9 + nsec + 50_000_000, ts.serialize_cdr(msg, msgtype))
+            if other is not None:
+                w.write(
+                    other,
+                    sec * 10**9,
+                    ts.serialize_cdr(T["std_msgs/msg/String"](data="hi"), "std_msgs/msg/String"),
+                )
+    if distro == "humble":  # Humble's rosbag2 writes metadata version 5
+        meta_path = path / "metadata.yaml"
+        meta = yaml.safe_load(meta_path.read_text())
+        info = meta["rosbag2_bagfile_information"]
+        info["version"] = 5
+        for key in ("ros_distro", "custom_data"):
+            info.pop(key, None)
+        for t in info["topics_with_message_count"]:
+            t["topic_metadata"].pop("type_description_hash", None)
+        meta_path.write_text(yaml.safe_dump(meta, sort_keys=False))
+
+
+def read_bag(path: Path, distro: str) -> dict[str, list]:
+    from rosbags.rosbag2 import Reader
+
+    ts = typestore(distro)
+    out: dict[str, list] = {}
+    with Reader(path) as r:
+        for conn, t, raw in r.messages():
+            msg = ts.deserialize_cdr(raw, conn.msgtype)
+            out.setdefault(conn.topic, []).append((conn.msgtype, t, msg))
+    return out
+
+
+def check_outputs(topics: dict[str, list], viz: bool = False) -> None:
+    want = {
+        "/vpengine/depth/depth": ("sensor_msgs/msg/Image", "32FC1", 640),
+        "/vpengine/seg/classes": ("sensor_msgs/msg/Image", "mono8", 160),
+        "/vpengine/det/detections": ("vision_msgs/msg/Detection2DArray", None, None),
+    }
+    if viz:
+        want["/vpengine/depth/depth_color"] = ("sensor_msgs/msg/Image", "bgr8", 480)
+        want["/vpengine/seg/overlay"] = ("sensor_msgs/msg/Image", "bgr8", 480)
+    assert sorted(topics) == sorted(want)
+    for topic, (msgtype, encoding, step) in want.items():
+        msgs = topics[topic]
+        assert len(msgs) == N, topic  # lockstep: every head answers every frame
+        stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for _, _, m in msgs]
+        assert stamps == STAMPS, topic  # the input's header stamps, exactly, in order
+        for mtype, log_time, m in msgs:
+            assert mtype == msgtype and m.header.frame_id == FRAME_ID
+            assert log_time == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+            if encoding is None:
+                for det in m.detections:
+                    assert det.header.frame_id == FRAME_ID
+                    assert det.results[0].hypothesis.class_id.startswith("class_")
+                    assert 0 <= det.bbox.center.position.x <= 160 and det.bbox.size_x > 0
+                continue
+            assert (m.encoding, m.width, m.height, m.step, m.is_bigendian) == (encoding, 160, 120, step, 0)
+            assert m.data.size == step * 120
+            if encoding == "32FC1":
+                depth = m.data.view(np.float32)
+                assert np.isfinite(depth).all() and (depth > 0).all()
+
+
+def run(*args: str) -> int:
+    return cli(["run", "-c", str(ROOT / "configs" / "tiny.yaml"), "--no-progress", *args])
+
+
+@pytest.mark.parametrize("distro", ["humble", "jazzy"])
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_bag_round_trip(tmp_path, storage, distro):
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_bag(src, storage, distro, encoding="rgb8" if distro == "humble" else "bgr8")
+    rc = run(
+        "-s", str(src), "--topic", "/camera/image_raw", "--out-bag", str(out),
+        "--bag-storage", storage, "--bag-distro", distro, "--mode", "thread",
+    )  # fmt: skip
+    assert rc == 0
+    meta = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["storage_identifier"] == storage and meta["version"] == (8 if distro == "humble" else 9)
+    check_outputs(read_bag(out, distro))
+    if storage == "mcap":
+        check_mcap(out)
+
+
+def check_mcap(bag: Path) -> None:
+    """The ``mcap`` library reads the file: schemas, channels, log times; rosbags decodes the payloads."""
+    from mcap.reader import make_reader
+
+    ts = typestore("jazzy")
+    files = list(bag.glob("*.mcap"))
+    assert len(files) == 1
+    seen: dict[str, int] = {}
+    with files[0].open("rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            assert schema.encoding == "ros2msg" and channel.message_encoding == "cdr"
+            msg = ts.deserialize_cdr(message.data, schema.name)
+            stamp = (msg.header.stamp.sec, msg.header.stamp.nanosec)
+            assert stamp in STAMPS and message.log_time == stamp[0] * 10**9 + stamp[1]
+            if schema.name == "sensor_msgs/msg/Image":
+                assert (msg.width, msg.height) == (160, 120)
+            else:
+                assert schema.name == "vision_msgs/msg/Detection2DArray"
+                assert "vision_msgs/Pose2D center" in schema.data.decode()  # the 4.x definition travels along
+            seen[channel.topic] = seen.get(channel.topic, 0) + 1
+    assert seen == {"/vpengine/depth/depth": N, "/vpengine/seg/classes": N, "/vpengine/det/detections": N}
+
+
+def test_console_script_reads_a_bare_mcap_file_of_compressed_images_and_writes_colour_topics(tmp_path):
+    """The real console script, in the config's process mode, on a bare .mcap file (no metadata.yaml)."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_bag(src, "mcap", "jazzy", compressed=True, topic="/cam/image/compressed", extra_topic=False)
+    bare = tmp_path / "cam.mcap"
+    shutil.copy(next(src.glob("*.mcap")), bare)
+    exe = shutil.which("vpengine", path=str(ROOT / ".venv" / "bin"))
+    cmd = [exe] if exe else [sys.executable, "-m", "vpengine.cli.main"]
+    p = subprocess.run(
+        [*cmd, "run", "-c", "configs/tiny.yaml", "-s", str(bare), "--out-bag", str(out), "--viz", "--no-progress"],
+        capture_output=True, text=True, timeout=240, cwd=ROOT,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert f"{N} frames" in p.stdout and "outputs recorded to bag" in p.stdout
+    check_outputs(read_bag(out, "jazzy"), viz=True)
+
+
+def test_a_bare_db3_file_is_a_bag_source_too(tmp_path):
+    from vpengine.io.sources import open_source
+
+    write_bag(tmp_path / "in", "sqlite3", "jazzy")
+    with open_source(str(next((tmp_path / "in").glob("*.db3"))), topic="/camera/image_raw") as src:
+        frames = list(src)
+    assert len(frames) == N and (src.width, src.height) == (160, 120)
+    np.testing.assert_array_equal(frames[2].image, frame(2))
+    assert [f.timestamp for f in frames] == pytest.approx([s + ns * 1e-9 for s, ns in STAMPS], abs=1e-6)
+
+
+def test_wrong_encoding_fails_naming_it(tmp_path, capsys):
+    src = tmp_path / "in"
+    write_bag(src, "mcap", "jazzy", encoding="16UC1")
+    assert run("-s", str(src), "--topic", "/camera/image_raw", "--out-bag", str(tmp_path / "o")) == 1
+    err = capsys.readouterr().err
+    assert "encoding '16UC1' is not supported; accepted: rgb8, bgr8, mono8" in err
+    assert "'/camera/image_raw'" in err and str(src) in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_missing_topic_fails_listing_the_topics_that_exist(tmp_path, capsys):
+    src = tmp_path / "in"
+    write_bag(src, "sqlite3", "humble")
+    assert run("-s", str(src), "--topic", "/camera/missing", "--out-bag", str(tmp_path / "o")) == 1
+    err = capsys.readouterr().err
+    assert "has no topic '/camera/missing'" in err
+    assert "/camera/image_raw (sensor_msgs/msg/Image)" in err and "/chatter (std_msgs/msg/String)" in err
+    assert run("-s", str(src), "--topic", "/chatter") == 1
+    assert "carries std_msgs/msg/String; accepted: sensor_msgs/msg/Image" in capsys.readouterr().err
+    assert run("-s", "synthetic:64x64@30:2", "--topic", "/camera/image_raw") == 1
+    assert "applies to rosbag2 bags only" in capsys.readouterr().err
+
+
+def test_an_existing_output_bag_is_never_overwritten(tmp_path, capsys):
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_bag(src, "mcap", "jazzy")
+    out.mkdir()
+    assert run("-s", str(src), "--out-bag", str(out)) == 1  # the only image topic is found without --topic
+    assert "exists already" in capsys.readouterr().err

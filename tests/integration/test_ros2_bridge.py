@@ -1,0 +1,417 @@
+"""The DDS bridge end to end, in separate processes on loopback, as a ROS 2 graph would see it.
+
+* this test process publishes sensor_msgs/Image frames (and later rate commands);
+* the bridge runs in its own process: the ``vpengine ros2`` console script with configs/tiny.yaml (process mode);
+* a subscriber process (this file run as a script) takes every output sample as raw CDR, decodes it with both
+  cyclonedds (the IDL classes) and rosbags (an independent CDR implementation with its own message definitions),
+  and reports whether they agree byte for byte.
+
+CycloneDDS is confined to 127.0.0.1 through CYCLONEDDS_URI (no multicast, unicast discovery), and the domain id is
+unique to this test run so parallel runs do not meet.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+HERE = Path(__file__).resolve()
+ROOT = HERE.parents[2]
+
+pytestmark = pytest.mark.timeout(300)
+
+INPUT = "/test/camera/image_raw"
+FRAME_ID = "test_cam"
+N = 6
+DOMAIN = 20 + (os.getpid() * 7919 + int(time.time() * 1000)) % 200  # 20..219, unique per run
+
+
+def dds_env() -> dict[str, str]:
+    from vpengine.ros2.dds import loopback_config
+
+    env = {k: v for k, v in os.environ.items() if k != "ROS_DOMAIN_ID"}
+    env["CYCLONEDDS_URI"] = loopback_config()
+    return env
+
+
+@pytest.fixture(scope="module")
+def bridge():
+    """``vpengine ros2`` in its own process; yields its output topics; Ctrl-C (SIGINT) must stop it cleanly."""
+    os.environ.update({"CYCLONEDDS_URI": dds_env()["CYCLONEDDS_URI"]})  # this process's participants too
+    exe = shutil.which("vpengine", path=str(ROOT / ".venv" / "bin"))
+    cmd = [exe] if exe else [sys.executable, "-m", "vpengine.cli.main"]
+    cmd += [
+        "ros2", "-c", "configs/tiny.yaml", "--input-topic", INPUT, "--domain-id", str(DOMAIN),
+        "--input-qos", "default", "--depth-color", "--seg-overlay",
+    ]  # fmt: skip
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, env=dds_env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
+    )
+    lines = []
+    try:
+        deadline = time.monotonic() + 240
+        while time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            lines.append(line)
+            if line.startswith("vpengine ros2: ready"):
+                break
+        else:
+            line = ""
+        assert line.startswith("vpengine ros2: ready"), "bridge did not come up:\n" + "".join(lines)
+        topics = line.split("-> ", 1)[1].strip().split(", ")
+        yield topics
+    finally:
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, out
+    assert "vpengine ros2: stopped;" in out and "Traceback" not in out, out
+
+
+def publisher():
+    from vpengine.ros2 import dds_types as T
+    from vpengine.ros2.dds import DdsContext
+
+    ctx = DdsContext(DOMAIN)
+    return ctx, ctx.writer(INPUT, T.Image_, "default")
+
+
+def wait_matched(writer, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while writer.matched() < 1:
+        assert time.monotonic() < deadline, "the bridge's input reader never matched"
+        time.sleep(0.05)
+
+
+def image_bytes(i: int, encoding: str, sec: int, nanosec: int) -> bytearray:
+    from helpers.frames import frame
+    from vpengine.ros2 import cdr
+    from vpengine.ros2.core import Header, image_out
+
+    img = frame(i)
+    if encoding == "rgb8":
+        img = np.ascontiguousarray(img[..., ::-1])
+    elif encoding == "mono8":
+        img = np.ascontiguousarray(img[..., 1])
+    return cdr.encode_image(image_out(img, encoding, Header(sec, nanosec, FRAME_ID)))
+
+
+# --------------------------------------------------------------------------------------- subscriber process
+def subscriber_main(domain: int, report: str, topics: list[str]) -> None:
+    """Take every sample of ``topics`` as raw CDR until stdin closes; check cyclonedds vs rosbags; write a report."""
+    from vpengine.ros2 import dds_types as T
+    from vpengine.ros2.dds import DdsContext
+    from vpengine.ros2.rosbags_msgs import typestore
+
+    ts = typestore("jazzy")
+    ctx = DdsContext(domain)
+    kinds = {
+        t: ("vision_msgs/msg/Detection2DArray" if t.endswith("/detections") else "sensor_msgs/msg/Image")
+        for t in topics
+    }
+    readers = {t: ctx.reader(t, T.BY_ROS_TYPE[k]) for t, k in kinds.items()}
+    diag = ctx.reader("/diagnostics", T.DiagnosticArray_)
+    while any(not r.dds.get_matched_publications() for r in readers.values()):
+        time.sleep(0.05)
+    first_diag = None
+    while first_diag is None:  # a baseline of the bridge's counters before any frame is sent
+        diag.wait(2.0)
+        got = diag.take(16)
+        first_diag = got[-1] if got else None
+    print("matched", flush=True)
+    samples: dict[str, list[dict[str, Any]]] = {t: [] for t in topics}
+    last_diag = first_diag
+    import select
+
+    def drain() -> None:
+        nonlocal last_diag
+        for topic, r in readers.items():
+            for raw in r.take_raw(64):
+                samples[topic].append(check(raw, kinds[topic], ts))
+        for d in diag.take(16):
+            last_diag = d
+
+    while True:
+        drain()
+        ready, _, _ = select.select([sys.stdin], [], [], 0.02)
+        if ready and not sys.stdin.readline():
+            break
+    time.sleep(0.5)
+    drain()
+
+    def status(d: Any) -> dict[str, dict[str, str]]:
+        return {s.name: {"level": s.level, **{kv.key: kv.value for kv in s.values}} for s in d.status}
+
+    Path(report).write_text(
+        json.dumps({"samples": samples, "first": status(first_diag), "last": status(last_diag)})
+    )
+    ctx.close()
+
+
+def check(raw: bytes, msgtype: str, ts: Any) -> dict[str, Any]:
+    """Decode one sample with cyclonedds and with rosbags; compare every field and the bytes."""
+    from vpengine.ros2 import dds_types as T
+
+    pad = lambda b: bytes(b) + b"\x00" * ((-len(b)) % 4)  # noqa: E731
+    cls = T.BY_ROS_TYPE[msgtype]
+    a = cls.deserialize(raw)  # cyclonedds
+    b = ts.deserialize_cdr(raw, msgtype)  # rosbags
+    same = (a.header.stamp.sec, a.header.stamp.nanosec, a.header.frame_id) == (
+        b.header.stamp.sec,
+        b.header.stamp.nanosec,
+        b.header.frame_id,
+    )
+    info: dict[str, Any] = {
+        "sec": b.header.stamp.sec,
+        "nanosec": b.header.stamp.nanosec,
+        "frame_id": b.header.frame_id,
+    }
+    if msgtype == "sensor_msgs/msg/Image":
+        same &= (a.height, a.width, a.encoding, a.is_bigendian, a.step) == (
+            b.height, b.width, b.encoding, b.is_bigendian, b.step,
+        )  # fmt: skip
+        same &= bytes(a.data) == b.data.tobytes()
+        info.update(encoding=b.encoding, width=b.width, height=b.height, step=b.step, nbytes=int(b.data.size))
+        if b.encoding == "32FC1":
+            d = b.data.view(np.float32)
+            info["depth_ok"] = bool(np.isfinite(d).all() and (d > 0).all())
+    else:
+        same &= len(a.detections) == len(b.detections)
+        for x, y in zip(a.detections, b.detections):
+            same &= (x.bbox.center.position.x, x.bbox.size_x, x.results[0].hypothesis.class_id) == (
+                y.bbox.center.position.x,
+                y.bbox.size_x,
+                y.results[0].hypothesis.class_id,
+            )
+        info["classes"] = sorted({d.results[0].hypothesis.class_id for d in b.detections})
+    info["fields_agree"] = bool(same)
+    info["bytes_agree_rosbags"] = pad(ts.serialize_cdr(b, msgtype)) == bytes(raw)
+    info["bytes_agree_cyclonedds"] = pad(a.serialize()) == bytes(raw)
+    return info
+
+
+# --------------------------------------------------------------------------------------------------- tests
+def test_frames_in_every_heads_topic_out_decoded_alike_by_cyclonedds_and_rosbags(bridge, tmp_path):
+    topics = bridge
+    assert topics == [
+        "/vpengine/depth/depth",
+        "/vpengine/depth/depth_color",
+        "/vpengine/seg/classes",
+        "/vpengine/seg/overlay",
+        "/vpengine/det/detections",
+    ]
+    report = tmp_path / "report.json"
+    sub = subprocess.Popen(
+        [sys.executable, str(HERE), "subscribe", str(DOMAIN), str(report), *topics],
+        cwd=ROOT, env=dds_env(), stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    ctx, writer = publisher()
+    try:
+        assert sub.stdout.readline().strip() == "matched"
+        wait_matched(writer)
+        sent = []
+        for i in range(N):
+            stamp = (1_700_000_000 + i, 123_456_789 + i)
+            writer.write_raw(image_bytes(i, ("bgr8", "rgb8", "mono8")[i % 3], *stamp))
+            sent.append(stamp)
+            time.sleep(0.4)  # well within the tiny engine's rate: every frame should reach every head
+        time.sleep(2.0)
+    finally:
+        sub.stdin.close()
+        sub.wait(60)
+        ctx.close()
+    assert sub.returncode == 0
+    rep = json.loads(report.read_text())
+    first, last = rep["first"], rep["last"]
+
+    def delta(status: str, key: str) -> int:
+        return int(last[status][key]) - int(first[status][key])
+
+    # transport in: every frame published reached the bridge and went to the engine
+    assert delta("vpengine: interface", "received") == N
+    assert delta("vpengine: interface", "submitted") == N
+    expect = {
+        "/vpengine/depth/depth": ("depth", "32FC1", 640),
+        "/vpengine/depth/depth_color": ("depth", "bgr8", 480),
+        "/vpengine/seg/classes": ("seg", "mono8", 160),
+        "/vpengine/seg/overlay": ("seg", "bgr8", 480),
+        "/vpengine/det/detections": ("det", None, None),
+    }
+    for topic, (head, encoding, step) in expect.items():
+        got = rep["samples"][topic]
+        runs = delta(f"vpengine: {head}", "runs")
+        # transport out: what the bridge published, the subscriber received; the engine ran once per output
+        assert len(got) == delta("vpengine: interface", f"published:{topic}") == runs, topic
+        assert runs >= N - 1, (
+            f"{head} ran {runs} times for {N} frames (skipped {delta(f'vpengine: {head}', 'skipped')})"
+        )
+        assert len({(s["sec"], s["nanosec"]) for s in got}) == len(got)  # one output per frame
+        for s in got:
+            assert (s["sec"], s["nanosec"]) in sent and s["frame_id"] == FRAME_ID  # the input's header
+            assert s["fields_agree"] and s["bytes_agree_rosbags"] and s["bytes_agree_cyclonedds"], s
+            if encoding is not None:
+                assert (s["encoding"], s["width"], s["height"], s["step"]) == (encoding, 160, 120, step)
+                assert s["nbytes"] == step * 120
+            if encoding == "32FC1":
+                assert s["depth_ok"]
+            if encoding is None:
+                assert all(c.startswith("class_") for c in s["classes"])  # the head's label names
+
+
+def test_rate_change_over_dds_changes_the_achieved_rate_and_diagnostics_show_it(bridge):
+    from vpengine.ros2 import dds_types as T
+
+    ctx, writer = publisher()
+    depth = ctx.reader("/vpengine/depth/depth", T.Image_)
+    seg = ctx.reader("/vpengine/seg/classes", T.Image_)
+    diag = ctx.reader("/diagnostics", T.DiagnosticArray_)
+    rates = ctx.writer("/vpengine/set_rate", T.KeyValue_, "default")
+    stop = False
+    import threading
+
+    def pump() -> None:
+        i = 0
+        t0 = time.monotonic()
+        while not stop:
+            writer.write_raw(image_bytes(i % 8, "bgr8", 1_800_000_000 + i, 5))
+            i += 1
+            time.sleep(max(0.0, t0 + i / 20.0 - time.monotonic()))  # 20 Hz
+
+    def hz(reader, seconds: float) -> float:
+        reader.take_raw(256)
+        n, end = 0, time.monotonic() + seconds
+        while time.monotonic() < end:  # take often: the reader keeps only the last 10 samples
+            time.sleep(0.05)
+            n += len(reader.take_raw(256))
+        return n / seconds
+
+    def status(name: str) -> Any:
+        deadline = time.monotonic() + 5
+        found = None
+        while time.monotonic() < deadline:
+            for d in diag.take(32):
+                for s in d.status:
+                    if s.name == name:
+                        found = s
+            if found is not None:
+                return found, {kv.key: kv.value for kv in found.values}
+            time.sleep(0.1)
+        raise AssertionError(f"no /diagnostics status {name!r}")
+
+    def command(key: str, value: str) -> None:
+        rates.write(T.KeyValue_(key, value))
+        time.sleep(1.5)  # applied within the output loop's period; let the old rate's frames drain
+        diag.take(64)  # only diagnostics published after the command count
+
+    wait_matched(writer)
+    deadline = time.monotonic() + 30
+    while not rates.matched():
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    th = threading.Thread(target=pump, daemon=True)
+    th.start()
+    try:
+        time.sleep(1.0)
+        before_depth, before_seg = hz(depth, 2.0), hz(seg, 2.0)
+        assert before_depth > 12 and before_seg > 12, (before_depth, before_seg)
+
+        command("depth", "4")
+        after_depth, after_seg = hz(depth, 3.0), hz(seg, 2.0)
+        assert 2.7 <= after_depth <= 5.4, after_depth
+        assert after_seg > 12, after_seg  # only depth changed
+        st, v = status("vpengine: depth")
+        assert st.level == 0 and v["target_hz"] == "4.00" and 2.5 <= float(v["achieved_hz"]) <= 5.5, v
+
+        command("depth", "0")
+        assert hz(depth, 1.5) <= 1.0
+        st, v = status("vpengine: depth")
+        assert st.level == 1 and st.message == "paused (rate 0)" and v["target_hz"] == "0.00"
+
+        command("nope", "5")
+        _, v = status("vpengine: interface")
+        assert int(v["rate_commands_rejected"]) >= 1
+
+        command("depth", "max")
+        assert hz(depth, 2.0) > 12
+        st, v = status("vpengine: depth")
+        assert st.level == 0 and v["target_hz"] == "unlimited"
+    finally:
+        stop = True
+        th.join(5)
+        ctx.close()
+
+
+def test_model_names_are_latched_for_a_subscriber_that_joins_late(bridge):
+    from vpengine.ros2 import dds_types as T
+    from vpengine.ros2.dds import DdsContext
+
+    time.sleep(1.0)  # the bridge published its names once, at start, long before this participant existed
+    ctx = DdsContext(DOMAIN)
+    try:
+        late = ctx.reader("/vpengine/model_names", T.String_, "latched")
+        got: list = []
+        deadline = time.monotonic() + 15
+        while not got and time.monotonic() < deadline:
+            late.wait(0.5)
+            got = late.take(4)
+        assert [json.loads(s.data) for s in got] == [["foundation", "depth", "seg", "det"]]
+    finally:
+        ctx.close()
+
+
+def test_compressed_input_in_process_bridge_with_the_sensor_data_profile():
+    """The bridge object in this process (thread-mode engine): CompressedImage on <topic>/compressed, best effort."""
+    import cv2
+
+    from helpers.frames import frame
+    from tests_paths import tiny
+    from vpengine.ros2 import cdr
+    from vpengine.ros2 import dds_types as T
+    from vpengine.ros2.bridge import BridgeOptions, Ros2Bridge
+    from vpengine.ros2.core import Header, Ros2Core
+    from vpengine.ros2.dds import DdsContext, loopback_config
+
+    domain = (DOMAIN + 1) % 220 + 1
+    core = Ros2Core(tiny("thread"), namespace="/vp2")
+    opts = BridgeOptions(
+        "/cam/image", compressed=True, input_qos="sensor", domain_id=domain, dds_config=loopback_config()
+    )
+    assert opts.subscribed_topic == "/cam/image/compressed"
+    with Ros2Bridge(core, opts):
+        ctx = DdsContext(domain)
+        try:
+            w = ctx.writer("/cam/image/compressed", T.CompressedImage_, "sensor")
+            depth = ctx.reader("/vp2/depth/depth", T.Image_)
+            wait_matched(w)
+            while not depth.dds.get_matched_publications():
+                time.sleep(0.05)
+            png = cv2.imencode(".png", frame(3))[1]
+            w.write_raw(
+                cdr.encode_compressed_image(Header(42, 7, "zipped"), "bgr8; png compressed bgr8", png)
+            )
+            got = []
+            deadline = time.monotonic() + 20
+            while not got and time.monotonic() < deadline:
+                depth.wait(0.5)
+                got = depth.take_raw(4)
+        finally:
+            ctx.close()
+    assert len(got) == 1
+    v = cdr.decode_image(got[0])
+    assert (v.header, v.encoding, v.width, v.height) == (Header(42, 7, "zipped"), "32FC1", 160, 120)
+    assert core.counters["received"] == core.counters["submitted"] == 1
+
+
+if __name__ == "__main__" and len(sys.argv) > 1 and sys.argv[1] == "subscribe":
+    subscriber_main(int(sys.argv[2]), sys.argv[3], sys.argv[4:])

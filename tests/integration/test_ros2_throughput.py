@@ -1,0 +1,79 @@
+"""Throughput of the DDS bridge at 30 Hz (``vpengine bench ros2-bridge``), checked stage by stage.
+
+At 640x480 the bridge and the tiny engine have ample margin on two cores, so the whole chain must be lossless and
+every output accounted for. At 1080p two shared cores saturate (publisher, bridge, four workers and subscriber
+serialising 8 MB depth images): the measured fractions are in benchmarks/results/ros2_bridge_throughput*.json and
+docs/ros2.md, and what is asserted there is what holds on any machine -- the publisher keeps its rate, every frame
+the bridge received is accounted for, every output names a published frame, and the bridge's own CPU per frame fits
+the 30 Hz budget.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests_paths import ROOT
+
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+
+
+def _bench(tmp_path, size: str) -> dict:
+    p = subprocess.run(
+        [sys.executable, "-m", "vpengine.cli.main", "bench", "ros2-bridge", "--out", str(tmp_path),
+         "--sizes", size, "--seconds", "10", "--rate", "30"],
+        cwd=ROOT, capture_output=True, text=True, timeout=540,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout + p.stderr
+    res = json.loads((tmp_path / "ros2_bridge_throughput.json").read_text())
+    assert res["machine"]["cores"] >= 1
+    (run,) = res["runs"]
+    return run
+
+
+def test_bridge_at_640x480_30_hz_is_lossless_end_to_end(tmp_path):
+    run = _bench(tmp_path, "640x480")
+    n = run["frames_published"]
+    assert n == 300 and run["frame"] == "640x480 bgr8"
+    assert run["bridge_received"] == n and run["bridge_superseded"] == 0
+    models = {k: {kk: float(vv) for kk, vv in v.items()} for k, v in run["models"].items()}
+    assert models["foundation"]["runs"] == n
+    for topic, t in run["topics"].items():
+        head = topic.split("/")[2]
+        assert t["received"] == t["published_by_bridge"] == models[head]["runs"] == n, (
+            topic,
+            t,
+            models[head],
+        )
+        assert t["unknown_stamps"] == 0
+    assert run["lossless"]
+
+
+def test_bridge_at_1080p_30_hz_accounts_for_every_frame(tmp_path):
+    run = _bench(tmp_path, "1920x1080")
+    n = run["frames_published"]
+    assert n == 300 and run["publish_hz"] > 28 and run["frame"] == "1920x1080 bgr8"
+    # transport in (sensor-data QoS, as cameras publish): the bridge saw (nearly) every frame; best effort loses a
+    # frame only when a fragment is dropped, i.e. when the bridge's receive thread was starved of CPU
+    assert run["input_qos"] == "sensor" and run["bridge_received"] >= 0.95 * n, run
+    models = {k: {kk: float(vv) for kk, vv in v.items()} for k, v in run["models"].items()}
+    fm = models["foundation"]
+    assert fm["runs"] + fm["skipped"] == run["bridge_submitted"]
+    assert run["bridge_submitted"] + run["bridge_superseded"] == run["bridge_received"]
+    for topic, t in run["topics"].items():
+        head = topic.split("/")[2]
+        assert t["unknown_stamps"] == 0, topic  # every output carries a published frame's stamp
+        # the bridge published every run it collected; the rest were counted as missed by its result stream
+        # (the last diagnostics snapshot may be taken while one output is still in flight)
+        assert t["received"] > 0 and t["received"] <= t["published_by_bridge"], topic
+        accounted = t["published_by_bridge"] + models[head]["results_missed"]
+        assert 0 <= models[head]["runs"] - accounted <= 1, (topic, t, models[head])
+    # the bridge's own CPU for one frame in and all its outputs out (decode, submit, results, convert, encode, write;
+    # thread CPU time, so other load does not inflate it) fits the 33 ms budget of 30 Hz
+    assert run["bridge_cpu_ms_per_frame_in_and_out"] < 33.3, (
+        run["bridge_cpu_ms_per_input_frame"],
+        run["bridge_cpu_ms_per_output_frame"],
+    )

@@ -1,0 +1,373 @@
+"""The transport-agnostic ROS 2 core: decoding, topics, header book, detections, rate commands, diagnostics.
+
+No DDS and no processes here; the engine tests use the real engine in thread mode with the tiny models.
+"""
+
+from __future__ import annotations
+
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.ros2.core import (
+    ERROR,
+    OK,
+    WARN,
+    FrameBook,
+    Header,
+    InputError,
+    Ros2Core,
+    compressed_to_frame,
+    detections_out,
+    image_to_frame,
+    model_status,
+    normalize_namespace,
+    parse_rate,
+    parse_rate_command,
+    plan_outputs,
+)
+
+STAMP = SimpleNamespace(sec=1_700_000_123, nanosec=987_654_321)
+
+
+def image_msg(arr: np.ndarray, encoding: str, pad: int = 0, big: int = 0, frame_id: str = "cam", stamp=STAMP):
+    """A duck-typed sensor_msgs/Image with ``pad`` bytes of padding after every row."""
+    h, w = arr.shape[:2]
+    rows = arr.reshape(h, -1)
+    if pad:
+        rows = np.concatenate([rows, np.full((h, pad), 0xAB, np.uint8)], axis=1)
+    return SimpleNamespace(
+        header=SimpleNamespace(stamp=stamp, frame_id=frame_id),
+        height=h,
+        width=w,
+        encoding=encoding,
+        is_bigendian=big,
+        step=rows.shape[1],
+        data=rows.tobytes(),
+    )
+
+
+# ------------------------------------------------------------------------------------------------ decoding
+def test_bgr8_without_padding_is_a_zero_copy_view_of_the_message_bytes():
+    img = frame(3)
+    msg = image_msg(img, "bgr8")
+    out = image_to_frame(msg, "bgr")
+    assert out.shape == (120, 160, 3) and out.flags.c_contiguous
+    np.testing.assert_array_equal(out, img)
+    assert np.shares_memory(out, np.frombuffer(msg.data, np.uint8))
+
+
+def test_rgb8_is_converted_to_the_engines_channel_order():
+    img = frame(4)
+    rgb = np.ascontiguousarray(img[..., ::-1])
+    np.testing.assert_array_equal(image_to_frame(image_msg(rgb, "rgb8"), "bgr"), img)
+    np.testing.assert_array_equal(image_to_frame(image_msg(rgb, "rgb8"), "rgb"), rgb)
+    np.testing.assert_array_equal(image_to_frame(image_msg(img, "bgr8"), "rgb"), rgb)
+
+
+def test_mono8_becomes_three_equal_channels():
+    grey = frame(5)[..., 1].copy()
+    out = image_to_frame(image_msg(grey, "mono8"), "bgr")
+    assert out.shape == (120, 160, 3)
+    for c in range(3):
+        np.testing.assert_array_equal(out[..., c], grey)
+
+
+@pytest.mark.parametrize("encoding", ["bgr8", "rgb8", "mono8"])
+def test_row_padding_is_skipped_and_byte_order_does_not_matter_for_8_bit_pixels(encoding):
+    img = frame(6) if encoding != "mono8" else frame(6)[..., 0].copy()
+    plain = image_to_frame(image_msg(img, encoding), "bgr")
+    for pad, big in ((5, 0), (64, 1), (0, 1)):
+        padded = image_to_frame(image_msg(img, encoding, pad=pad, big=big), "bgr")
+        np.testing.assert_array_equal(padded, plain)
+
+
+@pytest.mark.parametrize("encoding", ["16UC1", "bgra8", "32FC1", "bayer_rggb8", ""])
+def test_other_encodings_fail_naming_the_encoding_and_the_accepted_ones(encoding):
+    msg = image_msg(frame(1), "bgr8")
+    msg.encoding = encoding
+    with pytest.raises(
+        InputError, match=rf"encoding '{encoding}' is not supported; accepted: rgb8, bgr8, mono8"
+    ):
+        image_to_frame(msg)
+
+
+def test_inconsistent_sizes_fail_with_the_numbers():
+    msg = image_msg(frame(1), "bgr8")
+    msg.step = 100
+    with pytest.raises(InputError, match=r"step 100 is smaller than width x channels = 160 x 3 = 480"):
+        image_to_frame(msg)
+    msg = image_msg(frame(1), "bgr8")
+    msg.data = msg.data[:-10]
+    with pytest.raises(
+        InputError, match=r"data holds 57590 bytes; a 160x120 bgr8 image with step 480 needs 57600"
+    ):
+        image_to_frame(msg)
+
+
+def _compressed(img: np.ndarray, ext: str, fmt: str):
+    import cv2
+
+    ok, buf = cv2.imencode(ext, img)
+    assert ok
+    return SimpleNamespace(header=SimpleNamespace(stamp=STAMP, frame_id="c"), format=fmt, data=buf.tobytes())
+
+
+@pytest.mark.parametrize("fmt", ["png", "bgr8; png compressed bgr8", ""])
+def test_png_compressed_images_decode_exactly(fmt):
+    img = frame(7)
+    np.testing.assert_array_equal(compressed_to_frame(_compressed(img, ".png", fmt), "bgr"), img)
+    np.testing.assert_array_equal(
+        compressed_to_frame(_compressed(img, ".png", fmt), "rgb"), np.ascontiguousarray(img[..., ::-1])
+    )
+
+
+@pytest.mark.parametrize("fmt", ["jpeg", "rgb8; jpeg compressed bgr8", ""])
+def test_jpeg_compressed_images_decode_close_to_the_original(fmt):
+    img = np.zeros((120, 160, 3), np.uint8)
+    img[:, :80] = (200, 30, 10)  # smooth content: jpeg keeps it within a few levels
+    out = compressed_to_frame(_compressed(img, ".jpg", fmt), "bgr")
+    assert out.shape == img.shape
+    assert np.abs(out.astype(int) - img).mean() < 3
+
+
+def test_unsupported_compressed_formats_are_named():
+    msg = _compressed(frame(1), ".png", "tiff")
+    with pytest.raises(InputError, match=r"format 'tiff' is not supported; accepted: jpeg, png"):
+        compressed_to_frame(msg)
+    msg.format = "16UC1; compressedDepth png"
+    with pytest.raises(InputError, match=r"compressedDepth png' \(depth\) is not a camera image"):
+        compressed_to_frame(msg)
+    msg.format, msg.data = "jpeg", b"\xff\xd8\xffnot really a jpeg"
+    with pytest.raises(InputError, match=r"bytes of jpeg data could not be decoded"):
+        compressed_to_frame(msg)
+
+
+# ------------------------------------------------------------------------------------------------- headers
+def test_headers_are_kept_exactly_and_the_book_is_bounded():
+    h = Header.of(SimpleNamespace(stamp=STAMP, frame_id="cam"))
+    assert (h.sec, h.nanosec, h.frame_id) == (1_700_000_123, 987_654_321, "cam")
+    assert Header.from_ns(h.ns, "cam") == h
+    # a float cannot carry the nanoseconds: this is why outputs look headers up by frame id
+    assert Header.from_seconds(h.seconds, "cam") != h
+    assert abs(Header.from_seconds(h.seconds).ns - h.ns) < 1000
+    book = FrameBook(headers=3, frames=2)
+    for i in range(5):
+        book.add(i, Header(i, i, "f"), np.full((2, 2, 3), i, np.uint8))
+    assert [book.header(i) for i in range(5)] == [
+        None,
+        None,
+        Header(2, 2, "f"),
+        Header(3, 3, "f"),
+        Header(4, 4, "f"),
+    ]
+    assert book.frame(2) is None and int(book.frame(4)[0, 0, 0]) == 4
+
+
+# -------------------------------------------------------------------------------------------------- topics
+HEADS = {
+    "depth": {"kind": "depth"},
+    "seg-2": {"kind": "segmentation", "labels": ["a", "b"]},
+    "det": {"kind": "detection", "labels": ["person", "car"]},
+    "feat": {"outputs": {"emb": "float32[16]"}},
+}
+
+
+def test_each_head_gets_topics_by_its_kind_under_the_namespace():
+    topics, unmapped = plan_outputs(HEADS, "vpengine/", depth_color=False, seg_overlay=False)
+    assert [(t.head, t.role, t.topic, t.msgtype) for t in topics] == [
+        ("depth", "depth", "/vpengine/depth/depth", "sensor_msgs/msg/Image"),
+        ("seg-2", "classes", "/vpengine/seg_2/classes", "sensor_msgs/msg/Image"),
+        ("det", "detections", "/vpengine/det/detections", "vision_msgs/msg/Detection2DArray"),
+    ]
+    assert unmapped == ["feat"]
+    topics, _ = plan_outputs(HEADS, "/robot/vp", depth_color=True, seg_overlay=True)
+    assert [t.topic for t in topics] == [
+        "/robot/vp/depth/depth",
+        "/robot/vp/depth/depth_color",
+        "/robot/vp/seg_2/classes",
+        "/robot/vp/seg_2/overlay",
+        "/robot/vp/det/detections",
+    ]
+    with pytest.raises(ValueError, match=r"heads 'a-b' and 'a_b' map to the same ROS topic prefix '/v/a_b'"):
+        plan_outputs({"a-b": {"kind": "depth"}, "a_b": {"kind": "depth"}}, "/v")
+    with pytest.raises(ValueError, match=r"'my-ns' is not a valid ROS name"):
+        normalize_namespace("/my-ns")
+
+
+def test_detections_become_centre_size_boxes_with_label_names():
+    out = {
+        "boxes": np.array([[10, 20, 50, 80], [0, 0, 4, 2], [1, 1, 2, 2]], np.float32),
+        "scores": np.array([0.9, 0.6, 0.1], np.float32),
+        "labels": np.array([1, 7, 0], np.int32),
+        "count": 2,
+    }
+    d = detections_out(out, ["person", "car"], Header(5, 6, "cam"))
+    assert d.header == Header(5, 6, "cam") and len(d.detections) == 2  # count trims the padding
+    a, b = d.detections
+    assert (a.center_x, a.center_y, a.size_x, a.size_y, a.class_id) == (30, 50, 40, 60, "car")
+    assert a.score == pytest.approx(0.9)
+    assert b.class_id == "7"  # no name for class 7: the id as text
+
+
+# ------------------------------------------------------------------------------------------------- control
+def test_rate_commands_parse_hz_pause_and_unlimited_and_name_bad_values():
+    assert parse_rate("5") == 5.0 and parse_rate(" 2.5 ") == 2.5 and parse_rate("0") == 0.0
+    for word in ("max", "MAX", "none", "unlimited", "inf", "-1"):
+        assert parse_rate(word) is None
+    for bad in ("fast", "-3", "nan", "1e999"):
+        with pytest.raises(ValueError, match=rf"rate '{bad}' is not a rate; accepted: a number of Hz >= 0"):
+            parse_rate(bad)
+    assert parse_rate_command("depth", "5", ["foundation", "depth"]) == ("depth", 5.0)
+    with pytest.raises(ValueError, match=r"unknown model 'dpth'; models: foundation, depth"):
+        parse_rate_command("dpth", "5", ["foundation", "depth"])
+
+
+def _stats(state="running", target=None, **kw):
+    m = {
+        "state": state,
+        "target_hz": target,
+        "achieved_hz": 9.5,
+        "runs": 100,
+        "skipped": 3,
+        "dropped": 1,
+        "errors": 0,
+        "restarts": 0,
+        "latency_ms": {"p50": 4.25, "p99": 9.5},
+        "last_error": None,
+    }
+    m.update(kw)
+    return m
+
+
+def test_model_health_levels_and_values():
+    s = model_status("depth", _stats(target=10.0), "vp", "hw")
+    assert (s.level, s.name, s.hardware_id) == (OK, "vp: depth", "hw")
+    v = dict(s.values)
+    assert v["target_hz"] == "10.00" and v["achieved_hz"] == "9.50" and v["runs"] == "100"
+    assert v["skipped"] == "3" and v["drops"] == "1" and v["errors"] == "0" and v["restarts"] == "0"
+    assert v["latency_p50_ms"] == "4.25" and v["latency_p99_ms"] == "9.50"
+    assert dict(model_status("d", _stats(), "vp", "hw").values)["target_hz"] == "unlimited"
+    assert model_status("d", _stats(target=0.0), "vp", "hw").level == WARN
+    assert model_status("d", _stats(state="paused", target=0.0), "vp", "hw").message == "paused (rate 0)"
+    assert model_status("d", _stats(state="restarting", restarts=2), "vp", "hw").level == WARN
+    failed = model_status("d", _stats(state="failed", last_error="boom"), "vp", "hw")
+    assert failed.level == ERROR and "boom" in failed.message
+
+
+# ---------------------------------------------------------------------------------------------- the core
+def _poll_until(core: Ros2Core, n: int, timeout: float = 20.0) -> list:
+    out: list = []
+    deadline = time.monotonic() + timeout
+    while len(out) < n and time.monotonic() < deadline:
+        out += core.poll_outputs(0.2)
+    return out
+
+
+def test_core_outputs_carry_the_exact_input_header_on_every_topic():
+    core = Ros2Core(tiny("thread"), depth_color=True, seg_overlay=True)
+    core.start()
+    try:
+        sent = {}
+        for i in range(3):
+            h = Header(1_700_000_000 + i, 123_456_789 + i, f"cam{i}")
+            stamp = SimpleNamespace(sec=h.sec, nanosec=h.nanosec)
+            fid = core.handle_image(image_msg(frame(i), "bgr8", frame_id=h.frame_id, stamp=stamp))
+            assert fid is not None
+            sent[fid] = h
+            time.sleep(0.3)
+        out = _poll_until(core, 3 * 5)
+    finally:
+        core.stop()
+    by_topic: dict[str, list] = {}
+    for t, p in out:
+        by_topic.setdefault(t.topic, []).append(p)
+    assert sorted(by_topic) == sorted(t.topic for t in core.topics) and len(core.topics) == 5
+    for topic, payloads in by_topic.items():
+        assert {p.header for p in payloads} <= set(sent.values()), topic
+        for p in payloads:
+            if topic.endswith("/depth"):
+                assert (p.encoding, p.width, p.height, p.step) == ("32FC1", 160, 120, 640)
+                depth = p.data.view(np.float32).reshape(120, 160)
+                assert np.isfinite(depth).all() and (depth > 0).all()
+            elif topic.endswith("/classes"):
+                assert (p.encoding, p.width, p.height, p.step) == ("mono8", 160, 120, 160)
+            elif topic.endswith(("/depth_color", "/overlay")):
+                assert (p.encoding, p.width, p.height, p.step) == ("bgr8", 160, 120, 480)
+    assert core.counters["received"] == core.counters["submitted"] == 3
+    assert core.counters["header_fallbacks"] == 0
+
+
+def test_core_resizes_or_rejects_frames_of_another_size_and_counts_them():
+    big = np.tile(frame(1)[:60, :80], (4, 4, 1))
+    for policy in ("resize", "reject"):
+        core = Ros2Core(tiny("thread"), on_size_mismatch=policy)
+        core.start()
+        try:
+            fid = core.handle_image(image_msg(big, "bgr8"))
+            assert (fid is None) == (policy == "reject")
+            key = "resized" if policy == "resize" else "size_rejected"
+            assert core.counters[key] == 1 and core.counters["received"] == 1
+            diag = {s.name: s for s in core.diagnostics().status}
+            iface = diag["vpengine: interface"]
+            assert dict(iface.values)[key] == "1"
+            assert iface.level == (WARN if policy == "reject" else OK)
+        finally:
+            core.stop()
+
+
+def test_first_message_size_mode_starts_the_engine_at_that_size():
+    core = Ros2Core(tiny("thread"), input_size="first")
+    core.start()
+    try:
+        assert core.engine is None
+        assert all(s.level == WARN for s in core.diagnostics().status[:-1])  # "engine not started"
+        with pytest.raises(ValueError, match="has not started yet"):
+            core.set_rate("depth", "5")
+        big = np.tile(frame(2)[:21, :28], (4, 4, 1))
+        assert core.handle_image(image_msg(big, "bgr8")) is not None
+        assert (core.engine.config.input.height, core.engine.config.input.width) == (84, 112)
+        out = _poll_until(core, 3)
+        depth = next(p for t, p in out if t.role == "depth")
+        assert (depth.width, depth.height) == (112, 84)
+    finally:
+        core.stop()
+
+
+def test_core_rate_commands_reach_the_engine_and_bad_ones_are_counted():
+    core = Ros2Core(tiny("thread"))
+    core.start()
+    try:
+        assert core.set_rate("seg", "2.5") == ("seg", 2.5)
+        assert core.engine.stats()["models"]["seg"]["target_hz"] == 2.5
+        core.set_rate("seg", "max")
+        assert core.engine.stats()["models"]["seg"]["target_hz"] is None
+        core.set_rate_hz("depth", 0.0)
+        assert core.engine.stats()["models"]["depth"]["target_hz"] == 0.0
+        core.set_rate_hz("depth", -1.0)  # the services' "unlimited"
+        assert core.engine.stats()["models"]["depth"]["target_hz"] is None
+        with pytest.raises(ValueError, match="unknown model 'nope'"):
+            core.set_rate("nope", "5")
+        with pytest.raises(ValueError, match="NaN"):
+            core.set_rate_hz("depth", float("nan"))
+        assert core.counters["rate_commands"] == 4 and core.counters["rate_commands_rejected"] == 2
+    finally:
+        core.stop()
+
+
+def test_model_names_and_bad_input_messages_are_counted_not_fatal():
+    core = Ros2Core(tiny("thread"))
+    core.start()
+    try:
+        assert core.model_names == ["foundation", "depth", "seg", "det"]
+        bad = image_msg(frame(1), "bgr8")
+        bad.encoding = "16UC1"
+        assert core.handle_image(bad) is None
+        assert core.handle_image(image_msg(frame(1), "bgr8")) is not None
+        assert core.counters["decode_errors"] == 1 and core.counters["submitted"] == 1
+    finally:
+        core.stop()

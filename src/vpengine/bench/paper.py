@@ -46,7 +46,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seg-head", default="dinov2_linear_ade20k_s")
     p.add_argument("--det-head", default="frcnn_dinov2")
     p.add_argument("--backend", default="eager", help="backend of every model (eager, compile, onnx)")
-    p.add_argument("--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)")
+    p.add_argument(
+        "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)"
+    )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
     p.add_argument("--tag", default="", help="suffix of the results file name")
 
@@ -565,7 +567,9 @@ def e6(setup: Setup, ns: list[int]) -> dict[str, Any]:
     return {"rows": rows}
 
 
-def floor(setup: Setup, imgs: list[np.ndarray], kinds: tuple[str, ...] = ("depth", "seg", "det")) -> dict[str, Any]:
+def floor(
+    setup: Setup, imgs: list[np.ndarray], kinds: tuple[str, ...] = ("depth", "seg", "det")
+) -> dict[str, Any]:
     """Engine (thread and process mode, same backend) vs the device-time floor of the same models in one process."""
     bad = sorted(set(kinds) - {"depth", "seg", "det"})
     if bad or not kinds:

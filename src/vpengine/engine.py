@@ -128,8 +128,15 @@ class Engine:
         try:
             if device.type == "cuda":
                 self._prepare_cuda(device, shared)
+            gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
             res.rings["input"] = SlotRing.create(
-                "input", plan.frame_spec, cfg.input.slots, [ReaderDecl("foundation")], "cpu", shared
+                "input",
+                plan.frame_spec,
+                cfg.input.slots,
+                [ReaderDecl("foundation")],
+                "cpu",
+                shared,
+                pinned=gpu,
             )
             n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2)
             res.rings["features"] = SlotRing.create(
@@ -144,6 +151,7 @@ class Engine:
                     device if h.output.location == "device" else "cpu",
                     shared,
                     h.output.overflow,
+                    pinned=gpu,
                 )
             res.control = ControlBlock.create(cfg.model_names())
             res.control.set_rate("foundation", cfg.foundation_model.rate_hz)

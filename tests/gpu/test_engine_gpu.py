@@ -113,6 +113,20 @@ def test_device_memory_is_flat_between_frame_1000_and_10000(mode):
     }
 
 
+def test_thread_mode_host_mailboxes_are_page_locked_so_gpu_copies_do_not_block_the_worker():
+    # From pageable memory, copy_(non_blocking=True) quietly blocks the worker's thread for the whole copy.
+    cfg = tiny("thread", "device=cuda", "input.height=540", "input.width=960")
+    with Engine(cfg) as e:
+        rings = e._res.rings
+        host = {n: r for n, r in rings.items() if r.data_region.device.type == "cpu"}
+        assert set(host) >= {"input", *(f"out.{h}" for h in e.plan.heads)}, sorted(host)
+        assert all(r.data_region.tensor().is_pinned() for r in host.values()), {
+            n: r.data_region.tensor().is_pinned() for n, r in host.items()
+        }
+        out = e.wait(e.submit(frame(0, 540, 960)), timeout=30)
+        assert set(out) == set(e.plan.heads)
+
+
 def test_stop_leaves_no_process_and_gives_the_device_memory_back():
     from vpengine.runtime.gpu import device_memory_used
 

@@ -567,14 +567,18 @@ def e6(setup: Setup, ns: list[int]) -> dict[str, Any]:
     return {"rows": rows}
 
 
+def _floor_kinds(kinds: tuple[str, ...]) -> tuple[str, ...]:
+    bad = sorted(set(kinds) - {"depth", "seg", "det"})
+    if bad or not kinds:
+        raise ValueError(f"floor heads {list(kinds)}: accepted are depth, seg, det (at least one)")
+    return kinds
+
+
 def floor(
     setup: Setup, imgs: list[np.ndarray], kinds: tuple[str, ...] = ("depth", "seg", "det")
 ) -> dict[str, Any]:
     """Engine (thread and process mode, same backend) vs the device-time floor of the same models in one process."""
-    bad = sorted(set(kinds) - {"depth", "seg", "det"})
-    if bad or not kinds:
-        raise ValueError(f"floor heads {list(kinds)}: accepted are depth, seg, det (at least one)")
-    heads = [setup.head(k, k) for k in kinds]
+    heads = [setup.head(k, k) for k in _floor_kinds(kinds)]
     seq = InProcess(setup, heads)
     dt = seq.device_times(imgs[0])
     del seq
@@ -669,6 +673,7 @@ def main(args: argparse.Namespace) -> int:
     setup = Setup.from_args(args)
     ns = [int(x) for x in args.heads.split(",")]
     want = [x.strip() for x in args.experiments.split(",") if x.strip()]
+    floor_kinds = _floor_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
     imgs = frames(setup)
     res: dict[str, Any] = {"setup": asdict(setup)}
     log(f"machine: {machine_info()}")
@@ -687,7 +692,7 @@ def main(args: argparse.Namespace) -> int:
         elif key == "E6":
             res[key] = e6(setup, ns)
         elif key == "floor":
-            res[key] = floor(setup, imgs, tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
+            res[key] = floor(setup, imgs, floor_kinds)
         else:
             raise ValueError(f"unknown experiment {key!r}; accepted: E1..E6, floor")
         res[key]["seconds"] = time.monotonic() - t

@@ -163,7 +163,9 @@ def figure(r: dict[str, Any], path: Path) -> None:
         for s, style in (("engine", "o-"), ("independent", "s--"), ("sequential", "^:")):
             ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
         ax.set(
-            xlabel="depth heads", ylabel="frames/s, one frame in flight", title="E1: shared backbone vs not"
+            xlabel="depth heads",
+            ylabel="frames/s, one frame in flight",
+            title=f"E1: shared backbone vs not ({_setup_label(r['E1'].get('setup', {}))})",
         )
         ax.legend()
     ax = axes[0, 1]

@@ -138,15 +138,21 @@ class HostRegion(Region):
 
 
 class LocalRegion(Region):
-    """A plain allocation in this process (thread mode): host or device, never shared."""
+    """A plain allocation in this process (thread mode): host or device, never shared.
+
+    ``pinned`` host memory (page-locked) is what lets copies between it and a GPU run asynchronously on a worker's
+    stream; from pageable memory the same ``copy_(non_blocking=True)`` silently blocks the calling thread (measured
+    on an H100: thread mode 3 ms slower per frame with 1080p depth and segmentation outputs).
+    """
 
     kind = "local"
 
-    def __init__(self, name: str, nbytes: int, device: torch.device) -> None:
+    def __init__(self, name: str, nbytes: int, device: torch.device, pinned: bool = False) -> None:
         super().__init__(name, nbytes, device)
-        self._tensor: torch.Tensor | None = torch.empty(max(nbytes, 1), dtype=torch.uint8, device=device)[
-            :nbytes
-        ]
+        pin = pinned and torch.device(device).type == "cpu"
+        self._tensor: torch.Tensor | None = torch.empty(
+            max(nbytes, 1), dtype=torch.uint8, device=device, pin_memory=pin
+        )[:nbytes]
 
     def tensor(self) -> torch.Tensor:
         if self._tensor is None:
@@ -157,11 +163,17 @@ class LocalRegion(Region):
         self._tensor = None
 
 
-def allocate(name: str, nbytes: int, device: torch.device | str, shared: bool) -> Region:
-    """Allocate a region on ``device``. ``shared`` regions can be exported to other processes."""
+def allocate(
+    name: str, nbytes: int, device: torch.device | str, shared: bool, pinned: bool = False
+) -> Region:
+    """Allocate a region on ``device``. ``shared`` regions can be exported to other processes.
+
+    ``pinned``: host memory that GPU copies read or write. A local region is allocated page-locked; a shared one is
+    page-locked by each process that maps it (``HostRegion.register_with_cuda``, done by the GPU workers).
+    """
     device = torch.device(device)
     if device.type == "cpu":
-        return HostRegion(name, nbytes) if shared else LocalRegion(name, nbytes, device)
+        return HostRegion(name, nbytes) if shared else LocalRegion(name, nbytes, device, pinned)
     if device.type == "cuda":
         if not shared:
             return LocalRegion(name, nbytes, device)

@@ -159,8 +159,12 @@ class SlotRing:
         device: torch.device | str = "cpu",
         shared: bool = True,
         overflow: Overflow = "drop_oldest",
+        pinned: bool = False,
     ) -> SlotRing:
-        """Allocate a ring: one data region for all slots and one metadata region."""
+        """Allocate a ring: one data region for all slots and one metadata region.
+
+        ``pinned``: the data is host memory that a GPU copies to or from (see ``allocate``).
+        """
         if overflow not in _OVERFLOW_CODE:
             raise ValueError(
                 f"ring {name!r}: unknown overflow policy {overflow!r}; accepted: {list(_OVERFLOW_CODE)}"
@@ -176,7 +180,7 @@ class SlotRing:
         layout = SlotLayout.from_specs(specs, n_slots)
         meta = HostRegion(f"{name}.meta", _meta_bytes(n_slots, len(readers)))
         try:
-            data = allocate(f"{name}.data", layout.total_bytes, device, shared)
+            data = allocate(f"{name}.data", layout.total_bytes, device, shared, pinned)
         except BaseException:
             meta.close()
             raise

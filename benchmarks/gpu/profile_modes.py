@@ -1,0 +1,59 @@
+"""GPU machine: where the engine's time goes over the device-time floor, thread vs process mode.
+
+Runs the floor's models (compiled backbone + depth + seg at 1080p) in lockstep, prints per-model latencies from the
+control block (run time, and submit -> model done), and samples the thread-mode process with py-spy when present.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from vpengine.bench.paper import Setup, engines, frames
+
+out_dir = os.environ.get("OUT", "/tmp/out")
+setup = Setup(backend=os.environ.get("BACKEND", "compile"), frames=300)
+if os.environ.get("TINY"):  # a CPU smoke run of this script
+    setup = Setup("cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True)
+heads = [setup.head("depth", "depth"), setup.head("seg", "seg")]
+imgs = frames(setup)
+report: dict[str, object] = {}
+for mode in sys.argv[1:] or ["thread", "process"]:
+    with engines([setup.config(heads, mode=mode)]) as (eng,):
+        for i in range(30):
+            eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=60)
+        spy = None
+        if shutil.which("py-spy"):
+            spy = subprocess.Popen(
+                ["py-spy", "record", "--pid", str(os.getpid()), "--duration", "4", "--rate", "1000", "--threads",
+                 "--idle", "--format", "raw", "-o", f"{out_dir}/pyspy_{mode}.txt"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+            )
+        lat, sub, wait = [], [], []
+        for i in range(setup.frames):
+            t0 = time.perf_counter()
+            fid = eng.submit(imgs[i % len(imgs)])
+            t1 = time.perf_counter()
+            eng.wait(fid, timeout=60)
+            t2 = time.perf_counter()
+            lat.append(t2 - t0), sub.append(t1 - t0), wait.append(t2 - t1)
+        if spy:
+            spy.wait(30)
+        st = eng.stats()["models"]
+        row = {
+            "lockstep_ms": float(np.mean(lat) * 1e3),
+            "submit_ms": float(np.mean(sub) * 1e3),
+            "wait_ms": float(np.mean(wait) * 1e3),
+            "models": {n: {"run_ms": m["latency_ms"]["mean"], "submit_to_done_ms": m["e2e_latency_ms"]["mean"]}
+                       for n, m in st.items()},
+        }
+        report[mode] = row
+        print(mode, json.dumps(row), flush=True)
+with open(f"{out_dir}/profile_modes.json", "w") as f:
+    json.dump(report, f, indent=1)

@@ -449,6 +449,14 @@ def _version(dist: str) -> str:
         return "none"
 
 
+def resolve_exporter(exporter: str, model: Model) -> str:
+    """``auto`` -> the exporter the model's parts ask for (``Model.onnx_exporter``): torchscript if any part needs it."""
+    if exporter != "auto":
+        return exporter
+    wanted = {m.onnx_exporter for m in model.modules() if isinstance(m, Model)}
+    return "torchscript" if "torchscript" in wanted else "dynamo"
+
+
 def cache_key(model: Model, precision: str, opset: int, exporter: str) -> tuple[str, dict[str, Any]]:
     """The cache key of an export and what it was computed from (Note [ONNX cache key])."""
     material = {
@@ -518,7 +526,8 @@ class OnnxCache:
     ) -> OnnxArtifact:
         """The cached export of ``model`` if its key matches (and ``opts.cache`` and not ``force``), else a new one."""
         check_onnx_precision(precision, name)
-        key, material = cache_key(model, precision, opts.opset, opts.exporter)
+        exporter = resolve_exporter(opts.exporter, model)
+        key, material = cache_key(model, precision, opts.opset, exporter)
         entry = self._entry(model, precision, key)
         if opts.cache and not force:
             manifest = self._load_manifest(entry, key)
@@ -529,7 +538,7 @@ class OnnxCache:
         tmp = Path(tempfile.mkdtemp(prefix=f".tmp-{entry.name}-", dir=self.root))
         try:
             result = export_onnx(
-                model, tmp / self.MODEL_FILE, precision, opts.opset, opts.exporter, name, verify=opts.verify
+                model, tmp / self.MODEL_FILE, precision, opts.opset, exporter, name, verify=opts.verify
             )
             seconds = result["export_s"]
             manifest = {
@@ -537,7 +546,7 @@ class OnnxCache:
                 "name": name,
                 "precision": precision,
                 "opset": opts.opset,
-                "exporter": opts.exporter,
+                "exporter": exporter,
                 "inputs": material["inputs"],
                 "outputs": material["outputs"],
                 "export_s": round(seconds, 3),

@@ -239,4 +239,5 @@ class OnnxExecutor(Executor):
             "onnx": str(self.artifact.path),
             "exported": self.artifact.exported,
             "opset": self.opts.opset,
+            "exporter": self.artifact.manifest.get("exporter"),
         }

@@ -68,9 +68,11 @@ class OnnxOptions(BackendOptions):
         description="ONNX opset of the export, 17..23. 18 (the default) is the first with antialiased Resize, which "
         "the preprocessing needs; TensorRT 10 reads it.",
     )
-    exporter: Literal["dynamo", "torchscript"] = Field(
-        "dynamo",
-        description="torch.onnx exporter: dynamo (torch.export based, the maintained one) or torchscript (legacy).",
+    exporter: Literal["auto", "dynamo", "torchscript"] = Field(
+        "auto",
+        description="torch.onnx exporter: dynamo (torch.export based, the maintained one), torchscript (legacy, "
+        "tracing), or auto: the one the model asks for (torchscript for Faster R-CNN, whose NMS has data-dependent "
+        "shapes; dynamo otherwise).",
     )
     providers: list[str] | None = Field(
         None,

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.cli import add_overrides_argument
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default="configs/tiny.yaml", help="engine config (default: configs/tiny.yaml)")
@@ -47,9 +49,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["process", "thread"], default="process", help="engine mode")
     p.add_argument("--extras", action="store_true", help="also publish depth_color and seg overlay topics")
     p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: from the process id)")
-    p.add_argument(
-        "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="config override"
-    )
+    add_overrides_argument(p)
 
 
 def _cpu_seconds(pid: int) -> tuple[float, float]:

@@ -14,6 +14,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from vpengine.cli import add_overrides_argument
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", "-c", required=True, help="engine config (YAML or JSON)")
@@ -26,16 +28,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--opset", type=int, default=18, help="ONNX opset, 17..23 (default 18)")
     p.add_argument(
-        "--exporter", choices=["dynamo", "torchscript"], default="dynamo", help="torch.onnx exporter"
+        "--exporter",
+        choices=["auto", "dynamo", "torchscript"],
+        default="auto",
+        help="torch.onnx exporter (auto: what the model asks for; torchscript for Faster R-CNN)",
     )
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config field, e.g. --set input.height=720 (repeatable)",
-    )
+    add_overrides_argument(p, "input.height=720")
     p.add_argument(
         "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
     )
@@ -55,13 +53,13 @@ def export_model(
     out_dir: str | Path,
     precision: str | None = None,
     opset: int = 18,
-    exporter: str = "dynamo",
+    exporter: str = "auto",
     verify: bool = True,
 ) -> dict[str, Any]:
     """Export model ``name`` ("foundation" or a head) of ``config`` to ``out_dir/name.onnx``; return its manifest."""
     import torch
 
-    from vpengine.backends.onnx_export import check_onnx_precision, export_onnx
+    from vpengine.backends.onnx_export import check_onnx_precision, export_onnx, resolve_exporter
     from vpengine.backends.options import parse_options
     from vpengine.config import load_config
     from vpengine.runtime.plan import make_plan
@@ -83,6 +81,7 @@ def export_model(
         model = build_model(cfg, name, "foundation", plan.frame_spec, {}, cpu, plan_only=False)
     else:
         model = build_model(cfg, name, "head", plan.features, plan.feature_meta, cpu, plan_only=False)
+    exporter = resolve_exporter(exporter, model)
     out = Path(out_dir)
     path = out / f"{name}.onnx"
     result = export_onnx(model, path, precision, opset, exporter, name, verify=verify)

@@ -10,6 +10,8 @@ import platform
 import sys
 from typing import Any
 
+from vpengine.cli import add_overrides_argument
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
@@ -20,14 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="parameters per model of a config and what sharing the backbone saves (instead of the machine info)",
     )
     p.add_argument("--config", "-c", help="engine config for --models (default: the built-in defaults)")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config field for --models, e.g. --set foundation_model.model=dinov2_vitb14",
-    )
+    add_overrides_argument(p, "foundation_model.model=dinov2_vitb14", "a config field for --models")
 
 
 def _version(dist: str) -> str | None:

@@ -20,6 +20,8 @@ import threading
 import time
 from typing import Any
 
+from vpengine.cli import add_overrides_argument
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", "-c", required=True, help="engine config (YAML or JSON)")
@@ -69,14 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="keep DDS on 127.0.0.1 with large-message settings (instead of $CYCLONEDDS_URI)",
     )
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config field, e.g. --set heads.depth.rate_hz=5 (repeatable)",
-    )
+    add_overrides_argument(p, "heads.depth.rate_hz=5")
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: run until Ctrl-C)")
 

@@ -22,6 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.cli import add_overrides_argument
+
 log = logging.getLogger("vpengine.run")
 
 
@@ -48,14 +50,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--out", "-o", help="output folder (per-head outputs and summary.json); omit to write nothing"
     )
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config field, e.g. --set heads.depth.rate_hz=5 (repeatable)",
-    )
+    add_overrides_argument(p, "heads.depth.rate_hz=5")
     p.add_argument(
         "--pace", choices=["lockstep", "realtime"], help="see `vpengine run --help` (default by source)"
     )

@@ -32,6 +32,8 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.cli import add_overrides_argument
+
 log = logging.getLogger("vpengine.train")
 
 DEFAULT_HEAD_RECIPE = "frcnn_dinov2"
@@ -77,14 +79,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=0,
         help="seed of the image order and of anchor/proposal sampling (initial weights: the head's seed option)",
     )
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a config field, e.g. --set heads.det.options.out_channels=128 (repeatable)",
-    )
+    add_overrides_argument(p, "heads.det.options.out_channels=128")
     p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
     p.add_argument(
         "--threads",

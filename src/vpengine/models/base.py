@@ -115,6 +115,9 @@ class Model(nn.Module):
 
     #: Which slot of the pipeline a recipe can fill; None for building blocks (pre/postprocessing).
     role: ClassVar[Role | None] = None
+    #: The torch.onnx exporter that ``backend_options.exporter: auto`` uses for a pipeline holding this model.
+    #: "dynamo" (torch.export) unless the model has data-dependent shapes that torch.export cannot guard on.
+    onnx_exporter: ClassVar[str] = "dynamo"
 
     input_spec: SpecDict
     output_spec: SpecDict

@@ -357,6 +357,9 @@ class FasterRCNNHead(Model):
     """Faster R-CNN on ``patch.3``: fixed-capacity detections in input-frame pixels (see the module docstring)."""
 
     role = "head"
+    # torchvision's RPN and RoIHeads filter by score and run NMS on a data-dependent number of boxes, which
+    # torch.export cannot guard on (GuardOnDataDependentSymNode); the tracing exporter records those ops as they are.
+    onnx_exporter = "torchscript"
 
     def __init__(self, ctx: BuildContext, opts: FasterRCNNOptions) -> None:
         super().__init__()
@@ -579,15 +582,19 @@ class FasterRCNNHead(Model):
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         det = self.predict(inputs[self.layer])[0]
         m = self.opts.max_detections
-        n = min(det["scores"].shape[0], m)  # RoIHeads already keeps at most M; the slot must never overflow
+        # Fixed capacity M: the first M detections (RoIHeads already keeps at most M, so the slot never overflows),
+        # padded by concatenation and gathered at indices 0..M-1, so the shape is M even to a graph's shape inference.
+        # Everything stays a tensor op -- no Python int from a data-dependent size -- so a traced ONNX export keeps
+        # the count live instead of freezing the one it saw.
         device = det["scores"].device
-        boxes = torch.zeros(m, 4, dtype=torch.float32, device=device)
-        scores = torch.zeros(m, dtype=torch.float32, device=device)
-        labels = torch.full((m,), -1, dtype=torch.int32, device=device)
-        boxes[:n] = det["boxes"][:n]
-        scores[:n] = det["scores"][:n]
-        labels[:n] = det["labels"][:n].to(torch.int32)
-        count = torch.tensor(n, dtype=torch.int32, device=device)
+        first = torch.arange(m, device=device)
+        scores = det["scores"][:m].float()
+        count = torch.ones_like(scores, dtype=torch.int32).sum(dtype=torch.int32)
+        boxes = torch.cat([det["boxes"][:m].float(), torch.zeros(m, 4, device=device)])[first]
+        scores = torch.cat([scores, torch.zeros(m, device=device)])[first]
+        labels = torch.cat(
+            [det["labels"][:m].to(torch.int32), torch.full((m,), -1, dtype=torch.int32, device=device)]
+        )[first]
         return {"boxes": boxes, "scores": scores, "labels": labels, "count": count}
 
     def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -44,7 +44,13 @@ class InputConfig(_Strict):
     dtype: Literal["uint8", "float32"] = Field(
         "uint8", description="Pixel type: uint8 0..255, or float32 0..1 (checked for NaN/inf at submit)."
     )
-    slots: int = Field(3, ge=3, le=64, description="Input mailbox slots (>= 3: the foundation model + 2).")
+    slots: int | None = Field(
+        None,
+        ge=3,
+        le=64,
+        description="Input mailbox slots (>= 3: the foundation model + 2); null: 3, plus 4 when the foundation model "
+        "reads fifo.",
+    )
 
 
 class PreprocessConfig(_Strict):
@@ -108,6 +114,16 @@ class ModelConfig(_Strict):
         "normal", description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY)."
     )
 
+    input_mode: Literal["latest", "fifo"] = Field(
+        "latest",
+        description="How the model reads its input (frames for the foundation model, features for a head). latest: after "
+        "falling behind it takes the newest and skips the ones in between (counted) -- the lowest latency, for control "
+        "loops. fifo: it takes every one in order and catches up, absorbing a lag of up to 4 frames with the default "
+        "mailbox sizes (input.slots - 2, foundation_model.feature_slots - heads - 1) before the oldest are skipped "
+        "(counted) -- for recording and bridges where every frame should come out. A rate limit still applies: a fifo "
+        "model then runs on ever older frames until they are overwritten.",
+    )
+
     @field_validator("rate_hz")
     @classmethod
     def _rate(cls, v: float | None) -> float | None:
@@ -122,7 +138,11 @@ class FoundationModelConfig(ModelConfig):
     model: str = Field("dinov2_vits14", description="Backbone recipe name.")
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)  # type: ignore[arg-type]
     feature_slots: int | None = Field(
-        None, ge=3, le=64, description="Feature mailbox slots; null: number of heads + 2 (the minimum)."
+        None,
+        ge=3,
+        le=64,
+        description="Feature mailbox slots; null: number of heads + 2 (the minimum), plus 4 when a head reads "
+        "fifo (so it can fall 4 frames behind and catch up).",
     )
 
 

@@ -132,15 +132,21 @@ class Engine:
             res.rings["input"] = SlotRing.create(
                 "input",
                 plan.frame_spec,
-                cfg.input.slots,
-                [ReaderDecl("foundation")],
+                cfg.input.slots or (7 if cfg.foundation_model.input_mode == "fifo" else 3),
+                [ReaderDecl("foundation", cfg.foundation_model.input_mode)],
                 "cpu",
                 shared,
                 pinned=gpu,
             )
-            n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2)
+            fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
+            n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2 + fifo_margin)
             res.rings["features"] = SlotRing.create(
-                "features", plan.features, n_feat, [ReaderDecl(h) for h in heads], device, shared
+                "features",
+                plan.features,
+                n_feat,
+                [ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
+                device,
+                shared,
             )
             for h in cfg.heads:
                 res.rings[f"out.{h.name}"] = SlotRing.create(

@@ -17,6 +17,8 @@ class FaultOptions(Options):
     hang_at_run: int | None = None  # sleep forever on this run
     ignore_sigterm: bool = False
     sleep_ms: float = 0.0  # every run takes at least this long
+    stall_every: int | None = None  # every Nth run also sleeps stall_ms (a transient lag)
+    stall_ms: float = 0.0
     fail_build: bool = False
 
 
@@ -45,6 +47,8 @@ class FaultyHead(TinyDepthHead):
         f = self.fault
         if f.sleep_ms:
             time.sleep(f.sleep_ms / 1000)
+        if f.stall_every and run % f.stall_every == 0:
+            time.sleep(f.stall_ms / 1000)
         first_time = f.once_marker is None or not Path(f.once_marker).exists()
         if f.raise_at_run is not None and run == f.raise_at_run and first_time:
             if f.once_marker is not None:

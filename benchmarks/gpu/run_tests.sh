@@ -10,4 +10,4 @@ source benchmarks/gpu/setup.sh
 timeout ${GPU_TEST_TIMEOUT:-420} python3 -m pytest -m gpu tests/gpu -q -p no:cacheprovider "$@" 2>&1 | tee "$OUT/gpu_tests.log" | tail -25
 VPENGINE_TEST_DEVICE=cuda timeout ${INTEG_TIMEOUT:-300} python3 -m pytest tests/integration/test_pipeline.py \
   tests/integration/test_ring_processes.py tests/integration/test_faults.py tests/integration/test_rates.py \
-  tests/integration/test_idle.py -q -p no:cacheprovider 2>&1 | tee "$OUT/integration_cuda.log" | tail -15
+  tests/integration/test_idle.py tests/integration/test_input_modes.py -q -p no:cacheprovider 2>&1 | tee "$OUT/integration_cuda.log" | tail -15

@@ -1,7 +1,8 @@
 """GPU machine: where the engine's time goes over the device-time floor, thread vs process mode.
 
 Runs the floor's models (compiled backbone + depth + seg at 1080p) in lockstep, prints per-model latencies from the
-control block (run time, and submit -> model done), and samples the thread-mode process with py-spy when present.
+control block (run time, and submit -> model done) and the time the caller spends copying results out of the
+mailboxes, and samples the process with py-spy when present. HEADS picks other heads: "depth:8" is E1's 8 depth heads.
 """
 
 from __future__ import annotations
@@ -20,8 +21,14 @@ from vpengine.bench.paper import Setup, engines, frames
 out_dir = os.environ.get("OUT", "/tmp/out")
 setup = Setup(backend=os.environ.get("BACKEND", "compile"), frames=300)
 if os.environ.get("TINY"):  # a CPU smoke run of this script
-    setup = Setup("cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True)
-heads = [setup.head("depth", "depth"), setup.head("seg", "seg")]
+    setup = Setup(
+        "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True
+    )
+heads = []
+for spec in os.environ.get("HEADS", "depth,seg").split(","):  # "kind" or "kind:count"
+    kind, _, count = spec.partition(":")
+    names = [f"{kind}{i}" for i in range(int(count))] if count else [kind]
+    heads += [setup.head(kind, name) for name in names]
 imgs = frames(setup)
 report: dict[str, object] = {}
 for mode in sys.argv[1:] or ["thread", "process"]:
@@ -31,10 +38,36 @@ for mode in sys.argv[1:] or ["thread", "process"]:
         spy = None
         if shutil.which("py-spy"):
             spy = subprocess.Popen(
-                ["py-spy", "record", "--pid", str(os.getpid()), "--duration", "4", "--rate", "1000", "--threads",
-                 "--idle", "--format", "raw", "-o", f"{out_dir}/pyspy_{mode}.txt"],
-                stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                [
+                    "py-spy",
+                    "record",
+                    "--pid",
+                    str(os.getpid()),
+                    "--duration",
+                    "4",
+                    "--rate",
+                    "1000",
+                    "--threads",
+                    "--idle",
+                    "--format",
+                    "raw",
+                    "-o",
+                    f"{out_dir}/pyspy_{mode}.txt",
+                ],
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.STDOUT,
             )
+        copy: list[float] = []
+        plain_copy_out = eng._copy_out
+
+        def timed_copy_out(pinned, _f=plain_copy_out, _c=copy):
+            t = time.perf_counter()
+            try:
+                return _f(pinned)
+            finally:
+                _c.append(time.perf_counter() - t)
+
+        eng._copy_out = timed_copy_out
         lat, sub, wait = [], [], []
         for i in range(setup.frames):
             t0 = time.perf_counter()
@@ -50,10 +83,13 @@ for mode in sys.argv[1:] or ["thread", "process"]:
             "lockstep_ms": float(np.mean(lat) * 1e3),
             "submit_ms": float(np.mean(sub) * 1e3),
             "wait_ms": float(np.mean(wait) * 1e3),
-            "models": {n: {"run_ms": m["latency_ms"]["mean"], "submit_to_done_ms": m["e2e_latency_ms"]["mean"]}
-                       for n, m in st.items()},
+            "copy_out_ms_per_frame": float(np.sum(copy) * 1e3 / setup.frames),
+            "models": {
+                n: {"run_ms": m["latency_ms"]["mean"], "submit_to_done_ms": m["e2e_latency_ms"]["mean"]}
+                for n, m in st.items()
+            },
         }
         report[mode] = row
         print(mode, json.dumps(row), flush=True)
-with open(f"{out_dir}/profile_modes.json", "w") as f:
+with open(f"{out_dir}/profile_modes{os.environ.get('TAG', '')}.json", "w") as f:
     json.dump(report, f, indent=1)

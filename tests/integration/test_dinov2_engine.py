@@ -22,18 +22,21 @@ pytestmark = pytest.mark.timeout(180)
 H, W = 270, 480  # a 1080p frame shrunk 4x keeps the run fast
 
 
-def dinov2_cfg(mode: str):
+def dinov2_cfg(mode: str, h: int = H, w: int = W, depth_heads: int = 1):
     return load_config(
         {
             "mode": mode,
             "device": DEVICE,
-            "input": {"height": H, "width": W},
+            "input": {"height": h, "width": w},
             "foundation_model": {
                 "model": "dinov2_vits14",
                 "options": {"size": "custom", "embed_dim": 48, "depth": 4, "heads": 3, "registers": 4},
                 "preprocess": {"size": 140},
             },
-            "heads": [{"name": "depth", "model": "tiny_depth"}],
+            "heads": [
+                {"name": "depth" if i == 0 else f"depth{i}", "model": "tiny_depth", "options": {"seed": i}}
+                for i in range(depth_heads)
+            ],
             "weights": {"random_weights": True},
         }
     )
@@ -77,3 +80,28 @@ def test_engine_runs_dinov2_on_a_camera_frame(cheetah, mode):
     # same seeded weights in the worker as here: the engine computed exactly this frame's depth
     np.testing.assert_allclose(depth, want, rtol=1e-4, atol=1e-6)
     assert stats["models"]["foundation"]["errors"] == 0 and stats["models"]["depth"]["errors"] == 0
+
+
+def test_full_hd_depth_maps_of_several_heads_arrive_exact():
+    """Two 1080p float32 depth maps (16 MB a frame) are copied out of their slots in parallel byte ranges."""
+    img = cv2.imread(str(MEDIA / "cheetah_1080p_0.jpg"))
+    cfg = dinov2_cfg("process", 1080, 1920, depth_heads=2)
+    device = torch.device(cfg.device)
+    plan = make_plan(cfg)
+    fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, device, False)
+    heads = {
+        h: build_model(cfg, h, "head", plan.features, plan.feature_meta, device, False) for h in plan.heads
+    }
+    with torch.inference_mode():
+        feats = fm({"frame": torch.from_numpy(img).to(device)})
+        want = {h: m({k: feats[k] for k in m.input_spec})["depth"].cpu().numpy() for h, m in heads.items()}
+    assert not np.array_equal(want["depth"], want["depth1"])  # differently seeded heads: a swap would show
+
+    with Engine(cfg) as engine:
+        for i in range(3):
+            fid = engine.submit(img if i % 2 == 0 else img[::-1].copy())
+            out = engine.wait(fid, timeout=120)
+            assert sorted(out) == ["depth", "depth1"]
+    for h in heads:  # the last frame was the upright one
+        assert out[h]["depth"].shape == (1080, 1920)
+        np.testing.assert_allclose(out[h]["depth"], want[h], rtol=1e-4, atol=1e-6)

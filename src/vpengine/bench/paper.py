@@ -47,6 +47,19 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--det-head", default="frcnn_dinov2")
     p.add_argument("--backend", default="eager", help="backend of every model (eager, compile, onnx)")
     p.add_argument(
+        "--mode",
+        default="process",
+        choices=["process", "thread"],
+        help="engine mode of E1, E2, E4, E5 (independent models in E1 always run as separate processes)",
+    )
+    p.add_argument(
+        "--mps",
+        default="off",
+        choices=["off", "required"],
+        help="CUDA MPS for the engine and the independent models of E1 (E3 compares both; 'required' starts a "
+        "private daemon for the run if none is reachable, and stops it at the end)",
+    )
+    p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)"
     )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
@@ -68,6 +81,9 @@ class Setup:
     backend: str = "eager"
     frames: int = 100
     tiny: bool = False
+    mode: str = "process"
+    mps: str = "off"
+    mps_pipe_directory: str | None = None
 
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
@@ -86,6 +102,8 @@ class Setup:
                 backbone_options={},
                 backend=a.backend,
                 tiny=True,
+                mode=a.mode,
+                mps=a.mps,
             )
         return cls(
             device=a.device,
@@ -98,6 +116,8 @@ class Setup:
             det=a.det_head,
             backend=a.backend,
             frames=a.frames,
+            mode=a.mode,
+            mps=a.mps,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -107,15 +127,16 @@ class Setup:
         backend = "eager" if kind == "det" and self.backend != "eager" else self.backend
         return {"name": name, "model": model, "options": opts, "backend": backend, **extra}
 
-    def config(self, heads: list[dict[str, Any]], mode: str = "process", **top: Any) -> Any:
+    def config(self, heads: list[dict[str, Any]], mode: str | None = None, **top: Any) -> Any:
         from vpengine.config import load_config
 
         raw = {
             "name": "bench",
-            "mode": mode,
+            "mode": mode or self.mode,
             "device": self.device,
             "precision": self.precision,
-            "mps": "off",
+            "mps": self.mps,
+            **({"mps_pipe_directory": self.mps_pipe_directory} if self.mps_pipe_directory else {}),
             "input": {"height": self.height, "width": self.width},
             "foundation_model": {
                 "model": self.backbone,
@@ -345,7 +366,7 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
         sequential = seq.latency(imgs, setup.frames)
         dt = seq.device_times(imgs[0])
         del seq
-        with engines([setup.config([setup.head("depth", "depth")]) for _ in range(n)]) as es:
+        with engines([setup.config([setup.head("depth", "depth")], mode="process") for _ in range(n)]) as es:
             indep = independent_latency(es, imgs, setup.frames)
         row = {
             "heads": n,
@@ -361,7 +382,7 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
             row["ideal_vs_independent"] = n * (b + h) / (b + n * h)
         rows.append(row)
         log(
-            f"E1 N={n}: engine {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
+            f"E1 N={n}: engine ({setup.mode} mode, MPS {setup.mps}) {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
             f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
             + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")
@@ -388,7 +409,7 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
         }
         rows.append(row)
         log(
-            f"E2 N={n}: engine {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
+            f"E2 N={n}: engine ({setup.mode} mode, MPS {setup.mps}) {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
         )
     return {"rows": rows}
@@ -617,8 +638,17 @@ def figures(res: dict[str, Any], path: str) -> None:
         if key in ("E1", "E2"):
             ns = [x["heads"] for x in r["rows"]]
             series = ["engine", "sequential"] + (["independent"] if key == "E1" else [])
+            st = res.get("setup", {})
+            engine_label = (
+                f"engine ({st.get('mode', 'process')} mode{', MPS' if st.get('mps') == 'required' else ''})"
+            )
             for s in series:
-                ax.plot(ns, [x[s]["hz"] for x in r["rows"]], marker="o", label=s)
+                ax.plot(
+                    ns,
+                    [x[s]["hz"] for x in r["rows"]],
+                    marker="o",
+                    label=engine_label if s == "engine" else s,
+                )
             ax.set_xlabel("heads")
             ax.set_ylabel("frames/s (one in flight)")
             ax.set_title(f"{key}: {'depth' if key == 'E1' else 'detection'} heads")
@@ -668,15 +698,53 @@ def figures(res: dict[str, Any], path: str) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from vpengine.bench.common import machine_info, write_results
-
     setup = Setup.from_args(args)
     ns = [int(x) for x in args.heads.split(",")]
     want = [x.strip() for x in args.experiments.split(",") if x.strip()]
     floor_kinds = _floor_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
     imgs = frames(setup)
+    with _mps_for_run(setup):
+        path = _run(setup, want, ns, imgs, floor_kinds, args)
+    figures(json.loads(path.read_text()), str(path.with_suffix(".png")))
+    log(f"-> {path} and {path.with_suffix('.png')}")
+    return 0
+
+
+@contextlib.contextmanager
+def _mps_for_run(setup: Setup) -> Iterator[None]:
+    """``--mps required``: use a reachable MPS daemon, or start a private one for this run and stop it after."""
+    if setup.mps != "required":
+        yield
+        return
+    from vpengine.runtime import mps
+
+    daemon = mps.find_daemon()
+    started = None
+    if daemon is None:
+        started = mps.start()
+        daemon = started["pipe_directory"]
+    setup.mps_pipe_directory = daemon
+    log(f"MPS daemon at {daemon} ({'started for this run' if started else 'already running'})")
+    try:
+        yield
+    finally:
+        if started and started.get("started"):
+            mps.stop(daemon)
+
+
+def _run(
+    setup: Setup,
+    want: list[str],
+    ns: list[int],
+    imgs: list[np.ndarray],
+    floor_kinds: tuple[str, ...],
+    args: argparse.Namespace,
+) -> Any:
+    from vpengine.bench.common import machine_info, write_results
+
     res: dict[str, Any] = {"setup": asdict(setup)}
     log(f"machine: {machine_info()}")
+    path = None
     for key in want:
         t = time.monotonic()
         if key == "E1":
@@ -698,6 +766,6 @@ def main(args: argparse.Namespace) -> int:
         res[key]["seconds"] = time.monotonic() - t
         name = f"paper_{setup.device}{('_' + args.tag) if args.tag else ''}"
         path = write_results(args.out, name, res)  # after every experiment: a crash keeps what was measured
-    figures(res, str(path.with_suffix(".png")))
-    log(f"-> {path} and {path.with_suffix('.png')}")
-    return 0
+    if path is None:
+        raise ValueError("no experiment given (--experiments is empty)")
+    return path

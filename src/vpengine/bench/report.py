@@ -36,25 +36,27 @@ def _find(folder: Path, key: str) -> tuple[str, dict[str, Any]] | None:
 
 
 def _find_all(folder: Path, key: str) -> list[dict[str, Any]]:
-    """Paper results files holding experiment ``key``, oldest first, each with its file name and setup.
+    """Every paper results file holding experiment ``key``, oldest first, each with its file name and setup.
 
-    A run superseded by a newer one of the same setup (backbone, backend, heads) is left out.
+    Repeated runs of one setup all stay: the spread between runs is part of the result.
     """
-    newest: dict[str, dict[str, Any]] = {}
+    runs = []
     for path in sorted(folder.glob("paper_*.json")):
         data = json.loads(path.read_text())
-        if key not in data:
-            continue
-        run = {"file": path.name, **data[key], "setup": data.get("setup", {}), "date": data.get("date", "")}
-        heads = [x.get("heads") for x in run.get("rows", [])] or sorted(run.get("device_ms", {}))
-        same = f"{_setup_label(run['setup'])} {heads}"
-        if same not in newest or run["date"] >= newest[same]["date"]:
-            newest[same] = run
-    return sorted(newest.values(), key=lambda x: x["date"])
+        if key in data:
+            runs.append(
+                {"file": path.name, **data[key], "setup": data.get("setup", {}), "date": data.get("date", "")}
+            )
+    return sorted(runs, key=lambda x: (x["date"], x["file"]))
 
 
 def _setup_label(setup: dict[str, Any]) -> str:
-    return f"{setup.get('backbone', '?')}, {setup.get('backend', '?')}"
+    label = f"{setup.get('backbone', '?')}, {setup.get('backend', '?')}"
+    if setup.get("mode", "process") != "process":
+        label += f", {setup['mode']} mode"
+    if setup.get("mps", "off") != "off":
+        label += ", MPS"
+    return label
 
 
 def collect(folder: Path) -> dict[str, Any]:
@@ -63,13 +65,14 @@ def collect(folder: Path) -> dict[str, Any]:
         found = _find(folder, key)
         if found:
             out[key] = {"file": found[0], **found[1][key], "machine": found[1].get("machine", {})}
-    # E1 and the floor are run for several backbones and backends: every run gets a row; the figure shows the E1 run
-    # with the most head counts.
+    # E1, E2 and the floor are run for several backbones, backends and modes: every run gets a row.
     out["E1_all"] = _find_all(folder, "E1")
+    out["E2_all"] = _find_all(folder, "E2")
     out["floor_all"] = _find_all(folder, "floor")
-    if out["E1_all"]:
-        best = max(out["E1_all"], key=lambda x: (len(x["rows"]), x["date"]))
-        out["E1"] = {**best, "machine": out.get("E1", {}).get("machine", {})}
+    for key in ("E1", "E2"):  # the figure shows the run with the most head counts
+        if out[f"{key}_all"]:
+            best = max(out[f"{key}_all"], key=lambda x: (len(x["rows"]), x["date"]))
+            out[key] = {**best, "machine": out.get(key, {}).get("machine", {})}
     for name in ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"):
         data = _load(folder, name)
         if data:
@@ -87,13 +90,14 @@ def table(r: dict[str, Any]) -> str:
             f"{last.get('ideal_vs_independent', float('nan')):.2f}x), {last['speedup_vs_sequential']:.2f}x vs "
             f"sequential | 2.3x vs independent | {e1['file']} |"
         )
-    if "E2" in r:
-        last = r["E2"]["rows"][-1]
+    for e2 in r.get("E2_all", []):
+        last = e2["rows"][-1]
         dt = last["device_ms"]
-        floor = dt["foundation"] + sum(v for k, v in dt.items() if k != "foundation")
+        floor = f", summed device time {sum(dt.values()):.1f} ms" if dt else ""
         rows.append(
-            f"| E2 {last['heads']} detection heads | {last['speedup_vs_sequential']:.2f}x vs sequential (engine "
-            f"{last['engine']['mean']:.1f} ms vs GPU-time floor {floor:.1f} ms) | 3.3x | {r['E2']['file']} |"
+            f"| E2 {last['heads']} detection heads ({_setup_label(e2['setup'])}) | "
+            f"{last['speedup_vs_sequential']:.2f}x vs sequential (engine {last['engine']['mean']:.1f} ms, sequential "
+            f"{last['sequential']['mean']:.1f} ms{floor}) | 3.3x | {e2['file']} |"
         )
     if "E3" in r:
         g = {(x["head"], x["heads"]): x["throughput_gain"] for x in r["E3"]["rows"]}

@@ -18,6 +18,7 @@ import collections
 import logging
 import math
 import shutil
+import sys
 import tempfile
 import threading
 import time
@@ -41,6 +42,36 @@ log = logging.getLogger("vpengine")
 __all__ = ["Engine", "EngineDeadError", "EngineStartError", "Result"]
 
 _ORIGINS_KEPT = 8192
+_RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
+
+
+def _refcounts(pool: list[np.ndarray]) -> list[int]:
+    return [sys.getrefcount(a) for a in pool]
+
+
+# what _refcounts reports for an array that only the pool list refers to (differs between Python versions)
+_FREE_REFS = _refcounts([np.empty(1)])[0]
+
+
+class _HostOutputs:
+    """Host arrays for results, recycled: copying a 1080p float32 depth map into fresh memory costs page faults on
+    every frame (eight of them are 66 MB), so an array is reused once nothing outside this pool refers to it
+    (a view or a tensor made from it refers to it too). Bounded: at most ``_RECYCLED_PER_OUTPUT`` arrays per
+    output are kept; beyond that results get fresh arrays that are not tracked."""
+
+    def __init__(self) -> None:
+        self._pools: dict[tuple[str, str], list[np.ndarray]] = {}
+
+    def copy(self, head: str, key: str, src: np.ndarray) -> np.ndarray:
+        pool = self._pools.setdefault((head, key), [])
+        for arr, refs in zip(pool, _refcounts(pool)):
+            if refs <= _FREE_REFS and arr.shape == src.shape and arr.dtype == src.dtype:
+                np.copyto(arr, src)
+                return arr
+        arr = src.copy()
+        if len(pool) < _RECYCLED_PER_OUTPUT:
+            pool.append(arr)
+        return arr
 
 
 @dataclass
@@ -53,7 +84,9 @@ class Result:
     capture_time: float
     #: Seconds from submit to this output being published.
     latency: float
-    #: Output tensors: numpy arrays (host outputs) or torch tensors (device outputs, bfloat16).
+    #: Output tensors: numpy arrays (host outputs) or torch tensors (device outputs, bfloat16). A host array's memory
+    #: is reused for a later result of the same head once nothing refers to the array (nor to any view of it) any
+    #: more, so keeping a reference (or a view, or ``torch.from_numpy`` of it) keeps its content.
     outputs: dict[str, Any]
     seq: int = 0
     t_publish: float = 0.0
@@ -110,6 +143,7 @@ class Engine:
         self._origins: collections.OrderedDict[int, int] = collections.OrderedDict()
         self._results_active = False
         self._pool: Any = None
+        self._host_outputs = _HostOutputs()
         self._t_start = 0.0
         self.memory_report: dict[str, Any] = {}
         self._mps_dir: str | None = None
@@ -416,7 +450,7 @@ class Engine:
             if t.device.type != "cpu" or t.dtype == torch.bfloat16:
                 outputs[k] = t.clone()
             else:
-                outputs[k] = t.numpy().copy()
+                outputs[k] = self._host_outputs.copy(head, k, t.numpy())
         if all(isinstance(v, np.ndarray) for v in outputs.values()):
             outputs = self.plan.heads[head].finalize(outputs)
         return Result(

@@ -1,0 +1,52 @@
+"""Result arrays are recycled only when nothing refers to them any more: a kept result never changes."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from vpengine.engine import _RECYCLED_PER_OUTPUT, _HostOutputs
+
+
+def frame(i: int) -> np.ndarray:
+    return np.full((4, 5), float(i), dtype=np.float32)
+
+
+def test_a_dropped_array_is_reused_and_a_kept_one_never_changes():
+    pool = _HostOutputs()
+    a = pool.copy("depth", "depth", frame(1))
+    address = a.ctypes.data
+    del a
+    b = pool.copy("depth", "depth", frame(2))
+    assert b.ctypes.data == address and (b == 2).all()  # reused: no fresh memory for this frame
+    c = pool.copy("depth", "depth", frame(3))  # b is still held: c gets other memory
+    assert c.ctypes.data != b.ctypes.data and (b == 2).all() and (c == 3).all()
+
+
+def test_views_and_tensors_keep_their_array_alive():
+    pool = _HostOutputs()
+    view = pool.copy("det", "boxes", frame(1))[1:3]  # the array itself is dropped, a view of it is kept
+    tensor = torch.from_numpy(pool.copy("det", "scores", frame(2)))
+    for i in range(3, 3 + 2 * _RECYCLED_PER_OUTPUT):
+        pool.copy("det", "boxes", frame(i))
+        pool.copy("det", "scores", frame(i))
+    assert (view == 1).all() and (tensor == 2).all()
+
+
+def test_outputs_of_other_heads_or_shapes_are_not_mixed_up():
+    pool = _HostOutputs()
+    a = pool.copy("depth", "depth", frame(1))
+    del a
+    seg = pool.copy("seg", "depth", frame(7))  # same key name, other head: its own pool
+    assert (seg == 7).all()
+    small = pool.copy("depth", "depth", np.ones((2, 2), np.float32))
+    assert small.shape == (2, 2)
+    big = pool.copy("depth", "depth", np.zeros((8, 8), np.uint8))
+    assert big.shape == (8, 8) and big.dtype == np.uint8
+
+
+def test_the_pool_is_bounded_when_every_result_is_kept():
+    pool = _HostOutputs()
+    kept = [pool.copy("depth", "depth", frame(i)) for i in range(10)]
+    assert [int(k[0, 0]) for k in kept] == list(range(10))  # all distinct, none overwritten
+    assert len(pool._pools["depth", "depth"]) == _RECYCLED_PER_OUTPUT

@@ -52,6 +52,9 @@ def _find_all(folder: Path, key: str) -> list[dict[str, Any]]:
 
 def _setup_label(setup: dict[str, Any]) -> str:
     label = f"{setup.get('backbone', '?')}, {setup.get('backend', '?')}"
+    size = (setup.get("height", 1080), setup.get("width", 1920))
+    if not setup.get("tiny") and size != (1080, 1920):  # 1080p frames unless said
+        label += f", {size[0]}x{size[1]}"
     if setup.get("mode", "process") != "process":
         label += f", {setup['mode']} mode"
     if setup.get("mps", "off") != "off":

@@ -5,13 +5,8 @@ source benchmarks/gpu/setup.sh
 set -o pipefail
 HEADS=depth:8 TAG=_compile_depth8_recycled timeout 150 python3 benchmarks/gpu/profile_modes.py process 2>&1 \
   | grep -v "RANDOM\|WARNING" | tail -2
-run() {  # $1: seconds, then the bench arguments
-  local t=$1; shift
-  timeout "$t" python3 -m vpengine.cli.main bench paper --out "$OUT" "$@" 2>&1 | grep -v "RANDOM\|WARNING" \
-    | grep "E1 N=\|E2 N=\|MPS daemon\|Error\|error" | tail -4
-}
 for tag in a b; do
-  run 140 --experiments E1 --heads 8 --frames 40 --backend compile --tag "e1_vits_compile_n8_recycled_$tag"
+  paper 140 --experiments E1 --heads 8 --frames 40 --backend compile --tag "e1_vits_compile_n8_recycled_$tag"
 done
-run 150 --experiments E1 --heads 8 --frames 40 --backend compile --mode thread --tag e1_vits_compile_n8_recycled_thread
+paper 150 --experiments E1 --heads 8 --frames 40 --backend compile --mode thread --tag e1_vits_compile_n8_recycled_thread
 ls "$OUT"

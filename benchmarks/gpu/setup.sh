@@ -6,3 +6,9 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site:$PWD/src:$PWD/tests
 export PYTHONUNBUFFERED=1
 mkdir -p "${OUT:-/tmp/out}"
+# paper SECONDS ARGS...: `vpengine bench paper` into $OUT under a time limit, printing only its result lines
+paper() {
+  local t=$1; shift
+  timeout "$t" python3 -m vpengine.cli.main bench paper --out "$OUT" "$@" 2>&1 | grep -v "RANDOM\|WARNING" \
+    | grep "E1 N=\|E2 N=\|MPS daemon\|Error\|error" | tail -4
+}

@@ -416,15 +416,8 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
 
 
 def e3(setup: Setup, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> dict[str, Any]:
-    from vpengine.runtime import mps
-
     rows = []
-    daemon = mps.find_daemon()
-    started = None
-    if daemon is None:
-        started = mps.start()
-        daemon = started["pipe_directory"]
-    try:
+    with _mps_daemon() as daemon:
         for kind in ("det", "depth"):
             for n in ns:
                 heads = [setup.head(kind, f"{kind}{i}") for i in range(n)]
@@ -448,9 +441,6 @@ def e3(setup: Setup, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> di
                     f"E3 {kind} N={n}: MPS off {res['off']['hz']:.1f} Hz, on {res['required']['hz']:.1f} Hz "
                     f"({gain:+.0%}, {res['required']['workers_on_mps']} workers on MPS)"
                 )
-    finally:
-        if started and started.get("started"):
-            mps.stop(daemon)
     return {"rows": rows, "mps_pipe_directory": daemon}
 
 
@@ -703,19 +693,18 @@ def main(args: argparse.Namespace) -> int:
     want = [x.strip() for x in args.experiments.split(",") if x.strip()]
     floor_kinds = _floor_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
     imgs = frames(setup)
-    with _mps_for_run(setup):
-        path = _run(setup, want, ns, imgs, floor_kinds, args)
-    figures(json.loads(path.read_text()), str(path.with_suffix(".png")))
+    with contextlib.ExitStack() as stack:
+        if setup.mps == "required":
+            setup.mps_pipe_directory = stack.enter_context(_mps_daemon())
+        res, path = _run(setup, want, ns, imgs, floor_kinds, args)
+    figures(res, str(path.with_suffix(".png")))
     log(f"-> {path} and {path.with_suffix('.png')}")
     return 0
 
 
 @contextlib.contextmanager
-def _mps_for_run(setup: Setup) -> Iterator[None]:
-    """``--mps required``: use a reachable MPS daemon, or start a private one for this run and stop it after."""
-    if setup.mps != "required":
-        yield
-        return
+def _mps_daemon() -> Iterator[str]:
+    """The pipe directory of a reachable MPS daemon, or of a private one started here and stopped on exit."""
     from vpengine.runtime import mps
 
     daemon = mps.find_daemon()
@@ -723,10 +712,9 @@ def _mps_for_run(setup: Setup) -> Iterator[None]:
     if daemon is None:
         started = mps.start()
         daemon = started["pipe_directory"]
-    setup.mps_pipe_directory = daemon
     log(f"MPS daemon at {daemon} ({'started for this run' if started else 'already running'})")
     try:
-        yield
+        yield daemon
     finally:
         if started and started.get("started"):
             mps.stop(daemon)
@@ -739,7 +727,7 @@ def _run(
     imgs: list[np.ndarray],
     floor_kinds: tuple[str, ...],
     args: argparse.Namespace,
-) -> Any:
+) -> tuple[dict[str, Any], Any]:
     from vpengine.bench.common import machine_info, write_results
 
     res: dict[str, Any] = {"setup": asdict(setup)}
@@ -768,4 +756,4 @@ def _run(
         path = write_results(args.out, name, res)  # after every experiment: a crash keeps what was measured
     if path is None:
         raise ValueError("no experiment given (--experiments is empty)")
-    return path
+    return res, path

@@ -2,11 +2,14 @@
 
 Runs the floor's models (compiled backbone + depth + seg at 1080p) in lockstep, prints per-model latencies from the
 control block (run time, and submit -> model done) and the time the caller spends copying results out of the
-mailboxes, and samples the process with py-spy when present. HEADS picks other heads: "depth:8" is E1's 8 depth heads.
+mailboxes, and samples the process with py-spy when present. HEADS picks other heads: "depth:8" is E1's 8 depth heads,
+"det:8" E2's 8 detection heads (DET picks the recipe); MPS=required runs every process on a CUDA MPS daemon (found, or
+started for the run and stopped after).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -16,10 +19,15 @@ import time
 
 import numpy as np
 
-from vpengine.bench.paper import Setup, engines, frames
+from vpengine.bench.paper import Setup, _mps_daemon, engines, frames
 
 out_dir = os.environ.get("OUT", "/tmp/out")
-setup = Setup(backend=os.environ.get("BACKEND", "compile"), frames=300)
+setup = Setup(
+    backend=os.environ.get("BACKEND", "compile"),
+    frames=300,
+    det=os.environ.get("DET", "frcnn_dinov2_lite"),
+    mps=os.environ.get("MPS", "off"),
+)
 if os.environ.get("TINY"):  # a CPU smoke run of this script
     setup = Setup(
         "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True
@@ -30,7 +38,10 @@ for spec in os.environ.get("HEADS", "depth,seg").split(","):  # "kind" or "kind:
     names = [f"{kind}{i}" for i in range(int(count))] if count else [kind]
     heads += [setup.head(kind, name) for name in names]
 imgs = frames(setup)
-report: dict[str, object] = {}
+report: dict[str, object] = {"mps": setup.mps}
+stack = contextlib.ExitStack()
+if setup.mps == "required":
+    setup.mps_pipe_directory = stack.enter_context(_mps_daemon())
 for mode in sys.argv[1:] or ["thread", "process"]:
     with engines([setup.config(heads, mode=mode)]) as (eng,):
         for i in range(30):
@@ -91,5 +102,6 @@ for mode in sys.argv[1:] or ["thread", "process"]:
         }
         report[mode] = row
         print(mode, json.dumps(row), flush=True)
+stack.close()
 with open(f"{out_dir}/profile_modes{os.environ.get('TAG', '')}.json", "w") as f:
     json.dump(report, f, indent=1)

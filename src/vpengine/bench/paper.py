@@ -45,7 +45,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--depth-head", default="dav2_depth_s")
     p.add_argument("--seg-head", default="dinov2_linear_ade20k_s")
     p.add_argument("--det-head", default="frcnn_dinov2")
-    p.add_argument("--backend", default="eager", help="backend of every model (eager, compile, onnx)")
+    p.add_argument(
+        "--backend",
+        default="eager",
+        help="backend of every model (eager, compile, onnx); detection heads stay eager (NMS neither graphs nor exports)",
+    )
     p.add_argument(
         "--mode",
         default="process",

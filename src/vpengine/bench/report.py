@@ -50,8 +50,10 @@ def _find_all(folder: Path, key: str) -> list[dict[str, Any]]:
     return sorted(runs, key=lambda x: (x["date"], x["file"]))
 
 
-def _setup_label(setup: dict[str, Any]) -> str:
+def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
     label = f"{setup.get('backbone', '?')}, {setup.get('backend', '?')}"
+    if det and setup.get("backend", "eager") != "eager":  # Setup.head keeps Faster R-CNN eager
+        label += ", detection heads eager"
     size = (setup.get("height", 1080), setup.get("width", 1920))
     if not setup.get("tiny") and size != (1080, 1920):  # 1080p frames unless said
         label += f", {size[0]}x{size[1]}"
@@ -67,10 +69,17 @@ def collect(folder: Path) -> dict[str, Any]:
     for key in ("E1", "E2", "E3", "E4", "E5", "floor"):
         found = _find(folder, key)
         if found:
-            out[key] = {"file": found[0], **found[1][key], "machine": found[1].get("machine", {})}
-    # E1, E2 and the floor are run for several backbones, backends and modes: every run gets a row.
+            data = found[1]
+            out[key] = {
+                "file": found[0],
+                **data[key],
+                "machine": data.get("machine", {}),
+                "setup": data.get("setup", {}),
+            }
+    # E1, E2, E3 and the floor are run for several backbones, backends and modes: every run gets a row.
     out["E1_all"] = _find_all(folder, "E1")
     out["E2_all"] = _find_all(folder, "E2")
+    out["E3_all"] = _find_all(folder, "E3")
     out["floor_all"] = _find_all(folder, "floor")
     for key in ("E1", "E2"):  # the figure shows the run with the most head counts
         if out[f"{key}_all"]:
@@ -98,17 +107,17 @@ def table(r: dict[str, Any]) -> str:
         dt = last["device_ms"]
         floor = f", summed device time {sum(dt.values()):.1f} ms" if dt else ""
         rows.append(
-            f"| E2 {last['heads']} detection heads ({_setup_label(e2['setup'])}) | "
+            f"| E2 {last['heads']} detection heads ({_setup_label(e2['setup'], det=True)}) | "
             f"{last['speedup_vs_sequential']:.2f}x vs sequential (engine {last['engine']['mean']:.1f} ms, sequential "
             f"{last['sequential']['mean']:.1f} ms{floor}) | 3.3x | {e2['file']} |"
         )
-    if "E3" in r:
-        g = {(x["head"], x["heads"]): x["throughput_gain"] for x in r["E3"]["rows"]}
+    for e3 in r.get("E3_all", []):
+        g = {(x["head"], x["heads"]): x["throughput_gain"] for x in e3["rows"]}
         det = ", ".join(f"{n} heads {g[('det', n)]:+.0%}" for n in (4, 8) if ("det", n) in g)
         dep = ", ".join(f"{n} heads {g[('depth', n)]:+.0%}" for n in (4, 8) if ("depth", n) in g)
         rows.append(
-            f"| E3 CUDA MPS on vs off | detection: {det}; depth: {dep} | +39% (4), +77% (8) | "
-            f"{r['E3']['file']} |"
+            f"| E3 CUDA MPS on vs off ({_setup_label(e3['setup'], det=True)}) | detection: {det}; depth: {dep} | "
+            f"+39% (4), +77% (8) | {e3['file']} |"
         )
     if "E4" in r:
         errs = ", ".join(f"{x['rate_hz']} Hz {x['error']:+.0f}" for x in r["E4"]["rows"])
@@ -128,7 +137,7 @@ def table(r: dict[str, Any]) -> str:
             continue
         heads = "+".join(k for k in f["device_ms"] if k != "foundation")
         rows.append(
-            f"| engine vs device-time floor ({_setup_label(f['setup'])}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
+            f"| engine vs device-time floor ({_setup_label(f['setup'], det='det' in heads)}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
             "thread mode "
             f"{f['thread']['mean']:.1f} ms ({f['thread_overhead_vs_floor']:+.0%}), process mode "
             f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}) | - | {f['file']} |"
@@ -181,7 +190,11 @@ def figure(r: dict[str, Any], path: Path) -> None:
         ns = [x["heads"] for x in rows]
         for s, style in (("engine", "o-"), ("sequential", "^:")):
             ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
-        ax.set(xlabel="detection heads", ylabel="frames/s", title="E2: parallel vs sequential heads")
+        ax.set(
+            xlabel="detection heads",
+            ylabel="frames/s",
+            title=f"E2: parallel vs sequential heads\n({_setup_label(r['E2'].get('setup', {}), det=True)})",
+        )
         ax.legend()
     ax = axes[0, 2]
     if "E3" in r:
@@ -191,7 +204,7 @@ def figure(r: dict[str, Any], path: Path) -> None:
         ax.bar(x - 0.2, [y["mps_off"]["hz"] for y in rows], 0.4, label="MPS off")
         ax.bar(x + 0.2, [y["mps_on"]["hz"] for y in rows], 0.4, label="MPS on")
         ax.set_xticks(x, labels)
-        ax.set(ylabel="frames/s", title="E3: CUDA MPS")
+        ax.set(ylabel="frames/s", title=f"E3: CUDA MPS ({_setup_label(r['E3'].get('setup', {}), det=True)})")
         ax.legend()
     ax = axes[1, 0]
     if "E4" in r:

@@ -1,0 +1,70 @@
+"""`vpengine bench report` on hand-made results files: every run of E2 and E3 gets its own row, labelled with what ran
+(with a compiled backbone, detection heads still run eager, and the label says so), and nothing is read from elsewhere."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from vpengine.bench.report import collect, table
+
+
+def _lat(ms: float) -> dict[str, float]:
+    return {"p50": ms, "p90": ms, "p99": ms, "mean": ms, "n": 10, "hz": 1e3 / ms}
+
+
+def _write(folder: Path, name: str, date: str, setup: dict, **experiments: dict) -> None:
+    base = {"backbone": "dinov2_vits14_dav2", "backend": "eager", "mode": "process", "mps": "off"}
+    data = {"benchmark": name, "date": date, "machine": {}, "setup": {**base, **setup}, **experiments}
+    (folder / f"{name}.json").write_text(json.dumps(data))
+
+
+def _e2(engine: float, sequential: float) -> dict:
+    row = {
+        "heads": 8,
+        "engine": _lat(engine),
+        "sequential": _lat(sequential),
+        "device_ms": {"foundation": 1.0, "det0": 6.0},
+        "speedup_vs_sequential": sequential / engine,
+    }
+    return {"rows": [row]}
+
+
+def _e3(det8: float, depth8: float) -> dict:
+    rows = [
+        {"head": h, "heads": 8, "mps_off": _lat(20.0), "mps_on": _lat(10.0), "throughput_gain": g}
+        for h, g in (("det", det8), ("depth", depth8))
+    ]
+    return {"rows": rows}
+
+
+def test_every_e2_and_e3_run_has_a_row_labelled_with_what_ran(tmp_path):
+    _write(tmp_path, "paper_cuda_e2", "2026-01-01T00:00:00", {}, E2=_e2(40.0, 60.0))
+    _write(
+        tmp_path,
+        "paper_cuda_e2_c",
+        "2026-01-02T00:00:00",
+        {"backend": "compile", "mps": "required"},
+        E2=_e2(20.0, 70.0),
+    )
+    _write(tmp_path, "paper_cuda_e3", "2026-01-01T00:00:00", {}, E3=_e3(0.96, 0.25))
+    _write(tmp_path, "paper_cuda_e3_rerun", "2026-01-03T00:00:00", {}, E3=_e3(0.73, 0.30))
+    r = collect(tmp_path)
+    md = table(r).splitlines()
+
+    e2 = [line for line in md if line.startswith("| E2")]
+    assert len(e2) == 2, md
+    assert "(dinov2_vits14_dav2, eager) | 1.50x vs sequential (engine 40.0 ms, sequential 60.0 ms" in e2[0]
+    assert "(dinov2_vits14_dav2, compile, detection heads eager, MPS) | 3.50x" in e2[1]
+    assert e2[1].endswith("| paper_cuda_e2_c.json |")
+
+    e3 = [line for line in md if line.startswith("| E3")]
+    assert len(e3) == 2, md
+    assert "detection: 8 heads +96%; depth: 8 heads +25%" in e3[0] and "paper_cuda_e3.json" in e3[0]
+    assert "detection: 8 heads +73%; depth: 8 heads +30%" in e3[1] and "paper_cuda_e3_rerun.json" in e3[1]
+    assert r["E3"]["file"] == "paper_cuda_e3_rerun.json"  # the figure shows the newest run
+
+
+def test_an_empty_folder_gives_a_table_with_no_rows(tmp_path):
+    md = table(collect(tmp_path)).splitlines()
+    assert md == ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]

@@ -4,7 +4,7 @@ Runs the floor's models (compiled backbone + depth + seg at 1080p) in lockstep, 
 control block (run time, and submit -> model done) and the time the caller spends copying results out of the
 mailboxes, and samples the process with py-spy when present. HEADS picks other heads: "depth:8" is E1's 8 depth heads,
 "det:8" E2's 8 detection heads (DET picks the recipe); MPS=required runs every process on a CUDA MPS daemon (found, or
-started for the run and stopped after).
+started for the run and stopped after); RESULTS=borrow takes results as borrowed views (Engine.wait(copy=False)).
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ setup = Setup(
     frames=300,
     det=os.environ.get("DET", "frcnn_dinov2_lite"),
     mps=os.environ.get("MPS", "off"),
+    results=os.environ.get("RESULTS", "copy"),
 )
 if os.environ.get("TINY"):  # a CPU smoke run of this script
     setup = Setup(
@@ -38,7 +39,7 @@ for spec in os.environ.get("HEADS", "depth,seg").split(","):  # "kind" or "kind:
     names = [f"{kind}{i}" for i in range(int(count))] if count else [kind]
     heads += [setup.head(kind, name) for name in names]
 imgs = frames(setup)
-report: dict[str, object] = {"mps": setup.mps}
+report: dict[str, object] = {"mps": setup.mps, "results": setup.results}
 stack = contextlib.ExitStack()
 if setup.mps == "required":
     setup.mps_pipe_directory = stack.enter_context(_mps_daemon())
@@ -71,10 +72,10 @@ for mode in sys.argv[1:] or ["thread", "process"]:
         copy: list[float] = []
         plain_copy_out = eng._copy_out
 
-        def timed_copy_out(pinned, _f=plain_copy_out, _c=copy):
+        def timed_copy_out(pinned, copy_results=True, _f=plain_copy_out, _c=copy):
             t = time.perf_counter()
             try:
-                return _f(pinned)
+                return _f(pinned, copy_results)
             finally:
                 _c.append(time.perf_counter() - t)
 
@@ -84,7 +85,7 @@ for mode in sys.argv[1:] or ["thread", "process"]:
             t0 = time.perf_counter()
             fid = eng.submit(imgs[i % len(imgs)])
             t1 = time.perf_counter()
-            eng.wait(fid, timeout=60)
+            eng.wait(fid, timeout=60, copy=setup.copy)
             t2 = time.perf_counter()
             lat.append(t2 - t0), sub.append(t1 - t0), wait.append(t2 - t1)
         if spy:

@@ -159,6 +159,13 @@ class OutputConfig(_Strict):
         "host",
         description="host: results land in shared host memory; device: stay on the GPU for GPU consumers.",
     )
+    leases: int = Field(
+        2,
+        ge=0,
+        le=64,
+        description="Results of this head a caller may hold without a copy (wait/results/latest with copy=False), "
+        "each keeping one output slot; the mailbox gets this many extra slots. Past that, results are copies.",
+    )
 
 
 class HeadConfig(ModelConfig):

@@ -10,6 +10,16 @@
 
 Every result names its head, frame id, capture time and latency. Nothing is lost silently: frames a model never saw
 are counted as skipped, results nobody collected as missed, and ``stats()`` shows both.
+
+Note [Borrowed results]
+~~~~~~~~~~~~~~~~~~~~~~~
+By default a result's host arrays are the caller's own copies. With ``copy=False`` (``wait``, ``results``,
+``latest``) they are read-only views of the head's output slot instead: eight 1080p float32 depth maps are 66 MB a
+frame, and copying them costs more than the heads' GPU time on a fast GPU. A borrowed slot is pinned by one of the
+head's ``output.leases`` lease readers, so the head never writes into it while anything refers to the arrays (no
+torn reads); once the last array, view of one, or tensor made from one is gone, the lease goes back at the next
+``wait``/``results``/``latest`` call. With every lease of a head out, further results of that head are copies
+(``Result.borrowed`` says which). The mapping outlives ``stop()`` as long as a view of it does.
 """
 
 from __future__ import annotations
@@ -35,7 +45,7 @@ from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.plan import Plan, make_plan
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
 from vpengine.runtime.worker import WorkerSpec
-from vpengine.transport.ring import ReaderDecl, SlotInfo, SlotRing
+from vpengine.transport.ring import ReaderDecl, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
 
@@ -74,6 +84,62 @@ class _HostOutputs:
         return arr
 
 
+class _Lease:
+    """Keeps a borrowed slot pinned: every array of a borrowed result refers to it; when the last one goes, its
+    finalizer hands the lease reader back (queued, not released there: a finalizer may run inside a ring's critical
+    section of this very thread, whose mutex is not re-entrant)."""
+
+    __slots__ = ("__weakref__", "mapping")
+
+    def __init__(self, mapping: object) -> None:
+        self.mapping = mapping  # keeps the slot's memory mapped, even past stop()
+
+
+class _SlotView:
+    """What ``np.asarray`` turns into a read-only array over a slot tensor; the array's base, holding the lease."""
+
+    __slots__ = ("__array_interface__", "_lease")
+
+    def __init__(self, tensor: torch.Tensor, lease: _Lease) -> None:
+        iface = dict(tensor.numpy().__array_interface__)
+        iface["data"] = (iface["data"][0], True)  # read-only
+        self.__array_interface__ = iface
+        self._lease = lease
+
+
+class _Leases:
+    """Lease readers of every head's output ring (Note [Borrowed results])."""
+
+    def __init__(self, readers: dict[str, list[RingReader]]) -> None:
+        self.free = {h: list(rs) for h, rs in readers.items()}
+        self.total = {h: len(rs) for h, rs in readers.items()}
+        self.returned: collections.deque[tuple[str, RingReader]] = collections.deque()
+
+    def drain(self) -> None:
+        """Release the slots whose results nobody refers to any more (caller holds the engine's read lock)."""
+        while self.returned:
+            head, reader = self.returned.popleft()
+            reader.release()
+            self.free[head].append(reader)
+
+    def borrow(self, head: str, slot: SlotInfo) -> dict[str, np.ndarray] | None:
+        """Read-only arrays over ``slot`` (pinned by the caller's reader), or None if no lease is free."""
+        free = self.free.get(head)
+        if not free:
+            return None
+        reader = free[-1]
+        held = reader.pin_slot(slot)
+        if held is None:
+            return None
+        free.pop()
+        lease = _Lease(reader.ring.data_region.keep_mapped())
+        weakref.finalize(lease, self.returned.append, (head, reader))
+        return {k: np.asarray(_SlotView(t, lease)) for k, t in held.tensors.items()}
+
+    def held(self, head: str) -> int:
+        return self.total[head] - len(self.free[head])
+
+
 @dataclass
 class Result:
     """One head's output for one frame."""
@@ -91,6 +157,9 @@ class Result:
     seq: int = 0
     t_publish: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
+    #: True: the host arrays are read-only views of the head's output slot, kept for as long as they are referenced
+    #: (Note [Borrowed results]); False: they are copies.
+    borrowed: bool = False
 
     def __getitem__(self, key: str) -> Any:
         return self.outputs[key]
@@ -183,11 +252,12 @@ class Engine:
                 shared,
             )
             for h in cfg.heads:
+                leases = [ReaderDecl(f"lease{i}", active=False) for i in range(h.output.leases)]
                 res.rings[f"out.{h.name}"] = SlotRing.create(
                     f"out.{h.name}",
                     plan.heads[h.name].output_spec,
-                    h.output.slots,
-                    [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek")],
+                    h.output.slots + h.output.leases,
+                    [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
                     device if h.output.location == "device" else "cpu",
                     shared,
                     h.output.overflow,
@@ -215,6 +285,12 @@ class Engine:
         self._frame_views = [v["frame"].numpy() for v in res.rings["input"].views]
         self._results_readers = {h: res.rings[f"out.{h}"].reader("results") for h in heads}
         self._peek_readers = {h: res.rings[f"out.{h}"].reader("peek") for h in heads}
+        self._leases = _Leases(
+            {
+                h.name: [res.rings[f"out.{h.name}"].reader(f"lease{i}") for i in range(h.output.leases)]
+                for h in cfg.heads
+            }
+        )
         self._t_start = time.monotonic()
         self._state = "running"
         self.memory_report = self._memory_report()
@@ -444,13 +520,19 @@ class Engine:
         return fid
 
     # ------------------------------------------------------------------------------------------- output
-    def _to_result(self, head: str, slot: SlotInfo) -> Result:
-        outputs: dict[str, Any] = {}
-        for k, t in slot.tensors.items():
-            if t.device.type != "cpu" or t.dtype == torch.bfloat16:
-                outputs[k] = t.clone()
-            else:
-                outputs[k] = self._host_outputs.copy(head, k, t.numpy())
+    def _to_result(self, head: str, slot: SlotInfo, copy: bool = True) -> Result:
+        outputs: dict[str, Any] | None = None
+        host = all(t.device.type == "cpu" and t.dtype != torch.bfloat16 for t in slot.tensors.values())
+        if not copy and host:
+            outputs = self._leases.borrow(head, slot)
+        borrowed = outputs is not None
+        if outputs is None:
+            outputs = {}
+            for k, t in slot.tensors.items():
+                if t.device.type != "cpu" or t.dtype == torch.bfloat16:
+                    outputs[k] = t.clone()
+                else:
+                    outputs[k] = self._host_outputs.copy(head, k, t.numpy())
         if all(isinstance(v, np.ndarray) for v in outputs.values()):
             outputs = self.plan.heads[head].finalize(outputs)
         return Result(
@@ -461,13 +543,15 @@ class Engine:
             outputs,
             slot.seq,
             slot.t_publish,
+            borrowed=borrowed,
         )
 
-    def _copy_out(self, pinned: list[tuple[str, SlotInfo]]) -> dict[str, Result]:
+    def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:
         """Results for pinned slots. Several heads' outputs are copied at once (numpy releases the GIL), which
         matters with many full-resolution outputs: eight 1080p float32 depth maps are 64 MB per frame."""
-        if len(pinned) <= 1 or sum(t.nbytes for _, s in pinned for t in s.tensors.values()) < 4 << 20:
-            return {h: self._to_result(h, s) for h, s in pinned}
+        small = sum(t.nbytes for _, s in pinned for t in s.tensors.values()) < 4 << 20
+        if not copy or len(pinned) <= 1 or small:
+            return {h: self._to_result(h, s, copy) for h, s in pinned}
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
@@ -483,25 +567,30 @@ class Engine:
             raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
         return head
 
-    def latest(self, head: str) -> Result | None:
-        """The newest output of ``head`` (a copy), or None if it has produced nothing yet."""
+    def latest(self, head: str, copy: bool = True) -> Result | None:
+        """The newest output of ``head``, or None if it has produced nothing yet. ``copy=False``: borrowed, not
+        copied, while a lease is free (Note [Borrowed results])."""
         self._require_running()
         reader = self._peek_readers[self._head(head)]
         with self._read_lock:
+            self._leases.drain()
             slot = reader.pin(peek=True)
             if slot is None:
                 return None
             try:
-                return self._to_result(head, slot)
+                return self._to_result(head, slot, copy)
             finally:
                 reader.release(slot)
 
-    def results(self, timeout: float = 0.0, heads: list[str] | None = None) -> list[Result]:
+    def results(
+        self, timeout: float = 0.0, heads: list[str] | None = None, copy: bool = True
+    ) -> list[Result]:
         """Every output published since the previous call, oldest first; waits up to ``timeout`` for at least one.
 
         The first call starts the stream (earlier outputs are not returned). Call it regularly: if it falls
         more than ``output.slots`` behind, the oldest unread outputs are overwritten and counted as missed in
-        ``stats()["results"]`` (or the head waits, with ``output.overflow: block``).
+        ``stats()["results"]`` (or the head waits, with ``output.overflow: block``). ``copy=False``: results are
+        borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
         ctl = self._res.control
@@ -509,6 +598,7 @@ class Engine:
         names = [self._head(h) for h in heads] if heads else list(self._results_readers)
         deadline = time.monotonic() + timeout
         with self._read_lock:
+            self._leases.drain()
             if not self._results_active:
                 for r in self._results_readers.values():
                     r.activate(from_now=True)
@@ -524,7 +614,7 @@ class Engine:
                             slot = self._results_readers[h].pin()
                             if slot is not None:
                                 pinned.append((h, slot))
-                        out.extend(self._copy_out(pinned).values())
+                        out.extend(self._copy_out(pinned, copy).values())
                     finally:
                         for h, slot in pinned:
                             self._results_readers[h].release(slot)
@@ -534,11 +624,14 @@ class Engine:
                     return sorted(out, key=lambda r: r.t_publish)
                 ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
 
-    def wait(self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0) -> dict[str, Result]:
+    def wait(
+        self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0, copy: bool = True
+    ) -> dict[str, Result]:
         """The outputs of ``heads`` (default: all) for frame ``frame_id``, waiting up to ``timeout`` s.
 
         Heads that skipped the frame (rate limit, newer frame) or whose output for it was already overwritten
         are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout.
+        ``copy=False``: results are borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
         ctl = self._res.control
@@ -554,6 +647,7 @@ class Engine:
         while True:
             word = ctl.output_word()
             with self._read_lock:
+                self._leases.drain()
                 found: list[tuple[str, SlotInfo]] = []
                 try:
                     for h in list(pending):
@@ -562,7 +656,7 @@ class Engine:
                             found.append((h, slot))
                         if slot is not None or newest > origin or ctl.state(h) == "failed":
                             pending.remove(h)
-                    done.update(self._copy_out(found))
+                    done.update(self._copy_out(found, copy))
                 finally:
                     for h, slot in found:
                         self._peek_readers[h].release(slot)
@@ -615,6 +709,7 @@ class Engine:
                 "pending": rr["pending"],
                 "dropped_newest": st["dropped_newest"],
                 "streaming": rr["active"],
+                "borrowed": self._leases.held(h),
             }
         return {
             "engine": {

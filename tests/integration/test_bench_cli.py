@@ -55,17 +55,19 @@ def test_paper_harness_names_a_bad_floor_head(tmp_path):
 def test_paper_harness_thread_mode_is_recorded_and_reported(tmp_path):
     p = vpengine(
         "bench", "paper", "--tiny", "--device", "cpu", "--experiments", "E1,E2", "--heads", "2", "--frames", "3",
-        "--mode", "thread", "--tag", "thread", "--out", str(tmp_path), timeout=300,
+        "--mode", "thread", "--results", "borrow", "--tag", "thread", "--out", str(tmp_path), timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
-    assert "E1 N=2: engine (thread mode, MPS off)" in p.stdout and "E2 N=2: engine (thread mode" in p.stdout
+    assert "E1 N=2: engine (thread mode, MPS off, results borrow)" in p.stdout
+    assert "E2 N=2: engine (thread mode, MPS off, results borrow)" in p.stdout
     res = json.loads((tmp_path / "paper_cpu_thread.json").read_text())
     assert res["setup"]["mode"] == "thread" and res["setup"]["mps"] == "off"
+    assert res["setup"]["results"] == "borrow"
     for key in ("E1", "E2"):
         (row,) = res[key]["rows"]
         assert row["heads"] == 2 and row["engine"]["n"] == 3 and row["sequential"]["n"] == 3
     r = vpengine("bench", "report", "--results", str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
     md = (tmp_path / "summary.md").read_text()
-    assert "| E1 shared backbone + 2 depth heads (tiny_vit, eager, thread mode) |" in md, md
-    assert "| E2 2 detection heads (tiny_vit, eager, thread mode) |" in md, md
+    assert "| E1 shared backbone + 2 depth heads (tiny_vit, eager, thread mode, borrowed results) |" in md, md
+    assert "| E2 2 detection heads (tiny_vit, eager, thread mode, borrowed results) |" in md, md

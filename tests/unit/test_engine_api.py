@@ -82,13 +82,15 @@ def test_results_stream_in_order_and_counts_what_was_not_collected():
         e.wait(ids[-1], timeout=5)
         res = e.results(timeout=1)
         assert sorted((r.head, r.frame_id) for r in res) == [("depth", 0), ("det", 0), ("seg", 0)]
-        for i in range(20):  # nobody calls results(): only the last output.slots (4) per head survive
+        for i in range(
+            20
+        ):  # nobody calls results(): only the last output.slots + output.leases (4 + 2) survive
             e.wait(e.submit(frame(i)), timeout=5)
         res = e.results(timeout=1)
         per_head = {h: [r.frame_id for r in res if r.head == h] for h in ("depth", "seg", "det")}
-        assert all(v == [17, 18, 19, 20] for v in per_head.values()), per_head
+        assert all(v == [15, 16, 17, 18, 19, 20] for v in per_head.values()), per_head
         st = e.stats()["results"]["depth"]
-        assert (st["delivered"], st["missed"], st["pending"]) == (5, 16, 0)
+        assert (st["delivered"], st["missed"], st["pending"]) == (7, 14, 0)
 
 
 def test_set_rate_validates_and_stats_show_it(engine):
@@ -116,8 +118,14 @@ def test_stats_report_counters_and_memory(engine):
         assert m["runs"] + m["skipped"] + m["dropped"] == m["frames_seen"]
         assert m["latency_ms"]["p50"] > 0
     mem = st["memory"]
-    assert mem["mailbox_host_bytes"] == sum(v["bytes"] for v in mem["mailboxes"].values())
-    assert set(mem["mailboxes"]) == {"input", "features", "out.depth", "out.seg", "out.det"}
+    boxes = mem["mailboxes"]
+    assert set(boxes) == {"input", "features", "out.depth", "out.seg", "out.det"}
+    for where, key in (("host", "mailbox_host_bytes"), ("device", "mailbox_device_bytes")):
+        at = [v["bytes"] for v in boxes.values() if (v["location"] == "cpu") == (where == "host")]
+        assert mem[key] == sum(at), (where, boxes)
+    # the input stays on the host; the output mailboxes keep output.slots + output.leases slots each
+    assert boxes["input"]["location"] == "cpu"
+    assert all(boxes[f"out.{h}"]["slots"] == 4 + 2 for h in ("depth", "seg", "det"))
 
 
 def test_wait_on_unknown_frame_and_timeout():

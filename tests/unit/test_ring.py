@@ -131,6 +131,29 @@ def test_pinned_slot_is_never_overwritten():
         ring.close()
 
 
+def test_pin_slot_takes_over_another_readers_pin_and_keeps_it():
+    ring = latest_buffer("t", SPECS, ["a", "lease"])  # 4 slots
+    try:
+        write(ring, 1)
+        a, lease = ring.reader("a"), ring.reader("lease")
+        s = a.pin()
+        held = lease.pin_slot(s)
+        assert (held.index, held.seq) == (s.index, s.seq)
+        a.release(s)  # the lease still pins it
+        for v in range(2, 20):
+            write(ring, v)
+            assert held.tensors["x"].eq(1).all() and ring.pins()["lease"] == held.index
+        with pytest.raises(RuntimeError, match="already pins a slot"):
+            lease.pin_slot(s)
+        lease.release(held)
+        for v in range(20, 26):  # now the slot is reused
+            write(ring, v)
+        assert lease.pin_slot(s) is None  # it no longer holds what s described: nothing pinned
+        assert ring.pins()["lease"] == -1
+    finally:
+        ring.close()
+
+
 def test_writer_never_waits_with_readers_plus_two_slots():
     readers = ["a", "b", "c"]
     ring = latest_buffer("t", SPECS, readers)  # 5 slots

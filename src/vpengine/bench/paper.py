@@ -64,6 +64,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "private daemon for the run if none is reachable, and stops it at the end)",
     )
     p.add_argument(
+        "--results",
+        default="copy",
+        choices=["copy", "borrow"],
+        help="how the caller takes results: its own copies, or borrowed read-only views of the output mailboxes "
+        "(Engine.wait(copy=False)); the sequential baseline copies with .cpu() either way",
+    )
+    p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)"
     )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
@@ -88,6 +95,11 @@ class Setup:
     mode: str = "process"
     mps: str = "off"
     mps_pipe_directory: str | None = None
+    results: str = "copy"
+
+    @property
+    def copy(self) -> bool:
+        return self.results == "copy"
 
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
@@ -108,6 +120,7 @@ class Setup:
                 tiny=True,
                 mode=a.mode,
                 mps=a.mps,
+                results=a.results,
             )
         return cls(
             device=a.device,
@@ -122,6 +135,7 @@ class Setup:
             frames=a.frames,
             mode=a.mode,
             mps=a.mps,
+            results=a.results,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -178,14 +192,16 @@ def pct(values: list[float] | np.ndarray) -> dict[str, float]:
     }
 
 
-def lockstep(engine: Any, imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
-    """submit -> all heads' results on the host, one frame in flight."""
+def lockstep(
+    engine: Any, imgs: list[np.ndarray], n: int, warmup: int = 10, copy: bool = True
+) -> dict[str, float]:
+    """submit -> all heads' results on the host, one frame in flight (``copy=False``: borrowed results)."""
     for i in range(warmup):
-        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120)
+        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=copy)
     lat = []
     for i in range(n):
         t = time.perf_counter()
-        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120)
+        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=copy)
         lat.append(time.perf_counter() - t)
     out = pct(lat)
     out["hz"] = 1e3 / out["mean"]
@@ -335,13 +351,15 @@ def engines(cfgs: list[Any]) -> Iterator[list[Any]]:
             e.stop()
 
 
-def independent_latency(es: list[Any], imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
+def independent_latency(
+    es: list[Any], imgs: list[np.ndarray], n: int, warmup: int = 10, copy: bool = True
+) -> dict[str, float]:
     """N independent full pipelines (each its own backbone): a frame goes to all, latency = the slowest."""
 
     def one(i: int) -> None:
         fids = [e.submit(imgs[i % len(imgs)]) for e in es]
         for e, fid in zip(es, fids):
-            e.wait(fid, timeout=120)
+            e.wait(fid, timeout=120, copy=copy)
 
     for i in range(warmup):
         one(i)
@@ -365,13 +383,13 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
     for n in ns:
         heads = [setup.head("depth", f"depth{i}") for i in range(n)]
         with engines([setup.config(heads)]) as (eng,):
-            shared = lockstep(eng, imgs, setup.frames)
+            shared = lockstep(eng, imgs, setup.frames, copy=setup.copy)
         seq = InProcess(setup, heads)
         sequential = seq.latency(imgs, setup.frames)
         dt = seq.device_times(imgs[0])
         del seq
         with engines([setup.config([setup.head("depth", "depth")], mode="process") for _ in range(n)]) as es:
-            indep = independent_latency(es, imgs, setup.frames)
+            indep = independent_latency(es, imgs, setup.frames, copy=setup.copy)
         row = {
             "heads": n,
             "engine": shared,
@@ -386,7 +404,7 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
             row["ideal_vs_independent"] = n * (b + h) / (b + n * h)
         rows.append(row)
         log(
-            f"E1 N={n}: engine ({setup.mode} mode, MPS {setup.mps}) {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
+            f"E1 N={n}: engine ({setup.mode} mode, MPS {setup.mps}, results {setup.results}) {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
             f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
             + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")
@@ -399,7 +417,7 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
     for n in ns:
         heads = [setup.head("det", f"det{i}") for i in range(n)]
         with engines([setup.config(heads)]) as (eng,):
-            parallel = lockstep(eng, imgs, setup.frames)
+            parallel = lockstep(eng, imgs, setup.frames, copy=setup.copy)
         seq = InProcess(setup, heads)
         sequential = seq.latency(imgs, setup.frames)
         dt = seq.device_times(imgs[0])
@@ -413,7 +431,7 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
         }
         rows.append(row)
         log(
-            f"E2 N={n}: engine ({setup.mode} mode, MPS {setup.mps}) {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
+            f"E2 N={n}: engine ({setup.mode} mode, MPS {setup.mps}, results {setup.results}) {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
         )
     return {"rows": rows}
@@ -429,7 +447,7 @@ def e3(setup: Setup, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> di
                 for setting in ("off", "required"):
                     cfg = setup.config(heads, mps=setting, mps_pipe_directory=daemon)
                     with engines([cfg]) as (eng,):
-                        res[setting] = lockstep(eng, imgs, setup.frames)
+                        res[setting] = lockstep(eng, imgs, setup.frames, copy=setup.copy)
                         res[setting]["workers_on_mps"] = len(eng.stats()["engine"]["mps"]["workers_on_mps"])
                 gain = res["off"]["mean"] / res["required"]["mean"] - 1
                 rows.append(
@@ -509,7 +527,7 @@ def e5(setup: Setup, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
         for k in range(n_frames):
             t = t0 + k / 30.0
             while (now := time.monotonic()) < t:
-                for r in eng.results(timeout=t - now):
+                for r in eng.results(timeout=t - now, copy=setup.copy):
                     lat[r.head].append(r.latency)
                     per_frame.setdefault(r.frame_id, {})[r.head] = r.latency
             fid = eng.submit(imgs[k % len(imgs)])
@@ -529,7 +547,7 @@ def e5(setup: Setup, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
                 log(f"E5 {k}/{n_frames} frames")
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
-            rs = eng.results(timeout=0.5)
+            rs = eng.results(timeout=0.5, copy=setup.copy)
             for r in rs:
                 lat[r.head].append(r.latency)
                 per_frame.setdefault(r.frame_id, {})[r.head] = r.latency
@@ -602,7 +620,7 @@ def floor(
         out["floor_sum_ms"] = sum(dt.values())
     for mode in ("thread", "process"):
         with engines([setup.config(heads, mode=mode)]) as (eng,):
-            out[mode] = lockstep(eng, imgs, setup.frames)
+            out[mode] = lockstep(eng, imgs, setup.frames, copy=setup.copy)
         if dt:
             out[f"{mode}_overhead_vs_floor"] = out[mode]["mean"] / out["floor_sum_ms"] - 1
     log(

@@ -61,6 +61,8 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
         label += f", {setup['mode']} mode"
     if setup.get("mps", "off") != "off":
         label += ", MPS"
+    if setup.get("results", "copy") == "borrow":
+        label += ", borrowed results"
     return label
 
 

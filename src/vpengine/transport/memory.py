@@ -61,6 +61,11 @@ class Region(ABC):
     def close(self) -> None:
         """Unmap and free this process's references. Safe to call twice."""
 
+    def keep_mapped(self) -> object:
+        """An object that keeps this process's mapping of the region valid for as long as it lives, even past
+        ``close()``: what arrays handed to a caller hold (Note [Borrowed results] in engine.py)."""
+        raise TypeError(f"region {self.name!r} ({self.kind}) cannot outlive close()")
+
 
 class HostRegion(Region):
     """Shared host memory: memfd + mmap. Owner-only by construction, freed when the last process unmaps it."""
@@ -97,6 +102,11 @@ class HostRegion(Region):
     def address(self) -> int:
         return _linux.address_of(self.mm, 0)
 
+    def keep_mapped(self) -> object:
+        # A buffer export: while it lives, mmap.close() refuses (BufferError) and the mapping goes with the last
+        # reference. torch.frombuffer's tensors do not hold one, so they alone would not keep it mapped.
+        return memoryview(self.mm)
+
     def export(self, fds: list[int]) -> RegionHandle:
         if self._fd is None:
             raise TypeError(
@@ -129,7 +139,7 @@ class HostRegion(Region):
             try:
                 self._mm.close()
             except BufferError:
-                # A view is still alive somewhere (a result the user kept); the mapping goes with it.
+                # A borrowed result still holds the mapping (keep_mapped); it is unmapped when that goes.
                 pass
             self._mm = None
         if self._fd is not None:
@@ -158,6 +168,9 @@ class LocalRegion(Region):
         if self._tensor is None:
             raise ValueError(f"region {self.name!r} is closed")
         return self._tensor
+
+    def keep_mapped(self) -> object:
+        return self.tensor()  # the storage lives while any tensor of it does
 
     def close(self) -> None:
         self._tensor = None

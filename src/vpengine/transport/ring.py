@@ -522,6 +522,25 @@ class RingReader:
             q[b + _R_PINNED] = found
             return ring._slot_info(found), newest
 
+    def pin_slot(self, slot: SlotInfo) -> SlotInfo | None:
+        """Pin the slot that ``slot`` (pinned by another reader) describes, without accounting; None if it no longer
+        holds that output (not published, or a different sequence number).
+
+        While the other reader still pins it the slot cannot change, so this reader takes it over and keeps it
+        after the other releases: how ``Engine`` lends a result without copying it (Note [Borrowed results]).
+        """
+        ring, q = self.ring, self.ring._q
+        b = self._b
+        with ring._mutex:
+            if q[b + _R_PINNED] >= 0:
+                raise RuntimeError(f"reader {self.name!r} of ring {ring.name!r} already pins a slot")
+            sb = ring._slot(slot.index)
+            if q[sb + _S_STATE] != _PUBLISHED or q[sb + _S_SEQ] != slot.seq:
+                return None
+            q[b + _R_PINNED] = slot.index
+            q[b + _R_PID] = ring._pid
+            return ring._slot_info(slot.index)
+
     def available(self) -> bool:
         with self.ring._mutex:
             return self._find(False) is not None

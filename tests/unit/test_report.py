@@ -68,3 +68,39 @@ def test_every_e2_and_e3_run_has_a_row_labelled_with_what_ran(tmp_path):
 def test_an_empty_folder_gives_a_table_with_no_rows(tmp_path):
     md = table(collect(tmp_path)).splitlines()
     assert md == ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]
+
+
+def _floor(transfers: bool) -> dict:
+    out = {
+        "device_ms": {"foundation": 1.0, "depth": 0.5, "seg": 0.5},
+        "floor_sum_ms": 2.0,
+        "thread": _lat(3.0),
+        "process": _lat(2.5),
+        "thread_overhead_vs_floor": 0.5,
+        "process_overhead_vs_floor": 0.25,
+    }
+    if transfers:
+        out.update(
+            transfer_ms={"upload": 0.2, "download": 0.3},
+            floor_with_transfers_ms=2.5,
+            thread_overhead_vs_floor_with_transfers=0.2,
+            process_overhead_vs_floor_with_transfers=0.0,
+        )
+    return out
+
+
+def test_floor_rows_add_the_transfers_where_they_were_measured(tmp_path):
+    _write(
+        tmp_path, "paper_cuda_floor_old", "2026-01-01T00:00:00", {"backend": "compile"}, floor=_floor(False)
+    )
+    _write(
+        tmp_path, "paper_cuda_floor_new", "2026-01-02T00:00:00", {"backend": "compile"}, floor=_floor(True)
+    )
+    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
+    assert len(rows) == 2, rows
+    assert "floor 2.0 ms; thread mode 3.0 ms (+50%), process mode 2.5 ms (+25%) |" in rows[0]
+    assert "transfers" not in rows[0]
+    assert (
+        "with the frame's upload and the results' download 2.5 ms: thread mode +20%, process mode +0% |"
+        in rows[1]
+    )

@@ -138,11 +138,18 @@ def table(r: dict[str, Any]) -> str:
         if "floor_sum_ms" not in f:
             continue
         heads = "+".join(k for k in f["device_ms"] if k != "foundation")
+        with_xfer = ""
+        if f.get("transfer_ms"):  # runs before the transfers were measured have only the compute floor
+            with_xfer = (
+                f"; with the frame's upload and the results' download {f['floor_with_transfers_ms']:.1f} ms: "
+                f"thread mode {f['thread_overhead_vs_floor_with_transfers']:+.0%}, process mode "
+                f"{f['process_overhead_vs_floor_with_transfers']:+.0%}"
+            )
         rows.append(
             f"| engine vs device-time floor ({_setup_label(f['setup'], det='det' in heads)}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
             "thread mode "
             f"{f['thread']['mean']:.1f} ms ({f['thread_overhead_vs_floor']:+.0%}), process mode "
-            f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}) | - | {f['file']} |"
+            f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}){with_xfer} | - | {f['file']} |"
         )
     res = r.get("resources_gpu.json")
     if res:

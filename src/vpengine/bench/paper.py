@@ -293,15 +293,7 @@ class InProcess:
                     if self.graphed[name]
                     else _graphed(fn, inputs, torch)
                 )
-                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                times = []
-                for _ in range(n):
-                    start.record()
-                    run()
-                    end.record()
-                    end.synchronize()
-                    times.append(start.elapsed_time(end))
-                out[name] = float(np.median(times))
+                out[name] = _event_ms(run, n, torch)
             return out
 
     def transfer_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
@@ -328,16 +320,21 @@ class InProcess:
             }
             out = {}
             for name, run in copies.items():
-                start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-                times = []
-                for _ in range(n):
-                    start.record()
-                    run()
-                    end.record()
-                    end.synchronize()
-                    times.append(start.elapsed_time(end))
-                out[name] = float(np.median(times))
+                out[name] = _event_ms(run, n, torch)
             return out
+
+
+def _event_ms(run: Any, n: int, torch: Any) -> float:
+    """Median device time (ms) of ``run()`` over ``n`` calls, between CUDA events on the current stream."""
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    times = []
+    for _ in range(n):
+        start.record()
+        run()
+        end.record()
+        end.synchronize()
+        times.append(start.elapsed_time(end))
+    return float(np.median(times))
 
 
 def _graphed(fn: Any, inputs: dict[str, Any], torch: Any) -> Any:

@@ -371,3 +371,12 @@ def test_model_names_and_bad_input_messages_are_counted_not_fatal():
         assert core.counters["decode_errors"] == 1 and core.counters["submitted"] == 1
     finally:
         core.stop()
+
+
+def test_the_bridge_submits_only_the_newest_queued_frame_unless_the_engine_takes_every_frame():
+    from vpengine.ros2.bridge import frames_to_submit
+
+    assert frames_to_submit(["a", "b", "c"], every_frame=False) == (["c"], 2)
+    assert frames_to_submit(["a", "b", "c"], every_frame=True) == (["a", "b", "c"], 0)
+    assert frames_to_submit(["a"], every_frame=False) == (["a"], 0)
+    assert frames_to_submit([], every_frame=False) == ([], 0)

@@ -113,6 +113,14 @@ def diagnostics_to_dds(d: DiagnosticsOut) -> T.DiagnosticArray_:
     )
 
 
+def frames_to_submit(raws: list[Any], every_frame: bool) -> tuple[list[Any], int]:
+    """The queued input samples to submit, oldest first, and how many are superseded: all of them in order when the
+    engine takes every frame (``every_frame``), else only the newest."""
+    if every_frame or len(raws) <= 1:
+        return raws, 0
+    return raws[-1:], len(raws) - 1
+
+
 class Ros2Bridge:
     """Runs a :class:`Ros2Core` on CycloneDDS. ``start()``, then ``wait()`` / ``stop()``; or use it as a context
     manager. ``error`` holds the first exception of a worker thread (the bridge stops on it)."""
@@ -210,15 +218,17 @@ class Ros2Bridge:
         compressed = self.opts.compressed
         decode = cdr.decode_compressed_image if compressed else cdr.decode_image
         handle = self.core.handle_compressed if compressed else self.core.handle_image
+        # With newest-wins input (input_mode: latest) the engine would take only the newest of several queued frames,
+        # so only that one is submitted and the others are counted as superseded (a frame copy saved each). With
+        # input_mode: fifo the engine takes every frame in order, so every queued frame is submitted.
+        every_frame = self.core.config.foundation_model.input_mode == "fifo"
         while not self._stop.is_set():
             if not self._input.wait(0.2):
                 continue
-            raws = self._input.take_raw(64)
-            # When frames queue up (the process was descheduled), only the newest goes to the engine: the engine
-            # would take only the newest anyway, and skipping the others saves a frame copy each. Counted.
-            if len(raws) > 1:
-                self.core.count_superseded(len(raws) - 1)
-            for raw in raws[-1:]:
+            raws, superseded = frames_to_submit(self._input.take_raw(64), every_frame)
+            if superseded:
+                self.core.count_superseded(superseded)
+            for raw in raws:
                 try:
                     msg = decode(raw)
                 except cdr.CdrError as e:

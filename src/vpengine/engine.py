@@ -84,6 +84,11 @@ class _HostOutputs:
         return arr
 
 
+def _numpy_output(t: torch.Tensor) -> bool:
+    """Whether an output slot tensor is handed out as a numpy array (host, and a dtype numpy has), not a tensor."""
+    return t.device.type == "cpu" and t.dtype != torch.bfloat16
+
+
 class _Lease:
     """Keeps a borrowed slot pinned: every array of a borrowed result refers to it; when the last one goes, its
     finalizer hands the lease reader back (queued, not released there: a finalizer may run inside a ring's critical
@@ -522,17 +527,14 @@ class Engine:
     # ------------------------------------------------------------------------------------------- output
     def _to_result(self, head: str, slot: SlotInfo, copy: bool = True) -> Result:
         outputs: dict[str, Any] | None = None
-        host = all(t.device.type == "cpu" and t.dtype != torch.bfloat16 for t in slot.tensors.values())
-        if not copy and host:
+        if not copy and all(_numpy_output(t) for t in slot.tensors.values()):
             outputs = self._leases.borrow(head, slot)
         borrowed = outputs is not None
         if outputs is None:
-            outputs = {}
-            for k, t in slot.tensors.items():
-                if t.device.type != "cpu" or t.dtype == torch.bfloat16:
-                    outputs[k] = t.clone()
-                else:
-                    outputs[k] = self._host_outputs.copy(head, k, t.numpy())
+            outputs = {
+                k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()
+                for k, t in slot.tensors.items()
+            }
         if all(isinstance(v, np.ndarray) for v in outputs.values()):
             outputs = self.plan.heads[head].finalize(outputs)
         return Result(

@@ -101,6 +101,10 @@ class Setup:
     def copy(self) -> bool:
         return self.results == "copy"
 
+    @property
+    def engine_label(self) -> str:
+        return f"{self.mode} mode, MPS {self.mps}, results {self.results}"
+
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
         if a.tiny:
@@ -192,20 +196,28 @@ def pct(values: list[float] | np.ndarray) -> dict[str, float]:
     }
 
 
-def lockstep(
-    engine: Any, imgs: list[np.ndarray], n: int, warmup: int = 10, copy: bool = True
-) -> dict[str, float]:
-    """submit -> all heads' results on the host, one frame in flight (``copy=False``: borrowed results)."""
+def timed(step: Any, n: int, warmup: int = 10) -> dict[str, float]:
+    """Latency percentiles (ms) and rate of ``step(i)`` for i in 0..n-1, after ``warmup`` untimed calls."""
     for i in range(warmup):
-        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=copy)
+        step(i)
     lat = []
     for i in range(n):
         t = time.perf_counter()
-        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=copy)
+        step(i)
         lat.append(time.perf_counter() - t)
     out = pct(lat)
     out["hz"] = 1e3 / out["mean"]
     return out
+
+
+def lockstep(engine: Any, imgs: list[np.ndarray], setup: Setup, warmup: int = 10) -> dict[str, float]:
+    """submit -> all heads' results on the host, one frame in flight, ``setup.frames`` times (results copied or
+    borrowed as ``setup.results`` says)."""
+
+    def step(i: int) -> None:
+        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=setup.copy)
+
+    return timed(step, setup.frames, warmup)
 
 
 def _sync(device: Any) -> None:
@@ -263,16 +275,7 @@ class InProcess:
         return outs
 
     def latency(self, imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
-        for i in range(warmup):
-            self.run(imgs[i % len(imgs)])
-        lat = []
-        for i in range(n):
-            t = time.perf_counter()
-            self.run(imgs[i % len(imgs)])
-            lat.append(time.perf_counter() - t)
-        out = pct(lat)
-        out["hz"] = 1e3 / out["mean"]
-        return out
+        return timed(lambda i: self.run(imgs[i % len(imgs)]), n, warmup)
 
     def device_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
         """Median device time (ms) of the backbone and of each head, with CUDA graphs where they capture."""
@@ -384,25 +387,16 @@ def engines(cfgs: list[Any]) -> Iterator[list[Any]]:
 
 
 def independent_latency(
-    es: list[Any], imgs: list[np.ndarray], n: int, warmup: int = 10, copy: bool = True
+    es: list[Any], imgs: list[np.ndarray], setup: Setup, warmup: int = 10
 ) -> dict[str, float]:
     """N independent full pipelines (each its own backbone): a frame goes to all, latency = the slowest."""
 
     def one(i: int) -> None:
         fids = [e.submit(imgs[i % len(imgs)]) for e in es]
         for e, fid in zip(es, fids):
-            e.wait(fid, timeout=120, copy=copy)
+            e.wait(fid, timeout=120, copy=setup.copy)
 
-    for i in range(warmup):
-        one(i)
-    lat = []
-    for i in range(n):
-        t = time.perf_counter()
-        one(i)
-        lat.append(time.perf_counter() - t)
-    out = pct(lat)
-    out["hz"] = 1e3 / out["mean"]
-    return out
+    return timed(one, setup.frames, warmup)
 
 
 def log(msg: str) -> None:
@@ -415,13 +409,13 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
     for n in ns:
         heads = [setup.head("depth", f"depth{i}") for i in range(n)]
         with engines([setup.config(heads)]) as (eng,):
-            shared = lockstep(eng, imgs, setup.frames, copy=setup.copy)
+            shared = lockstep(eng, imgs, setup)
         seq = InProcess(setup, heads)
         sequential = seq.latency(imgs, setup.frames)
         dt = seq.device_times(imgs[0])
         del seq
         with engines([setup.config([setup.head("depth", "depth")], mode="process") for _ in range(n)]) as es:
-            indep = independent_latency(es, imgs, setup.frames, copy=setup.copy)
+            indep = independent_latency(es, imgs, setup)
         row = {
             "heads": n,
             "engine": shared,
@@ -436,7 +430,7 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
             row["ideal_vs_independent"] = n * (b + h) / (b + n * h)
         rows.append(row)
         log(
-            f"E1 N={n}: engine ({setup.mode} mode, MPS {setup.mps}, results {setup.results}) {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
+            f"E1 N={n}: engine ({setup.engine_label}) {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
             f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
             + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")
@@ -449,7 +443,7 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
     for n in ns:
         heads = [setup.head("det", f"det{i}") for i in range(n)]
         with engines([setup.config(heads)]) as (eng,):
-            parallel = lockstep(eng, imgs, setup.frames, copy=setup.copy)
+            parallel = lockstep(eng, imgs, setup)
         seq = InProcess(setup, heads)
         sequential = seq.latency(imgs, setup.frames)
         dt = seq.device_times(imgs[0])
@@ -463,7 +457,7 @@ def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
         }
         rows.append(row)
         log(
-            f"E2 N={n}: engine ({setup.mode} mode, MPS {setup.mps}, results {setup.results}) {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
+            f"E2 N={n}: engine ({setup.engine_label}) {parallel['mean']:.1f} ms, sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
         )
     return {"rows": rows}
@@ -479,7 +473,7 @@ def e3(setup: Setup, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> di
                 for setting in ("off", "required"):
                     cfg = setup.config(heads, mps=setting, mps_pipe_directory=daemon)
                     with engines([cfg]) as (eng,):
-                        res[setting] = lockstep(eng, imgs, setup.frames, copy=setup.copy)
+                        res[setting] = lockstep(eng, imgs, setup)
                         res[setting]["workers_on_mps"] = len(eng.stats()["engine"]["mps"]["workers_on_mps"])
                 gain = res["off"]["mean"] / res["required"]["mean"] - 1
                 rows.append(
@@ -655,7 +649,7 @@ def floor(
         out["floor_with_transfers_ms"] = out["floor_sum_ms"] + sum(xfer.values())
     for mode in ("thread", "process"):
         with engines([setup.config(heads, mode=mode)]) as (eng,):
-            out[mode] = lockstep(eng, imgs, setup.frames, copy=setup.copy)
+            out[mode] = lockstep(eng, imgs, setup)
         if dt:
             out[f"{mode}_overhead_vs_floor"] = out[mode]["mean"] / out["floor_sum_ms"] - 1
             out[f"{mode}_overhead_vs_floor_with_transfers"] = (

@@ -25,28 +25,27 @@ def _load(folder: Path, name: str) -> dict[str, Any] | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
-def _find(folder: Path, key: str) -> tuple[str, dict[str, Any]] | None:
-    """The newest paper results file holding experiment ``key``."""
-    best = None
-    for path in sorted(folder.glob("paper_*.json")):
-        data = json.loads(path.read_text())
-        if key in data and (best is None or data.get("date", "") >= best[1].get("date", "")):
-            best = (path.name, data)
-    return best
+def _paper_files(folder: Path) -> list[tuple[str, dict[str, Any]]]:
+    """Every paper results file in ``folder`` (name, contents), each read once."""
+    return [(p.name, json.loads(p.read_text())) for p in sorted(folder.glob("paper_*.json"))]
 
 
-def _find_all(folder: Path, key: str) -> list[dict[str, Any]]:
-    """Every paper results file holding experiment ``key``, oldest first, each with its file name and setup.
+def _runs(files: list[tuple[str, dict[str, Any]]], key: str) -> list[dict[str, Any]]:
+    """Every run of experiment ``key``, oldest first, each with its file name, setup, date and machine.
 
     Repeated runs of one setup all stay: the spread between runs is part of the result.
     """
-    runs = []
-    for path in sorted(folder.glob("paper_*.json")):
-        data = json.loads(path.read_text())
-        if key in data:
-            runs.append(
-                {"file": path.name, **data[key], "setup": data.get("setup", {}), "date": data.get("date", "")}
-            )
+    runs = [
+        {
+            "file": name,
+            **data[key],
+            "setup": data.get("setup", {}),
+            "date": data.get("date", ""),
+            "machine": data.get("machine", {}),
+        }
+        for name, data in files
+        if key in data
+    ]
     return sorted(runs, key=lambda x: (x["date"], x["file"]))
 
 
@@ -68,25 +67,17 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
 
 def collect(folder: Path) -> dict[str, Any]:
     out: dict[str, Any] = {}
+    files = _paper_files(folder)
     for key in ("E1", "E2", "E3", "E4", "E5", "floor"):
-        found = _find(folder, key)
-        if found:
-            data = found[1]
-            out[key] = {
-                "file": found[0],
-                **data[key],
-                "machine": data.get("machine", {}),
-                "setup": data.get("setup", {}),
-            }
-    # E1, E2, E3 and the floor are run for several backbones, backends and modes: every run gets a row.
-    out["E1_all"] = _find_all(folder, "E1")
-    out["E2_all"] = _find_all(folder, "E2")
-    out["E3_all"] = _find_all(folder, "E3")
-    out["floor_all"] = _find_all(folder, "floor")
+        runs = _runs(files, key)
+        if runs:
+            out[key] = runs[-1]  # the newest
+        # E1, E2, E3 and the floor are run for several backbones, backends and modes: every run gets a row.
+        if key in ("E1", "E2", "E3", "floor"):
+            out[f"{key}_all"] = runs
     for key in ("E1", "E2"):  # the figure shows the run with the most head counts
         if out[f"{key}_all"]:
-            best = max(out[f"{key}_all"], key=lambda x: (len(x["rows"]), x["date"]))
-            out[key] = {**best, "machine": out.get(key, {}).get("machine", {})}
+            out[key] = max(out[f"{key}_all"], key=lambda x: (len(x["rows"]), x["date"]))
     for name in ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"):
         data = _load(folder, name)
         if data:

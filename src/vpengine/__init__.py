@@ -8,13 +8,21 @@ __version__ = "0.1.0"
 
 if TYPE_CHECKING:
     from vpengine.config import EngineConfig, load_config
-    from vpengine.engine import Engine, EngineDeadError, EngineStartError, Result
+    from vpengine.engine import Engine, EngineDeadError, EngineStartError, FrameSlot, Result
 
-__all__ = ["Engine", "EngineConfig", "EngineDeadError", "EngineStartError", "Result", "load_config"]
+__all__ = [
+    "Engine",
+    "EngineConfig",
+    "EngineDeadError",
+    "EngineStartError",
+    "FrameSlot",
+    "Result",
+    "load_config",
+]
 
 
 def __getattr__(name: str) -> Any:  # lazy: `import vpengine` stays light for worker start-up and the CLI
-    if name in ("Engine", "EngineDeadError", "EngineStartError", "Result"):
+    if name in ("Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"):
         from vpengine import engine
 
         return getattr(engine, name)

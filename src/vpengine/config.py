@@ -205,6 +205,15 @@ class RuntimeConfig(_Strict):
     poll_s: float = Field(
         0.5, gt=0, le=5, description="Longest sleep of any wait (stop and heartbeat latency)."
     )
+    sync_spin_us: float = Field(
+        0.0,
+        ge=0,
+        le=5000,
+        description="How a CUDA worker waits for its device work (Note [Device sync]). 0: it sleeps in the driver "
+        "until the work is done (no CPU while waiting; waking up takes 0.1-0.2 ms). > 0: it sleeps through the "
+        "part of the work its recent runs predict and polls the rest, for at most twice this long, then sleeps "
+        "again: a faster hand-over for at most that much CPU time per run. Never spins while idle.",
+    )
 
 
 class LoggingConfig(_Strict):

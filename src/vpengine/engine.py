@@ -20,6 +20,16 @@ head's ``output.leases`` lease readers, so the head never writes into it while a
 torn reads); once the last array, view of one, or tensor made from one is gone, the lease goes back at the next
 ``wait``/``results``/``latest`` call. With every lease of a head out, further results of that head are copies
 (``Result.borrowed`` says which). The mapping outlives ``stop()`` as long as a view of it does.
+
+Note [Frame slots]
+~~~~~~~~~~~~~~~~~~
+``submit`` copies the caller's frame into an input slot: 6 MB for a 1080p frame, about 1 ms of memcpy, which on a
+fast GPU is as long as the backbone. ``frame_slot`` lends the slot itself instead, so a camera or decoder writes the
+frame there once (``cv2.VideoCapture.read(image=...)``, a driver's DMA buffer copy, a message's payload). The slot is
+the writer's (state WRITING) until the with-block ends, so no reader sees a half-written frame; leaving the block
+publishes it exactly as ``submit`` would (same frame ids, counters and skip accounting), and an exception or
+``cancel()`` gives it back unpublished. The submit lock is held for the whole block: frames enter the engine in one
+order, from one writer at a time.
 """
 
 from __future__ import annotations
@@ -49,7 +59,7 @@ from vpengine.transport.ring import ReaderDecl, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
 
-__all__ = ["Engine", "EngineDeadError", "EngineStartError", "Result"]
+__all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"]
 
 _ORIGINS_KEPT = 8192
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
@@ -196,6 +206,57 @@ class _Resources:
         return forced
 
 
+class FrameSlot:
+    """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
+
+    def __init__(self, engine: Engine, frame_id: int | None, timestamp: float | None) -> None:
+        self._engine = engine
+        self.timestamp = (
+            timestamp  # capture time in seconds; may be set inside the block (default: when it ends)
+        )
+        self._frame_id_arg = frame_id
+        self.frame_id: int | None = None  # set when the block ends and the frame is submitted
+        self.array: np.ndarray | None = None
+        self._slot: SlotInfo | None = None
+        self._cancelled = False
+
+    def cancel(self) -> None:
+        """Submit nothing when the block ends (e.g. the camera returned no frame)."""
+        self._cancelled = True
+
+    def __enter__(self) -> FrameSlot:
+        eng = self._engine
+        if self._slot is not None or self.frame_id is not None or self._cancelled:
+            raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
+        eng._submit_lock.acquire()
+        try:
+            eng._require_running()
+            slot = eng._input_writer.acquire()
+            assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
+        except BaseException:
+            eng._submit_lock.release()
+            raise
+        eng._filling = threading.get_ident()
+        self._slot = slot
+        self.array = eng._frame_views[slot.index]
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        eng, slot = self._engine, self._slot
+        assert slot is not None
+        self.array, self._slot = None, None  # the slot is the engine's again: no writes after the block
+        try:
+            if exc_type is not None or self._cancelled or eng._state != "running":
+                eng._input_writer.abort(slot)
+                return
+            t_submit = time.monotonic()
+            t_capture = time.time() if self.timestamp is None else float(self.timestamp)
+            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit)
+        finally:
+            eng._filling = None
+            eng._submit_lock.release()
+
+
 class Engine:
     """One foundation model shared by many heads. See the module docstring for a tour."""
 
@@ -210,6 +271,7 @@ class Engine:
         self._finalizer = weakref.finalize(self, _Resources.close, self._res)
         self._state = "planned"
         self._submit_lock = threading.Lock()
+        self._filling: int | None = None  # thread id holding an open frame_slot (and _submit_lock)
         self._read_lock = threading.Lock()
         self._next_id = 0
         self._submitted = 0
@@ -509,19 +571,49 @@ class Engine:
             raise
         t_submit = time.monotonic()
         t_capture = time.time() if timestamp is None else float(timestamp)
+        self._refuse_inside_frame_slot()
         with self._submit_lock:
-            fid = self._next_id if frame_id is None else int(frame_id)
-            self._next_id = fid + 1
             slot = self._input_writer.acquire()
             assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
             # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then spin
             # (one per core); a plain memcpy costs a fraction of that at 30 Hz.
             np.copyto(self._frame_views[slot.index], arr)
-            seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
-            self._submitted += 1
-            self._origins[fid] = seq
-            if len(self._origins) > _ORIGINS_KEPT:
-                self._origins.popitem(last=False)
+            return self._publish_input(slot, frame_id, t_capture, t_submit)
+
+    def frame_slot(self, frame_id: int | None = None, timestamp: float | None = None) -> FrameSlot:
+        """The next input slot, to write a frame into in place: ``submit`` without its copy (Note [Frame slots]).
+
+        ::
+
+            with engine.frame_slot() as slot:
+                ok, _ = cap.read(image=slot.array)   # the camera decodes straight into the input mailbox
+                if not ok:
+                    slot.cancel()                    # nothing is submitted
+            fid = slot.frame_id                      # set when the block ends: the frame is submitted then
+
+        ``slot.array`` is a writable ``(height, width, 3)`` array of the configured dtype; its content is whatever an
+        earlier frame left there until you write it. Leaving the block submits it (latency counts from there); an
+        exception inside the block or ``cancel()`` gives the slot back and submits nothing. One slot is open at a
+        time: other threads' ``submit``/``frame_slot`` calls wait for it to close, so fill it promptly (a camera
+        read, a decode); calling them from inside the block raises RuntimeError.
+        """
+        self._require_running()
+        self._refuse_inside_frame_slot()
+        return FrameSlot(self, frame_id, timestamp)
+
+    def _refuse_inside_frame_slot(self) -> None:
+        if self._filling == threading.get_ident():
+            raise RuntimeError("a frame_slot is open in this thread: submit after its with-block ends")
+
+    def _publish_input(self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float) -> int:
+        """Publish a filled input slot; the caller holds ``_submit_lock``."""
+        fid = self._next_id if frame_id is None else int(frame_id)
+        self._next_id = fid + 1
+        seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
+        self._submitted += 1
+        self._origins[fid] = seq
+        if len(self._origins) > _ORIGINS_KEPT:
+            self._origins.popitem(last=False)
         return fid
 
     # ------------------------------------------------------------------------------------------- output

@@ -189,6 +189,58 @@ def test_replay_is_ordered_on_the_callers_stream():
     assert_same_results("depth", {"depth": out}, {"depth": eager(b)["depth"].clone()}, 1e-4, "late input")
 
 
+# ------------------------------------------------------------------------------------------ slot-bound runs
+@pytest.mark.parametrize("name", ["foundation", "depth"])
+def test_slot_bound_runs_read_and_write_the_slots_they_are_told(name):
+    """Note [Slot-bound runs]: run_bound(i, j) reads input slot i and writes output slot j, page-locked host slots
+    included (the foundation's frames, host outputs), with what a call would give, and allocates nothing."""
+    cfg = tiny("thread", "device=cuda")
+    worker = torch.cuda.Stream()
+    with torch.cuda.stream(worker):
+        ex = make_executor(build(cfg, name), "compile", CUDA, name)
+    eager = make_executor(build(cfg, name), "eager", CUDA, name)
+    on_host = name == "foundation"  # frames come from host mailboxes; the depth head's outputs go to one
+    ins = [inputs_for(cfg, name, i) for i in range(3)]
+    if on_host:
+        ins = [{k: v.cpu().pin_memory() for k, v in x.items()} for x in ins]
+    outs = [
+        {
+            k: torch.empty(s.shape, dtype=s.torch_dtype, device="cpu" if not on_host else CUDA)
+            for k, s in ex.output_spec.items()
+        }
+        for _ in range(2)
+    ]
+    if not on_host:
+        outs = [{k: v.pin_memory() for k, v in o.items()} for o in outs]
+    with torch.cuda.stream(worker):
+        assert ex.bind(ins, outs) is True
+    assert ex.describe()["slot_bound"] is True
+    for i, j in [(0, 1), (2, 0), (1, 1), (0, 0)]:
+        torch.cuda.synchronize()
+        allocated = torch.cuda.memory_allocated()
+        with torch.cuda.stream(worker), torch.inference_mode():
+            ex.run_bound(i, j)
+        worker.synchronize()
+        assert torch.cuda.memory_allocated() == allocated, f"slot {i} -> {j} allocated"
+        want = snapshot(eager({k: v.to(CUDA) for k, v in ins[i].items()}))
+        got = {k: v.to(CUDA) for k, v in outs[j].items()}
+        assert_same_results(name, got, want, 1e-4, f"{name} slot {i} -> {j}")
+
+
+def test_a_slot_that_cannot_be_bound_leaves_the_executor_running_unbound():
+    """Pageable host slots cannot be copied inside a CUDA graph: bind says no and calls keep working."""
+    cfg = tiny("thread", "device=cuda")
+    ex = make_executor(build(cfg, "foundation"), "compile", CUDA, "foundation")
+    pageable = [{k: v.cpu() for k, v in inputs_for(cfg, "foundation", 0).items()}]
+    outs = [{k: torch.empty(s.shape, dtype=s.torch_dtype, device=CUDA) for k, s in ex.output_spec.items()}]
+    assert ex.bind(pageable, outs) is False
+    assert ex.describe()["slot_bound"] is False
+    x = inputs_for(cfg, "foundation", 1)
+    eager = make_executor(build(cfg, "foundation"), "eager", CUDA, "foundation")
+    assert_same_results("foundation", snapshot(ex(x)), snapshot(eager(x)), 1e-4, "after a failed bind")
+    torch.randn(3, device=CUDA)  # the CUDA generator is out of capture mode
+
+
 # ------------------------------------------------------------------------------------------ failures
 class _HostSync(Model):
     """A head that reads a value back to the host mid-forward (.item()): legal eagerly, not inside a CUDA graph."""
@@ -253,7 +305,10 @@ def test_engine_with_compiled_models_on_cuda_matches_eager(mode):
     """Every model compiled and graph-captured, concurrently in worker threads or processes, on their own streams."""
     compiled = [f"heads.{h}.backend=compile" for h in ("depth", "seg", "det")]
     runs = {}
-    for label, extra in (("eager", []), ("compile", ["foundation_model.backend=compile", *compiled])):
+    # compiled models run from graphs bound to the slots (Note [Slot-bound runs]); their workers poll the end of
+    # their device work (runtime.sync_spin_us, Note [Device sync])
+    slot_bound = ["foundation_model.backend=compile", *compiled, "runtime.sync_spin_us=200"]
+    for label, extra in (("eager", []), ("compile", slot_bound)):
         cfg = tiny(mode, "device=cuda", *extra)
         out = {}
         with Engine(cfg) as e:

@@ -228,3 +228,31 @@ def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path):
         for p in _mps_processes():
             if p.pid not in before:
                 p.kill()
+
+
+def test_polling_device_sync_returns_when_the_work_is_done_and_mostly_sleeps():
+    """runtime.sync_spin_us (Note [Device sync]) with a real CUDA event: never returns before the stream's work is
+    done, learns how long the work takes, and spends most of a long wait asleep."""
+    from vpengine.runtime.device import DeviceContext
+
+    dev = DeviceContext("cuda", spin_s=300e-6)
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    with dev.active():
+        torch.cuda._sleep(1000)  # the first launch loads the kernel: not part of the calibration
+        start.record()
+        torch.cuda._sleep(10_000_000)
+        end.record()
+    dev.complete()
+    cycles_per_ms = 10_000_000 / start.elapsed_time(end)
+    dev.expected_s = 0.0
+    work_ms = [20, 1, 20, 20, 5, 20, 20, 20, 20, 20, 20, 20]
+    cpu0, wall0 = time.process_time(), time.monotonic()
+    for ms in work_ms:
+        with dev.active():
+            torch.cuda._sleep(int(ms * cycles_per_ms))
+        dev.complete()
+        assert dev.stream is not None and dev.stream.query(), f"returned before {ms} ms of work was done"
+    cpu, wall = time.process_time() - cpu0, time.monotonic() - wall0
+    assert wall >= sum(work_ms) * 1e-3 * 0.8, f"{wall * 1e3:.0f} ms for {sum(work_ms)} ms of work"
+    assert 0.010 < dev.expected_s < 0.030, dev.expected_s  # it learnt the 20 ms
+    assert cpu < 0.4 * wall, f"{cpu * 1e3:.0f} ms of CPU in {wall * 1e3:.0f} ms of waiting: it spun"

@@ -1,11 +1,13 @@
-"""The CUDA-event timer of the paper harness, driven by stand-in events (the real ones need a GPU): it calls the work
-once per sample, between a start and an end record, waits for the end, and reports the median."""
+"""The paper harness's timers: the CUDA-event timer, driven by stand-in events (the real ones need a GPU), calls the
+work once per sample between a start and an end record, waits for the end, and reports the median; the host timer
+times each step from its call, or from the moment the step says its latency starts."""
 
 from __future__ import annotations
 
+import time
 from types import SimpleNamespace
 
-from vpengine.bench.paper import _event_ms
+from vpengine.bench.paper import _event_ms, timed
 
 
 def test_event_ms_is_the_median_of_one_sample_per_call():
@@ -29,3 +31,16 @@ def test_event_ms_is_the_median_of_one_sample_per_call():
     ms = _event_ms(lambda: log.append("run"), 5, fake_torch)
     assert ms == 3.0  # the median: one slow sample does not move it
     assert log == ["record", "run", "record", "sync"] * 5
+
+
+def test_timed_counts_from_the_time_a_step_returns():
+    def step(i: int) -> float | None:
+        time.sleep(0.02)  # e.g. writing the frame into its slot: not latency
+        start = time.perf_counter()
+        time.sleep(0.01)
+        return start if i % 2 else None  # odd steps say where their latency starts
+
+    out = timed(step, 20, warmup=0)
+    assert out["n"] == 20
+    assert out["p90"] > 25 and out["p50"] < 25  # half the samples 30+ ms, half 10+ ms
+    assert 10 <= out["p50"] < 25

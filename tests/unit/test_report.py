@@ -70,7 +70,7 @@ def test_an_empty_folder_gives_a_table_with_no_rows(tmp_path):
     assert md == ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]
 
 
-def _floor(transfers: bool) -> dict:
+def _floor(transfers: bool, slots: bool = False) -> dict:
     out = {
         "device_ms": {"foundation": 1.0, "depth": 0.5, "seg": 0.5},
         "floor_sum_ms": 2.0,
@@ -86,6 +86,15 @@ def _floor(transfers: bool) -> dict:
             thread_overhead_vs_floor_with_transfers=0.2,
             process_overhead_vs_floor_with_transfers=0.0,
         )
+    if slots:
+        out.update(
+            thread_frame_slot=_lat(2.25),
+            process_frame_slot=_lat(2.0),
+            thread_frame_slot_overhead_vs_floor=0.125,
+            process_frame_slot_overhead_vs_floor=0.0,
+            thread_frame_slot_overhead_vs_floor_with_transfers=-0.1,
+            process_frame_slot_overhead_vs_floor_with_transfers=-0.2,
+        )
     return out
 
 
@@ -96,8 +105,20 @@ def test_floor_rows_add_the_transfers_where_they_were_measured(tmp_path):
     _write(
         tmp_path, "paper_cuda_floor_new", "2026-01-02T00:00:00", {"backend": "compile"}, floor=_floor(True)
     )
+    _write(
+        tmp_path,
+        "paper_cuda_floor_slot",
+        "2026-01-03T00:00:00",
+        {"backend": "compile"},
+        floor=_floor(True, True),
+    )
     rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 2, rows
+    assert len(rows) == 3, rows
+    assert "frame_slot" not in rows[0] + rows[1]
+    assert (
+        "; frames written in place (frame_slot): thread mode 2.2 ms (+12%, -10% with transfers), "
+        "process mode 2.0 ms (+0%, -20% with transfers) |" in rows[2]
+    )
     assert "floor 2.0 ms; thread mode 3.0 ms (+50%), process mode 2.5 ms (+25%) |" in rows[0]
     assert "transfers" not in rows[0]
     assert (

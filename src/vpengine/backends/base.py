@@ -9,6 +9,16 @@ before calling again -- the worker copies them into the output slot at once (``W
 read, never kept: the worker passes views into mailbox slots whose addresses change from call to call. Executors are
 called from one thread at a time.
 
+Note [Slot-bound runs]
+~~~~~~~~~~~~~~~~~~~~~~
+Mailbox slots are allocated once, at start, at fixed addresses, so an executor may prepare to run straight from
+them: ``bind(inputs, outputs)`` is handed every input slot's tensors and every output slot's tensors (lists indexed
+like the rings' slots) and returns True if it will take ``run_bound(i, j)`` -- read input slot ``i``, write output
+slot ``j``, both enqueued on the current stream -- instead of a call followed by the worker's own copies. The compile
+backend binds on CUDA: it captures, per slot, a small CUDA graph of the copies into its static inputs and out of its
+static outputs, so a frame costs three graph launches instead of one copy launch per tensor (a DPT head reads eight
+feature tensors), each of which holds Python's interpreter lock in thread mode. The base class binds nothing.
+
 Note [Precision]
 ~~~~~~~~~~~~~~~~
 ``precision`` (fp32 | fp16 | bf16) is the dtype a model computes in. Recipes declare their specs in that dtype
@@ -118,6 +128,14 @@ class Executor(abc.ABC):
     @abc.abstractmethod
     def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         """Run the model on ``inputs``; see Note [Executor contract] for the lifetime of the outputs."""
+
+    def bind(self, inputs: list[dict[str, torch.Tensor]], outputs: list[dict[str, torch.Tensor]]) -> bool:
+        """Prepare ``run_bound`` over these input and output slots (Note [Slot-bound runs]); False: not supported."""
+        return False
+
+    def run_bound(self, in_index: int, out_index: int) -> None:
+        """Run on input slot ``in_index`` into output slot ``out_index`` (after a ``bind`` that returned True)."""
+        raise BackendError(f"{self.name}: the {self.backend} backend does not run from bound slots")
 
     def describe(self) -> dict[str, Any]:
         """Facts for logs and stats (backend, precision, and what the backend chose)."""

@@ -113,6 +113,8 @@ class CompiledExecutor(Executor):
         self._graph: torch.cuda.CUDAGraph | None = None
         self._graph_out: dict[str, torch.Tensor] = {}
         self._side: torch.cuda.Stream | None = None
+        self._in_graphs: list[torch.cuda.CUDAGraph] = []
+        self._out_graphs: list[torch.cuda.CUDAGraph] = []
         t0 = time.perf_counter()
         self._compile()
         if self.cudagraphs:
@@ -178,6 +180,56 @@ class CompiledExecutor(Executor):
         with torch.inference_mode():
             return self._run(self._static)
 
+    def bind(self, inputs: list[dict[str, torch.Tensor]], outputs: list[dict[str, torch.Tensor]]) -> bool:
+        """Capture the copies into the static inputs from each input slot, and out of the static outputs into each
+        output slot, as CUDA graphs (Note [Slot-bound runs]). Host slots must be page-locked (the worker registers
+        them); a capture that fails leaves the executor unbound, running as before, and says why in the log."""
+        if self._graph is None or self._side is None:
+            return False
+        for slot in inputs:
+            for k in self._keys:
+                self._check_input(k, slot.get(k))
+        for slot in outputs:
+            for k, t in slot.items():
+                src = self._graph_out.get(k)
+                if src is None or src.shape != t.shape:
+                    raise BackendError(
+                        f"{self.name}: output slot tensor {k!r} {list(t.shape)} does not match the model's "
+                        f"output {None if src is None else list(src.shape)}"
+                    )
+        cur = torch.cuda.current_stream(self.device)
+        self._side.wait_stream(cur)
+        try:
+            with _CAPTURE_LOCK, torch.inference_mode():
+                in_graphs = [self._copy_graph([(self._static[k], s[k]) for k in self._keys]) for s in inputs]
+                out_graphs = [
+                    self._copy_graph([(t, self._graph_out[k]) for k, t in s.items()]) for s in outputs
+                ]
+        except Exception as e:
+            _reset_capture_state(self.device)
+            log.warning(
+                "%s: running without slot-bound copies (capturing them failed: %s)", self.name, _short(e)
+            )
+            return False
+        finally:
+            cur.wait_stream(self._side)
+        self._in_graphs, self._out_graphs = in_graphs, out_graphs
+        return True
+
+    def _copy_graph(self, pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.cuda.CUDAGraph:
+        assert self._side is not None
+        graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(graph, stream=self._side, capture_error_mode="thread_local"):
+            for dst, src in pairs:
+                dst.copy_(src, non_blocking=True)
+        return graph
+
+    def run_bound(self, in_index: int, out_index: int) -> None:
+        assert self._graph is not None
+        self._in_graphs[in_index].replay()
+        self._graph.replay()
+        self._out_graphs[out_index].replay()
+
     def describe(self) -> dict[str, Any]:
         return {
             **super().describe(),
@@ -185,4 +237,5 @@ class CompiledExecutor(Executor):
             "mode": self.opts.mode,
             "fullgraph": self.opts.fullgraph,
             "cudagraphs": self._graph is not None,
+            "slot_bound": bool(self._in_graphs),
         }

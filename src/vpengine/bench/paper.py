@@ -71,6 +71,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "(Engine.wait(copy=False)); the sequential baseline copies with .cpu() either way",
     )
     p.add_argument(
+        "--sync-spin-us",
+        type=float,
+        default=0.0,
+        help="runtime.sync_spin_us of the engine's workers: 0 sleeps in the driver until device work is done; > 0 "
+        "sleeps through the predicted part and polls the rest (Note [Device sync])",
+    )
+    p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)"
     )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
@@ -96,6 +103,7 @@ class Setup:
     mps: str = "off"
     mps_pipe_directory: str | None = None
     results: str = "copy"
+    sync_spin_us: float = 0.0
 
     @property
     def copy(self) -> bool:
@@ -103,7 +111,8 @@ class Setup:
 
     @property
     def engine_label(self) -> str:
-        return f"{self.mode} mode, MPS {self.mps}, results {self.results}"
+        spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
+        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}"
 
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
@@ -125,6 +134,7 @@ class Setup:
                 mode=a.mode,
                 mps=a.mps,
                 results=a.results,
+                sync_spin_us=a.sync_spin_us,
             )
         return cls(
             device=a.device,
@@ -140,6 +150,7 @@ class Setup:
             mode=a.mode,
             mps=a.mps,
             results=a.results,
+            sync_spin_us=a.sync_spin_us,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -167,6 +178,7 @@ class Setup:
             },
             "heads": heads,
             "weights": {"random_weights": True},
+            "runtime": {"sync_spin_us": self.sync_spin_us},
             "logging": {"level": "WARNING"},
             **top,
         }
@@ -197,25 +209,41 @@ def pct(values: list[float] | np.ndarray) -> dict[str, float]:
 
 
 def timed(step: Any, n: int, warmup: int = 10) -> dict[str, float]:
-    """Latency percentiles (ms) and rate of ``step(i)`` for i in 0..n-1, after ``warmup`` untimed calls."""
+    """Latency percentiles (ms) and rate of ``step(i)`` for i in 0..n-1, after ``warmup`` untimed calls.
+
+    A step that returns a time (``time.perf_counter``) is timed from then: what came before is not its latency.
+    """
     for i in range(warmup):
         step(i)
     lat = []
     for i in range(n):
         t = time.perf_counter()
-        step(i)
-        lat.append(time.perf_counter() - t)
+        start = step(i)
+        lat.append(time.perf_counter() - (t if start is None else start))
     out = pct(lat)
     out["hz"] = 1e3 / out["mean"]
     return out
 
 
-def lockstep(engine: Any, imgs: list[np.ndarray], setup: Setup, warmup: int = 10) -> dict[str, float]:
+def lockstep(
+    engine: Any, imgs: list[np.ndarray], setup: Setup, warmup: int = 10, slot: bool = False
+) -> dict[str, float]:
     """submit -> all heads' results on the host, one frame in flight, ``setup.frames`` times (results copied or
-    borrowed as ``setup.results`` says)."""
+    borrowed as ``setup.results`` says).
 
-    def step(i: int) -> None:
-        engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=setup.copy)
+    ``slot``: the frame is written in place into the input mailbox (``Engine.frame_slot``), as a camera's decode
+    would write it, and timed from the end of that write: the engine's latency without ``submit``'s copy.
+    """
+
+    def step(i: int) -> float | None:
+        if not slot:
+            engine.wait(engine.submit(imgs[i % len(imgs)]), timeout=120, copy=setup.copy)
+            return None
+        with engine.frame_slot() as s:
+            np.copyto(s.array, imgs[i % len(imgs)])
+            t0 = time.perf_counter()
+        engine.wait(s.frame_id, timeout=120, copy=setup.copy)
+        return t0
 
     return timed(step, setup.frames, warmup)
 
@@ -650,15 +678,19 @@ def floor(
     for mode in ("thread", "process"):
         with engines([setup.config(heads, mode=mode)]) as (eng,):
             out[mode] = lockstep(eng, imgs, setup)
+            # the same engine with frames written in place (Engine.frame_slot): no copy at submit
+            out[f"{mode}_frame_slot"] = lockstep(eng, imgs, setup, slot=True)
         if dt:
-            out[f"{mode}_overhead_vs_floor"] = out[mode]["mean"] / out["floor_sum_ms"] - 1
-            out[f"{mode}_overhead_vs_floor_with_transfers"] = (
-                out[mode]["mean"] / out["floor_with_transfers_ms"] - 1
-            )
+            for key in (mode, f"{mode}_frame_slot"):
+                out[f"{key}_overhead_vs_floor"] = out[key]["mean"] / out["floor_sum_ms"] - 1
+                out[f"{key}_overhead_vs_floor_with_transfers"] = (
+                    out[key]["mean"] / out["floor_with_transfers_ms"] - 1
+                )
     log(
         f"floor: device time {dt} -> sum {out.get('floor_sum_ms', float('nan')):.1f} ms, with transfers {xfer} "
         f"{out.get('floor_with_transfers_ms', float('nan')):.1f} ms; engine thread "
-        f"{out['thread']['mean']:.1f} ms, process {out['process']['mean']:.1f} ms"
+        f"{out['thread']['mean']:.1f} ms ({out['thread_frame_slot']['mean']:.1f} ms from a frame slot), process "
+        f"{out['process']['mean']:.1f} ms ({out['process_frame_slot']['mean']:.1f} ms)"
     )
     return out
 

@@ -62,6 +62,8 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
         label += ", MPS"
     if setup.get("results", "copy") == "borrow":
         label += ", borrowed results"
+    if setup.get("sync_spin_us"):
+        label += f", sync spin {setup['sync_spin_us']:g} us"
     return label
 
 
@@ -136,11 +138,22 @@ def table(r: dict[str, Any]) -> str:
                 f"thread mode {f['thread_overhead_vs_floor_with_transfers']:+.0%}, process mode "
                 f"{f['process_overhead_vs_floor_with_transfers']:+.0%}"
             )
+        slot = ""
+        if "thread_frame_slot" in f:  # runs since Engine.frame_slot also time frames written in place
+            slot = "; frames written in place (frame_slot): " + ", ".join(
+                f"{m} mode {f[f'{m}_frame_slot']['mean']:.1f} ms ({f[f'{m}_frame_slot_overhead_vs_floor']:+.0%}"
+                + (
+                    f", {f[f'{m}_frame_slot_overhead_vs_floor_with_transfers']:+.0%} with transfers)"
+                    if f.get("transfer_ms")
+                    else ")"
+                )
+                for m in ("thread", "process")
+            )
         rows.append(
             f"| engine vs device-time floor ({_setup_label(f['setup'], det='det' in heads)}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
             "thread mode "
             f"{f['thread']['mean']:.1f} ms ({f['thread_overhead_vs_floor']:+.0%}), process mode "
-            f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}){with_xfer} | - | {f['file']} |"
+            f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}){with_xfer}{slot} | - | {f['file']} |"
         )
     res = r.get("resources_gpu.json")
     if res:

@@ -6,6 +6,9 @@ same object runs in-process under tests and debuggers, in a thread (thread mode)
 
     rate gate -> pin newest input (with timeout) -> acquire output slot -> stage inputs on the device
       -> model -> copy outputs into the slot -> device sync -> publish output -> release input -> counters
+
+An executor bound to the slots (Note [Slot-bound runs], compiled models on CUDA) does the staging, the model and the
+copy into the output slot itself, from graphs captured at start.
 """
 
 from __future__ import annotations
@@ -98,6 +101,7 @@ class WorkerCore:
         control: ControlBlock,
         device: DeviceContext,
         poll_s: float = 0.5,
+        bound: bool = False,
     ) -> None:
         self.spec = spec
         self.name = spec.name
@@ -111,10 +115,12 @@ class WorkerCore:
         self.gate = RateGate()
         self._checked = False
         self._should_stop: Callable[[], bool] = lambda: False
-        self._keys = list(spec.upstream) or list(in_ring.layout.keys)
+        self._keys = input_keys(spec, in_ring)
+        # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
+        self._bound = bound
         # Inputs live wherever their ring lives; a model on another device reads preallocated staging copies.
         self._staging: dict[str, torch.Tensor] | None = None
-        if in_ring.data_region.device != device.device:
+        if not bound and in_ring.data_region.device != device.device:
             self._staging = {
                 k: torch.empty_like(in_ring.views[0][k], device=device.device) for k in self._keys
             }
@@ -161,12 +167,15 @@ class WorkerCore:
             return
         try:
             with self.dev.active(), torch.inference_mode():
-                outputs = self.model(self._inputs(slot))
-                if not self._checked:
-                    check_outputs(name, self.output_spec, outputs)
-                    self._checked = True
-                for k, t in out.tensors.items():
-                    t.copy_(outputs[k], non_blocking=True)
+                if self._bound:
+                    self.model.run_bound(slot.index, out.index)  # type: ignore[attr-defined]
+                else:
+                    outputs = self.model(self._inputs(slot))
+                    if not self._checked:
+                        check_outputs(name, self.output_spec, outputs)
+                        self._checked = True
+                    for k, t in out.tensors.items():
+                        t.copy_(outputs[k], non_blocking=True)
             self.dev.complete()  # Note [Device sync]: publish only what is complete
         except BaseException:
             self.writer.abort(out)
@@ -177,6 +186,11 @@ class WorkerCore:
         self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
         if self.spec.notify_output:
             ctl.notify_output()
+
+
+def input_keys(spec: WorkerSpec, in_ring: SlotRing) -> list[str]:
+    """The input ring's keys a model reads: its upstream spec's (a head), or all of them (the foundation)."""
+    return list(spec.upstream) or list(in_ring.layout.keys)
 
 
 def describe_exception(name: str, exc: BaseException) -> str:
@@ -217,7 +231,7 @@ def prepare_worker(
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
-    dev = DeviceContext(device, mcfg.stream_priority)
+    dev = DeviceContext(device, mcfg.stream_priority, cfg.runtime.sync_spin_us * 1e-6)
     if dev.cuda:
         _register_host_rings(in_ring, out_ring)
         from vpengine.transport.cuda_vmm import mps_enabled
@@ -246,9 +260,13 @@ def prepare_worker(
             # so the steady state allocates nothing (Invariant: constant memory).
             with torch.inference_mode():
                 check_outputs(spec.name, model.output_spec, executor(model.example_inputs(device)))
+                keys = input_keys(spec, in_ring)
+                bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())
     control.heartbeat(spec.name)
     control.set_state(spec.name, READY)
-    return WorkerCore(spec, executor, model.output_spec, in_ring, out_ring, control, dev, cfg.runtime.poll_s)
+    return WorkerCore(
+        spec, executor, model.output_spec, in_ring, out_ring, control, dev, cfg.runtime.poll_s, bound=bound
+    )

@@ -1,0 +1,219 @@
+"""GPU machine: where one frame's time goes in thread mode, stage by stage, and what the host-side knobs change.
+
+Thread mode runs every worker in this process, so the worker loop can be timed from outside: ``WorkerCore._step``
+is wrapped to stamp (time.monotonic) each stage of each model's run on each frame -- input published, pinned (woken),
+model enqueued, output copies enqueued, device work complete, output published -- and the caller stamps submit and
+the moment ``wait`` returns. The mean of each stage over the frames is the waterfall. Variants, on one engine:
+
+* submit: ``Engine.submit`` (the frame copied into the input slot), latency from the call;
+* slot: ``Engine.frame_slot`` (the frame written in place), latency from the end of the write;
+* slot unbound: compiled models called with the slots' tensors and their outputs copied by the worker, one copy per
+  tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
+* slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, poll
+  the rest; Note [Device sync]);
+* slot+fullspin: device sync by spinning on the event the whole time (cudaEventDefault): the least wake-up latency
+  there is, at a core per worker. Diagnostic only: not something the engine does;
+* slot+switch: ``sys.setswitchinterval(1e-4)`` (CPython's default is 5 ms: a thread waiting for the interpreter
+  lock asks the holder to drop it only after that long).
+
+Then a torch.profiler trace of a few frames (chrome trace, gzipped) for the device timeline. Set TINY=1 for a CPU
+smoke run of the script.
+"""
+
+from __future__ import annotations
+
+import gzip
+import json
+import os
+import shutil
+import sys
+import time
+from collections import defaultdict
+
+import numpy as np
+import torch
+
+from vpengine.bench.paper import Setup, engines, frames
+from vpengine.runtime import worker as worker_mod
+from vpengine.runtime.device import DeviceContext
+
+out_dir = os.environ.get("OUT", "/tmp/out")
+os.makedirs(out_dir, exist_ok=True)
+setup = Setup(
+    backend=os.environ.get("BACKEND", "compile"), frames=300, results=os.environ.get("RESULTS", "borrow")
+)
+if os.environ.get("TINY"):
+    setup = Setup(
+        "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True
+    )
+    setup.results = "borrow"
+kinds = os.environ.get("HEADS", "depth,seg").split(",")
+heads = [setup.head(k, k) for k in kinds]
+imgs = frames(setup)
+
+stamps: dict[str, dict[int, dict[str, float]]] = defaultdict(dict)  # model -> frame id -> stage -> time
+cores: list[worker_mod.WorkerCore] = []
+devices: list[DeviceContext] = []
+_plain_step = worker_mod.WorkerCore._step
+_plain_core_init = worker_mod.WorkerCore.__init__
+_plain_dev_init = DeviceContext.__init__
+
+
+def _core_init(self, *a, **kw):  # type: ignore[no-untyped-def]
+    _plain_core_init(self, *a, **kw)
+    cores.append(self)
+
+
+def _dev_init(self, *a, **kw):  # type: ignore[no-untyped-def]
+    _plain_dev_init(self, *a, **kw)
+    devices.append(self)
+
+
+class _Stamped:
+    """The executor, stamping when its work is enqueued."""
+
+    def __init__(self, ex, rec):  # type: ignore[no-untyped-def]
+        self.ex, self.rec = ex, rec
+
+    def __call__(self, inputs):  # type: ignore[no-untyped-def]
+        out = self.ex(inputs)
+        self.rec["model_enqueued"] = time.monotonic()
+        return out
+
+    def run_bound(self, i, j):  # type: ignore[no-untyped-def]
+        self.ex.run_bound(i, j)
+        self.rec["model_enqueued"] = time.monotonic()
+
+
+def _stamped_step(self, slot, starved):  # type: ignore[no-untyped-def]
+    rec = {"input_published": slot.t_publish, "pinned": time.monotonic()}
+    dev, model = self.dev, self.model
+    plain_complete = dev.complete
+
+    def complete():  # type: ignore[no-untyped-def]
+        rec["copies_enqueued"] = time.monotonic()
+        plain_complete()
+        rec["device_done"] = time.monotonic()
+
+    self.model, dev.complete = _Stamped(model, rec), complete
+    try:
+        _plain_step(self, slot, starved)
+    finally:
+        self.model = model
+        del dev.complete
+    rec["published"] = time.monotonic()
+    stamps[self.name][slot.frame_id] = rec
+
+
+def _fullspin_complete(self):  # type: ignore[no-untyped-def]
+    if self.stream is not None:
+        ev = getattr(self, "_spin_event", None)
+        if ev is None:
+            ev = self._spin_event = torch.cuda.Event()  # default flags: synchronize() spins
+        ev.record(self.stream)
+        ev.synchronize()
+
+
+def run_variant(eng, variant: str, n: int) -> dict[str, object]:  # type: ignore[no-untyped-def]
+    stamps.clear()
+    caller: dict[int, dict[str, float]] = {}
+    slot = variant != "submit"
+    for i in range(n + 10):
+        img = imgs[i % len(imgs)]
+        if slot:
+            with eng.frame_slot() as s:
+                np.copyto(s.array, img)
+                t0 = time.monotonic()
+            fid = s.frame_id
+        else:
+            t0 = time.monotonic()
+            fid = eng.submit(img)
+        t_sub = time.monotonic()
+        eng.wait(fid, timeout=60, copy=setup.copy)
+        if i >= 10:
+            caller[fid] = {"start": t0, "submitted": t_sub, "returned": time.monotonic()}
+    rows: dict[str, list[float]] = defaultdict(list)
+    for fid, c in caller.items():
+        t0 = c["start"]
+        rows["caller.submitted"].append(c["submitted"] - t0)
+        rows["caller.returned"].append(c["returned"] - t0)
+        for model, per in stamps.items():
+            rec = per.get(fid)
+            if rec is None:
+                continue
+            for stage, t in rec.items():
+                rows[f"{model}.{stage}"].append(t - t0)
+    table = {k: round(float(np.mean(v)) * 1e3, 4) for k, v in rows.items()}
+    lat = np.array(rows["caller.returned"]) * 1e3
+    summary = {
+        "mean_ms": float(lat.mean()),
+        "p50_ms": float(np.median(lat)),
+        "p99_ms": float(np.percentile(lat, 99)),
+        "stages_ms_from_start": dict(sorted(table.items(), key=lambda kv: kv[1])),
+    }
+    print(
+        variant, f"mean {summary['mean_ms']:.3f} ms p50 {summary['p50_ms']:.3f} p99 {summary['p99_ms']:.3f}"
+    )
+    for k, v in summary["stages_ms_from_start"].items():
+        print(f"   {v:8.3f}  {k}")
+    return summary
+
+
+report: dict[str, object] = {"setup": {"heads": kinds, "backend": setup.backend, "results": setup.results}}
+worker_mod.WorkerCore._step = _stamped_step  # type: ignore[method-assign]
+worker_mod.WorkerCore.__init__ = _core_init  # type: ignore[method-assign]
+DeviceContext.__init__ = _dev_init  # type: ignore[method-assign]
+switch = sys.getswitchinterval()
+blocking_complete = DeviceContext.complete
+
+
+def spin(us: float) -> None:
+    for d in devices:
+        d.spin_s, d.expected_s = us * 1e-6, 0.0
+
+
+with engines([setup.config(heads, mode="thread")]) as (eng,):
+    report["bound"] = {c.name: c._bound for c in cores}
+    print("slot-bound:", report["bound"])
+    for i in range(30):
+        eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=60)
+    report["submit"] = run_variant(eng, "submit", setup.frames)
+    report["slot"] = run_variant(eng, "slot", setup.frames)
+    bound = {c: c._bound for c in cores}
+    for c in cores:
+        c._bound = False
+    report["slot unbound"] = run_variant(eng, "slot unbound", setup.frames)
+    for c, b in bound.items():
+        c._bound = b
+    for us in (200, 100):
+        spin(us)
+        run_variant(eng, "(learning)", 50)
+        report[f"slot+spin{us}"] = run_variant(eng, f"slot+spin{us}", setup.frames)
+    spin(0)
+    if torch.cuda.is_available():
+        DeviceContext.complete = _fullspin_complete  # type: ignore[method-assign]
+        report["slot+fullspin"] = run_variant(eng, "slot+fullspin", setup.frames)
+        DeviceContext.complete = blocking_complete  # type: ignore[method-assign]
+    sys.setswitchinterval(1e-4)
+    report["slot+switch"] = run_variant(eng, "slot+switch", setup.frames)
+    sys.setswitchinterval(switch)
+    report["slot_again"] = run_variant(eng, "slot", setup.frames)
+    # the device timeline of a few frames
+    worker_mod.WorkerCore._step = _plain_step  # type: ignore[method-assign]
+    acts = [torch.profiler.ProfilerActivity.CPU]
+    if torch.cuda.is_available():
+        acts.append(torch.profiler.ProfilerActivity.CUDA)
+    with torch.profiler.profile(activities=acts) as prof:
+        for i in range(20):
+            with eng.frame_slot() as s:
+                np.copyto(s.array, imgs[i % len(imgs)])
+            eng.wait(s.frame_id, timeout=60, copy=setup.copy)
+    trace = os.path.join(out_dir, "profile_steps_trace.json")
+    prof.export_chrome_trace(trace)
+    with open(trace, "rb") as f, gzip.open(trace + ".gz", "wb") as g:
+        shutil.copyfileobj(f, g)
+    os.remove(trace)
+    report["profiler_top"] = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25)
+    print(report["profiler_top"])
+with open(os.path.join(out_dir, f"profile_steps{os.environ.get('TAG', '')}.json"), "w") as f:
+    json.dump(report, f, indent=1)

@@ -47,8 +47,11 @@ if os.environ.get("TINY"):
         "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True
     )
     setup.results = "borrow"
-kinds = os.environ.get("HEADS", "depth,seg").split(",")
-heads = [setup.head(k, k) for k in kinds]
+kinds = os.environ.get("HEADS", "depth,seg").split(",")  # "kind" or "kind:count" (depth:8 is E1's 8 depth heads)
+heads = []
+for spec in kinds:
+    kind, _, count = spec.partition(":")
+    heads += [setup.head(kind, f"{kind}{i}" if count else kind) for i in range(int(count or 1))]
 imgs = frames(setup)
 
 stamps: dict[str, dict[int, dict[str, float]]] = defaultdict(dict)  # model -> frame id -> stage -> time

@@ -380,3 +380,23 @@ def test_the_bridge_submits_only_the_newest_queued_frame_unless_the_engine_takes
     assert frames_to_submit(["a", "b", "c"], every_frame=True) == (["a", "b", "c"], 0)
     assert frames_to_submit(["a"], every_frame=False) == (["a"], 0)
     assert frames_to_submit([], every_frame=False) == ([], 0)
+
+
+def test_the_bridge_benchmark_waits_until_diagnostics_account_for_every_run():
+    from vpengine.bench.ros2_bridge import drained
+
+    topics = ["/vpengine/depth/image", "/vpengine/seg/image"]
+    status = {
+        "depth": {"runs": "300"},
+        "seg": {"runs": "293"},
+        "interface": {
+            "published:/vpengine/depth/image": "300",
+            "published:/vpengine/seg/image": "188",
+            "results_missed.seg": "45",
+        },
+    }
+    assert not drained(status, topics)  # seg: 60 outputs still on their way out of the bridge
+    status["interface"]["published:/vpengine/seg/image"] = "248"
+    assert drained(status, topics)
+    assert not drained({}, topics)  # no diagnostics yet
+    assert not drained({"depth": {"runs": "3"}, "interface": {}}, topics[:1])  # topic not yet published

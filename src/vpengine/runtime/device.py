@@ -13,6 +13,9 @@ every frame. ``runtime.sync_spin_us`` > 0 trades a little CPU for it: the worker
 through the part of the work its recent runs predict, minus the spin window, then polls the event, yielding the
 interpreter lock between polls, for at most twice the window, and falls back to the sleeping wait after that. The
 prediction is a moving average of how long the waits took. No work in flight, no polling: idle workers still sleep.
+On an H100 (thread mode, compiled backbone + depth + seg) a 200 us window took a frame from 4.16 to 3.98 ms; with eight
+depth heads in thread mode it made things worse (7.4 -> 8.3 ms), the polling threads contending for the interpreter
+lock, which is why it is off by default.
 """
 
 from __future__ import annotations

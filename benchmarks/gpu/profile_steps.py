@@ -47,7 +47,9 @@ if os.environ.get("TINY"):
         "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True
     )
     setup.results = "borrow"
-kinds = os.environ.get("HEADS", "depth,seg").split(",")  # "kind" or "kind:count" (depth:8 is E1's 8 depth heads)
+kinds = os.environ.get("HEADS", "depth,seg").split(
+    ","
+)  # "kind" or "kind:count" (depth:8 is E1's 8 depth heads)
 heads = []
 for spec in kinds:
     kind, _, count = spec.partition(":")

@@ -34,11 +34,13 @@ def test_event_ms_is_the_median_of_one_sample_per_call():
 
 
 def test_timed_counts_from_the_time_a_step_returns():
-    def step(i: int) -> float | None:
+    def step(i: int) -> float | dict[str, int]:
         time.sleep(0.02)  # e.g. writing the frame into its slot: not latency
         start = time.perf_counter()
         time.sleep(0.01)
-        return start if i % 2 else None  # odd steps say where their latency starts
+        return (
+            start if i % 2 else {"outputs": 1}
+        )  # odd steps say where their latency starts; others return data
 
     out = timed(step, 20, warmup=0)
     assert out["n"] == 20

@@ -1,5 +1,6 @@
-"""`vpengine bench report` on hand-made results files: every run of E2 and E3 gets its own row, labelled with what ran
-(with a compiled backbone, detection heads still run eager, and the label says so), and nothing is read from elsewhere."""
+"""`vpengine bench report` on hand-made results files: every run of E2, E3, E5 and the floor gets its own row,
+labelled with what ran (with a compiled backbone, detection heads still run eager, and the label says so), and nothing
+is read from elsewhere."""
 
 from __future__ import annotations
 
@@ -125,3 +126,31 @@ def test_floor_rows_add_the_transfers_where_they_were_measured(tmp_path):
         "with the frame's upload and the results' download 2.5 ms: thread mode +20%, process mode +0% |"
         in rows[1]
     )
+
+
+def _e5(frames: int, p50: float, lost: float) -> dict:
+    return {
+        "frames": frames,
+        "all_three_latency_ms": _lat(p50),
+        "per_head_latency_ms": {"depth": _lat(p50 / 2), "det": _lat(p50)},
+        "loss_pct": {"depth": 0.0, "det": lost},
+        "memory": [],
+        "memory_flat": True,
+    }
+
+
+def test_every_e5_run_gets_a_row_and_the_figure_shows_the_longest(tmp_path):
+    _write(tmp_path, "paper_cuda_e5", "2026-01-01T00:00:00", {"backend": "compile"}, E5=_e5(10000, 12.9, 0.0))
+    _write(
+        tmp_path,
+        "paper_cuda_e5_ab",
+        "2026-01-02T00:00:00",
+        {"backend": "compile", "slot_bound": False},
+        E5=_e5(3000, 15.0, 0.1),
+    )
+    r = collect(tmp_path)
+    rows = [line for line in table(r).splitlines() if line.startswith("| E5")]
+    assert len(rows) == 2, rows
+    assert "E5 10000 frames" in rows[0] and "p50 12.9 ms" in rows[0] and "not slot-bound" not in rows[0]
+    assert "E5 3000 frames" in rows[1] and "not slot-bound" in rows[1] and "lost 0.10%" in rows[1]
+    assert r["E5"]["file"] == "paper_cuda_e5.json"  # the longest stream, not the newest

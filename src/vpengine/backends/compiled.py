@@ -184,7 +184,7 @@ class CompiledExecutor(Executor):
         """Capture the copies into the static inputs from each input slot, and out of the static outputs into each
         output slot, as CUDA graphs (Note [Slot-bound runs]). Host slots must be page-locked (the worker registers
         them); a capture that fails leaves the executor unbound, running as before, and says why in the log."""
-        if self._graph is None or self._side is None:
+        if self._graph is None or self._side is None or not self.opts.slot_bound:
             return False
         for slot in inputs:
             for k in self._keys:

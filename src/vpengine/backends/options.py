@@ -43,6 +43,11 @@ class CompileOptions(BackendOptions):
         description="On CUDA: capture the compiled model in one CUDA graph at warm-up and replay it per frame. "
         "Ignored on the CPU.",
     )
+    slot_bound: bool = Field(
+        True,
+        description="With cudagraphs: also capture the copies in from and out to each mailbox slot as CUDA graphs "
+        "(Note [Slot-bound runs]); false: the worker copies each tensor itself.",
+    )
     warmup_iters: int = Field(
         3, ge=1, le=100, description="Compiled runs on a side stream before the CUDA graph is captured."
     )

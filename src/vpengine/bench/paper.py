@@ -78,6 +78,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "sleeps through the predicted part and polls the rest (Note [Device sync])",
     )
     p.add_argument(
+        "--no-slot-bound",
+        action="store_true",
+        help="compiled models copy each input and output tensor in the worker instead of running from graphs bound "
+        "to the mailbox slots (backend_options.slot_bound: false; for comparisons)",
+    )
+    p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)"
     )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
@@ -104,6 +110,7 @@ class Setup:
     mps_pipe_directory: str | None = None
     results: str = "copy"
     sync_spin_us: float = 0.0
+    slot_bound: bool = True
 
     @property
     def copy(self) -> bool:
@@ -135,6 +142,7 @@ class Setup:
                 mps=a.mps,
                 results=a.results,
                 sync_spin_us=a.sync_spin_us,
+                slot_bound=not a.no_slot_bound,
             )
         return cls(
             device=a.device,
@@ -151,6 +159,7 @@ class Setup:
             mps=a.mps,
             results=a.results,
             sync_spin_us=a.sync_spin_us,
+            slot_bound=not a.no_slot_bound,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -158,7 +167,19 @@ class Setup:
         opts = self.det_options if kind == "det" else {}
         # Faster R-CNN's NMS has data-dependent shapes: it neither compiles into a CUDA graph nor exports; eager
         backend = "eager" if kind == "det" and self.backend != "eager" else self.backend
-        return {"name": name, "model": model, "options": opts, "backend": backend, **extra}
+        return {
+            "name": name,
+            "model": model,
+            "options": opts,
+            "backend": backend,
+            **self._backend_options(backend),
+            **extra,
+        }
+
+    def _backend_options(self, backend: str) -> dict[str, Any]:
+        if backend == "compile" and not self.slot_bound:
+            return {"backend_options": {"slot_bound": False}}
+        return {}
 
     def config(self, heads: list[dict[str, Any]], mode: str | None = None, **top: Any) -> Any:
         from vpengine.config import load_config
@@ -175,6 +196,7 @@ class Setup:
                 "model": self.backbone,
                 "options": self.backbone_options,
                 "backend": self.backend,
+                **self._backend_options(self.backend),
             },
             "heads": heads,
             "weights": {"random_weights": True},
@@ -211,7 +233,8 @@ def pct(values: list[float] | np.ndarray) -> dict[str, float]:
 def timed(step: Any, n: int, warmup: int = 10) -> dict[str, float]:
     """Latency percentiles (ms) and rate of ``step(i)`` for i in 0..n-1, after ``warmup`` untimed calls.
 
-    A step that returns a time (``time.perf_counter``) is timed from then: what came before is not its latency.
+    A step that returns a float (a ``time.perf_counter`` reading) is timed from then: what came before is not its
+    latency. Anything else a step returns is ignored.
     """
     for i in range(warmup):
         step(i)
@@ -219,7 +242,7 @@ def timed(step: Any, n: int, warmup: int = 10) -> dict[str, float]:
     for i in range(n):
         t = time.perf_counter()
         start = step(i)
-        lat.append(time.perf_counter() - (t if start is None else start))
+        lat.append(time.perf_counter() - (start if isinstance(start, float) else t))
     out = pct(lat)
     out["hz"] = 1e3 / out["mean"]
     return out

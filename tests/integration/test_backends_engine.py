@@ -76,6 +76,6 @@ def test_bad_backend_options_fail_the_start_naming_the_accepted_ones():
     with pytest.raises(
         EngineStartError,
         match=r"seg: bad backend_options for backend 'compile': unknown key "
-        r"'cuda_graph' \(accepted: compiler, cudagraphs, fullgraph, mode, warmup_iters\)",
+        r"'cuda_graph' \(accepted: compiler, cudagraphs, fullgraph, mode, slot_bound, warmup_iters\)",
     ):
         Engine(cfg).start()

@@ -177,7 +177,7 @@ def test_unknown_backend_is_refused_naming_the_accepted_ones():
             "compile",
             {"cuda_graphs": True},
             r"unknown key 'cuda_graphs' \(accepted: compiler, cudagraphs, fullgraph, "
-            r"mode, warmup_iters\)",
+            r"mode, slot_bound, warmup_iters\)",
         ),
         ("compile", {"mode": "fast"}, r"mode: Input should be 'default' or 'max-autotune' \(got 'fast'\)"),
         ("compile", {"mode": "max-autotune", "compiler": "eager"}, r"needs compiler 'inductor'"),

@@ -211,9 +211,8 @@ class FrameSlot:
 
     def __init__(self, engine: Engine, frame_id: int | None, timestamp: float | None) -> None:
         self._engine = engine
-        self.timestamp = (
-            timestamp  # capture time in seconds; may be set inside the block (default: when it ends)
-        )
+        # capture time in seconds; may be set inside the block (default: when it ends)
+        self.timestamp = timestamp
         self._frame_id_arg = frame_id
         self.frame_id: int | None = None  # set when the block ends and the frame is submitted
         self.array: np.ndarray | None = None
@@ -231,8 +230,7 @@ class FrameSlot:
         eng._submit_lock.acquire()
         try:
             eng._require_running()
-            slot = eng._input_writer.acquire()
-            assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
+            slot = eng._acquire_input()
         except BaseException:
             eng._submit_lock.release()
             raise
@@ -573,8 +571,7 @@ class Engine:
         t_capture = time.time() if timestamp is None else float(timestamp)
         self._refuse_inside_frame_slot()
         with self._submit_lock:
-            slot = self._input_writer.acquire()
-            assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
+            slot = self._acquire_input()
             # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then spin
             # (one per core); a plain memcpy costs a fraction of that at 30 Hz.
             np.copyto(self._frame_views[slot.index], arr)
@@ -604,6 +601,12 @@ class Engine:
     def _refuse_inside_frame_slot(self) -> None:
         if self._filling == threading.get_ident():
             raise RuntimeError("a frame_slot is open in this thread: submit after its with-block ends")
+
+    def _acquire_input(self) -> SlotInfo:
+        """The input slot to fill next; the caller holds ``_submit_lock``."""
+        slot = self._input_writer.acquire()
+        assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
+        return slot
 
     def _publish_input(self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float) -> int:
         """Publish a filled input slot; the caller holds ``_submit_lock``."""

@@ -372,10 +372,7 @@ class InProcess:
                 "upload": lambda: x.copy_(host, non_blocking=True),
                 "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
             }
-            out = {}
-            for name, run in copies.items():
-                out[name] = _event_ms(run, n, torch)
-            return out
+            return {name: _event_ms(run, n, torch) for name, run in copies.items()}
 
 
 def _event_ms(run: Any, n: int, torch: Any) -> float:

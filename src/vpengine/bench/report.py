@@ -143,15 +143,14 @@ def table(r: dict[str, Any]) -> str:
             )
         slot = ""
         if "thread_frame_slot" in f:  # runs since Engine.frame_slot also time frames written in place
-            slot = "; frames written in place (frame_slot): " + ", ".join(
-                f"{m} mode {f[f'{m}_frame_slot']['mean']:.1f} ms ({f[f'{m}_frame_slot_overhead_vs_floor']:+.0%}"
-                + (
-                    f", {f[f'{m}_frame_slot_overhead_vs_floor_with_transfers']:+.0%} with transfers)"
-                    if f.get("transfer_ms")
-                    else ")"
-                )
-                for m in ("thread", "process")
-            )
+            parts = []
+            for m in ("thread", "process"):
+                k = f"{m}_frame_slot"
+                part = f"{m} mode {f[k]['mean']:.1f} ms ({f[f'{k}_overhead_vs_floor']:+.0%}"
+                if f.get("transfer_ms"):
+                    part += f", {f[f'{k}_overhead_vs_floor_with_transfers']:+.0%} with transfers"
+                parts.append(part + ")")
+            slot = "; frames written in place (frame_slot): " + ", ".join(parts)
         rows.append(
             f"| engine vs device-time floor ({_setup_label(f['setup'], det='det' in heads)}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
             "thread mode "

@@ -6,7 +6,10 @@ model enqueued, output copies enqueued, device work complete, output published -
 the moment ``wait`` returns. The mean of each stage over the frames is the waterfall. Variants, on one engine:
 
 * submit: ``Engine.submit`` (the frame copied into the input slot), latency from the call;
-* slot: ``Engine.frame_slot`` (the frame written in place), latency from the end of the write;
+* slot: ``Engine.frame_slot`` (the frame written in place), latency from the end of the write; the foundation hands
+  its features to the heads by CUDA event (Note [Event hand-off]): its ``copies_enqueued`` and ``device_done`` come
+  after the heads' ``input_published``;
+* slot host hand-off: the foundation waits for its work on the host before it publishes (as before that Note);
 * slot unbound: compiled models called with the slots' tensors and their outputs copied by the worker, one copy per
   tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
 * slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, poll
@@ -184,6 +187,12 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
         eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=60)
     report["submit"] = run_variant(eng, "submit", setup.frames)
     report["slot"] = run_variant(eng, "slot", setup.frames)
+    fm = next(c for c in cores if c.name == "foundation")
+    handoff = fm._handoff
+    report["handoff"] = handoff is not None
+    fm._handoff = fm.writer.ring.device_events = None  # between frames: none in flight
+    report["slot host hand-off"] = run_variant(eng, "slot host hand-off", setup.frames)
+    fm._handoff = fm.writer.ring.device_events = handoff
     bound = {c: c._bound for c in cores}
     for c in cores:
         c._bound = False

@@ -215,6 +215,14 @@ class RuntimeConfig(_Strict):
         "again: a faster hand-over for at most that much CPU time per run. Never spins while idle. Measure first: it "
         "helped two heads and hurt eight in thread mode, whose polling threads contend for the interpreter lock.",
     )
+    feature_handoff: Literal["event", "host"] = Field(
+        "event",
+        description="How the foundation model hands its features to the heads in thread mode on CUDA (Note "
+        "[Event hand-off]). event: it publishes them as soon as their device work is queued, with a CUDA event "
+        "that each head's stream waits on, so the heads wake and queue their work while the features are still "
+        "being computed. host: it waits for the work to finish on the host first. Process mode and the CPU always "
+        "hand off on the host.",
+    )
 
 
 class LoggingConfig(_Strict):

@@ -78,6 +78,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "sleeps through the predicted part and polls the rest (Note [Device sync])",
     )
     p.add_argument(
+        "--feature-handoff",
+        default="event",
+        choices=["event", "host"],
+        help="runtime.feature_handoff: in thread mode on CUDA the foundation model publishes queued features with "
+        "a device event the heads wait on (event), or waits for them on the host first (host; Note [Event hand-off])",
+    )
+    p.add_argument(
         "--no-slot-bound",
         action="store_true",
         help="compiled models copy each input and output tensor in the worker instead of running from graphs bound "
@@ -111,6 +118,7 @@ class Setup:
     results: str = "copy"
     sync_spin_us: float = 0.0
     slot_bound: bool = True
+    feature_handoff: str = "event"
 
     @property
     def copy(self) -> bool:
@@ -119,7 +127,8 @@ class Setup:
     @property
     def engine_label(self) -> str:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
-        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}"
+        handoff = ", host hand-off" if self.feature_handoff == "host" else ""
+        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}"
 
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
@@ -143,6 +152,7 @@ class Setup:
                 results=a.results,
                 sync_spin_us=a.sync_spin_us,
                 slot_bound=not a.no_slot_bound,
+                feature_handoff=a.feature_handoff,
             )
         return cls(
             device=a.device,
@@ -160,6 +170,7 @@ class Setup:
             results=a.results,
             sync_spin_us=a.sync_spin_us,
             slot_bound=not a.no_slot_bound,
+            feature_handoff=a.feature_handoff,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -200,7 +211,7 @@ class Setup:
             },
             "heads": heads,
             "weights": {"random_weights": True},
-            "runtime": {"sync_spin_us": self.sync_spin_us},
+            "runtime": {"sync_spin_us": self.sync_spin_us, "feature_handoff": self.feature_handoff},
             "logging": {"level": "WARNING"},
             **top,
         }

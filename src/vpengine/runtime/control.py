@@ -199,6 +199,17 @@ class ControlBlock:
         self._add(i, "runs")
         self._set(i, "lat_count", n + 1)
 
+    def amend_last_run(self, name: str, compute_s: float, e2e_s: float) -> None:
+        """Correct the times of the run recorded last (a run counted when its work was queued, timed when done)."""
+        i = self.index[name]
+        n = self._get(i, "lat_count")
+        if n == 0:
+            return
+        b = self._lat_base(i)
+        k = (n - 1) % LAT_N
+        self._d[b + k] = compute_s
+        self._d[b + LAT_N + k] = e2e_s
+
     def set_error(self, name: str, text: str) -> None:
         i = self.index[name]
         off = ((_HEADER // 8) + i * ENTRY_WORDS + _LAT0 + 3 * LAT_N) * 8

@@ -57,6 +57,16 @@ class DeviceContext:
         else:
             yield
 
+    def wait_on(self, event: torch.cuda.Event) -> None:
+        """Order this worker's later device work after ``event`` (Note [Event hand-off]); no host wait."""
+        if self.stream is not None:
+            self.stream.wait_event(event)
+
+    def mark(self, event: torch.cuda.Event) -> None:
+        """Record ``event`` after all work queued so far on this worker's stream."""
+        if self.stream is not None:
+            event.record(self.stream)
+
     def complete(self) -> None:
         """Block until all work queued so far on this worker's stream has finished: sleeping, or sleeping and then
         polling the last stretch when ``spin_s`` > 0 (Note [Device sync])."""

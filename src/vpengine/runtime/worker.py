@@ -9,6 +9,22 @@ same object runs in-process under tests and debuggers, in a thread (thread mode)
 
 An executor bound to the slots (Note [Slot-bound runs], compiled models on CUDA) does the staging, the model and the
 copy into the output slot itself, from graphs captured at start.
+
+Note [Event hand-off]
+~~~~~~~~~~~~~~~~~~~~~
+Note [Device sync] makes a writer wait on the host until the work that filled a slot is done, then publish it. For
+the hop from the foundation model to the heads in thread mode that wait sits on every frame's critical path twice
+over: the foundation thread wakes from the driver (0.1-0.2 ms), then each head thread wakes from the ring and only
+then starts queueing its own work, while the GPU idles. In thread mode on CUDA (``runtime.feature_handoff: event``,
+the default) the foundation worker instead records a CUDA event per feature slot right after queueing its work and
+publishes the slot at once; a head that pins the slot makes its own stream wait on that event (``cudaStreamWaitEvent``,
+no host wait) before it reads, so the heads' work is queued while the features are still being computed and starts
+the moment they are done. What Note [Device sync] protects still holds: no head's device work reads a slot before
+the work that filled it is complete (stream order), and the foundation worker still waits for its own work before it
+releases its input slot, so the caller's frame is never overwritten while it is read. Heads hand their results to
+the host on the host's terms as before: they sync, then publish. Process mode keeps the host hand-off (its events
+would have to cross processes), and so does the CPU, where work is synchronous. The foundation's run is counted
+when it is published and its times corrected once its work is done (``ControlBlock.amend_last_run``).
 """
 
 from __future__ import annotations
@@ -116,6 +132,9 @@ class WorkerCore:
         self._checked = False
         self._should_stop: Callable[[], bool] = lambda: False
         self._keys = input_keys(spec, in_ring)
+        self._in_ring = in_ring
+        # Note [Event hand-off]: this worker publishes queued work with one event per output slot.
+        self._handoff: list[Any] | None = out_ring.device_events
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
         # Inputs live wherever their ring lives; a model on another device reads preallocated staging copies.
@@ -165,6 +184,10 @@ class WorkerCore:
         if out is None:
             ctl.add(name, "dropped")
             return
+        events = self._in_ring.device_events
+        if events is not None:  # the slot's writer published it queued: read it only after that work
+            self.dev.wait_on(events[slot.index])
+        handoff = self._handoff
         try:
             with self.dev.active(), torch.inference_mode():
                 if self._bound:
@@ -176,7 +199,10 @@ class WorkerCore:
                         self._checked = True
                     for k, t in out.tensors.items():
                         t.copy_(outputs[k], non_blocking=True)
-            self.dev.complete()  # Note [Device sync]: publish only what is complete
+            if handoff is not None:
+                self.dev.mark(handoff[out.index])
+            else:
+                self.dev.complete()  # Note [Device sync]: publish only what is complete
         except BaseException:
             self.writer.abort(out)
             raise
@@ -186,6 +212,12 @@ class WorkerCore:
         self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
         if self.spec.notify_output:
             ctl.notify_output()
+        if handoff is not None:
+            # The input slot is released (by run) only after the work that read it is done; the run's times
+            # are the device's, not the queueing's.
+            self.dev.complete()
+            t_end = time.monotonic()
+            ctl.amend_last_run(name, t_end - t_start, t_end - slot.t_submit)
 
 
 def input_keys(spec: WorkerSpec, in_ring: SlotRing) -> list[str]:
@@ -263,6 +295,9 @@ def prepare_worker(
                 keys = input_keys(spec, in_ring)
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
+    if spec.role == "foundation" and not own_process and dev.cuda and cfg.runtime.feature_handoff == "event":
+        # Note [Event hand-off]: every reader of the features is a head thread of this process on this device.
+        out_ring.device_events = [torch.cuda.Event() for _ in range(out_ring.n_slots)]
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())
     control.heartbeat(spec.name)

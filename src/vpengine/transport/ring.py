@@ -47,7 +47,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import torch
 
@@ -147,6 +147,10 @@ class SlotRing:
         self._policy = _OVERFLOW_CODE[desc.overflow]
         self.views = desc.layout.views(data.tensor())
         self._pid = os.getpid()
+        # One CUDA event per slot when its writer hands slots off on the device (Note [Event hand-off] in
+        # runtime/worker.py): a reader's stream waits on the slot's event before reading it. Thread mode only, so a
+        # plain attribute of this process's ring object; None: the writer published only completed work.
+        self.device_events: list[Any] | None = None
 
     # ----------------------------------------------------------------------------------------------- creation
     @classmethod
@@ -406,7 +410,8 @@ class RingWriter:
     def publish(
         self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, origin: int | None = None
     ) -> int:
-        """Make a filled slot visible to readers and wake them. The slot's content must be complete.
+        """Make a filled slot visible to readers and wake them. The slot's content must be complete, or its device
+        work queued before the slot's event in ``ring.device_events`` (Note [Event hand-off] in runtime/worker.py).
 
         ``origin`` carries the frame's identity down the pipeline; None means this ring is the input ring and
         the new slot's own seq is the origin.

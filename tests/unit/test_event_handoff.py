@@ -1,0 +1,162 @@
+"""Note [Event hand-off]: the order of a worker's steps when the foundation hands its features to the heads with
+a device event instead of a host wait. CUDA streams and events need a GPU (the engine's GPU tests run thread mode,
+where the hand-off is on by default); here stand-ins record what the worker asked of them and when."""
+
+from __future__ import annotations
+
+import contextlib
+import time
+from collections.abc import Iterator
+
+import torch
+
+from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.worker import WorkerCore, WorkerSpec
+from vpengine.specs import TensorSpec
+from vpengine.transport.ring import SlotRing, latest_buffer
+
+X = {"x": TensorSpec((4,), "float32")}
+F = {"f": TensorSpec((4,), "float32")}
+D = {"d": TensorSpec((4,), "float32")}
+
+
+class Event:
+    def __init__(self, slot: int) -> None:
+        self.slot = slot
+
+
+class Dev:
+    """A stand-in DeviceContext: logs marks, waits and completions, and what the rings looked like at each."""
+
+    device = torch.device("cpu")
+
+    def __init__(self, name: str, log: list[tuple], rings: dict[str, SlotRing], work_s: float = 0.0) -> None:
+        self.name, self.log, self.rings, self.work_s = name, log, rings, work_s
+
+    @contextlib.contextmanager
+    def active(self) -> Iterator[None]:
+        yield
+
+    def wait_on(self, event: Event) -> None:
+        self.log.append((self.name, "wait_on", event.slot))
+
+    def mark(self, event: Event) -> None:
+        self.log.append((self.name, "mark", event.slot))
+
+    def complete(self) -> None:
+        time.sleep(self.work_s)
+        self.log.append(
+            (
+                self.name,
+                "complete",
+                self.rings["features"].last_seq,
+                self.rings["input"].pins()["foundation"],
+            )
+        )
+
+
+def spec(name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream) -> WorkerSpec:  # type: ignore[no-untyped-def]
+    return WorkerSpec(name, role, {}, upstream, {}, in_ring.desc, name, out_ring.desc, False)  # type: ignore[arg-type]
+
+
+def pipeline(handoff: bool, work_s: float = 0.0):  # type: ignore[no-untyped-def]
+    rings = {
+        "input": latest_buffer("input", X, ["foundation"]),
+        "features": latest_buffer("features", F, ["depth"]),
+        "out": latest_buffer("out", D, ["results"]),
+    }
+    if handoff:  # what prepare_worker does for a thread-mode foundation on CUDA
+        rings["features"].device_events = [Event(i) for i in range(rings["features"].n_slots)]
+    control = ControlBlock.create(["foundation", "depth"])
+    log: list[tuple] = []
+
+    def foundation(inputs):  # type: ignore[no-untyped-def]
+        log.append(("foundation", "model"))
+        return {"f": inputs["x"] * 2}
+
+    def depth(inputs):  # type: ignore[no-untyped-def]
+        log.append(("depth", "model"))
+        return {"d": inputs["f"] + 1}
+
+    fm = WorkerCore(
+        spec("foundation", "foundation", rings["input"], rings["features"], {}),
+        foundation,
+        F,
+        rings["input"],
+        rings["features"],
+        control,
+        Dev("foundation", log, rings, work_s),  # type: ignore[arg-type]
+    )
+    head = WorkerCore(
+        spec("depth", "head", rings["features"], rings["out"], F),
+        depth,
+        D,
+        rings["features"],
+        rings["out"],
+        control,
+        Dev("depth", log, rings),  # type: ignore[arg-type]
+    )
+    return rings, control, log, fm, head
+
+
+def step(core: WorkerCore) -> None:
+    slot = core.reader.pin(timeout=1.0)
+    assert slot is not None
+    try:
+        core._step(slot, starved=False)
+    finally:
+        core.reader.release(slot)
+
+
+def submit(rings, i: int) -> None:  # type: ignore[no-untyped-def]
+    w = rings["input"].writer()
+    slot = w.acquire(timeout=1.0)
+    slot.tensors["x"].fill_(float(i))
+    w.publish(slot, i, time.monotonic(), time.monotonic())
+
+
+def test_with_event_hand_off_features_are_published_before_the_foundation_waits_and_heads_wait_on_the_device():
+    rings, control, log, fm, head = pipeline(handoff=True)
+    for i in range(5):  # the rings rotate through their slots
+        log.clear()
+        submit(rings, i)
+        step(fm)
+        mark = [e for e in log if e[1] == "mark"]
+        done = [e for e in log if e[1] == "complete"]
+        assert len(mark) == 1 and len(done) == 1, log
+        # the slot was marked, then published (features seq = i + 1) before the foundation waited for its work,
+        # and the input slot was still pinned while it waited: the caller's frame is not reused under the read
+        assert log.index(mark[0]) < log.index(done[0])
+        assert done[0][2] == i + 1 and done[0][3] >= 0, done
+        step(head)
+        head_log = [e for e in log if e[0] == "depth"]
+        # the head's stream waits on the very slot's event, before its model runs; its own output syncs on the host
+        assert head_log[0] == ("depth", "wait_on", mark[0][2]), head_log
+        assert head_log[1] == ("depth", "model") and head_log[2][1] == "complete", head_log
+        out = rings["out"].reader("results")
+        got = out.pin(timeout=1.0)
+        assert (
+            got is not None
+            and got.frame_id == i
+            and torch.equal(got.tensors["d"], torch.full((4,), 2.0 * i + 1))
+        )
+        out.release(got)
+    assert control.snapshot("foundation")["runs"] == 5 and control.snapshot("depth")["runs"] == 5
+
+
+def test_with_host_hand_off_the_foundation_publishes_only_completed_work_and_heads_do_not_wait_on_events():
+    rings, _control, log, fm, head = pipeline(handoff=False)
+    submit(rings, 0)
+    step(fm)
+    step(head)
+    assert not [e for e in log if e[1] in ("mark", "wait_on")], log
+    done = [e for e in log if e[0] == "foundation" and e[1] == "complete"]
+    assert done[0][2] == 0, "published before its work was complete"
+
+
+def test_a_handed_off_run_is_timed_by_its_device_work_not_by_its_queueing():
+    rings, control, _log, fm, _head = pipeline(handoff=True, work_s=0.03)
+    submit(rings, 0)
+    step(fm)
+    lat, e2e = control.recent_latencies("foundation")
+    assert len(lat) == 1 and lat[0] >= 0.03 and e2e[0] >= lat[0], (lat, e2e)

@@ -6,6 +6,7 @@
 #   floor    the depth + seg floor (compiled, borrowed): event hand-off with sleeping sync and sync spin 200 us,
 #            host hand-off with sleeping sync
 #   e5       E5 in thread mode with the event hand-off, E5_FRAMES frames (default 10,000)
+#   e5p      E5 in process mode (host hand-off there), E5_FRAMES frames; then the floor with detection too
 source benchmarks/gpu/setup.sh
 case "${1:-tests}" in
 tests)
@@ -32,6 +33,14 @@ e5)
   timeout 560 python3 -m vpengine.cli.main bench paper --experiments E5 --e5-frames ${E5_FRAMES:-10000} \
     --det-head frcnn_dinov2_lite --backend compile --mode thread --tag e5_thread_handoff --out "$OUT" 2>&1 \
     | grep -v "RANDOM\|WARNING" | tail -4
+  ;;
+e5p)
+  timeout 420 python3 -m vpengine.cli.main bench paper --experiments E5 --e5-frames ${E5_FRAMES:-10000} \
+    --det-head frcnn_dinov2_lite --backend compile --mode process --tag e5_process_rerun --out "$OUT" 2>&1 \
+    | grep -v "RANDOM\|WARNING" | tail -2
+  timeout 150 python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads depth,seg,det --backend compile \
+    --frames 200 --results borrow --tag floor_handoff_event_depth_seg_det_borrow_spin0 --out "$OUT" 2>&1 \
+    | grep "floor:\|Error" | tail -2
   ;;
 esac
 ls "$OUT"

@@ -1,8 +1,8 @@
 """Note [Event hand-off] on CUDA: in thread mode the foundation model publishes features whose device work is still
 queued, and each head's stream waits on the slot's event. Run on the GPU machine: ``pytest -m gpu tests/gpu``.
 
-The foundation's work is made slow on the device (a ``torch.cuda._sleep`` kernel queued before it) so that the heads
-are woken long before the features exist: a head that read without waiting would get the slot's previous frame.
+The foundation's work is made slow on the device (a ``torch.cuda._sleep`` kernel queued before its outputs are
+copied into the feature slot) so that the heads are woken long before the features are there: a head that read without waiting would get the slot's previous frame.
 The same engine with the wait taken out shows that this test sees that happen.
 """
 
@@ -31,8 +31,11 @@ class SlowOnDevice:
         self.inner, self.output_spec = inner, inner.output_spec
 
     def __call__(self, inputs):  # type: ignore[no-untyped-def]
+        out = self.inner(inputs)
+        # after the model, before the worker copies its outputs into the feature slot: however the model itself
+        # syncs with the host, the slot is written only this long after the features are published
         torch.cuda._sleep(SLEEP_CYCLES)
-        return self.inner(inputs)
+        return out
 
     def bind(self, inputs, outputs) -> bool:  # type: ignore[no-untyped-def]
         return False

@@ -7,6 +7,8 @@ the Python call returns. A worker therefore records an event on its stream after
 were copied into the output slot, waits for it, and only then publishes the output slot and releases the input
 slot. The event is created with ``blocking=True`` (cudaEventBlockingSync) so the waiting thread sleeps in the
 driver instead of spinning a CPU core at 100%. On the CPU, PyTorch ops are synchronous and ``complete`` is a no-op.
+One hop orders on the device instead: the foundation's features to the heads in thread mode on CUDA, where the heads'
+streams wait on an event per slot (``wait_on``/``mark``, Note [Event hand-off] in worker.py).
 
 Waking from that sleep takes 0.1-0.2 ms (measured on an H100 VM), once per model per frame, on the critical path of
 every frame. ``runtime.sync_spin_us`` > 0 trades a little CPU for it: the worker sleeps (``time.sleep``, GIL released)

@@ -154,3 +154,60 @@ def test_every_e5_run_gets_a_row_and_the_figure_shows_the_longest(tmp_path):
     assert "E5 10000 frames" in rows[0] and "p50 12.9 ms" in rows[0] and "not slot-bound" not in rows[0]
     assert "E5 3000 frames" in rows[1] and "not slot-bound" in rows[1] and "lost 0.10%" in rows[1]
     assert r["E5"]["file"] == "paper_cuda_e5.json"  # the longest stream, not the newest
+
+
+EVENT_STAGES = {  # one profile_steps.py variant: mean ms after the frame is in its slot
+    "foundation.input_published": 0.0,
+    "caller.submitted": 0.04,
+    "foundation.pinned": 0.13,
+    "foundation.model_enqueued": 0.34,
+    "depth.input_published": 0.38,
+    "seg.input_published": 0.38,
+    "depth.pinned": 0.5,
+    "seg.pinned": 0.5,
+    "seg.model_enqueued": 0.82,
+    "depth.model_enqueued": 0.84,
+    "foundation.device_done": 1.66,
+    "foundation.published": 1.67,
+    "seg.device_done": 2.61,
+    "seg.published": 2.66,
+    "depth.device_done": 3.34,
+    "depth.published": 3.39,
+    "caller.returned": 3.58,
+}
+
+
+def test_waterfall_rows_follow_the_stages_and_mark_what_each_model_published_when():
+    from vpengine.bench.report import waterfall_rows
+
+    rows = {name: (segs, out) for name, segs, out in waterfall_rows(EVENT_STAGES)}
+    names = list(rows)  # in the order they start; the caller last
+    assert names[0] == "foundation" and names[-1] == "caller" and set(names[1:3]) == {"depth", "seg"}
+    segs, out = rows["foundation"]
+    # woken 0 -> 0.13, queueing 0.13 -> 0.34, device 0.34 -> 1.66, publishing 1.66 -> 1.67
+    assert [(round(s, 2), round(length, 2), i) for s, length, i in segs] == [
+        (0.0, 0.13, 0),
+        (0.13, 0.21, 1),
+        (0.34, 1.32, 2),
+        (1.66, 0.01, 3),
+    ]
+    assert (
+        out == 0.38
+    )  # the heads saw the features at 0.38 ms (event hand-off), not when the foundation finished
+    assert rows["depth"][1] == 3.39
+    caller_segs, returned = rows["caller"]
+    assert returned == 3.58 and caller_segs[-1][0] == 3.39 and round(caller_segs[-1][1], 2) == 0.19
+
+
+def test_waterfall_draws_each_variant_a_profile_has_and_nothing_for_none(tmp_path):
+    from vpengine.bench.report import waterfall
+
+    profile = {
+        "setup": {"heads": ["depth", "seg"], "backend": "compile"},
+        "slot": {"mean_ms": 3.58, "stages_ms_from_start": EVENT_STAGES},
+        "slot host hand-off": {"mean_ms": 4.08, "stages_ms_from_start": EVENT_STAGES},
+    }
+    png = tmp_path / "w.png"
+    assert waterfall(profile, png) and png.stat().st_size > 10_000
+    assert not waterfall({"setup": {}, "submit": profile["slot"]}, tmp_path / "none.png")
+    assert not (tmp_path / "none.png").exists()

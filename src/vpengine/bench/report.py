@@ -259,6 +259,86 @@ def figure(r: dict[str, Any], path: Path) -> None:
     plt.close(fig)
 
 
+# profile_steps.py variants drawn, in this order, where a file has them
+WATERFALL_VARIANTS = ("slot host hand-off", "slot", "slot+spin200")
+_SEGMENTS = (  # (from stage, to stage, what the time is, colour)
+    ("input_published", "pinned", "woken (a model by its input, the caller by results)", "#bbbbbb"),
+    ("pinned", "model_enqueued", "host work: queueing device work (the caller: submit)", "#f0a030"),
+    ("model_enqueued", "device_done", "device work, until its thread sees it done", "#4a7fc0"),
+    ("device_done", "published", "counting and publishing", "#50a050"),
+)
+
+
+def waterfall_rows(
+    stages: dict[str, float],
+) -> list[tuple[str, list[tuple[float, float, int]], float | None]]:
+    """Per model (in the order they start): its segments (start ms, length ms, index into _SEGMENTS) and when its
+    output was published for its readers, from one variant's mean stage times of profile_steps.py."""
+    per: dict[str, dict[str, float]] = {}
+    for key, t in stages.items():
+        model, _, stage = key.partition(".")
+        per.setdefault(model, {})[stage] = t
+    caller = per.pop("caller", {})
+    # what the heads saw published: with the event hand-off that is before the foundation's work is done
+    heads_input = [
+        m["input_published"] for n, m in per.items() if n != "foundation" and "input_published" in m
+    ]
+    rows = []
+    for name, m in sorted(per.items(), key=lambda kv: kv[1].get("pinned", 0.0)):
+        segs = [
+            (m[a], m[b] - m[a], i)
+            for i, (a, b, _, _) in enumerate(_SEGMENTS)
+            if a in m and b in m and m[b] >= m[a]
+        ]
+        out = min(heads_input) if name == "foundation" and heads_input else m.get("published")
+        rows.append((name, segs, out))
+    if caller:
+        last = max((m.get("published", 0.0) for m in per.values()), default=0.0)
+        segs = [(0.0, caller.get("submitted", 0.0), 1)]
+        if "returned" in caller and caller["returned"] >= last:
+            segs.append((last, caller["returned"] - last, 0))
+        rows.append(("caller", segs, caller.get("returned")))
+    return rows
+
+
+def waterfall(profile: dict[str, Any], path: Path) -> bool:
+    """One frame's time, stage by stage, for each variant of a profile_steps.py result; False: nothing to draw."""
+    variants = [v for v in WATERFALL_VARIANTS if v in profile]
+    if not variants:
+        return False
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(len(variants), 1, figsize=(11, 1.0 + 1.9 * len(variants)), dpi=110, sharex=True)
+    axes = np.atleast_1d(axes)
+    for ax, v in zip(axes, variants, strict=True):
+        rows = waterfall_rows(profile[v]["stages_ms_from_start"])
+        for y, (_name, segs, out) in enumerate(rows):
+            for start, length, i in segs:
+                ax.barh(y, length, left=start, color=_SEGMENTS[i][3], height=0.6)
+            if out is not None:
+                ax.plot([out], [y], "k|", markersize=14)
+        ax.set_yticks(range(len(rows)), [r[0] for r in rows])
+        ax.invert_yaxis()
+        ax.set_title(
+            f"{v}: {profile[v]['mean_ms']:.2f} ms mean from the frame in its slot to the caller holding results"
+        )
+        ax.grid(axis="x", alpha=0.3)
+    axes[-1].set_xlabel("ms after the frame is in its input slot (mean over frames); | = output published")
+    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for _, _, _, c in _SEGMENTS]
+    fig.legend(handles, [s[2] for s in _SEGMENTS], loc="lower center", ncol=2, frameon=False)
+    setup = profile.get("setup", {})
+    fig.suptitle(
+        f"Where one frame's time goes, thread mode ({', '.join(setup.get('heads', []))}, {setup.get('backend', '?')})"
+    )
+    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
 def main(args: argparse.Namespace) -> int:
     folder = Path(args.results)
     r = collect(folder)
@@ -267,4 +347,8 @@ def main(args: argparse.Namespace) -> int:
     figure(r, folder / "summary.png")
     print(md)
     print(f"-> {folder / 'summary.md'}, {folder / 'summary.png'}")
+    for f in sorted(folder.glob("profile_steps*.json")):
+        png = f.with_name(f"waterfall_{f.stem.removeprefix('profile_steps').strip('_') or 'run'}.png")
+        if waterfall(json.loads(f.read_text()), png):
+            print(f"-> {png}")
     return 0

@@ -295,8 +295,10 @@ def prepare_worker(
                 keys = input_keys(spec, in_ring)
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
-    if spec.role == "foundation" and not own_process and dev.cuda and cfg.runtime.feature_handoff == "event":
-        # Note [Event hand-off]: every reader of the features is a head thread of this process on this device.
+    # Note [Event hand-off]: every reader of the features is a head thread of this process on this device. A
+    # restarted foundation keeps the events: a slot its predecessor published is still ordered by them.
+    handoff = spec.role == "foundation" and not own_process and cfg.runtime.feature_handoff == "event"
+    if handoff and dev.cuda and out_ring.device_events is None:
         out_ring.device_events = [torch.cuda.Event() for _ in range(out_ring.n_slots)]
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())

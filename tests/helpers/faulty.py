@@ -7,8 +7,9 @@ import signal
 import time
 from pathlib import Path
 
-from vpengine.models.base import BuildContext, Model, Options
-from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions
+from vpengine.models.base import BuildContext, Model, Options, Pipeline
+from vpengine.models.preprocess import ImagePreprocess
+from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyViTOptions
 
 
 class FaultOptions(Options):
@@ -57,4 +58,38 @@ class FaultyHead(TinyDepthHead):
         if f.hang_at_run is not None and run >= f.hang_at_run:
             while True:
                 time.sleep(3600)
+        return super().forward(inputs)
+
+
+class FaultyViTOptions(TinyViTOptions):
+    raise_at_run: int | None = None  # raise on this run (1-based) of this worker
+    once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
+
+
+class FaultyViT(TinyViT):
+    """tiny_vit (same weights for the same seed) that raises once on a given run: a foundation model to restart."""
+
+    def __init__(self, image_hw: tuple[int, int], opts: FaultyViTOptions, dtype: str = "float32") -> None:
+        super().__init__(image_hw, opts, dtype)
+        self.fault = opts
+        self.calls = 0
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext) -> Model:
+        opts = ctx.options(FaultyViTOptions)
+        h, w = ctx.input_hw
+        e = ctx.engine
+        pre = ImagePreprocess(
+            h, w, e.foundation_model.preprocess, opts.patch_size, e.input.color, e.input.dtype, ctx.dtype_name
+        )
+        return Pipeline(pre, cls(pre.size, opts, ctx.dtype_name))
+
+    def forward(self, inputs):
+        self.calls += 1
+        run = self.calls - 1  # call 1 is the engine's warm-up before READY
+        f = self.fault
+        if run == f.raise_at_run and (f.once_marker is None or not Path(f.once_marker).exists()):
+            if f.once_marker is not None:
+                Path(f.once_marker).touch()
+            raise RuntimeError(f"injected foundation failure at run {run}")
         return super().forward(inputs)

@@ -10,6 +10,7 @@ import sys
 import textwrap
 import time
 
+import numpy as np
 import psutil
 import pytest
 
@@ -64,6 +65,41 @@ def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, 
         assert "RuntimeError: injected failure at run 5" in seg["last_error"]
         fid = e.submit(frame(99))
         assert e.wait(fid, heads=["seg"], timeout=10)["seg"].frame_id == fid  # serving again
+
+
+@pytest.mark.parametrize("mode", ["process", "thread"])
+def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_features_as_before(tmp_path, mode):
+    """On CUDA in thread mode the restarted foundation hands features off by event again (Note [Event hand-off])."""
+    opts = json.dumps({"raise_at_run": 6, "once_marker": str(tmp_path / "raised")})
+    cfg = tiny(
+        mode,
+        "foundation_model.model=helpers.faulty:FaultyViT",
+        f"foundation_model.options={opts}",
+        "runtime.restart_backoff_s=0.2",
+    )
+    heads = ["depth", "seg", "det"]
+    with Engine(cfg) as e:
+        before = e.wait(e.submit(frame(99)), timeout=10)  # run 1
+        assert set(before) == set(heads)
+        pump(e, 4, heads=heads)  # runs 2-5
+        e.submit(frame(5))  # run 6 raises: this frame gets no features
+        wait_for(
+            lambda: (
+                e.stats()["models"]["foundation"]["restarts"] == 1
+                and e.stats()["models"]["foundation"]["state"] == "running"
+            ),
+            what="foundation restarted",
+            show=lambda: e.stats()["models"]["foundation"],
+        )
+        fm = e.stats()["models"]["foundation"]
+        assert fm["errors"] == 1 and "injected foundation failure at run 6" in fm["last_error"]
+        pump(e, 5, heads=heads, start=10)  # the restarted foundation serves every head again
+        fid = e.submit(frame(99))
+        after = e.wait(fid, timeout=10)
+        assert set(after) == set(heads) and all(r.frame_id == fid for r in after.values())
+        for h in heads:
+            for k, v in before[h].outputs.items():
+                assert np.array_equal(after[h].outputs[k], v), (h, k)
 
 
 def test_sigkill_of_a_head_restarts_it_releases_its_pins_and_never_blocks_the_backbone(tmp_path):

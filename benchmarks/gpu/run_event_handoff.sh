@@ -24,9 +24,7 @@ tests|profile)
 tests|floor)
   for run in "event 0" "host 0" "event 200"; do
     set -- $run
-    timeout 150 python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads depth,seg --backend compile \
-      --frames 200 --results borrow --sync-spin-us $2 --feature-handoff $1 \
-      --tag floor_handoff_$1_depth_seg_borrow_spin$2 --out "$OUT" 2>&1 | grep "floor:\|Error" | tail -2
+    floor 150 depth,seg floor_handoff_$1_depth_seg_borrow_spin$2 --sync-spin-us $2 --feature-handoff $1
   done
   ;;
 e5)
@@ -38,9 +36,7 @@ e5p)
   timeout 420 python3 -m vpengine.cli.main bench paper --experiments E5 --e5-frames ${E5_FRAMES:-10000} \
     --det-head frcnn_dinov2_lite --backend compile --mode process --tag e5_process_rerun --out "$OUT" 2>&1 \
     | grep -v "RANDOM\|WARNING" | tail -2
-  timeout 150 python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads depth,seg,det --backend compile \
-    --frames 200 --results borrow --tag floor_handoff_event_depth_seg_det_borrow_spin0 --out "$OUT" 2>&1 \
-    | grep "floor:\|Error" | tail -2
+  floor 150 depth,seg,det floor_handoff_event_depth_seg_det_borrow_spin0
   ;;
 esac
 ls "$OUT"

@@ -27,16 +27,12 @@ floor)
     tests/gpu/test_engine_gpu.py::test_polling_device_sync_returns_when_the_work_is_done_and_mostly_sleeps \
     > "$OUT/slot_bound_tests_on_cuda_rerun.log" 2>&1; tail -2 "$OUT/slot_bound_tests_on_cuda_rerun.log"
   for spin in 0 200; do
-    timeout 280 python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads depth,seg --backend compile \
-      --frames 200 --results borrow --sync-spin-us $spin --tag floor_bound_depth_seg_borrow_spin$spin --out "$OUT" 2>&1 \
-      | grep "floor:\|Error" | tail -2
+    floor 280 depth,seg floor_bound_depth_seg_borrow_spin$spin --sync-spin-us $spin
   done
   ;;
 floor3)  # with the eager detection head too, sync spin 200 us; depth + seg again
   for heads in depth,seg,det depth,seg; do
-    timeout 280 python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads $heads --backend compile \
-      --frames 200 --results borrow --sync-spin-us 200 --tag floor_bound_${heads//,/_}_borrow_spin200_b --out "$OUT" \
-      2>&1 | grep "floor:\|Error" | tail -2
+    floor 280 $heads floor_bound_${heads//,/_}_borrow_spin200_b --sync-spin-us 200
   done
   ;;
 esac

@@ -6,6 +6,13 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site:$PWD/src:$PWD/tests
 export PYTHONUNBUFFERED=1
 mkdir -p "${OUT:-/tmp/out}"
+# floor SECONDS HEADS TAG ARGS...: the floor experiment (compiled, borrowed results, 200 frames) into $OUT, printing its
+# result line
+floor() {
+  local t=$1 heads=$2 tag=$3; shift 3
+  timeout "$t" python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads "$heads" --backend compile \
+    --frames 200 --results borrow --tag "$tag" --out "$OUT" "$@" 2>&1 | grep "floor:\|Error" | tail -2
+}
 # paper SECONDS ARGS...: `vpengine bench paper` into $OUT under a time limit, printing only its result lines
 paper() {
   local t=$1; shift

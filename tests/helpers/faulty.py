@@ -7,8 +7,7 @@ import signal
 import time
 from pathlib import Path
 
-from vpengine.models.base import BuildContext, Model, Options, Pipeline
-from vpengine.models.preprocess import ImagePreprocess
+from vpengine.models.base import BuildContext, Model, Options
 from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyViTOptions
 
 
@@ -69,20 +68,12 @@ class FaultyViTOptions(TinyViTOptions):
 class FaultyViT(TinyViT):
     """tiny_vit (same weights for the same seed) that raises once on a given run: a foundation model to restart."""
 
+    options_type = FaultyViTOptions
+
     def __init__(self, image_hw: tuple[int, int], opts: FaultyViTOptions, dtype: str = "float32") -> None:
         super().__init__(image_hw, opts, dtype)
         self.fault = opts
         self.calls = 0
-
-    @classmethod
-    def from_config(cls, ctx: BuildContext) -> Model:
-        opts = ctx.options(FaultyViTOptions)
-        h, w = ctx.input_hw
-        e = ctx.engine
-        pre = ImagePreprocess(
-            h, w, e.foundation_model.preprocess, opts.patch_size, e.input.color, e.input.dtype, ctx.dtype_name
-        )
-        return Pipeline(pre, cls(pre.size, opts, ctx.dtype_name))
 
     def forward(self, inputs):
         self.calls += 1

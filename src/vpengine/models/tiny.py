@@ -63,6 +63,7 @@ class TinyViT(Model):
     """A 4-block ViT with DINOv2's output layout. ``image: float[1,3,h,w]`` -> ``patch.i``, ``cls.i``."""
 
     role = "foundation"
+    options_type: type[TinyViTOptions] = TinyViTOptions  # a subclass may take more options
 
     def __init__(self, image_hw: tuple[int, int], opts: TinyViTOptions, dtype: str = "float32") -> None:
         super().__init__()
@@ -95,7 +96,7 @@ class TinyViT(Model):
 
     @classmethod
     def from_config(cls, ctx: BuildContext) -> Model:
-        opts = ctx.options(TinyViTOptions)
+        opts = ctx.options(cls.options_type)
         h, w = ctx.input_hw
         pre = ImagePreprocess(
             h,

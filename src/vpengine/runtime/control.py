@@ -187,14 +187,16 @@ class ControlBlock:
     def _lat_base(self, i: int) -> int:
         return (_HEADER // 8) + i * ENTRY_WORDS + _LAT0
 
+    def _put_times(self, i: int, run: int, compute_s: float, e2e_s: float) -> None:
+        b, k = self._lat_base(i), run % LAT_N
+        self._d[b + k] = compute_s
+        self._d[b + LAT_N + k] = e2e_s
+
     def record_run(self, name: str, t_start: float, compute_s: float, e2e_s: float, frame_id: int) -> None:
         i = self.index[name]
         n = self._get(i, "lat_count")
-        b = self._lat_base(i)
-        k = n % LAT_N
-        self._d[b + k] = compute_s
-        self._d[b + LAT_N + k] = e2e_s
-        self._d[b + 2 * LAT_N + k] = t_start
+        self._put_times(i, n, compute_s, e2e_s)
+        self._d[self._lat_base(i) + 2 * LAT_N + n % LAT_N] = t_start
         self._set(i, "last_frame_id", frame_id)
         self._add(i, "runs")
         self._set(i, "lat_count", n + 1)
@@ -203,12 +205,8 @@ class ControlBlock:
         """Correct the times of the run recorded last (a run counted when its work was queued, timed when done)."""
         i = self.index[name]
         n = self._get(i, "lat_count")
-        if n == 0:
-            return
-        b = self._lat_base(i)
-        k = (n - 1) % LAT_N
-        self._d[b + k] = compute_s
-        self._d[b + LAT_N + k] = e2e_s
+        if n:
+            self._put_times(i, n - 1, compute_s, e2e_s)
 
     def set_error(self, name: str, text: str) -> None:
         i = self.index[name]

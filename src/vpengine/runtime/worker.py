@@ -184,6 +184,7 @@ class WorkerCore:
         if out is None:
             ctl.add(name, "dropped")
             return
+        # read each frame: a head can start before the foundation thread has given the ring its events
         events = self._in_ring.device_events
         if events is not None:  # the slot's writer published it queued: read it only after that work
             self.dev.wait_on(events[slot.index])

@@ -17,7 +17,13 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
 * slot+fullspin: device sync by spinning on the event the whole time (cudaEventDefault): the least wake-up latency
   there is, at a core per worker. Diagnostic only: not something the engine does;
 * slot+switch: ``sys.setswitchinterval(1e-4)`` (CPython's default is 5 ms: a thread waiting for the interpreter
-  lock asks the holder to drop it only after that long).
+  lock asks the holder to drop it only after that long);
+* slot gil-released: the mailboxes' non-blocking calls (trylock, unlock, futex wake) release the interpreter lock,
+  as every ctypes call did before ``_linux._held``.
+
+A slot-bound model's run is stamped after each of its three graph launches: ``in_copy_enqueued`` (the input slot
+copied into the graph's static input), ``graph_enqueued`` (the model) and ``model_enqueued`` (the copy into the
+output slot). VARIANTS (comma-separated names from the list above) picks which run; default: all.
 
 Then a torch.profiler trace of a few frames (chrome trace, gzipped) for the device timeline. Set TINY=1 for a CPU
 smoke run of the script.
@@ -39,6 +45,7 @@ import torch
 from vpengine.bench.paper import Setup, engines, frames
 from vpengine.runtime import worker as worker_mod
 from vpengine.runtime.device import DeviceContext
+from vpengine.transport import _linux
 
 out_dir = os.environ.get("OUT", "/tmp/out")
 os.makedirs(out_dir, exist_ok=True)
@@ -89,8 +96,13 @@ class _Stamped:
         return out
 
     def run_bound(self, i, j):  # type: ignore[no-untyped-def]
-        self.ex.run_bound(i, j)
-        self.rec["model_enqueued"] = time.monotonic()
+        ex, rec = self.ex, self.rec
+        ex._in_graphs[i].replay()  # CompiledExecutor.run_bound, one launch at a time
+        rec["in_copy_enqueued"] = time.monotonic()
+        ex._graph.replay()
+        rec["graph_enqueued"] = time.monotonic()
+        ex._out_graphs[j].replay()
+        rec["model_enqueued"] = time.monotonic()
 
 
 def _stamped_step(self, slot, starved):  # type: ignore[no-untyped-def]
@@ -185,32 +197,47 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
     print("slot-bound:", report["bound"])
     for i in range(30):
         eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=60)
-    report["submit"] = run_variant(eng, "submit", setup.frames)
+    chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))
+
+    def want(v: str) -> bool:
+        return not chosen or v in chosen
+
+    if want("submit"):
+        report["submit"] = run_variant(eng, "submit", setup.frames)
     report["slot"] = run_variant(eng, "slot", setup.frames)
+    if want("slot gil-released"):
+        held = _linux._held
+        _linux._held = _linux._libc  # the same calls, releasing the interpreter lock
+        report["slot gil-released"] = run_variant(eng, "slot gil-released", setup.frames)
+        _linux._held = held
     fm = next(c for c in cores if c.name == "foundation")
     handoff = fm._handoff
     report["handoff"] = handoff is not None
-    fm._handoff = fm.writer.ring.device_events = None  # between frames: none in flight
-    report["slot host hand-off"] = run_variant(eng, "slot host hand-off", setup.frames)
-    fm._handoff = fm.writer.ring.device_events = handoff
-    bound = {c: c._bound for c in cores}
-    for c in cores:
-        c._bound = False
-    report["slot unbound"] = run_variant(eng, "slot unbound", setup.frames)
-    for c, b in bound.items():
-        c._bound = b
+    if want("slot host hand-off"):
+        fm._handoff = fm.writer.ring.device_events = None  # between frames: none in flight
+        report["slot host hand-off"] = run_variant(eng, "slot host hand-off", setup.frames)
+        fm._handoff = fm.writer.ring.device_events = handoff
+    if want("slot unbound"):
+        bound = {c: c._bound for c in cores}
+        for c in cores:
+            c._bound = False
+        report["slot unbound"] = run_variant(eng, "slot unbound", setup.frames)
+        for c, b in bound.items():
+            c._bound = b
     for us in (200, 100):
-        spin(us)
-        run_variant(eng, "(learning)", 50)
-        report[f"slot+spin{us}"] = run_variant(eng, f"slot+spin{us}", setup.frames)
+        if want(f"slot+spin{us}"):
+            spin(us)
+            run_variant(eng, "(learning)", 50)
+            report[f"slot+spin{us}"] = run_variant(eng, f"slot+spin{us}", setup.frames)
     spin(0)
-    if torch.cuda.is_available():
+    if torch.cuda.is_available() and want("slot+fullspin"):
         DeviceContext.complete = _fullspin_complete  # type: ignore[method-assign]
         report["slot+fullspin"] = run_variant(eng, "slot+fullspin", setup.frames)
         DeviceContext.complete = blocking_complete  # type: ignore[method-assign]
-    sys.setswitchinterval(1e-4)
-    report["slot+switch"] = run_variant(eng, "slot+switch", setup.frames)
-    sys.setswitchinterval(switch)
+    if want("slot+switch"):
+        sys.setswitchinterval(1e-4)
+        report["slot+switch"] = run_variant(eng, "slot+switch", setup.frames)
+        sys.setswitchinterval(switch)
     report["slot_again"] = run_variant(eng, "slot", setup.frames)
     # the device timeline of a few frames
     worker_mod.WorkerCore._step = _plain_step  # type: ignore[method-assign]

@@ -17,9 +17,7 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
 * slot+fullspin: device sync by spinning on the event the whole time (cudaEventDefault): the least wake-up latency
   there is, at a core per worker. Diagnostic only: not something the engine does;
 * slot+switch: ``sys.setswitchinterval(1e-4)`` (CPython's default is 5 ms: a thread waiting for the interpreter
-  lock asks the holder to drop it only after that long);
-* slot gil-released: the mailboxes' non-blocking calls (trylock, unlock, futex wake) release the interpreter lock,
-  as every ctypes call did before ``_linux._held``.
+  lock asks the holder to drop it only after that long).
 
 A slot-bound model's run is stamped after each of its three graph launches: ``in_copy_enqueued`` (the input slot
 copied into the graph's static input), ``graph_enqueued`` (the model) and ``model_enqueued`` (the copy into the
@@ -45,7 +43,6 @@ import torch
 from vpengine.bench.paper import Setup, engines, frames
 from vpengine.runtime import worker as worker_mod
 from vpengine.runtime.device import DeviceContext
-from vpengine.transport import _linux
 
 out_dir = os.environ.get("OUT", "/tmp/out")
 os.makedirs(out_dir, exist_ok=True)
@@ -205,11 +202,6 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
     if want("submit"):
         report["submit"] = run_variant(eng, "submit", setup.frames)
     report["slot"] = run_variant(eng, "slot", setup.frames)
-    if want("slot gil-released"):
-        held = _linux._held
-        _linux._held = _linux._libc  # the same calls, releasing the interpreter lock
-        report["slot gil-released"] = run_variant(eng, "slot gil-released", setup.frames)
-        _linux._held = held
     fm = next(c for c in cores if c.name == "foundation")
     handoff = fm._handoff
     report["handoff"] = handoff is not None

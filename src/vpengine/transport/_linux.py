@@ -17,9 +17,7 @@ the word and calls ``FUTEX_WAKE``. Unlike process-shared condition variables (wh
 a signaller forever when a waiter process is killed mid-wait), a futex keeps no waiter state in user memory, so a
 dead waiter costs nothing. Every wait has a timeout: nothing in vpengine sleeps unboundedly or spins.
 
-ctypes releases the GIL around foreign calls, so a thread sleeping here does not stall the other threads. Calls that
-cannot block (trylock, unlock, futex wake) keep it instead (``ctypes.PyDLL``), so that a thread woken mid-way
-cannot take the lock from the caller's critical path at each of them. A held mutex is waited for with it released.
+ctypes releases the GIL around foreign calls, so a thread sleeping here does not stall the other threads.
 """
 
 from __future__ import annotations
@@ -34,9 +32,7 @@ import sys
 if not sys.platform.startswith("linux"):  # pragma: no cover - import-time guard
     raise ImportError("vpengine's transport needs Linux (memfd, futex, robust process-shared mutexes)")
 
-_LIBC_NAME = ctypes.util.find_library("c") or "libc.so.6"
-_libc = ctypes.CDLL(_LIBC_NAME, use_errno=True)  # releases the GIL around each call: for calls that may block
-_held = ctypes.PyDLL(_LIBC_NAME, use_errno=True)  # keeps it: for calls that never block
+_libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
 
 _SYS_FUTEX = {"x86_64": 202, "aarch64": 98}.get(platform.machine())
 if _SYS_FUTEX is None:  # pragma: no cover
@@ -50,11 +46,9 @@ _PTHREAD_MUTEX_ROBUST = 1
 #: Bytes reserved for one mutex. glibc's pthread_mutex_t is 40 bytes on x86_64 and 48 on aarch64.
 MUTEX_BYTES = 64
 
-for _lib in (_libc, _held):
-    _lib.syscall.restype = ctypes.c_long
-    _lib.pthread_mutex_lock.argtypes = [ctypes.c_void_p]
-    _lib.pthread_mutex_trylock.argtypes = [ctypes.c_void_p]
-    _lib.pthread_mutex_unlock.argtypes = [ctypes.c_void_p]
+_libc.syscall.restype = ctypes.c_long
+_libc.pthread_mutex_lock.argtypes = [ctypes.c_void_p]
+_libc.pthread_mutex_unlock.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_consistent.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_init.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
 
@@ -97,9 +91,7 @@ class RobustMutex:
         self.owner_died = 0
 
     def __enter__(self) -> RobustMutex:
-        rc = _held.pthread_mutex_trylock(self._addr)
-        if rc == errno.EBUSY:  # held by another thread or process: wait with the interpreter lock released
-            rc = _libc.pthread_mutex_lock(self._addr)
+        rc = _libc.pthread_mutex_lock(self._addr)
         if rc == errno.EOWNERDEAD:
             self.owner_died += 1
             _libc.pthread_mutex_consistent(self._addr)
@@ -108,7 +100,7 @@ class RobustMutex:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        rc = _held.pthread_mutex_unlock(self._addr)
+        rc = _libc.pthread_mutex_unlock(self._addr)
         if rc != 0:
             raise OSError(rc, f"pthread_mutex_unlock failed: {os.strerror(rc)}")
 
@@ -131,7 +123,7 @@ def futex_wait(addr: int, expected: int, timeout: float) -> None:
 
 def futex_wake(addr: int) -> None:
     """Wake every waiter sleeping on the u32 at ``addr``."""
-    rc = _held.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAKE, 0x7FFFFFFF, None, None, 0)
+    rc = _libc.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAKE, 0x7FFFFFFF, None, None, 0)
     if rc < 0:
         err = ctypes.get_errno()
         raise OSError(err, f"futex wake failed: {os.strerror(err)}")

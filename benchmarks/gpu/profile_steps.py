@@ -8,7 +8,9 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
 * submit: ``Engine.submit`` (the frame copied into the input slot), latency from the call;
 * slot: ``Engine.frame_slot`` (the frame written in place), latency from the end of the write; the foundation hands
   its features to the heads by CUDA event (Note [Event hand-off]): its ``copies_enqueued`` and ``device_done`` come
-  after the heads' ``input_published``;
+  after the heads' ``input_published``; when it is slot-bound, the thread that closes the frame slot queues its work
+  (Note [Inline launch]): its ``pinned`` is then when that began, and ``finish_started`` when its worker took over;
+* slot worker launch: the same on an engine of its own with ``runtime.inline_launch: never`` (run first);
 * slot host hand-off: the foundation waits for its work on the host before it publishes (as before that Note);
 * slot unbound: compiled models called with the slots' tensors and their outputs copied by the worker, one copy per
   tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
@@ -29,6 +31,7 @@ smoke run of the script.
 
 from __future__ import annotations
 
+import dataclasses
 import gzip
 import json
 import os
@@ -66,7 +69,8 @@ imgs = frames(setup)
 stamps: dict[str, dict[int, dict[str, float]]] = defaultdict(dict)  # model -> frame id -> stage -> time
 cores: list[worker_mod.WorkerCore] = []
 devices: list[DeviceContext] = []
-_plain_step = worker_mod.WorkerCore._step
+_plain_launch = worker_mod.WorkerCore._launch
+_plain_finish = worker_mod.WorkerCore._finish
 _plain_core_init = worker_mod.WorkerCore.__init__
 _plain_dev_init = DeviceContext.__init__
 
@@ -102,9 +106,23 @@ class _Stamped:
         rec["model_enqueued"] = time.monotonic()
 
 
-def _stamped_step(self, slot, starved):  # type: ignore[no-untyped-def]
+def _stamped_launch(self, slot, out):  # type: ignore[no-untyped-def]
+    # in the submitting thread when it launches the foundation (Note [Inline launch]): its "pinned" is then when
+    # that thread began queueing, and its "finish_started" when the worker thread took over
     rec = {"input_published": slot.t_publish, "pinned": time.monotonic()}
-    dev, model = self.dev, self.model
+    stamps[self.name][slot.frame_id] = rec
+    model = self.model
+    self.model = _Stamped(model, rec)
+    try:
+        _plain_launch(self, slot, out)
+    finally:
+        self.model = model
+
+
+def _stamped_finish(self, slot, out, t_start):  # type: ignore[no-untyped-def]
+    rec = stamps[self.name].setdefault(slot.frame_id, {})
+    rec["finish_started"] = time.monotonic()
+    dev = self.dev
     plain_complete = dev.complete
 
     def complete():  # type: ignore[no-untyped-def]
@@ -112,14 +130,12 @@ def _stamped_step(self, slot, starved):  # type: ignore[no-untyped-def]
         plain_complete()
         rec["device_done"] = time.monotonic()
 
-    self.model, dev.complete = _Stamped(model, rec), complete
+    dev.complete = complete
     try:
-        _plain_step(self, slot, starved)
+        _plain_finish(self, slot, out, t_start)
     finally:
-        self.model = model
         del dev.complete
     rec["published"] = time.monotonic()
-    stamps[self.name][slot.frame_id] = rec
 
 
 def _fullspin_complete(self):  # type: ignore[no-untyped-def]
@@ -177,7 +193,8 @@ def run_variant(eng, variant: str, n: int) -> dict[str, object]:  # type: ignore
 
 
 report: dict[str, object] = {"setup": {"heads": kinds, "backend": setup.backend, "results": setup.results}}
-worker_mod.WorkerCore._step = _stamped_step  # type: ignore[method-assign]
+worker_mod.WorkerCore._launch = _stamped_launch  # type: ignore[method-assign]
+worker_mod.WorkerCore._finish = _stamped_finish  # type: ignore[method-assign]
 worker_mod.WorkerCore.__init__ = _core_init  # type: ignore[method-assign]
 DeviceContext.__init__ = _dev_init  # type: ignore[method-assign]
 switch = sys.getswitchinterval()
@@ -189,15 +206,28 @@ def spin(us: float) -> None:
         d.spin_s, d.expected_s = us * 1e-6, 0.0
 
 
+chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))
+
+
+def want(v: str) -> bool:
+    return not chosen or v in chosen
+
+
+if want("slot worker launch"):  # its own engine first: inline launch is an engine setting
+    with engines([dataclasses.replace(setup, inline_launch="never").config(heads, mode="thread")]) as (eng,):
+        for i in range(30):
+            eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=60)
+        report["slot worker launch"] = run_variant(eng, "slot worker launch", setup.frames)
+    cores.clear()
+    devices.clear()
+
 with engines([setup.config(heads, mode="thread")]) as (eng,):
     report["bound"] = {c.name: c._bound for c in cores}
-    print("slot-bound:", report["bound"])
+    inline = eng._res.rings["input"].inline
+    report["inline_launch"] = inline is not None
+    print("slot-bound:", report["bound"], "inline launch:", report["inline_launch"])
     for i in range(30):
         eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=60)
-    chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))
-
-    def want(v: str) -> bool:
-        return not chosen or v in chosen
 
     if want("submit"):
         report["submit"] = run_variant(eng, "submit", setup.frames)
@@ -232,7 +262,8 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
         sys.setswitchinterval(switch)
     report["slot_again"] = run_variant(eng, "slot", setup.frames)
     # the device timeline of a few frames
-    worker_mod.WorkerCore._step = _plain_step  # type: ignore[method-assign]
+    worker_mod.WorkerCore._launch = _plain_launch  # type: ignore[method-assign]
+    worker_mod.WorkerCore._finish = _plain_finish  # type: ignore[method-assign]
     acts = [torch.profiler.ProfilerActivity.CPU]
     if torch.cuda.is_available():
         acts.append(torch.profiler.ProfilerActivity.CUDA)

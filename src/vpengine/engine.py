@@ -613,6 +613,9 @@ class Engine:
         fid = self._next_id if frame_id is None else int(frame_id)
         self._next_id = fid + 1
         seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
+        inline = self._input_writer.ring.inline
+        if inline is not None:  # thread mode: queue the foundation's work from here (Note [Inline launch])
+            inline.launch()
         self._submitted += 1
         self._origins[fid] = seq
         if len(self._origins) > _ORIGINS_KEPT:
@@ -779,6 +782,9 @@ class Engine:
         if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
             raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
         ctl.set_rate(model, None if hz is None else float(hz))
+        inline = self._input_writer.ring.inline
+        if inline is not None and model == "foundation":
+            inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
     def stats(self) -> dict[str, Any]:
         """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""

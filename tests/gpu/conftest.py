@@ -29,3 +29,51 @@ def require_cuda() -> None:
 
     if not torch.cuda.is_available():
         pytest.skip("needs a CUDA GPU (run on the GPU machine: pytest -m gpu tests/gpu)")
+
+
+@pytest.fixture
+def inductor_in_process(monkeypatch):  # type: ignore[no-untyped-def]
+    """Inductor's parallel compile starts a pool of worker processes that lives as long as the process that compiled;
+    the suite's leak check (no child process may outlive a test) would flag it. Compile in-process here and, via the
+    environment, in engine workers."""
+    import torch._inductor.config as inductor_config
+
+    monkeypatch.setenv("TORCHINDUCTOR_COMPILE_THREADS", "1")
+    with inductor_config.patch(compile_threads=1):
+        yield
+
+
+SLEEP_CYCLES = 5_000_000  # a few ms of device time
+
+
+class SlowOnDevice:
+    """The foundation's executor with a device-side delay (a ``torch.cuda._sleep`` kernel) queued after the model,
+    before the worker copies its outputs into the feature slot: however the model itself syncs with the host, the
+    slot is written only this long after the features are published. Never slot-bound (the worker copies)."""
+
+    def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.output_spec = inner, inner.output_spec
+
+    def __call__(self, inputs):  # type: ignore[no-untyped-def]
+        import torch
+
+        out = self.inner(inputs)
+        torch.cuda._sleep(SLEEP_CYCLES)
+        return out
+
+    def bind(self, inputs, outputs) -> bool:  # type: ignore[no-untyped-def]
+        return False
+
+
+@pytest.fixture
+def slow_foundation(monkeypatch):  # type: ignore[no-untyped-def]
+    """Engines built while this is active get a SlowOnDevice foundation executor."""
+    import vpengine.backends as backends
+
+    plain = backends.make_executor
+
+    def make(model, backend, device, name, **kw):  # type: ignore[no-untyped-def]
+        ex = plain(model, backend, device, name, **kw)
+        return SlowOnDevice(ex) if name == "foundation" else ex
+
+    monkeypatch.setattr(backends, "make_executor", make)

@@ -21,23 +21,15 @@ from vpengine.runtime.plan import make_plan
 from vpengine.runtime.worker import build_model
 from vpengine.specs import TensorSpec
 
-pytestmark = [pytest.mark.gpu, pytest.mark.timeout(900), pytest.mark.usefixtures("require_cuda")]
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.timeout(900),
+    pytest.mark.usefixtures("require_cuda", "inductor_in_process"),
+]
 
 CUDA = torch.device("cuda")
 TINY_MODELS = ["foundation", "depth", "seg", "det"]
 THRESHOLD = 0.5  # tiny_det's default score threshold
-
-
-@pytest.fixture(autouse=True)
-def inductor_in_process(monkeypatch):
-    # Inductor's parallel compile starts a pool of worker processes that lives as long as the process that compiled;
-    # the suite's leak check (no child process may outlive a test) would flag it. Compile in-process here and, via
-    # the environment, in engine workers.
-    import torch._inductor.config as inductor_config
-
-    monkeypatch.setenv("TORCHINDUCTOR_COMPILE_THREADS", "1")
-    with inductor_config.patch(compile_threads=1):
-        yield
 
 
 def build(cfg, name: str) -> Model:

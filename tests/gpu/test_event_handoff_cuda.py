@@ -1,8 +1,7 @@
 """Note [Event hand-off] on CUDA: in thread mode the foundation model publishes features whose device work is still
 queued, and each head's stream waits on the slot's event. Run on the GPU machine: ``pytest -m gpu tests/gpu``.
 
-The foundation's work is made slow on the device (a ``torch.cuda._sleep`` kernel queued before its outputs are
-copied into the feature slot) so that the heads are woken long before the features are there: a head that read without waiting would get the slot's previous frame.
+The foundation's work is made slow on the device (the ``slow_foundation`` fixture of conftest.py) so that the heads are woken long before the features are there: a head that read without waiting would get the slot's previous frame.
 The same engine with the wait taken out shows that this test sees that happen.
 """
 
@@ -10,44 +9,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
-import vpengine.backends as backends
 from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.engine import Engine
 from vpengine.runtime.device import DeviceContext
 
 pytestmark = [pytest.mark.gpu, pytest.mark.timeout(900), pytest.mark.usefixtures("require_cuda")]
-
-plain_make_executor = backends.make_executor
-SLEEP_CYCLES = 5_000_000  # a few ms of device time
-
-
-class SlowOnDevice:
-    """The foundation's executor with a device-side delay queued before each run."""
-
-    def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
-        self.inner, self.output_spec = inner, inner.output_spec
-
-    def __call__(self, inputs):  # type: ignore[no-untyped-def]
-        out = self.inner(inputs)
-        # after the model, before the worker copies its outputs into the feature slot: however the model itself
-        # syncs with the host, the slot is written only this long after the features are published
-        torch.cuda._sleep(SLEEP_CYCLES)
-        return out
-
-    def bind(self, inputs, outputs) -> bool:  # type: ignore[no-untyped-def]
-        return False
-
-
-@pytest.fixture
-def slow_foundation(monkeypatch):
-    def make(model, backend, device, name, **kw):  # type: ignore[no-untyped-def]
-        ex = plain_make_executor(model, backend, device, name, **kw)
-        return SlowOnDevice(ex) if name == "foundation" else ex
-
-    monkeypatch.setattr(backends, "make_executor", make)
 
 
 def run(handoff: str, n: int = 8) -> tuple[dict[int, dict[str, dict[str, np.ndarray]]], bool]:

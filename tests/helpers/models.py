@@ -1,9 +1,12 @@
-"""Small user-style heads for build-time checks."""
+"""Small user-style models for tests: build-time checks, and a foundation model that notes its threads."""
 
 from __future__ import annotations
 
+import threading
+from typing import ClassVar
+
 from vpengine.models.base import BuildContext, Model
-from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions
+from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT
 from vpengine.specs import TensorSpec
 
 
@@ -24,3 +27,13 @@ class TrainedElsewhere(TinyDepthHead):
         m = cls(ctx, TinyHeadOptions())
         m.meta["trained_on"] = "dinov2_vitl14"
         return m
+
+
+class ThreadNotingViT(TinyViT):
+    """tiny_vit that notes the name of the thread each of its runs happens in (thread mode: one process)."""
+
+    threads: ClassVar[list[str]] = []
+
+    def forward(self, inputs):  # type: ignore[no-untyped-def]
+        ThreadNotingViT.threads.append(threading.current_thread().name)
+        return super().forward(inputs)

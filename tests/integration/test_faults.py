@@ -67,15 +67,20 @@ def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, 
         assert e.wait(fid, heads=["seg"], timeout=10)["seg"].frame_id == fid  # serving again
 
 
-@pytest.mark.parametrize("mode", ["process", "thread"])
-def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_features_as_before(tmp_path, mode):
-    """On CUDA in thread mode the restarted foundation hands features off by event again (Note [Event hand-off])."""
+@pytest.mark.parametrize("mode,inline", [("process", "auto"), ("thread", "auto"), ("thread", "always")])
+def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_features_as_before(
+    tmp_path, mode, inline
+):
+    """On CUDA in thread mode the restarted foundation hands features off by event again (Note [Event hand-off]).
+    With ``inline_launch: always`` the failing run is launched by ``submit``, which must not raise: the worker
+    does, and is restarted (Note [Inline launch])."""
     opts = json.dumps({"raise_at_run": 6, "once_marker": str(tmp_path / "raised")})
     cfg = tiny(
         mode,
         "foundation_model.model=helpers.faulty:FaultyViT",
         f"foundation_model.options={opts}",
         "runtime.restart_backoff_s=0.2",
+        f"runtime.inline_launch={inline}",
     )
     heads = ["depth", "seg", "det"]
     with Engine(cfg) as e:

@@ -85,6 +85,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "a device event the heads wait on (event), or waits for them on the host first (host; Note [Event hand-off])",
     )
     p.add_argument(
+        "--inline-launch",
+        default="auto",
+        choices=["auto", "always", "never"],
+        help="runtime.inline_launch: in thread mode the thread that submits a frame queues the foundation model's "
+        "work when it waits for one and runs from slot-bound CUDA graphs (auto), or its worker always does (never; "
+        "Note [Inline launch])",
+    )
+    p.add_argument(
         "--no-slot-bound",
         action="store_true",
         help="compiled models copy each input and output tensor in the worker instead of running from graphs bound "
@@ -119,6 +127,7 @@ class Setup:
     sync_spin_us: float = 0.0
     slot_bound: bool = True
     feature_handoff: str = "event"
+    inline_launch: str = "auto"
 
     @property
     def copy(self) -> bool:
@@ -128,7 +137,8 @@ class Setup:
     def engine_label(self) -> str:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
-        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}"
+        launch = ", worker launch" if self.inline_launch == "never" else ""
+        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}"
 
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
@@ -153,6 +163,7 @@ class Setup:
                 sync_spin_us=a.sync_spin_us,
                 slot_bound=not a.no_slot_bound,
                 feature_handoff=a.feature_handoff,
+                inline_launch=a.inline_launch,
             )
         return cls(
             device=a.device,
@@ -171,6 +182,7 @@ class Setup:
             sync_spin_us=a.sync_spin_us,
             slot_bound=not a.no_slot_bound,
             feature_handoff=a.feature_handoff,
+            inline_launch=a.inline_launch,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -211,7 +223,11 @@ class Setup:
             },
             "heads": heads,
             "weights": {"random_weights": True},
-            "runtime": {"sync_spin_us": self.sync_spin_us, "feature_handoff": self.feature_handoff},
+            "runtime": {
+                "sync_spin_us": self.sync_spin_us,
+                "feature_handoff": self.feature_handoff,
+                "inline_launch": self.inline_launch,
+            },
             "logging": {"level": "WARNING"},
             **top,
         }

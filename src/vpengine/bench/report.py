@@ -70,6 +70,9 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
     # handed off on the host too)
     if setup.get("feature_handoff") == "host":
         label += ", host hand-off"
+    # thread mode's foundation launched by its worker, never by submit (so were runs before Note [Inline launch])
+    if setup.get("inline_launch") == "never":
+        label += ", worker launch"
     return label
 
 
@@ -260,7 +263,7 @@ def figure(r: dict[str, Any], path: Path) -> None:
 
 
 # profile_steps.py variants drawn, in this order, where a file has them
-WATERFALL_VARIANTS = ("slot host hand-off", "slot", "slot+spin200")
+WATERFALL_VARIANTS = ("slot host hand-off", "slot worker launch", "slot", "slot+spin200")
 _SEGMENTS = (  # (from stage, to stage, what the time is, colour)
     ("input_published", "pinned", "woken (a model by its input, the caller by results)", "#bbbbbb"),
     ("pinned", "model_enqueued", "host work: queueing device work (the caller: submit)", "#f0a030"),

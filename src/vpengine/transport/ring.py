@@ -151,6 +151,9 @@ class SlotRing:
         # runtime/worker.py): a reader's stream waits on the slot's event before reading it. Thread mode only, so a
         # plain attribute of this process's ring object; None: the writer published only completed work.
         self.device_events: list[Any] | None = None
+        # The input ring's reader in thread mode may take frames from the submitting thread (Note [Inline launch] in
+        # runtime/worker.py): its ``InlineLaunch``, also in-process only; woken by ``wake_all``.
+        self.inline: Any = None
 
     # ----------------------------------------------------------------------------------------------- creation
     @classmethod
@@ -278,6 +281,8 @@ class SlotRing:
             self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
         _linux.futex_wake(self._publish_addr)
         _linux.futex_wake(self._release_addr)
+        if self.inline is not None:
+            self.inline.wake()
 
     # -------------------------------------------------------------------------------------- supervision
     def release_reader(self, name: str) -> bool:

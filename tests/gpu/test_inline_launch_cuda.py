@@ -1,0 +1,52 @@
+"""Note [Inline launch] on CUDA: in thread mode the thread that submits a frame queues the foundation model's work on
+the foundation's stream. Run on the GPU machine: ``pytest -m gpu tests/gpu``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.engine import Engine
+
+pytestmark = [pytest.mark.gpu, pytest.mark.timeout(900), pytest.mark.usefixtures("require_cuda")]
+COMPILED = ["foundation_model.backend=compile", *[f"heads.{h}.backend=compile" for h in ("depth", "seg")]]
+
+
+def run(inline: str, *extra: str, n: int = 8) -> tuple[dict[int, dict[str, dict[str, np.ndarray]]], int]:
+    cfg = tiny("thread", "device=cuda", f"runtime.inline_launch={inline}", *extra)
+    out = {}
+    with Engine(cfg) as e:
+        for i in range(n):
+            res = e.wait(e.submit(frame(i), frame_id=i), timeout=120)
+            assert set(res) == {"depth", "seg", "det"}, (inline, i, sorted(res))
+            assert all(r.frame_id == i for r in res.values())
+            out[i] = {h: {k: np.array(v) for k, v in r.outputs.items()} for h, r in res.items()}
+        assert all(m["errors"] == 0 for m in e.stats()["models"].values())
+        launches = e._res.rings["input"].inline.launches if e._res.rings["input"].inline else 0
+    return out, launches
+
+
+def close(a, b) -> bool:  # type: ignore[no-untyped-def]
+    return all(
+        np.allclose(a[i][h][k], b[i][h][k], rtol=1e-4, atol=1e-4) for i in a for h in a[i] for k in a[i][h]
+    )
+
+
+@pytest.mark.usefixtures("inductor_in_process")
+def test_compiled_foundation_is_launched_by_submit_by_default_and_gives_the_same_results():
+    """auto: a slot-bound (compiled) foundation is launched from submit; outputs as when its worker launches."""
+    worker, none = run("never", *COMPILED)
+    inline, launches = run("auto", *COMPILED)
+    assert none == 0 and launches >= 6  # lockstep: (nearly) every frame
+    assert close(inline, worker)
+
+
+def test_features_launched_by_submit_are_read_only_after_their_device_work(slow_foundation):
+    """The submitting thread queues the foundation's work on the foundation's stream, before the slot's event: heads
+    woken long before the slow features are there still read this frame's, as with the worker's own launch."""
+    host, _ = run("never", "runtime.feature_handoff=host")
+    inline, launches = run("always")
+    assert launches >= 6
+    assert close(inline, host)

@@ -1,0 +1,90 @@
+"""Note [Inline launch]: in thread mode, the thread that publishes a frame queues the foundation model's work itself
+when the foundation worker is armed for one. On the CPU (``runtime.inline_launch: always``; ``auto`` uses it only for
+CUDA graphs) the submitting thread then runs the model, which these tests can see; the CUDA path is in
+tests/gpu/test_inline_launch_cuda.py."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from helpers.models import ThreadNotingViT
+from tests_paths import tiny
+from vpengine.engine import Engine
+
+pytestmark = pytest.mark.timeout(120)
+NOTING = "foundation_model.model=helpers.models:ThreadNotingViT"
+
+
+def engine(inline: str, *overrides: str) -> Engine:
+    return Engine(tiny("thread", NOTING, f"runtime.inline_launch={inline}", *overrides))
+
+
+def lockstep(e: Engine, n: int) -> dict[int, dict[str, dict[str, np.ndarray]]]:
+    out = {}
+    for i in range(n):
+        res = e.wait(e.submit(frame(i), frame_id=i), timeout=10)
+        assert set(res) == {"depth", "seg", "det"} and all(r.frame_id == i for r in res.values())
+        out[i] = {h: {k: np.array(v) for k, v in r.outputs.items()} for h, r in res.items()}
+    return out
+
+
+def test_the_submitting_thread_runs_the_armed_foundation_and_every_output_is_the_same():
+    me = threading.current_thread().name
+    with engine("never") as e:
+        ThreadNotingViT.threads.clear()
+        plain = lockstep(e, 12)
+        assert ThreadNotingViT.threads == ["vpengine-foundation"] * 12
+    with engine("always") as e:
+        ThreadNotingViT.threads.clear()
+        inline = lockstep(e, 12)
+        st = e.stats()["models"]["foundation"]
+        launches = e._res.rings["input"].inline.launches
+    # the foundation worker re-arms while the heads still work on the frame before, so in lockstep the submitting
+    # thread launches (nearly) every frame; a frame it did not launch is run by the worker: still once
+    assert len(ThreadNotingViT.threads) == 12 and st["runs"] == 12 and st["errors"] == 0
+    assert ThreadNotingViT.threads.count(me) == launches >= 9
+    for i in plain:
+        for h in plain[i]:
+            for k, v in plain[i][h].items():
+                assert np.array_equal(inline[i][h][k], v), (i, h, k)
+
+
+def test_frames_submitted_faster_than_the_foundation_runs_are_all_run_or_counted_skipped():
+    opts = '{"sleep_ms": 5}'  # a head slower than the frames come: the foundation's slots turn over
+    with engine("always", "heads.depth.model=helpers.faulty:FaultyHead", f"heads.depth.options={opts}") as e:
+        last = 0
+        for i in range(150):
+            last = e.submit(frame(i % 8))
+        assert "depth" in e.wait(last, timeout=10)  # the newest frame is always run
+        fm = e.stats()["models"]["foundation"]
+        assert fm["runs"] + fm["skipped"] == 150 and fm["errors"] == 0, fm
+        assert e._res.rings["input"].inline.launches > 0
+
+
+def test_a_paused_foundation_takes_no_frame_from_submit_and_resumes():
+    with engine("always") as e:
+        lockstep(e, 2)
+        e.set_rate("foundation", 0)
+        runs = e.stats()["models"]["foundation"]["runs"]
+        for i in range(5):
+            e.submit(frame(i))  # at once: the worker may still be armed from before the pause
+            time.sleep(0.02)
+        time.sleep(0.3)
+        assert e.stats()["models"]["foundation"]["runs"] == runs
+        e.set_rate("foundation", None)
+        fid = e.submit(frame(7))
+        assert set(e.wait(fid, timeout=10)) == {"depth", "seg", "det"}
+
+
+def test_stop_wakes_an_armed_foundation_at_once():
+    e = engine("always").start()
+    lockstep(e, 2)
+    time.sleep(0.1)  # armed, waiting for a frame
+    t0 = time.monotonic()
+    e.stop()
+    assert time.monotonic() - t0 < 0.4  # not the worker's 0.5 s poll

@@ -88,3 +88,36 @@ def test_stop_wakes_an_armed_foundation_at_once():
     t0 = time.monotonic()
     e.stop()
     assert time.monotonic() - t0 < 0.4  # not the worker's 0.5 s poll
+
+
+def test_rate_changes_while_frames_stream_in_leave_every_frame_run_or_counted():
+    """Pauses, limits and unlimited, changed every few ms from another thread while frames come as fast as submit
+    takes them: no error, no hang, and every frame is run or counted skipped."""
+    imgs = [frame(i) for i in range(4)]
+    with engine("always") as e:
+        done = threading.Event()
+
+        def change_rates() -> None:
+            rates = [None, 0.0, 20.0, 200.0]
+            i = 0
+            while not done.is_set():
+                e.set_rate("foundation", rates[i % len(rates)])
+                i += 1
+                time.sleep(0.004 * (1 + i % 5))
+
+        t = threading.Thread(target=change_rates)
+        t.start()
+        n, t0 = 0, time.monotonic()
+        try:
+            while time.monotonic() - t0 < 3.0:
+                e.submit(imgs[n % 4])
+                n += 1
+        finally:
+            done.set()
+            t.join()
+        e.set_rate("foundation", None)
+        last = e.submit(imgs[0])
+        assert set(e.wait(last, timeout=10)) == {"depth", "seg", "det"}
+        fm = e.stats()["models"]["foundation"]
+        assert fm["errors"] == 0 and fm["runs"] + fm["skipped"] == n + 1, (n, fm)
+        assert e._res.rings["input"].inline.launches > 0

@@ -183,7 +183,7 @@ class WorkerCore:
                 self.gate.update(ctl.rate(name), now)
                 wait = self.gate.wait_time(now)
                 if wait > 0:
-                    self._disarm(finish=True)  # a paused or rate-limited worker takes no frames from submit
+                    self._drop_spare()  # not armed while paused or rate-limited: takes no frames from submit
                     ctl.set_state(name, PAUSED if math.isinf(wait) else RUNNING)
                     ctl.wait_control(name, min(wait, self.poll_s))
                     continue
@@ -200,7 +200,7 @@ class WorkerCore:
                 finally:
                     self.reader.release(slot)
         finally:
-            self._disarm(finish=False)
+            self._drop_spare()
 
     def _step(self, slot: SlotInfo, starved: bool) -> None:
         t_start = time.monotonic()
@@ -280,9 +280,11 @@ class WorkerCore:
             slot = None if done is not None else self.reader.pin(timeout=0)
             if done is None and slot is None:
                 offer.arm(self, self._spare)
-                offer.cond.wait(self.poll_s)
+                try:
+                    offer.cond.wait(self.poll_s)
+                finally:
+                    offer.disarm(self)
                 done = offer.take_done()
-                offer.disarm(self)
         out, self._spare = self._spare, None
         if done is not None:
             slot, t_start, error = done
@@ -304,34 +306,12 @@ class WorkerCore:
         else:
             self._spare = out  # nothing came: keep the slot for the next arming
 
-    def _disarm(self, finish: bool) -> None:
-        """Stop taking frames from submit and give the spare output slot back. A frame launched meanwhile is
-        finished (``finish``; its launch's error raised) or, at exit, waited for and dropped."""
-        offer = self._inline
-        if offer is None:
-            return
-        with offer.cond:
-            offer.disarm(self)
-            done = offer.take_done()
-        out, self._spare = self._spare, None
-        if done is None:
-            if out is not None:
-                self.writer.abort(out)
-            return
-        slot, t_start, error = done
-        try:
-            if error is not None:  # out was given back by the failed launch
-                if finish:
-                    raise error
-            elif finish:
-                assert out is not None
-                self._finish(slot, out, t_start)
-            else:
-                self.dev.complete()  # the frame's work reads the slot: let it end before the slot goes back
-                if out is not None:
-                    self.writer.abort(out)
-        finally:
-            self.reader.release(slot)
+    def _drop_spare(self) -> None:
+        """Give back the output slot kept for arming: paused, rate-limited or leaving. The worker is never armed
+        here: it arms only inside ``_take_inline``, which takes any launch and disarms, under the lock, first."""
+        if self._spare is not None:
+            self.writer.abort(self._spare)
+            self._spare = None
 
 
 class InlineLaunch:

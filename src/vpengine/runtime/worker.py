@@ -202,10 +202,12 @@ class WorkerCore:
         finally:
             self._drop_spare()
 
-    def _step(self, slot: SlotInfo, starved: bool) -> None:
+    def _step(self, slot: SlotInfo, starved: bool, out: SlotInfo | None = None) -> None:
+        """One run on a pinned ``slot``, into ``out`` (an output slot already acquired) or one it acquires."""
         t_start = time.monotonic()
         self._account(slot, t_start, starved)
-        out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
+        if out is None:
+            out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
         if out is None:
             self.control.add(self.name, "dropped")
             return
@@ -275,40 +277,38 @@ class WorkerCore:
                 if not self._should_stop():
                     self.control.add(self.name, "dropped")
                 return
-        with offer.cond:
-            done = offer.take_done()
-            slot = None if done is not None else self.reader.pin(timeout=0)
-            if done is None and slot is None:
+        done = None
+        with offer.cond:  # not armed before this: no launch can be waiting here
+            slot = self.reader.pin(timeout=0)
+            if slot is None:
                 offer.arm(self, self._spare)
                 try:
                     offer.cond.wait(self.poll_s)
                 finally:
                     offer.disarm(self)
                 done = offer.take_done()
+        if done is None:
+            if slot is None:
+                return  # nothing came: the spare slot stays for the next arming
+            out, self._spare = self._spare, None
+            try:  # a frame was in the ring: run it here
+                self._step(slot, starved=slot.t_publish > gate_open, out=out)
+            finally:
+                self.reader.release(slot)
+            return
         out, self._spare = self._spare, None
-        if done is not None:
-            slot, t_start, error = done
-            try:
-                if error is not None:
-                    raise error  # the launch failed in the submitting thread; out was given back there
-                self._account(slot, t_start, starved=slot.t_publish > gate_open)
-                self._finish(slot, out, t_start)
-            finally:
-                self.reader.release(slot)
-        elif slot is not None:
-            try:
-                t_start = time.monotonic()
-                self._account(slot, t_start, starved=slot.t_publish > gate_open)
-                self._launch(slot, out)
-                self._finish(slot, out, t_start)
-            finally:
-                self.reader.release(slot)
-        else:
-            self._spare = out  # nothing came: keep the slot for the next arming
+        slot, t_start, error = done
+        try:
+            if error is not None:
+                raise error  # the launch failed in the submitting thread; out was given back there
+            self._account(slot, t_start, starved=slot.t_publish > gate_open)
+            self._finish(slot, out, t_start)
+        finally:
+            self.reader.release(slot)
 
     def _drop_spare(self) -> None:
         """Give back the output slot kept for arming: paused, rate-limited or leaving. The worker is never armed
-        here: it arms only inside ``_take_inline``, which takes any launch and disarms, under the lock, first."""
+        here: it arms only inside ``_take_inline``, which disarms and takes any launch under the lock."""
         if self._spare is not None:
             self.writer.abort(self._spare)
             self._spare = None

@@ -16,12 +16,16 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
   tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
 * slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, poll
   the rest; Note [Device sync]);
+* slot+wait200, slot+spin200+wait200, slot+spin200+wait100: ``runtime.wait_spin_us`` (the caller's wait for the
+  results, the same way), alone and with the workers' sync spin;
 * slot+fullspin: device sync by spinning on the event the whole time (cudaEventDefault): the least wake-up latency
   there is, at a core per worker. Diagnostic only: not something the engine does;
 * slot+switch: ``sys.setswitchinterval(1e-4)`` (CPython's default is 5 ms: a thread waiting for the interpreter
   lock asks the holder to drop it only after that long).
 
-A slot-bound model's run is stamped after each of its three graph launches: ``in_copy_enqueued`` (the input slot
+A run's launch is stamped after its stream waited on the features' event (a head, ``waited_on_event``), on entering
+its stream context (``active_called``, ``stream_entered``) and once inside it (``run_bound_called``); a slot-bound
+model's after each of its three graph launches: ``in_copy_enqueued`` (the input slot
 copied into the graph's static input), ``graph_enqueued`` (the model) and ``model_enqueued`` (the copy into the
 output slot). VARIANTS (comma-separated names from the list above) picks which run; default: all.
 
@@ -31,6 +35,7 @@ smoke run of the script.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import gzip
 import json
@@ -45,7 +50,7 @@ import torch
 
 from vpengine.bench.paper import Setup, engines, frames
 from vpengine.runtime import worker as worker_mod
-from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.device import DeviceContext, SpinWindow
 
 out_dir = os.environ.get("OUT", "/tmp/out")
 os.makedirs(out_dir, exist_ok=True)
@@ -98,6 +103,7 @@ class _Stamped:
 
     def run_bound(self, i, j):  # type: ignore[no-untyped-def]
         ex, rec = self.ex, self.rec
+        rec["run_bound_called"] = time.monotonic()  # inside the stream context and inference mode
         ex._in_graphs[i].replay()  # CompiledExecutor.run_bound, one launch at a time
         rec["in_copy_enqueued"] = time.monotonic()
         ex._graph.replay()
@@ -111,12 +117,27 @@ def _stamped_launch(self, slot, out):  # type: ignore[no-untyped-def]
     # that thread began queueing, and its "finish_started" when the worker thread took over
     rec = {"input_published": slot.t_publish, "pinned": time.monotonic()}
     stamps[self.name][slot.frame_id] = rec
-    model = self.model
+    model, dev = self.model, self.dev
+    plain_active, plain_wait_on = dev.active, dev.wait_on
+
+    @contextlib.contextmanager
+    def active():  # type: ignore[no-untyped-def]
+        rec["active_called"] = time.monotonic()
+        with plain_active():
+            rec["stream_entered"] = time.monotonic()
+            yield
+
+    def wait_on(event):  # type: ignore[no-untyped-def]
+        plain_wait_on(event)
+        rec["waited_on_event"] = time.monotonic()
+
     self.model = _Stamped(model, rec)
+    dev.active, dev.wait_on = active, wait_on
     try:
         _plain_launch(self, slot, out)
     finally:
         self.model = model
+        del dev.active, dev.wait_on
 
 
 def _stamped_finish(self, slot, out, t_start):  # type: ignore[no-untyped-def]
@@ -203,7 +224,7 @@ blocking_complete = DeviceContext.complete
 
 def spin(us: float) -> None:
     for d in devices:
-        d.spin_s, d.expected_s = us * 1e-6, 0.0
+        d.spin = SpinWindow(us * 1e-6)
 
 
 chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))
@@ -252,6 +273,15 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
             run_variant(eng, "(learning)", 50)
             report[f"slot+spin{us}"] = run_variant(eng, f"slot+spin{us}", setup.frames)
     spin(0)
+    for sync, wait in ((0, 200), (200, 200), (200, 100)):
+        name = f"slot+spin{sync}+wait{wait}" if sync else f"slot+wait{wait}"
+        if want(name):
+            spin(sync)
+            eng._wait_spin = SpinWindow(wait * 1e-6)
+            run_variant(eng, "(learning)", 50)
+            report[name] = run_variant(eng, name, setup.frames)
+    spin(0)
+    eng._wait_spin = SpinWindow(0.0)
     if torch.cuda.is_available() and want("slot+fullspin"):
         DeviceContext.complete = _fullspin_complete  # type: ignore[method-assign]
         report["slot+fullspin"] = run_variant(eng, "slot+fullspin", setup.frames)

@@ -18,6 +18,11 @@ prediction is a moving average of how long the waits took. No work in flight, no
 On an H100 (thread mode, compiled backbone + depth + seg) a 200 us window took a frame from 4.16 to 3.98 ms; with eight
 depth heads in thread mode it made things worse (7.4 -> 8.3 ms), the polling threads contending for the interpreter
 lock, which is why it is off by default.
+
+The caller's hop is the same: ``Engine.wait`` sleeps on the control block's output word until a head publishes, and
+the last head's result reaches the caller a wake-up later. ``runtime.wait_spin_us`` > 0 applies the same prediction
+there (``SpinWindow``): the caller sleeps through the part of the wait its recent waits predict (woken early by any
+head that publishes meanwhile), then polls the output word for at most twice the window.
 """
 
 from __future__ import annotations
@@ -29,11 +34,34 @@ from collections.abc import Iterator
 import torch
 
 
+class SpinWindow:
+    """When to stop sleeping and start polling in a wait whose length recent waits predict (Note [Device sync]).
+
+    ``poll_from(t0)``: the time a wait that began at ``t0`` starts polling; ``give_up(t)``: polling that began at
+    ``t`` stops then and sleeps again; ``learn(took)`` folds a finished wait's length into the prediction (a moving
+    average). ``spin_s`` 0: never polls.
+    """
+
+    __slots__ = ("expected_s", "spin_s")
+
+    def __init__(self, spin_s: float = 0.0) -> None:
+        self.spin_s = spin_s
+        self.expected_s = 0.0
+
+    def poll_from(self, t0: float) -> float:
+        return t0 + self.expected_s - self.spin_s
+
+    def give_up(self, t: float) -> float:
+        return t + 2 * self.spin_s
+
+    def learn(self, took: float) -> None:
+        self.expected_s += 0.125 * (took - self.expected_s)
+
+
 class DeviceContext:
     def __init__(self, device: torch.device | str, priority: int = 0, spin_s: float = 0.0) -> None:
         self.device = torch.device(device)
-        self.spin_s = spin_s
-        self.expected_s = 0.0  # moving average of how long complete() waited
+        self.spin = SpinWindow(spin_s)  # how complete() waits
         self.cuda = self.device.type == "cuda"
         if self.cuda:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
@@ -74,22 +102,22 @@ class DeviceContext:
         polling the last stretch when ``spin_s`` > 0 (Note [Device sync])."""
         if self.stream is None or self.event is None:
             return
-        event = self.event
+        event, spin = self.event, self.spin
         event.record(self.stream)
-        if self.spin_s <= 0:
+        if spin.spin_s <= 0:
             event.synchronize()
             return
         t0 = time.monotonic()
-        ahead = self.expected_s - self.spin_s
+        ahead = spin.poll_from(t0) - t0
         if ahead > 0:
             time.sleep(ahead)
-        give_up = time.monotonic() + 2 * self.spin_s
+        give_up = spin.give_up(time.monotonic())
         while not event.query():
             if time.monotonic() > give_up:
                 event.synchronize()
                 break
             time.sleep(0)  # lets the other workers' threads have the interpreter lock between polls
-        self.expected_s += 0.125 * (time.monotonic() - t0 - self.expected_s)
+        spin.learn(time.monotonic() - t0)
 
     def memory_bytes(self) -> int:
         """Device memory this process holds through PyTorch's allocator (reserved), 0 on the CPU."""

@@ -16,8 +16,6 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
   tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
 * slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, poll
   the rest; Note [Device sync]);
-* slot+wait200, slot+spin200+wait200, slot+spin200+wait100: ``runtime.wait_spin_us`` (the caller's wait for the
-  results, the same way), alone and with the workers' sync spin;
 * slot+fullspin: device sync by spinning on the event the whole time (cudaEventDefault): the least wake-up latency
   there is, at a core per worker. Diagnostic only: not something the engine does;
 * slot+switch: ``sys.setswitchinterval(1e-4)`` (CPython's default is 5 ms: a thread waiting for the interpreter
@@ -50,7 +48,7 @@ import torch
 
 from vpengine.bench.paper import Setup, engines, frames
 from vpengine.runtime import worker as worker_mod
-from vpengine.runtime.device import DeviceContext, SpinWindow
+from vpengine.runtime.device import DeviceContext
 
 out_dir = os.environ.get("OUT", "/tmp/out")
 os.makedirs(out_dir, exist_ok=True)
@@ -224,7 +222,7 @@ blocking_complete = DeviceContext.complete
 
 def spin(us: float) -> None:
     for d in devices:
-        d.spin = SpinWindow(us * 1e-6)
+        d.spin_s, d.expected_s = us * 1e-6, 0.0
 
 
 chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))
@@ -273,15 +271,6 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
             run_variant(eng, "(learning)", 50)
             report[f"slot+spin{us}"] = run_variant(eng, f"slot+spin{us}", setup.frames)
     spin(0)
-    for sync, wait in ((0, 200), (200, 200), (200, 100)):
-        name = f"slot+spin{sync}+wait{wait}" if sync else f"slot+wait{wait}"
-        if want(name):
-            spin(sync)
-            eng._wait_spin = SpinWindow(wait * 1e-6)
-            run_variant(eng, "(learning)", 50)
-            report[name] = run_variant(eng, name, setup.frames)
-    spin(0)
-    eng._wait_spin = SpinWindow(0.0)
     if torch.cuda.is_available() and want("slot+fullspin"):
         DeviceContext.complete = _fullspin_complete  # type: ignore[method-assign]
         report["slot+fullspin"] = run_variant(eng, "slot+fullspin", setup.frames)

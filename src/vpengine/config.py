@@ -215,15 +215,6 @@ class RuntimeConfig(_Strict):
         "again: a faster hand-over for at most that much CPU time per run. Never spins while idle. Measure first: it "
         "helped two heads and hurt eight in thread mode, whose polling threads contend for the interpreter lock.",
     )
-    wait_spin_us: float = Field(
-        0.0,
-        ge=0,
-        le=5000,
-        description="How Engine.wait waits for a frame's results (Note [Device sync]). 0: it sleeps until a head "
-        "publishes (waking up takes 0.1-0.2 ms). > 0: it sleeps through the part of the wait its recent waits "
-        "predict and polls the rest, for at most twice this long, then sleeps again: the result sooner, for at most "
-        "that much of the calling thread's CPU time per frame.",
-    )
     feature_handoff: Literal["event", "host"] = Field(
         "event",
         description="How the foundation model hands its features to the heads in thread mode on CUDA (Note "

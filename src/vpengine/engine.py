@@ -52,7 +52,6 @@ import torch
 
 from vpengine.config import EngineConfig, load_config
 from vpengine.runtime.control import ControlBlock
-from vpengine.runtime.device import SpinWindow
 from vpengine.runtime.plan import Plan, make_plan
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
 from vpengine.runtime.worker import WorkerSpec
@@ -276,7 +275,6 @@ class Engine:
         self._submitted = 0
         self._rejected = 0
         self._origins: collections.OrderedDict[int, int] = collections.OrderedDict()
-        self._wait_spin = SpinWindow(self.config.runtime.wait_spin_us * 1e-6)  # how wait() waits
         self._results_active = False
         self._pool: Any = None
         self._host_outputs = _HostOutputs()
@@ -745,9 +743,7 @@ class Engine:
             )
         pending = [self._head(h) for h in heads] if heads else list(self.plan.heads)
         done: dict[str, Result] = {}
-        t0 = time.monotonic()
-        deadline = t0 + timeout
-        waited = False
+        deadline = time.monotonic() + timeout
         while True:
             word = ctl.output_word()
             with self._read_lock:
@@ -764,38 +760,16 @@ class Engine:
                 finally:
                     for h, slot in found:
                         self._peek_readers[h].release(slot)
-            now = time.monotonic()
+            remaining = deadline - time.monotonic()
             if not pending:
-                if waited:
-                    self._wait_spin.learn(now - t0)
                 return done
-            if now >= deadline:
+            if remaining <= 0:
                 raise TimeoutError(
                     f"frame {frame_id}: no output from {pending} within {timeout} s (got {sorted(done)})"
                 )
             if self._state != "running":
                 raise EngineDeadError("engine stopped while waiting")
-            waited = True
-            self._await_output(word, t0, now, deadline)
-
-    def _await_output(self, word: int, t0: float, now: float, deadline: float) -> None:
-        """Until a head publishes after ``word`` was read (or ``deadline``, or ``poll_s``) in a wait that began at
-        ``t0``: sleeping, or polling the stretch its recent waits predict the results in (``runtime.wait_spin_us``,
-        Note [Device sync])."""
-        ctl = self._res.control
-        assert ctl is not None
-        spin = self._wait_spin
-        until = min(deadline, now + self.config.runtime.poll_s)
-        if spin.spin_s > 0:
-            poll_from = max(spin.poll_from(t0), t0)
-            if now < poll_from:
-                until = min(until, poll_from)  # sleep up to the window (a head publishing wakes it earlier)
-            elif now < spin.give_up(poll_from):
-                until = min(until, spin.give_up(poll_from))
-                while ctl.output_word() == word and time.monotonic() < until:
-                    time.sleep(0)  # the heads' threads (thread mode) take the interpreter lock between polls
-                return
-        ctl.wait_output(word, max(0.0, until - now))
+            ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
 
     # ------------------------------------------------------------------------------------------ control
     def set_rate(self, model: str, hz: float | None) -> None:

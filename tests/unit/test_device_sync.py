@@ -51,7 +51,7 @@ def test_with_a_spin_window_it_sleeps_through_the_predicted_part_and_polls_only_
     for _ in range(30):  # the prediction learns the 20 ms
         dev.complete()
         assert time.monotonic() >= work.done_at
-    assert 0.015 < dev.spin.expected_s < 0.025
+    assert 0.015 < dev.expected_s < 0.025
     work.queries = work.syncs = 0
     cpu0, wall0 = time.process_time(), time.monotonic()
     late = []

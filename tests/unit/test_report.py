@@ -128,21 +128,19 @@ def test_floor_rows_add_the_transfers_where_they_were_measured(tmp_path):
     )
 
 
-def test_floor_rows_say_how_thread_mode_handed_features_and_frames_over_and_waited(tmp_path):
+def test_floor_rows_say_when_thread_mode_handed_features_or_frames_over_the_older_way(tmp_path):
     for name, date, runtime in (
         ("auto", "2026-01-01", {"feature_handoff": "event", "inline_launch": "auto"}),
         ("worker", "2026-01-02", {"feature_handoff": "event", "inline_launch": "never"}),
         ("host", "2026-01-03", {"feature_handoff": "host", "inline_launch": "never"}),
-        ("spin", "2026-01-04", {"sync_spin_us": 200.0, "wait_spin_us": 100.0}),
     ):
         setup = {"backend": "compile", **runtime}
         _write(tmp_path, f"paper_cuda_floor_{name}", f"{date}T00:00:00", setup, floor=_floor(True))
     rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 4, rows
+    assert len(rows) == 3, rows
     assert "(dinov2_vits14_dav2, compile; " in rows[0]
     assert "(dinov2_vits14_dav2, compile, worker launch; " in rows[1]
     assert "(dinov2_vits14_dav2, compile, host hand-off, worker launch; " in rows[2]
-    assert "(dinov2_vits14_dav2, compile, sync spin 200 us, wait spin 100 us; " in rows[3]
 
 
 def _e5(frames: int, p50: float, lost: float) -> dict:

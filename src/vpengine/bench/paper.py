@@ -78,13 +78,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "sleeps through the predicted part and polls the rest (Note [Device sync])",
     )
     p.add_argument(
-        "--wait-spin-us",
-        type=float,
-        default=0.0,
-        help="runtime.wait_spin_us: 0: the caller sleeps in Engine.wait until a head publishes; > 0: it sleeps "
-        "through the predicted part of the wait and polls the rest (Note [Device sync])",
-    )
-    p.add_argument(
         "--feature-handoff",
         default="event",
         choices=["event", "host"],
@@ -132,7 +125,6 @@ class Setup:
     mps_pipe_directory: str | None = None
     results: str = "copy"
     sync_spin_us: float = 0.0
-    wait_spin_us: float = 0.0
     slot_bound: bool = True
     feature_handoff: str = "event"
     inline_launch: str = "auto"
@@ -144,7 +136,6 @@ class Setup:
     @property
     def engine_label(self) -> str:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
-        spin += f", wait spin {self.wait_spin_us:g} us" if self.wait_spin_us else ""
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
         launch = ", worker launch" if self.inline_launch == "never" else ""
         return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}"
@@ -170,7 +161,6 @@ class Setup:
                 mps=a.mps,
                 results=a.results,
                 sync_spin_us=a.sync_spin_us,
-                wait_spin_us=a.wait_spin_us,
                 slot_bound=not a.no_slot_bound,
                 feature_handoff=a.feature_handoff,
                 inline_launch=a.inline_launch,
@@ -190,7 +180,6 @@ class Setup:
             mps=a.mps,
             results=a.results,
             sync_spin_us=a.sync_spin_us,
-            wait_spin_us=a.wait_spin_us,
             slot_bound=not a.no_slot_bound,
             feature_handoff=a.feature_handoff,
             inline_launch=a.inline_launch,
@@ -236,7 +225,6 @@ class Setup:
             "weights": {"random_weights": True},
             "runtime": {
                 "sync_spin_us": self.sync_spin_us,
-                "wait_spin_us": self.wait_spin_us,
                 "feature_handoff": self.feature_handoff,
                 "inline_launch": self.inline_launch,
             },

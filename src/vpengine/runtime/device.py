@@ -17,12 +17,10 @@ interpreter lock between polls, for at most twice the window, and falls back to 
 prediction is a moving average of how long the waits took. No work in flight, no polling: idle workers still sleep.
 On an H100 (thread mode, compiled backbone + depth + seg) a 200 us window took a frame from 4.16 to 3.98 ms; with eight
 depth heads in thread mode it made things worse (7.4 -> 8.3 ms), the polling threads contending for the interpreter
-lock, which is why it is off by default.
-
-The caller's hop is the same: ``Engine.wait`` sleeps on the control block's output word until a head publishes, and
-the last head's result reaches the caller a wake-up later. ``runtime.wait_spin_us`` > 0 applies the same prediction
-there (``SpinWindow``): the caller sleeps through the part of the wait its recent waits predict (woken early by any
-head that publishes meanwhile), then polls the output word for at most twice the window.
+lock, which is why it is off by default. The same prediction was tried for the caller's wait in ``Engine.wait``
+(commit 44ac87f, reverted): no gain alone (3.57 vs 3.58 ms), and with this spin on too the floor's thread-mode frame
+went from 3.4 to 4.4 ms: a thread polling with ``time.sleep(0)`` retakes the interpreter lock before a woken thread
+gets it, and that one asks for it only after the 5 ms switch interval (benchmarks/results/h100/profile_steps_wait.json).
 """
 
 from __future__ import annotations
@@ -34,34 +32,11 @@ from collections.abc import Iterator
 import torch
 
 
-class SpinWindow:
-    """When to stop sleeping and start polling in a wait whose length recent waits predict (Note [Device sync]).
-
-    ``poll_from(t0)``: the time a wait that began at ``t0`` starts polling; ``give_up(t)``: polling that began at
-    ``t`` stops then and sleeps again; ``learn(took)`` folds a finished wait's length into the prediction (a moving
-    average). ``spin_s`` 0: never polls.
-    """
-
-    __slots__ = ("expected_s", "spin_s")
-
-    def __init__(self, spin_s: float = 0.0) -> None:
-        self.spin_s = spin_s
-        self.expected_s = 0.0
-
-    def poll_from(self, t0: float) -> float:
-        return t0 + self.expected_s - self.spin_s
-
-    def give_up(self, t: float) -> float:
-        return t + 2 * self.spin_s
-
-    def learn(self, took: float) -> None:
-        self.expected_s += 0.125 * (took - self.expected_s)
-
-
 class DeviceContext:
     def __init__(self, device: torch.device | str, priority: int = 0, spin_s: float = 0.0) -> None:
         self.device = torch.device(device)
-        self.spin = SpinWindow(spin_s)  # how complete() waits
+        self.spin_s = spin_s
+        self.expected_s = 0.0  # moving average of how long complete() waited
         self.cuda = self.device.type == "cuda"
         if self.cuda:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
@@ -102,22 +77,22 @@ class DeviceContext:
         polling the last stretch when ``spin_s`` > 0 (Note [Device sync])."""
         if self.stream is None or self.event is None:
             return
-        event, spin = self.event, self.spin
+        event = self.event
         event.record(self.stream)
-        if spin.spin_s <= 0:
+        if self.spin_s <= 0:
             event.synchronize()
             return
         t0 = time.monotonic()
-        ahead = spin.poll_from(t0) - t0
+        ahead = self.expected_s - self.spin_s
         if ahead > 0:
             time.sleep(ahead)
-        give_up = spin.give_up(time.monotonic())
+        give_up = time.monotonic() + 2 * self.spin_s
         while not event.query():
             if time.monotonic() > give_up:
                 event.synchronize()
                 break
             time.sleep(0)  # lets the other workers' threads have the interpreter lock between polls
-        spin.learn(time.monotonic() - t0)
+        self.expected_s += 0.125 * (time.monotonic() - t0 - self.expected_s)
 
     def memory_bytes(self) -> int:
         """Device memory this process holds through PyTorch's allocator (reserved), 0 on the CPU."""

@@ -22,8 +22,8 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
   lock asks the holder to drop it only after that long).
 
 A run's launch is stamped after its stream waited on the features' event (a head, ``waited_on_event``), on entering
-its stream context (``active_called``, ``stream_entered``) and once inside it (``run_bound_called``); a slot-bound
-model's after each of its three graph launches: ``in_copy_enqueued`` (the input slot
+a stream context (``active_called``, ``stream_entered``: a launch from another thread that cannot launch raw) and
+before its first launch (``run_bound_called``); a slot-bound model's after each of its three graph launches: ``in_copy_enqueued`` (the input slot
 copied into the graph's static input), ``graph_enqueued`` (the model) and ``model_enqueued`` (the copy into the
 output slot). VARIANTS (comma-separated names from the list above) picks which run; default: all.
 
@@ -108,6 +108,24 @@ class _Stamped:
         rec["graph_enqueued"] = time.monotonic()
         ex._out_graphs[j].replay()
         rec["model_enqueued"] = time.monotonic()
+
+    def run_bound_on(self, stream, i, j):  # type: ignore[no-untyped-def]
+        ex, rec = self.ex, self.rec  # CompiledExecutor.run_bound_on, one launch at a time
+        raw = ex._raw
+        if raw is None or stream is None or torch.cuda.current_device() != raw.device_index:
+            with torch.cuda.stream(stream):
+                rec["stream_entered"] = time.monotonic()
+                self.run_bound(i, j)
+            return
+        rec["run_bound_called"] = time.monotonic()
+        launch, s = raw.cudart.cudaGraphLaunch, stream.cuda_stream
+        for h, stage in (
+            (raw.ins[i], "in_copy_enqueued"),
+            (raw.model, "graph_enqueued"),
+            (raw.outs[j], "model_enqueued"),
+        ):
+            launch(h, s)
+            rec[stage] = time.monotonic()
 
 
 def _stamped_launch(self, slot, out):  # type: ignore[no-untyped-def]

@@ -6,7 +6,8 @@ published. Two questions, measured here with nothing else running:
 
 * cold: a CUDA graph launch as a worker does it (stream context, inference mode, ``replay``), timed step by step in a
   tight loop (hot) and after what precedes it in a frame: the thread idle for 3 ms, a 6 MB frame copied by numpy, or
-  both. Also the same launch with the stream set once per thread (``torch.cuda.set_stream``) and as a raw
+  both. Also the same launch with the stream set once per thread (``torch.cuda.set_stream``), with only the
+  stream switched around it (a new or a reused stream context, or ``set_stream`` there and back), and as a raw
   ``cudaGraphLaunch`` (cuda-bindings) on the graph's exec handle.
 * wake: one Python thread wakes another through a futex (as a head wakes ``Engine.wait``) and then keeps the
   interpreter lock busy for 0, 30 or 100 us (as a worker does, finishing its loop): how long until the woken thread
@@ -88,6 +89,30 @@ def launch_steps(kind: str, n: int = 300) -> dict[str, dict[str, float]]:
     return {k: us(v) for k, v in steps.items()}
 
 
+def launch_switched(kind: str, how: str, n: int = 300) -> dict[str, float]:
+    """One replay on the stream from a thread whose current stream is another: a stream context made per launch
+    (no inference mode), one StreamContext object reused, or set_stream there and back."""
+    took = []
+    reused = torch.cuda.StreamContext(stream)
+    for _ in range(n):
+        before(kind)
+        t0 = time.perf_counter()
+        if how == "new context":
+            with torch.cuda.stream(stream):
+                g.replay()
+        elif how == "reused context":
+            with reused:
+                g.replay()
+        else:
+            prev = torch.cuda.current_stream(dev)
+            torch.cuda.set_stream(stream)
+            g.replay()
+            torch.cuda.set_stream(prev)
+        took.append(time.perf_counter() - t0)
+        stream.synchronize()
+    return us(took)
+
+
 def launch_preset(kind: str, n: int = 300) -> dict[str, float]:
     """The stream set once for the thread, inference mode on for the thread: only the replay per frame."""
     took = []
@@ -120,6 +145,8 @@ def launch_raw(kind: str, n: int = 300) -> dict[str, float]:
 cold: dict[str, object] = {}
 for kind in ("hot", "idle", "copy", "idle+copy"):
     cold[kind] = {"steps": launch_steps(kind), "preset replay": launch_preset(kind)}
+    for how in ("new context", "reused context", "set_stream and back"):
+        cold[kind][f"replay, {how}"] = launch_switched(kind, how)  # type: ignore[index]
     if raw is not None:
         cold[kind]["raw cudaGraphLaunch"] = launch_raw(kind)  # type: ignore[index]
     print("launch", kind, json.dumps(cold[kind]))

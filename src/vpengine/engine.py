@@ -115,11 +115,15 @@ class _SlotView:
 
     __slots__ = ("__array_interface__", "_lease")
 
-    def __init__(self, tensor: torch.Tensor, lease: _Lease) -> None:
-        iface = dict(tensor.numpy().__array_interface__)
-        iface["data"] = (iface["data"][0], True)  # read-only
+    def __init__(self, iface: dict[str, Any], lease: _Lease) -> None:
         self.__array_interface__ = iface
         self._lease = lease
+
+
+def _read_only_interface(tensor: torch.Tensor) -> dict[str, Any]:
+    iface = dict(tensor.numpy().__array_interface__)
+    iface["data"] = (iface["data"][0], True)  # read-only
+    return iface
 
 
 class _Leases:
@@ -129,6 +133,9 @@ class _Leases:
         self.free = {h: list(rs) for h, rs in readers.items()}
         self.total = {h: len(rs) for h, rs in readers.items()}
         self.returned: collections.deque[tuple[str, RingReader]] = collections.deque()
+        # (head, slot index) -> key -> array interface: a slot's tensors never move, and borrowing runs right after
+        # the caller wakes, where every call costs several times what it does in a loop (Note [Launch path])
+        self._interfaces: dict[tuple[str, int], dict[str, dict[str, Any]]] = {}
 
     def drain(self) -> None:
         """Release the slots whose results nobody refers to any more (caller holds the engine's read lock)."""
@@ -149,7 +156,11 @@ class _Leases:
         free.pop()
         lease = _Lease(reader.ring.data_region.keep_mapped())
         weakref.finalize(lease, self.returned.append, (head, reader))
-        return {k: np.asarray(_SlotView(t, lease)) for k, t in held.tensors.items()}
+        ifaces = self._interfaces.get((head, held.index))
+        if ifaces is None:
+            ifaces = {k: _read_only_interface(t) for k, t in held.tensors.items()}
+            self._interfaces[(head, held.index)] = ifaces
+        return {k: np.asarray(_SlotView(iface, lease)) for k, iface in ifaces.items()}
 
     def held(self, head: str) -> int:
         return self.total[head] - len(self.free[head])

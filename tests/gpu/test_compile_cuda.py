@@ -219,6 +219,72 @@ def test_slot_bound_runs_read_and_write_the_slots_they_are_told(name):
         assert_same_results(name, got, want, 1e-4, f"{name} slot {i} -> {j}")
 
 
+def test_a_run_launched_from_another_thread_is_queued_on_the_workers_stream():
+    """Note [Launch path]: run_bound_on(stream, i, j), called from a thread whose current stream is another one (the
+    submitting thread of Note [Inline launch]), queues the three graphs on ``stream`` with raw cudaGraphLaunch calls:
+    ordered after what that stream already holds (here a delay, then the write of the input slot), the results of
+    run_bound, nothing allocated, and the calling thread's current stream untouched."""
+    cfg = tiny("thread", "device=cuda")
+    worker = torch.cuda.Stream()
+    with torch.cuda.stream(worker):
+        ex = make_executor(build(cfg, "depth"), "compile", CUDA, "depth")
+    eager = make_executor(build(cfg, "depth"), "eager", CUDA, "depth")
+    feats = [inputs_for(cfg, "depth", i) for i in range(2)]
+    ins = [{k: torch.zeros_like(v) for k, v in feats[0].items()}]
+    outs = [{k: torch.empty(s.shape, dtype=s.torch_dtype).pin_memory() for k, s in ex.output_spec.items()}]
+    with torch.cuda.stream(worker):
+        assert ex.bind(ins, outs) is True
+    assert ex.describe()["raw_launch"] is True
+    mine = torch.cuda.current_stream()
+    assert mine != worker
+    for i in (1, 0):
+        torch.cuda.synchronize()
+        allocated = torch.cuda.memory_allocated()
+        with torch.cuda.stream(worker):
+            torch.cuda._sleep(50_000_000)  # ~25 ms, then this frame's features land in the input slot
+            for k, v in feats[i].items():
+                ins[0][k].copy_(v)
+        ex.run_bound_on(worker, 0, 0)
+        assert torch.cuda.current_stream() == mine
+        worker.synchronize()
+        assert torch.cuda.memory_allocated() == allocated
+        want = snapshot(eager(feats[i]))
+        assert_same_results("depth", {k: v.to(CUDA) for k, v in outs[0].items()}, want, 1e-4, f"frame {i}")
+        for v in ins[0].values():
+            v.zero_()
+
+
+class _Noisy(Model):
+    """A head that adds random noise: its CUDA graph draws from the CUDA generator on every replay."""
+
+    role = "head"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.input_spec = {"x": TensorSpec((4, 8), "float32")}
+        self.output_spec = {"y": TensorSpec((4, 8), "float32")}
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {"y": inputs["x"] + torch.rand_like(inputs["x"])}
+
+
+def test_a_graph_that_draws_random_numbers_is_never_launched_raw():
+    """A raw launch would replay the same random numbers every frame (replay advances the generator, a raw launch
+    does not): such a model's runs from another thread switch streams and replay instead, and still differ."""
+    ex = make_executor(_Noisy().to(CUDA), "compile", CUDA, "noisy")
+    ins = [{"x": torch.zeros(4, 8, device=CUDA)}]
+    outs = [{"y": torch.empty(4, 8, device=CUDA)}]
+    assert ex.bind(ins, outs) is True
+    assert ex.describe()["raw_launch"] is False
+    worker = torch.cuda.Stream()
+    draws = []
+    for _ in range(2):
+        ex.run_bound_on(worker, 0, 0)
+        worker.synchronize()
+        draws.append(outs[0]["y"].clone())
+    assert not torch.equal(draws[0], draws[1])
+
+
 def test_a_slot_that_cannot_be_bound_leaves_the_executor_running_unbound():
     """Pageable host slots cannot be copied inside a CUDA graph: bind says no and calls keep working."""
     cfg = tiny("thread", "device=cuda")

@@ -35,11 +35,22 @@ def close(a, b) -> bool:  # type: ignore[no-untyped-def]
 
 
 @pytest.mark.usefixtures("inductor_in_process")
-def test_compiled_foundation_is_launched_by_submit_by_default_and_gives_the_same_results():
-    """auto: a slot-bound (compiled) foundation is launched from submit; outputs as when its worker launches."""
+def test_compiled_foundation_is_launched_by_submit_by_default_and_gives_the_same_results(monkeypatch):
+    """auto: a slot-bound (compiled) foundation is launched from submit, with raw graph launches (Note [Launch
+    path]); outputs as when its worker launches."""
+    import vpengine.backends as backends
+
+    made, plain = {}, backends.make_executor
+
+    def make(model, backend, device, name, **kw):  # type: ignore[no-untyped-def]
+        made[name] = plain(model, backend, device, name, **kw)
+        return made[name]
+
+    monkeypatch.setattr(backends, "make_executor", make)
     worker, none = run("never", *COMPILED)
     inline, launches = run("auto", *COMPILED)
     assert none == 0 and launches >= 6  # lockstep: (nearly) every frame
+    assert made["foundation"].describe()["raw_launch"] is True
     assert close(inline, worker)
 
 

@@ -5,6 +5,8 @@ from __future__ import annotations
 import threading
 from typing import ClassVar
 
+import torch
+
 from vpengine.models.base import BuildContext, Model
 from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT
 from vpengine.specs import TensorSpec
@@ -30,10 +32,13 @@ class TrainedElsewhere(TinyDepthHead):
 
 
 class ThreadNotingViT(TinyViT):
-    """tiny_vit that notes the name of the thread each of its runs happens in (thread mode: one process)."""
+    """tiny_vit that notes the name of the thread each of its runs happens in (thread mode: one process), and
+    whether inference mode was on."""
 
     threads: ClassVar[list[str]] = []
+    inference: ClassVar[list[bool]] = []
 
     def forward(self, inputs):  # type: ignore[no-untyped-def]
         ThreadNotingViT.threads.append(threading.current_thread().name)
+        ThreadNotingViT.inference.append(torch.is_inference_mode_enabled())
         return super().forward(inputs)

@@ -37,13 +37,17 @@ def test_the_submitting_thread_runs_the_armed_foundation_and_every_output_is_the
     me = threading.current_thread().name
     with engine("never") as e:
         ThreadNotingViT.threads.clear()
+        ThreadNotingViT.inference.clear()
         plain = lockstep(e, 12)
         assert ThreadNotingViT.threads == ["vpengine-foundation"] * 12
     with engine("always") as e:
         ThreadNotingViT.threads.clear()
+        ThreadNotingViT.inference = ThreadNotingViT.inference[:12]
         inline = lockstep(e, 12)
         st = e.stats()["models"]["foundation"]
         launches = e._res.rings["input"].inline.launches
+    # the worker's loop runs in inference mode (entered once, Note [Launch path]), and so does a launch from submit
+    assert ThreadNotingViT.inference == [True] * 24
     # the foundation worker re-arms while the heads still work on the frame before, so in lockstep the submitting
     # thread launches (nearly) every frame; a frame it did not launch is run by the worker: still once
     assert len(ThreadNotingViT.threads) == 12 and st["runs"] == 12 and st["errors"] == 0

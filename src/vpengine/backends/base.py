@@ -137,6 +137,15 @@ class Executor(abc.ABC):
         """Run on input slot ``in_index`` into output slot ``out_index`` (after a ``bind`` that returned True)."""
         raise BackendError(f"{self.name}: the {self.backend} backend does not run from bound slots")
 
+    def run_bound_on(self, stream: torch.cuda.Stream | None, in_index: int, out_index: int) -> None:
+        """``run_bound`` queued on ``stream`` from a thread whose current stream is another one (Note [Launch
+        path] in runtime/worker.py)."""
+        if stream is None:
+            self.run_bound(in_index, out_index)
+            return
+        with torch.cuda.stream(stream):
+            self.run_bound(in_index, out_index)
+
     def describe(self) -> dict[str, Any]:
         """Facts for logs and stats (backend, precision, and what the backend chose)."""
         return {"backend": self.backend, "precision": self.precision, "device": str(self.device)}

@@ -41,8 +41,24 @@ launch that raises is raised in the worker (restart rules), and a frame publishe
 taken from the ring by the worker, as before. Arming, disarming, taking a frame from the ring and the inline launch
 all happen under the offer's lock, so each frame is taken exactly once. Measured on the H100 (compiled depth + seg,
 benchmarks/results/h100/profile_steps_inline.json): the first graph is queued 0.19 ms after the frame is published
-instead of 0.29 ms, 3.44 instead of 3.52 ms a frame. The 0.14 ms between starting a run and the first graph launch
-stays, in whichever thread launches, though its calls take 25 us timed alone (host_ops.json).
+instead of 0.29 ms, 3.44 instead of 3.52 ms a frame. The 0.14 ms that stayed between starting a run and the first
+graph launch, in whichever thread launched, was the launch path's code running cold (Note [Launch path]).
+
+Note [Launch path]
+~~~~~~~~~~~~~~~~~~
+Host code runs several times slower right after its thread waited: on the H100 VM, entering a stream context and
+inference mode and replaying a CUDA graph take 26 us in a loop and 141 us after the thread slept 3 ms (stream context
+87 us, inference mode 21 us, the replay 32 us; benchmarks/results/h100/wakeups.json). Every run begins that way:
+woken by its input, or in the thread that just submitted a frame. So a worker's loop (``run``) makes its stream
+current and turns inference mode on once, for as long as it runs, and a run on the worker's own thread enters
+neither. A launch from the submitting thread (Note [Inline launch]) cannot leave that thread on the worker's stream,
+and switching there and back costs about 0.1 ms after a wait however it is done (wakeups_switch.json); so a
+slot-bound executor launches its three graphs with ``cudaGraphLaunch`` straight onto the worker's stream
+(``run_bound_on``; CUDA Python bindings), which needs no switch and no inference mode, and switches streams only
+where it cannot (no bindings, another device current, a graph that draws random numbers). Measured on the H100,
+compiled depth + seg from a frame slot, 300 frames: the foundation's first graph is queued 0.12 ms after the frame is
+published (0.18 ms with the stream switched, 0.2 ms before this Note), and a frame takes 3.38 ms p50 against 3.55
+ms with the worker launching (profile_steps_launch_path.json).
 """
 
 from __future__ import annotations
@@ -155,6 +171,7 @@ class WorkerCore:
         self._handoff: list[Any] | None = out_ring.device_events
         # Note [Inline launch]: the submitting thread may queue this (foundation) worker's work; set by prepare_worker
         self._inline: InlineLaunch | None = None
+        self._thread: int | None = None  # the thread running the loop (Note [Launch path])
         self._spare: SlotInfo | None = None  # the output slot an armed worker offers
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
@@ -175,32 +192,39 @@ class WorkerCore:
     def run(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
         self._should_stop = should_stop
+        self._thread = threading.get_ident()
         ctl.set_state(name, RUNNING)
         try:
-            while not should_stop():
-                now = time.monotonic()
-                ctl.heartbeat(name)
-                self.gate.update(ctl.rate(name), now)
-                wait = self.gate.wait_time(now)
-                if wait > 0:
-                    self._drop_spare()  # not armed while paused or rate-limited: takes no frames from submit
-                    ctl.set_state(name, PAUSED if math.isinf(wait) else RUNNING)
-                    ctl.wait_control(name, min(wait, self.poll_s))
-                    continue
-                ctl.set_state(name, RUNNING)
-                gate_open = time.monotonic()
-                if self._inline is not None:
-                    self._take_inline(gate_open)
-                    continue
-                slot = self.reader.pin(timeout=self.poll_s, should_stop=should_stop)
-                if slot is None:
-                    continue
-                try:
-                    self._step(slot, starved=slot.t_publish > gate_open)
-                finally:
-                    self.reader.release(slot)
+            # Entered once for the whole loop, not per run (Note [Launch path])
+            with self.dev.active(), torch.inference_mode():
+                self._loop(should_stop)
         finally:
             self._drop_spare()
+
+    def _loop(self, should_stop: Callable[[], bool]) -> None:
+        ctl, name = self.control, self.name
+        while not should_stop():
+            now = time.monotonic()
+            ctl.heartbeat(name)
+            self.gate.update(ctl.rate(name), now)
+            wait = self.gate.wait_time(now)
+            if wait > 0:
+                self._drop_spare()  # not armed while paused or rate-limited: takes no frames from submit
+                ctl.set_state(name, PAUSED if math.isinf(wait) else RUNNING)
+                ctl.wait_control(name, min(wait, self.poll_s))
+                continue
+            ctl.set_state(name, RUNNING)
+            gate_open = time.monotonic()
+            if self._inline is not None:
+                self._take_inline(gate_open)
+                continue
+            slot = self.reader.pin(timeout=self.poll_s, should_stop=should_stop)
+            if slot is None:
+                continue
+            try:
+                self._step(slot, starved=slot.t_publish > gate_open)
+            finally:
+                self.reader.release(slot)
 
     def _step(self, slot: SlotInfo, starved: bool, out: SlotInfo | None = None) -> None:
         """One run on a pinned ``slot``, into ``out`` (an output slot already acquired) or one it acquires."""
@@ -227,21 +251,29 @@ class WorkerCore:
         if events is not None:  # the slot's writer published it queued: read it only after that work
             self.dev.wait_on(events[slot.index])
         try:
-            with self.dev.active(), torch.inference_mode():
-                if self._bound:
-                    self.model.run_bound(slot.index, out.index)  # type: ignore[attr-defined]
-                else:
-                    outputs = self.model(self._inputs(slot))
-                    if not self._checked:
-                        check_outputs(self.name, self.output_spec, outputs)
-                        self._checked = True
-                    for k, t in out.tensors.items():
-                        t.copy_(outputs[k], non_blocking=True)
+            if threading.get_ident() == self._thread:  # run() made the stream current, inference mode on
+                self._run_model(slot, out)
+            elif self._bound:  # graph launches dispatch no tensor ops: no inference mode needed
+                self.model.run_bound_on(self.dev.stream, slot.index, out.index)  # type: ignore[attr-defined]
+            else:
+                with self.dev.active(), torch.inference_mode():
+                    self._run_model(slot, out)
             if self._handoff is not None:
                 self.dev.mark(self._handoff[out.index])
         except BaseException:
             self.writer.abort(out)
             raise
+
+    def _run_model(self, slot: SlotInfo, out: SlotInfo) -> None:
+        if self._bound:
+            self.model.run_bound(slot.index, out.index)  # type: ignore[attr-defined]
+            return
+        outputs = self.model(self._inputs(slot))
+        if not self._checked:
+            check_outputs(self.name, self.output_spec, outputs)
+            self._checked = True
+        for k, t in out.tensors.items():
+            t.copy_(outputs[k], non_blocking=True)
 
     def _finish(self, slot: SlotInfo, out: SlotInfo, t_start: float) -> None:
         """Count and publish a run whose work ``_launch`` queued; the caller then releases ``slot``."""

@@ -227,7 +227,7 @@ class RuntimeConfig(_Strict):
         "auto",
         description="Who queues the foundation model's device work for a new frame in thread mode (Note [Inline "
         "launch]). auto: the thread that submits the frame, when the foundation model waits for one and runs from "
-        "CUDA graphs bound to the slots (compiled, on CUDA): submit then takes longer (0.25 ms on an H100) and the "
+        "CUDA graphs bound to the slots (compiled, on CUDA): submit then takes longer (about 0.2 ms on an H100) and the "
         "frame skips the foundation thread's wake-up; otherwise the foundation thread. always: the "
         "submitting thread whenever the foundation model waits, whatever it runs (on the CPU, submit then runs the "
         "model itself: for tests). never: always the foundation thread. Process mode: always the foundation process.",

@@ -14,8 +14,8 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
 * slot host hand-off: the foundation waits for its work on the host before it publishes (as before that Note);
 * slot unbound: compiled models called with the slots' tensors and their outputs copied by the worker, one copy per
   tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
-* slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, poll
-  the rest; Note [Device sync]);
+* slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, spin
+  in the driver for the rest; Note [Device sync]);
 * slot+fullspin: device sync by spinning on the event the whole time (cudaEventDefault): the least wake-up latency
   there is, at a core per worker. Diagnostic only: not something the engine does;
 * slot+switch: ``sys.setswitchinterval(1e-4)`` (CPython's default is 5 ms: a thread waiting for the interpreter
@@ -25,7 +25,8 @@ A run's launch is stamped after its stream waited on the features' event (a head
 a stream context (``active_called``, ``stream_entered``: a launch from another thread that cannot launch raw) and
 before its first launch (``run_bound_called``); a slot-bound model's after each of its three graph launches: ``in_copy_enqueued`` (the input slot
 copied into the graph's static input), ``graph_enqueued`` (the model) and ``model_enqueued`` (the copy into the
-output slot). VARIANTS (comma-separated names from the list above) picks which run; default: all.
+output slot). VARIANTS (comma-separated names from the list above) picks which run; default: all. PRIORITIES
+(``--stream-priorities`` of ``vpengine bench paper``, e.g. depth=-1) sets the models' stream priorities.
 
 Then a torch.profiler trace of a few frames (chrome trace, gzipped) for the device timeline. Set TINY=1 for a CPU
 smoke run of the script.
@@ -46,7 +47,7 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from vpengine.bench.paper import Setup, engines, frames
+from vpengine.bench.paper import Setup, engines, frames, parse_priorities
 from vpengine.runtime import worker as worker_mod
 from vpengine.runtime.device import DeviceContext
 
@@ -60,6 +61,7 @@ if os.environ.get("TINY"):
         "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 50, True
     )
     setup.results = "borrow"
+setup.stream_priorities = parse_priorities(os.environ.get("PRIORITIES", ""))  # e.g. depth=-1
 kinds = os.environ.get("HEADS", "depth,seg").split(
     ","
 )  # "kind" or "kind:count" (depth:8 is E1's 8 depth heads)
@@ -229,7 +231,14 @@ def run_variant(eng, variant: str, n: int) -> dict[str, object]:  # type: ignore
     return summary
 
 
-report: dict[str, object] = {"setup": {"heads": kinds, "backend": setup.backend, "results": setup.results}}
+report: dict[str, object] = {
+    "setup": {
+        "heads": kinds,
+        "backend": setup.backend,
+        "results": setup.results,
+        "stream_priorities": setup.stream_priorities,
+    }
+}
 worker_mod.WorkerCore._launch = _stamped_launch  # type: ignore[method-assign]
 worker_mod.WorkerCore._finish = _stamped_finish  # type: ignore[method-assign]
 worker_mod.WorkerCore.__init__ = _core_init  # type: ignore[method-assign]
@@ -239,8 +248,9 @@ blocking_complete = DeviceContext.complete
 
 
 def spin(us: float) -> None:
-    for d in devices:
+    for d in devices:  # as DeviceContext sets them up for runtime.sync_spin_us
         d.spin_s, d.expected_s = us * 1e-6, 0.0
+        d.spin_event = torch.cuda.Event() if us > 0 and d.cuda else None
 
 
 chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))

@@ -30,7 +30,7 @@ def test_paper_harness_e1_and_floor_then_report(tmp_path):
         assert math.isclose(r["speedup_vs_independent"], r["independent"]["mean"] / r["engine"]["mean"])
     floor = res["floor"]
     assert floor["device_ms"] == {}  # no CUDA events on the CPU: no floor is claimed
-    assert "floor_sum_ms" not in floor
+    assert "floor_sum_ms" not in floor and floor["chained_ms"] == {}
     assert floor["thread"]["n"] == 5 and floor["process"]["n"] == 5
     assert (tmp_path / "paper_cpu_smoke.png").read_bytes().startswith(PNG)
 

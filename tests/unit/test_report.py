@@ -71,7 +71,7 @@ def test_an_empty_folder_gives_a_table_with_no_rows(tmp_path):
     assert md == ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]
 
 
-def _floor(transfers: bool, slots: bool = False) -> dict:
+def _floor(transfers: bool, slots: bool = False, chained: bool = False) -> dict:
     out = {
         "device_ms": {"foundation": 1.0, "depth": 0.5, "seg": 0.5},
         "floor_sum_ms": 2.0,
@@ -96,6 +96,8 @@ def _floor(transfers: bool, slots: bool = False) -> dict:
             thread_frame_slot_overhead_vs_floor_with_transfers=-0.1,
             process_frame_slot_overhead_vs_floor_with_transfers=-0.2,
         )
+    if chained:
+        out["chained_ms"] = {"compute": 1.8, "with_transfers": 2.3}
     return out
 
 
@@ -133,14 +135,37 @@ def test_floor_rows_say_when_thread_mode_handed_features_or_frames_over_the_olde
         ("auto", "2026-01-01", {"feature_handoff": "event", "inline_launch": "auto"}),
         ("worker", "2026-01-02", {"feature_handoff": "event", "inline_launch": "never"}),
         ("host", "2026-01-03", {"feature_handoff": "host", "inline_launch": "never"}),
+        ("finish", "2026-01-04", {"inline_finish": "never"}),
+        ("prio", "2026-01-05", {"stream_priorities": {"depth": -1}}),
     ):
         setup = {"backend": "compile", **runtime}
         _write(tmp_path, f"paper_cuda_floor_{name}", f"{date}T00:00:00", setup, floor=_floor(True))
     rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 3, rows
+    assert len(rows) == 5, rows
     assert "(dinov2_vits14_dav2, compile; " in rows[0]
     assert "(dinov2_vits14_dav2, compile, worker launch; " in rows[1]
     assert "(dinov2_vits14_dav2, compile, host hand-off, worker launch; " in rows[2]
+    assert "(dinov2_vits14_dav2, compile, head finish; " in rows[3]
+    assert "(dinov2_vits14_dav2, compile, stream priorities depth -1; " in rows[4]
+
+
+def test_floor_rows_give_the_chained_floor_where_it_was_measured(tmp_path):
+    _write(
+        tmp_path,
+        "paper_cuda_floor_a",
+        "2026-01-01T00:00:00",
+        {"backend": "compile"},
+        floor=_floor(True, True),
+    )
+    floor = _floor(True, True, chained=True)
+    _write(tmp_path, "paper_cuda_floor_b", "2026-01-02T00:00:00", {"backend": "compile"}, floor=floor)
+    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
+    assert len(rows) == 2 and "back to back" not in rows[0], rows
+    p50 = floor["thread_frame_slot"]["p50"]
+    assert (
+        f"; the models back to back on one stream 1.8 ms: thread mode from a frame slot p50 {p50:.1f} ms "
+        f"({p50 / 1.8 - 1:+.0%}) |" in rows[1]
+    ), rows[1]
 
 
 def _e5(frames: int, p50: float, lost: float) -> dict:

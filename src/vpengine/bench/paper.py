@@ -93,6 +93,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "Note [Inline launch])",
     )
     p.add_argument(
+        "--inline-finish",
+        default="auto",
+        choices=["auto", "always", "never"],
+        help="runtime.inline_finish: in thread mode on CUDA the thread waiting for a frame waits for each head's "
+        "device work and publishes its output (auto), or the heads' threads always do (never; Note [Inline finish])",
+    )
+    p.add_argument(
         "--no-slot-bound",
         action="store_true",
         help="compiled models copy each input and output tensor in the worker instead of running from graphs bound "
@@ -100,6 +107,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (depth, seg, det)"
+    )
+    p.add_argument(
+        "--stream-priorities",
+        default="",
+        help="stream_priority of models by kind, e.g. depth=-1 (foundation, depth, seg, det; 0 normal, negative "
+        "higher): the heads of every experiment get the priority of their kind",
     )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
     p.add_argument("--tag", default="", help="suffix of the results file name")
@@ -128,6 +141,8 @@ class Setup:
     slot_bound: bool = True
     feature_handoff: str = "event"
     inline_launch: str = "auto"
+    inline_finish: str = "auto"
+    stream_priorities: dict[str, int] = field(default_factory=dict)
 
     @property
     def copy(self) -> bool:
@@ -138,6 +153,7 @@ class Setup:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
         launch = ", worker launch" if self.inline_launch == "never" else ""
+        launch += ", head finish" if self.inline_finish == "never" else ""
         return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}"
 
     @classmethod
@@ -164,6 +180,8 @@ class Setup:
                 slot_bound=not a.no_slot_bound,
                 feature_handoff=a.feature_handoff,
                 inline_launch=a.inline_launch,
+                inline_finish=a.inline_finish,
+                stream_priorities=parse_priorities(a.stream_priorities),
             )
         return cls(
             device=a.device,
@@ -183,6 +201,8 @@ class Setup:
             slot_bound=not a.no_slot_bound,
             feature_handoff=a.feature_handoff,
             inline_launch=a.inline_launch,
+            inline_finish=a.inline_finish,
+            stream_priorities=parse_priorities(a.stream_priorities),
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
@@ -196,8 +216,13 @@ class Setup:
             "options": opts,
             "backend": backend,
             **self._backend_options(backend),
+            **self._priority(kind),
             **extra,
         }
+
+    def _priority(self, kind: str) -> dict[str, Any]:
+        p = self.stream_priorities.get(kind)
+        return {} if p is None else {"stream_priority": p}
 
     def _backend_options(self, backend: str) -> dict[str, Any]:
         if backend == "compile" and not self.slot_bound:
@@ -220,6 +245,7 @@ class Setup:
                 "options": self.backbone_options,
                 "backend": self.backend,
                 **self._backend_options(self.backend),
+                **self._priority("foundation"),
             },
             "heads": heads,
             "weights": {"random_weights": True},
@@ -227,6 +253,7 @@ class Setup:
                 "sync_spin_us": self.sync_spin_us,
                 "feature_handoff": self.feature_handoff,
                 "inline_launch": self.inline_launch,
+                "inline_finish": self.inline_finish,
             },
             "logging": {"level": "WARNING"},
             **top,
@@ -237,6 +264,26 @@ class Setup:
 
 
 # ----------------------------------------------------------------------------------------------- helpers
+def parse_priorities(text: str) -> dict[str, int]:
+    """``depth=-1,seg=0`` -> {"depth": -1, "seg": 0} (``--stream-priorities``)."""
+    out: dict[str, int] = {}
+    for item in filter(None, (t.strip() for t in text.split(","))):
+        kind, sep, value = item.partition("=")
+        kind = kind.strip()
+        if not sep or kind not in ("foundation", "depth", "seg", "det"):
+            raise ValueError(
+                f"--stream-priorities item {item!r}: expected KIND=PRIORITY with KIND one of foundation, depth, "
+                "seg, det"
+            )
+        try:
+            out[kind] = int(value)
+        except ValueError:
+            raise ValueError(
+                f"--stream-priorities item {item!r}: priority {value.strip()!r} is not an integer"
+            ) from None
+    return out
+
+
 def frames(setup: Setup, n: int = 8) -> list[np.ndarray]:
     from vpengine.io.sources import SyntheticSource
 
@@ -339,6 +386,7 @@ class InProcess:
             self.heads[h.name] = (executor(m, h, h.name), list(m.input_spec))
             self.graphed[h.name] = h.backend == "compile"
         self.torch = torch
+        self._frame_runs: dict[str, Any] | None = None
 
     def run(self, img: np.ndarray) -> dict[str, Any]:
         """Backbone once, then every head one after another, outputs copied to the host."""
@@ -356,50 +404,78 @@ class InProcess:
         return timed(lambda i: self.run(imgs[i % len(imgs)]), n, warmup)
 
     def device_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
-        """Median device time (ms) of the backbone and of each head, with CUDA graphs where they capture."""
-        torch = self.torch
+        """Median device time (ms) of the backbone and of each head, each timed alone, with CUDA graphs where they
+        capture (empty off CUDA)."""
         if self.device.type != "cuda":
             return {}
-        with torch.inference_mode():
-            x = torch.from_numpy(img).to(self.device)
-            feats = self.fm({"frame": x})
-            parts: dict[str, Any] = {"foundation": (self.fm, {"frame": x})}
-            for name, (head, keys) in self.heads.items():
-                parts[name] = (head, {k: feats[k] for k in keys})
-            out = {}
-            for name, (fn, inputs) in parts.items():
-                # compiled executors replay their own CUDA graph; eager ones are captured here if they can be
-                run = (
-                    (lambda fn=fn, inputs=inputs: fn(inputs))
-                    if self.graphed[name]
-                    else _graphed(fn, inputs, torch)
-                )
-                out[name] = _event_ms(run, n, torch)
-            return out
+        parts = self._frame(img)["parts"]
+        with self.torch.inference_mode():
+            return {name: _event_ms(run, n, self.torch) for name, run in parts.items()}
 
     def transfer_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
         """Median device time (ms) of the copies a frame needs at least: the frame up from page-locked host memory,
         and every head's outputs down into page-locked host memory (CUDA events; empty off CUDA)."""
-        torch = self.torch
         if self.device.type != "cuda":
             return {}
+        f = self._frame(img)
+        with self.torch.inference_mode():
+            return {name: _event_ms(f[name], n, self.torch) for name in ("upload", "download")}
+
+    def chained_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
+        """Median device time (ms) of one frame's models run back to back on one stream and timed as one, without
+        and with the frame's upload and the results' download (empty off CUDA). Unlike the sum of the models timed
+        alone, each model here finds the caches as the one before it left them, as it does in the engine."""
+        if self.device.type != "cuda":
+            return {}
+        f = self._frame(img)
+        runs = list(f["parts"].values())
+
+        def compute() -> None:
+            for run in runs:
+                run()
+
+        def whole() -> None:
+            f["upload"]()
+            compute()
+            f["download"]()
+
+        with self.torch.inference_mode():
+            return {
+                "compute": _event_ms(compute, n, self.torch),
+                "with_transfers": _event_ms(whole, n, self.torch),
+            }
+
+    def _frame(self, img: np.ndarray) -> dict[str, Any]:
+        """What the timings above replay, built once: ``parts`` (backbone, then each head: compiled executors replay
+        their CUDA graphs, eager ones are captured here if they can be), ``upload`` and ``download``."""
+        if self._frame_runs is not None:
+            return self._frame_runs
+        torch = self.torch
         with torch.inference_mode():
             host = torch.from_numpy(img).pin_memory()
             x = torch.empty_like(host, device=self.device)
             x.copy_(host)
             feats = self.fm({"frame": x})
-            outs = [
-                t
-                for head, keys in self.heads.values()
-                for t in head({k: feats[k] for k in keys}).values()
-                if t.device.type == "cuda"
-            ]
+            parts: dict[str, Any] = {}
+            outs = []
+            for name, (fn, inputs) in {
+                "foundation": (self.fm, {"frame": x}),
+                **{name: (head, {k: feats[k] for k in keys}) for name, (head, keys) in self.heads.items()},
+            }.items():
+                parts[name] = (
+                    (lambda fn=fn, inputs=inputs: fn(inputs))
+                    if self.graphed[name]
+                    else _graphed(fn, inputs, torch)
+                )
+                if name != "foundation":
+                    outs += [t for t in fn(inputs).values() if t.device.type == "cuda"]
             down = [torch.empty_like(t, device="cpu", pin_memory=True) for t in outs]
-            copies = {
-                "upload": lambda: x.copy_(host, non_blocking=True),
-                "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
-            }
-            return {name: _event_ms(run, n, torch) for name, run in copies.items()}
+        self._frame_runs = {
+            "parts": parts,
+            "upload": lambda: x.copy_(host, non_blocking=True),
+            "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
+        }
+        return self._frame_runs
 
 
 def _event_ms(run: Any, n: int, torch: Any) -> float:
@@ -716,8 +792,9 @@ def floor(
     seq = InProcess(setup, heads)
     dt = seq.device_times(imgs[0])
     xfer = seq.transfer_times(imgs[0])
+    chained = seq.chained_times(imgs[0])
     del seq
-    out: dict[str, Any] = {"device_ms": dt, "transfer_ms": xfer}
+    out: dict[str, Any] = {"device_ms": dt, "transfer_ms": xfer, "chained_ms": chained}
     if dt:
         out["floor_sum_ms"] = sum(dt.values())
         # the frame has to get onto the device and the results off it: the floor with those copies
@@ -733,9 +810,10 @@ def floor(
                 out[f"{key}_overhead_vs_floor_with_transfers"] = (
                     out[key]["mean"] / out["floor_with_transfers_ms"] - 1
                 )
+                out[f"{key}_overhead_vs_chained"] = out[key]["mean"] / chained["compute"] - 1
     log(
         f"floor: device time {dt} -> sum {out.get('floor_sum_ms', float('nan')):.1f} ms, with transfers {xfer} "
-        f"{out.get('floor_with_transfers_ms', float('nan')):.1f} ms; engine thread "
+        f"{out.get('floor_with_transfers_ms', float('nan')):.1f} ms, chained { ({k: round(v, 2) for k, v in chained.items()}) }; engine thread "
         f"{out['thread']['mean']:.1f} ms ({out['thread_frame_slot']['mean']:.1f} ms from a frame slot), process "
         f"{out['process']['mean']:.1f} ms ({out['process_frame_slot']['mean']:.1f} ms)"
     )

@@ -73,6 +73,12 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
     # thread mode's foundation launched by its worker, never by submit (so were runs before Note [Inline launch])
     if setup.get("inline_launch") == "never":
         label += ", worker launch"
+    # heads' outputs published by their own threads (so were runs before Note [Inline finish])
+    if setup.get("inline_finish") == "never":
+        label += ", head finish"
+    stream_priorities = setup.get("stream_priorities")
+    if stream_priorities:
+        label += ", stream priorities " + " ".join(f"{k} {v}" for k, v in stream_priorities.items())
     return label
 
 
@@ -158,6 +164,13 @@ def table(r: dict[str, Any]) -> str:
                     part += f", {f[f'{k}_overhead_vs_floor_with_transfers']:+.0%} with transfers"
                 parts.append(part + ")")
             slot = "; frames written in place (frame_slot): " + ", ".join(parts)
+            chained = f.get("chained_ms", {}).get("compute")
+            if chained:  # runs since the chained floor: medians against a median
+                p50 = f["thread_frame_slot"]["p50"]
+                slot += (
+                    f"; the models back to back on one stream {chained:.1f} ms: thread mode from a frame slot p50 "
+                    f"{p50:.1f} ms ({p50 / chained - 1:+.0%})"
+                )
         rows.append(
             f"| engine vs device-time floor ({_setup_label(f['setup'], det='det' in heads)}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
             "thread mode "

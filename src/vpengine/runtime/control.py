@@ -44,6 +44,7 @@ _FIELDS = [
     ("lat_count", "q"),
     ("last_frame_id", "q"),
     ("mps_active", "q"),
+    ("stream_priority", "q"),  # as the device has it (config stream_priority, mapped into the device's range)
     ("target_hz", "d"),  # NaN: unlimited
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
     ("started_at", "d"),
@@ -260,6 +261,7 @@ class ControlBlock:
             "latency_ms": pct(lat),
             "e2e_latency_ms": pct(e2e),
             "mps": bool(self._get(i, "mps_active")),
+            "stream_priority": self._get(i, "stream_priority"),
             "device_mem_bytes": self._get(i, "device_mem_bytes"),
             "last_error": self.last_error(name) or None,
         }

@@ -36,23 +36,22 @@ class DeviceContext:
     def __init__(self, device: torch.device | str, priority: int = 0, spin_s: float = 0.0) -> None:
         self.device = torch.device(device)
         self.spin_s = spin_s
-        self.expected_s = 0.0  # moving average of how long complete() waited
+        self.expected_s = 0.0  # moving average of how long complete() waited; 0: not known (yet, or any more)
+        self._marked: torch.cuda.Event | None = None  # the event mark_done recorded last
         self.cuda = self.device.type == "cuda"
         if self.cuda:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
                 self.device = torch.device("cuda", torch.cuda.current_device())
             torch.cuda.set_device(self.device)
-            lo, hi = (
-                torch.cuda.get_stream_priority_range()
-                if hasattr(torch.cuda, "get_stream_priority_range")
-                else (0, 0)
-            )
-            prio = max(min(priority, lo), hi)  # CUDA: lower number = higher priority; clamp into the range
-            self.stream: torch.cuda.Stream | None = torch.cuda.Stream(self.device, priority=prio)
+            # CUDA: a lower number is a higher priority. PyTorch maps a priority above what the device (or its own
+            # stream pool) has to the highest there is; ``priority`` says what the stream got.
+            self.stream: torch.cuda.Stream | None = torch.cuda.Stream(self.device, priority=priority)
             self.event: torch.cuda.Event | None = torch.cuda.Event(blocking=True)
+            # default flags: its synchronize() polls in the driver (cudaDeviceScheduleAuto spins with a core each)
+            self.spin_event: torch.cuda.Event | None = torch.cuda.Event() if spin_s > 0 else None
         else:
             self.stream = None
-            self.event = None
+            self.event = self.spin_event = None
 
     @contextlib.contextmanager
     def active(self) -> Iterator[None]:
@@ -74,25 +73,46 @@ class DeviceContext:
 
     def complete(self) -> None:
         """Block until all work queued so far on this worker's stream has finished: sleeping, or sleeping and then
-        polling the last stretch when ``spin_s`` > 0 (Note [Device sync])."""
+        spinning in the driver for the last stretch when ``spin_s`` > 0 (Note [Device sync])."""
         if self.stream is None or self.event is None:
             return
-        event = self.event
-        event.record(self.stream)
-        if self.spin_s <= 0:
-            event.synchronize()
+        self.wait_marked(self.mark_done())
+
+    def mark_done(self) -> float:
+        """Record the event that ``wait_marked`` waits on, after all work queued so far on this worker's stream.
+        Returns when (``time.monotonic``). The wait may happen in another thread (Note [Inline finish])."""
+        if self.stream is None or self.event is None:
+            return time.monotonic()
+        spin = self.spin_event
+        # a spin needs a prediction: without one (not learnt yet, or the last spin outlasted its window) it sleeps
+        self._marked = spin if spin is not None and self.expected_s > 0 else self.event
+        self._marked.record(self.stream)
+        return time.monotonic()
+
+    def wait_marked(self, t_marked: float) -> None:
+        """Block until the work before ``mark_done``'s event (recorded at ``t_marked``) has finished."""
+        marked = self._marked
+        if self.stream is None or marked is None:
             return
-        t0 = time.monotonic()
-        ahead = self.expected_s - self.spin_s
+        if marked is self.event:
+            marked.synchronize()
+            if self.spin_event is not None:  # learning what a run takes, from a wait that does not spin
+                self.expected_s = time.monotonic() - t_marked
+            return
+        ahead = t_marked + self.expected_s - self.spin_s - time.monotonic()
         if ahead > 0:
             time.sleep(ahead)
-        give_up = time.monotonic() + 2 * self.spin_s
-        while not event.query():
-            if time.monotonic() > give_up:
-                event.synchronize()
-                break
-            time.sleep(0)  # lets the other workers' threads have the interpreter lock between polls
-        self.expected_s += 0.125 * (time.monotonic() - t0 - self.expected_s)
+        marked.synchronize()  # the driver polls the device; the interpreter lock is free meanwhile
+        waited = time.monotonic() - t_marked
+        if waited > self.expected_s + 2 * self.spin_s:
+            self.expected_s = 0.0  # spun for longer than the window: the next run sleeps and learns anew
+        else:
+            self.expected_s += 0.125 * (waited - self.expected_s)
+
+    @property
+    def priority(self) -> int:
+        """The stream's priority as the device has it (0 on the CPU)."""
+        return int(self.stream.priority) if self.stream is not None else 0
 
     def memory_bytes(self) -> int:
         """Device memory this process holds through PyTorch's allocator (reserved), 0 on the CPU."""

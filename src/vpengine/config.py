@@ -234,15 +234,6 @@ class RuntimeConfig(_Strict):
         "model itself: for tests). never: always the foundation thread. Process mode: always the foundation process.",
     )
 
-    inline_finish: Literal["auto", "always", "never"] = Field(
-        "auto",
-        description="Who waits for a head's device work and publishes its output in thread mode, when a thread is "
-        "waiting for that frame in Engine.wait (Note [Inline finish]). auto: on CUDA the waiting thread, which "
-        "then holds the result without being woken by the head's thread; otherwise the head's thread. always: "
-        "the waiting thread on any device (for tests). never: always the head's thread. Process mode: always the "
-        "head's process.",
-    )
-
 
 class LoggingConfig(_Strict):
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"

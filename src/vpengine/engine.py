@@ -755,54 +755,32 @@ class Engine:
         pending = [self._head(h) for h in heads] if heads else list(self.plan.heads)
         done: dict[str, Result] = {}
         deadline = time.monotonic() + timeout
-        # Note [Inline finish]: heads that hand their run of this frame to this thread instead of waking it
-        offers = [(h, f) for h in pending if (f := self._res.rings[f"out.{h}"].finish) is not None]
-        for _, f in offers:
-            f.want(origin)
-        try:
-            while True:
-                word = ctl.output_word()
-                with self._read_lock:
-                    self._leases.drain()
-                    found: list[tuple[str, SlotInfo]] = []
-                    try:
-                        for h in list(pending):
-                            slot, newest = self._peek_readers[h].pin_origin(origin)
-                            if slot is not None:
-                                found.append((h, slot))
-                            if slot is not None or newest > origin or ctl.state(h) == "failed":
-                                pending.remove(h)
-                        done.update(self._copy_out(found, copy))
-                    finally:
-                        for h, slot in found:
-                            self._peek_readers[h].release(slot)
-                if not pending:
-                    return done
-                if self._finish_handed(offers, pending, origin):
-                    continue  # published: take it
-                remaining = deadline - time.monotonic()
-                if remaining <= 0:
-                    raise TimeoutError(
-                        f"frame {frame_id}: no output from {pending} within {timeout} s (got {sorted(done)})"
-                    )
-                if self._state != "running":
-                    raise EngineDeadError("engine stopped while waiting")
-                ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
-        finally:
-            for _, f in offers:
-                f.unwant(origin)
-
-    @staticmethod
-    def _finish_handed(offers: list[tuple[str, Any]], pending: list[str], origin: int) -> bool:
-        """Wait for and publish one pending head's run of frame ``origin`` that its worker handed to this thread
-        (Note [Inline finish]). True if there was one."""
-        for h, f in offers:
-            if h in pending:
-                handed = f.take(origin)
-                if handed is not None:
-                    f.finish(handed)
-                    return True
-        return False
+        while True:
+            word = ctl.output_word()
+            with self._read_lock:
+                self._leases.drain()
+                found: list[tuple[str, SlotInfo]] = []
+                try:
+                    for h in list(pending):
+                        slot, newest = self._peek_readers[h].pin_origin(origin)
+                        if slot is not None:
+                            found.append((h, slot))
+                        if slot is not None or newest > origin or ctl.state(h) == "failed":
+                            pending.remove(h)
+                    done.update(self._copy_out(found, copy))
+                finally:
+                    for h, slot in found:
+                        self._peek_readers[h].release(slot)
+            remaining = deadline - time.monotonic()
+            if not pending:
+                return done
+            if remaining <= 0:
+                raise TimeoutError(
+                    f"frame {frame_id}: no output from {pending} within {timeout} s (got {sorted(done)})"
+                )
+            if self._state != "running":
+                raise EngineDeadError("engine stopped while waiting")
+            ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
 
     # ------------------------------------------------------------------------------------------ control
     def set_rate(self, model: str, hz: float | None) -> None:

@@ -93,13 +93,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "Note [Inline launch])",
     )
     p.add_argument(
-        "--inline-finish",
-        default="auto",
-        choices=["auto", "always", "never"],
-        help="runtime.inline_finish: in thread mode on CUDA the thread waiting for a frame waits for each head's "
-        "device work and publishes its output (auto), or the heads' threads always do (never; Note [Inline finish])",
-    )
-    p.add_argument(
         "--no-slot-bound",
         action="store_true",
         help="compiled models copy each input and output tensor in the worker instead of running from graphs bound "
@@ -141,7 +134,6 @@ class Setup:
     slot_bound: bool = True
     feature_handoff: str = "event"
     inline_launch: str = "auto"
-    inline_finish: str = "auto"
     stream_priorities: dict[str, int] = field(default_factory=dict)
 
     @property
@@ -153,7 +145,6 @@ class Setup:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
         launch = ", worker launch" if self.inline_launch == "never" else ""
-        launch += ", head finish" if self.inline_finish == "never" else ""
         return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}"
 
     @classmethod
@@ -180,7 +171,6 @@ class Setup:
                 slot_bound=not a.no_slot_bound,
                 feature_handoff=a.feature_handoff,
                 inline_launch=a.inline_launch,
-                inline_finish=a.inline_finish,
                 stream_priorities=parse_priorities(a.stream_priorities),
             )
         return cls(
@@ -201,7 +191,6 @@ class Setup:
             slot_bound=not a.no_slot_bound,
             feature_handoff=a.feature_handoff,
             inline_launch=a.inline_launch,
-            inline_finish=a.inline_finish,
             stream_priorities=parse_priorities(a.stream_priorities),
         )
 
@@ -253,7 +242,6 @@ class Setup:
                 "sync_spin_us": self.sync_spin_us,
                 "feature_handoff": self.feature_handoff,
                 "inline_launch": self.inline_launch,
-                "inline_finish": self.inline_finish,
             },
             "logging": {"level": "WARNING"},
             **top,

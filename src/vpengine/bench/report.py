@@ -73,9 +73,6 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
     # thread mode's foundation launched by its worker, never by submit (so were runs before Note [Inline launch])
     if setup.get("inline_launch") == "never":
         label += ", worker launch"
-    # heads' outputs published by their own threads (so were runs before Note [Inline finish])
-    if setup.get("inline_finish") == "never":
-        label += ", head finish"
     stream_priorities = setup.get("stream_priorities")
     if stream_priorities:
         label += ", stream priorities " + " ".join(f"{k} {v}" for k, v in stream_priorities.items())

@@ -12,15 +12,25 @@ streams wait on an event per slot (``wait_on``/``mark``, Note [Event hand-off] i
 
 Waking from that sleep takes 0.1-0.2 ms (measured on an H100 VM), once per model per frame, on the critical path of
 every frame. ``runtime.sync_spin_us`` > 0 trades a little CPU for it: the worker sleeps (``time.sleep``, GIL released)
-through the part of the work its recent runs predict, minus the spin window, then polls the event, yielding the
-interpreter lock between polls, for at most twice the window, and falls back to the sleeping wait after that. The
-prediction is a moving average of how long the waits took. No work in flight, no polling: idle workers still sleep.
-On an H100 (thread mode, compiled backbone + depth + seg) a 200 us window took a frame from 4.16 to 3.98 ms; with eight
-depth heads in thread mode it made things worse (7.4 -> 8.3 ms), the polling threads contending for the interpreter
-lock, which is why it is off by default. The same prediction was tried for the caller's wait in ``Engine.wait``
-(commit 44ac87f, reverted): no gain alone (3.57 vs 3.58 ms), and with this spin on too the floor's thread-mode frame
-went from 3.4 to 4.4 ms: a thread polling with ``time.sleep(0)`` retakes the interpreter lock before a woken thread
-gets it, and that one asks for it only after the 5 ms switch interval (benchmarks/results/h100/profile_steps_wait.json).
+through the part of the work its recent runs predict, minus the spin window, then waits on a second event, made with
+default flags, whose ``synchronize`` polls the device in the driver with the interpreter lock released. (The first
+version polled from Python and yielded the lock between polls; other threads then waited for it.) The prediction is a
+moving average of the waits, learnt from a sleeping one; a driver spin cannot be cut short, so a run slower than
+predicted is spun through, and a spin that outlasts twice its window makes the next run sleep and learn anew. No work
+in flight, no spinning: idle workers still sleep. Measured on an H100 (thread mode, compiled depth + seg, frame slot):
+a 200 us window took a frame from 3.43-3.48 to 3.32 ms p50, as fast as spinning through the whole wait (3.31 ms;
+profile_steps_driver_spin.json); the floor run gave 3.40 -> 3.35 ms p50 with a worse mean; with eight depth heads it
+still made things worse (6.2-6.7 -> 7.2 ms p50), which is why it is off by default.
+
+Two ways to shorten the caller's side were tried and reverted. The same prediction for the caller's wait in
+``Engine.wait`` (commit 44ac87f): no gain alone (3.57 vs 3.58 ms), and with the workers' Python polling on too the
+floor's thread-mode frame went from 3.4 to 4.4 ms: a thread polling with ``time.sleep(0)`` retakes the interpreter
+lock before a woken thread gets it, and that one asks for it only after the 5 ms switch interval
+(benchmarks/results/h100/profile_steps_wait.json). And "inline finish" (commit a6cc1be): a head handed its queued run
+of a frame to the thread waiting for that frame, which waited for the device work and published the output itself,
+so that the head's thread no longer had to wake it. On the floor that was slower, 3.51 against 3.29 ms p50 on one
+machine (paper_cuda_floor_inline_finish_*.json); one likely reason is that the waiting thread then publishes both
+heads after the last is done, where the heads' threads publish the first while the second still runs.
 """
 
 from __future__ import annotations
@@ -37,7 +47,6 @@ class DeviceContext:
         self.device = torch.device(device)
         self.spin_s = spin_s
         self.expected_s = 0.0  # moving average of how long complete() waited; 0: not known (yet, or any more)
-        self._marked: torch.cuda.Event | None = None  # the event mark_done recorded last
         self.cuda = self.device.type == "cuda"
         if self.cuda:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
@@ -76,34 +85,20 @@ class DeviceContext:
         spinning in the driver for the last stretch when ``spin_s`` > 0 (Note [Device sync])."""
         if self.stream is None or self.event is None:
             return
-        self.wait_marked(self.mark_done())
-
-    def mark_done(self) -> float:
-        """Record the event that ``wait_marked`` waits on, after all work queued so far on this worker's stream.
-        Returns when (``time.monotonic``). The wait may happen in another thread (Note [Inline finish])."""
-        if self.stream is None or self.event is None:
-            return time.monotonic()
+        t0 = time.monotonic()
         spin = self.spin_event
-        # a spin needs a prediction: without one (not learnt yet, or the last spin outlasted its window) it sleeps
-        self._marked = spin if spin is not None and self.expected_s > 0 else self.event
-        self._marked.record(self.stream)
-        return time.monotonic()
-
-    def wait_marked(self, t_marked: float) -> None:
-        """Block until the work before ``mark_done``'s event (recorded at ``t_marked``) has finished."""
-        marked = self._marked
-        if self.stream is None or marked is None:
+        if spin is None or self.expected_s <= 0:
+            self.event.record(self.stream)
+            self.event.synchronize()
+            if spin is not None:  # learning what a run takes, from a wait that does not spin
+                self.expected_s = time.monotonic() - t0
             return
-        if marked is self.event:
-            marked.synchronize()
-            if self.spin_event is not None:  # learning what a run takes, from a wait that does not spin
-                self.expected_s = time.monotonic() - t_marked
-            return
-        ahead = t_marked + self.expected_s - self.spin_s - time.monotonic()
+        spin.record(self.stream)
+        ahead = self.expected_s - self.spin_s
         if ahead > 0:
             time.sleep(ahead)
-        marked.synchronize()  # the driver polls the device; the interpreter lock is free meanwhile
-        waited = time.monotonic() - t_marked
+        spin.synchronize()  # the driver polls the device; the interpreter lock is free meanwhile
+        waited = time.monotonic() - t0
         if waited > self.expected_s + 2 * self.spin_s:
             self.expected_s = 0.0  # spun for longer than the window: the next run sleeps and learns anew
         else:

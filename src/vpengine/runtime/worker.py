@@ -171,8 +171,6 @@ class WorkerCore:
         self._handoff: list[Any] | None = out_ring.device_events
         # Note [Inline launch]: the submitting thread may queue this (foundation) worker's work; set by prepare_worker
         self._inline: InlineLaunch | None = None
-        # Note [Inline finish]: a thread waiting for a frame may publish this (head) worker's run of it
-        self._finish_offer: InlineFinish | None = None
         self._thread: int | None = None  # the thread running the loop (Note [Launch path])
         self._spare: SlotInfo | None = None  # the output slot an armed worker offers
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
@@ -238,10 +236,6 @@ class WorkerCore:
             self.control.add(self.name, "dropped")
             return
         self._launch(slot, out)
-        offer = self._finish_offer
-        handed = offer.hand(self, slot, out, t_start) if offer is not None else None
-        if handed is not None and offer is not None and offer.settle(handed, self._should_stop):
-            return  # the thread waiting for this frame waited for the work and published it (Note [Inline finish])
         self._finish(slot, out, t_start)
 
     def _account(self, slot: SlotInfo, t_start: float, starved: bool) -> None:
@@ -291,23 +285,18 @@ class WorkerCore:
             except BaseException:
                 self.writer.abort(out)
                 raise
-        self._publish_run(slot, out, t_start)
+        # Counters first, then publish: whoever sees the output also sees it counted.
+        t_end = time.monotonic()
+        ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
+        self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
+        if self.spec.notify_output:
+            ctl.notify_output()
         if handoff is not None:
             # The input slot is released (by run) only after the work that read it is done; the run's times
             # are the device's, not the queueing's.
             self.dev.complete()
             t_end = time.monotonic()
             ctl.amend_last_run(name, t_end - t_start, t_end - slot.t_submit)
-
-    def _publish_run(self, slot: SlotInfo, out: SlotInfo, t_start: float) -> None:
-        """Count the run, then publish ``out``: whoever sees the output also sees it counted. Called by this
-        worker's thread, or by the thread waiting for the frame (Note [Inline finish])."""
-        ctl = self.control
-        t_end = time.monotonic()
-        ctl.record_run(self.name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
-        self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
-        if self.spec.notify_output:
-            ctl.notify_output()
 
     # ---------------------------------------------------------------------- Note [Inline launch], worker side
     def _take_inline(self, gate_open: float) -> None:
@@ -414,95 +403,6 @@ class InlineLaunch:
             self.cond.notify_all()
 
 
-@dataclass(eq=False)
-class Handed:
-    """A head's run handed to the thread waiting for its frame (Note [Inline finish])."""
-
-    core: WorkerCore
-    slot: SlotInfo
-    out: SlotInfo
-    t_start: float
-    t_marked: float  # when the event the taker waits on was recorded
-    state: str = (
-        "handed"  # -> taken -> done (published by the taker), or -> returned (the worker finishes it)
-    )
-
-
-class InlineFinish:
-    """Note [Inline finish]: a head worker's offer of its run to the thread waiting for that frame in
-    ``Engine.wait``, which then waits for the device work and publishes the output itself. One per head output ring
-    object (thread mode), kept across restarts of the worker."""
-
-    def __init__(self) -> None:
-        self.cond = threading.Condition(threading.Lock())
-        self._waiting: dict[int, int] = {}  # frame origin -> threads waiting for it
-        self._handed: Handed | None = None
-        self.finishes = 0  # runs published by waiting threads
-
-    # waiting side (Engine.wait)
-    def want(self, origin: int) -> None:
-        with self.cond:
-            self._waiting[origin] = self._waiting.get(origin, 0) + 1
-
-    def unwant(self, origin: int) -> None:
-        """The thread stops waiting for ``origin``: a run of it handed and not taken goes back to its worker."""
-        with self.cond:
-            n = self._waiting.get(origin, 0) - 1
-            if n > 0:
-                self._waiting[origin] = n
-                return
-            self._waiting.pop(origin, None)
-            h = self._handed
-            if h is not None and h.state == "handed" and h.slot.origin == origin:
-                h.state = "returned"
-                self.cond.notify_all()
-
-    def take(self, origin: int) -> Handed | None:
-        """The run of frame ``origin`` handed over and not yet taken, now this thread's to ``finish``."""
-        with self.cond:
-            h = self._handed
-            if h is None or h.state != "handed" or h.slot.origin != origin:
-                return None
-            h.state = "taken"
-            return h
-
-    def finish(self, h: Handed) -> None:
-        """Wait for the taken run's device work, then publish it, as its worker would have."""
-        published = False
-        try:
-            h.core.dev.wait_marked(h.t_marked)
-            h.core._publish_run(h.slot, h.out, h.t_start)
-            published = True
-        finally:
-            with self.cond:
-                h.state = "done" if published else "returned"  # not published: its worker finishes it
-                if published:
-                    self.finishes += 1
-                self.cond.notify_all()
-
-    # worker side
-    def hand(self, core: WorkerCore, slot: SlotInfo, out: SlotInfo, t_start: float) -> Handed | None:
-        """Right after queueing the run on ``slot``: hand it over if a thread waits for that frame."""
-        with self.cond:
-            if not self._waiting.get(slot.origin) or self._handed is not None:
-                return None
-            h = self._handed = Handed(core, slot, out, t_start, core.dev.mark_done())
-        core.control.notify_output()  # the waiting thread sleeps on the output word
-        return h
-
-    def settle(self, h: Handed, should_stop: Callable[[], bool]) -> bool:
-        """Wait until the taker published ``h`` (True) or it came back (False: the worker finishes it). A run
-        nobody took comes back when the engine stops; a taken one is always finished by its taker."""
-        with self.cond:
-            while h.state in ("handed", "taken"):
-                if h.state == "handed" and should_stop():
-                    h.state = "returned"
-                    break
-                self.cond.wait(0.05)
-            self._handed = None
-            return h.state == "done"
-
-
 def input_keys(spec: WorkerSpec, in_ring: SlotRing) -> list[str]:
     """The input ring's keys a model reads: its upstream spec's (a head), or all of them (the foundation)."""
     return list(spec.upstream) or list(in_ring.layout.keys)
@@ -598,11 +498,6 @@ def prepare_worker(
         if in_ring.inline is None:  # Note [Inline launch]
             in_ring.inline = InlineLaunch()
         core._inline = in_ring.inline
-    finish = cfg.runtime.inline_finish
-    if spec.role == "head" and not own_process and (finish == "always" or (finish == "auto" and dev.cuda)):
-        if out_ring.finish is None:  # Note [Inline finish]
-            out_ring.finish = InlineFinish()
-        core._finish_offer = out_ring.finish
     control.heartbeat(spec.name)
     control.set_state(spec.name, READY)
     return core

@@ -154,8 +154,6 @@ class SlotRing:
         # The input ring's reader in thread mode may take frames from the submitting thread (Note [Inline launch] in
         # runtime/worker.py): its ``InlineLaunch``, also in-process only; woken by ``wake_all``.
         self.inline: Any = None
-        # A head's output ring in thread mode: its ``InlineFinish`` (Note [Inline finish] in runtime/worker.py).
-        self.finish: Any = None
 
     # ----------------------------------------------------------------------------------------------- creation
     @classmethod

@@ -108,7 +108,9 @@ class ModelConfig(_Strict):
         0,
         ge=-8,
         le=0,
-        description="CUDA stream priority (0 normal, negative = higher where the GPU supports it).",
+        description="CUDA stream priority (0 normal, negative = higher): when models' work is on the GPU at once, "
+        "the higher one's blocks are scheduled first. A value beyond the device's range becomes its highest; "
+        "stats() gives what the device gave.",
     )
     mps_priority: Literal["normal", "below_normal"] = Field(
         "normal", description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY)."

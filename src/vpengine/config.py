@@ -102,7 +102,11 @@ class ModelConfig(_Strict):
     )
     precision: Precision | None = Field(None, description="fp32 | fp16 | bf16; null: the engine's precision.")
     cpu_threads: int = Field(
-        1, ge=1, le=256, description="PyTorch intra-op threads in this model's worker (CPU)."
+        1,
+        ge=1,
+        le=256,
+        description="PyTorch intra-op threads in this model's worker process (CPU). In thread mode the models share "
+        "one process and so one pool, sized by the foundation model's value; the heads' values are not used.",
     )
     stream_priority: int = Field(
         0,

@@ -248,9 +248,8 @@ blocking_complete = DeviceContext.complete
 
 
 def spin(us: float) -> None:
-    for d in devices:  # as DeviceContext sets them up for runtime.sync_spin_us
-        d.spin_s, d.expected_s = us * 1e-6, 0.0
-        d.spin_event = torch.cuda.Event() if us > 0 and d.cuda else None
+    for d in devices:
+        d.set_spin(us * 1e-6)
 
 
 chosen = set(filter(None, os.environ.get("VARIANTS", "").split(",")))

@@ -13,13 +13,13 @@ import pytest
 import torch
 
 from helpers.frames import frame
+from helpers.models import SmallHead
 from tests_paths import tiny
 from vpengine.backends import BackendError, make_executor
 from vpengine.engine import Engine
 from vpengine.models.base import Model
 from vpengine.runtime.plan import make_plan
 from vpengine.runtime.worker import build_model
-from vpengine.specs import TensorSpec
 
 pytestmark = [
     pytest.mark.gpu,
@@ -254,15 +254,8 @@ def test_a_run_launched_from_another_thread_is_queued_on_the_workers_stream():
             v.zero_()
 
 
-class _Noisy(Model):
+class _Noisy(SmallHead):
     """A head that adds random noise: its CUDA graph draws from the CUDA generator on every replay."""
-
-    role = "head"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.input_spec = {"x": TensorSpec((4, 8), "float32")}
-        self.output_spec = {"y": TensorSpec((4, 8), "float32")}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return {"y": inputs["x"] + torch.rand_like(inputs["x"])}
@@ -300,15 +293,8 @@ def test_a_slot_that_cannot_be_bound_leaves_the_executor_running_unbound():
 
 
 # ------------------------------------------------------------------------------------------ failures
-class _HostSync(Model):
+class _HostSync(SmallHead):
     """A head that reads a value back to the host mid-forward (.item()): legal eagerly, not inside a CUDA graph."""
-
-    role = "head"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.input_spec = {"x": TensorSpec((4, 8), "float32")}
-        self.output_spec = {"y": TensorSpec((4, 8), "float32")}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         x = inputs["x"] * 2

@@ -12,6 +12,17 @@ from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT
 from vpengine.specs import TensorSpec
 
 
+class SmallHead(Model):
+    """A user head on a 4x8 float32 ``x``, giving a 4x8 ``y``: subclasses write ``forward``."""
+
+    role = "head"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.input_spec = {"x": TensorSpec((4, 8), "float32")}
+        self.output_spec = {"y": TensorSpec((4, 8), "float32")}
+
+
 class NeedsMissingFeature(Model):
     role = "head"
 

@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from helpers.frames import frame
+from helpers.models import SmallHead
 from tests_paths import TINY, tiny
 from vpengine.backends import BackendError, make_executor
 from vpengine.backends.onnx_export import cache_key
@@ -138,15 +139,8 @@ def test_compile_matches_eager_on_new_input_tensors_without_recompiling(name):
             )
 
 
-class _GraphBreak(Model):
+class _GraphBreak(SmallHead):
     """A user head whose forward breaks the graph (a Python-side print of a tensor value)."""
-
-    role = "head"
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.input_spec = {"x": TensorSpec((4, 8), "float32")}
-        self.output_spec = {"y": TensorSpec((4, 8), "float32")}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         x = inputs["x"] * 2

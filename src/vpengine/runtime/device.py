@@ -45,8 +45,6 @@ import torch
 class DeviceContext:
     def __init__(self, device: torch.device | str, priority: int = 0, spin_s: float = 0.0) -> None:
         self.device = torch.device(device)
-        self.spin_s = spin_s
-        self.expected_s = 0.0  # moving average of how long complete() waited; 0: not known (yet, or any more)
         self.cuda = self.device.type == "cuda"
         if self.cuda:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
@@ -56,11 +54,18 @@ class DeviceContext:
             # stream pool) has to the highest there is; ``priority`` says what the stream got.
             self.stream: torch.cuda.Stream | None = torch.cuda.Stream(self.device, priority=priority)
             self.event: torch.cuda.Event | None = torch.cuda.Event(blocking=True)
-            # default flags: its synchronize() polls in the driver (cudaDeviceScheduleAuto spins with a core each)
-            self.spin_event: torch.cuda.Event | None = torch.cuda.Event() if spin_s > 0 else None
         else:
             self.stream = None
-            self.event = self.spin_event = None
+            self.event = None
+        self.set_spin(spin_s)
+
+    def set_spin(self, spin_s: float) -> None:
+        """The spin window of ``complete`` (``runtime.sync_spin_us``, in seconds; 0: sleep only). Forgets what it
+        had learnt of the runs' times."""
+        self.spin_s = spin_s
+        self.expected_s = 0.0  # moving average of how long complete() waited; 0: not known (yet, or any more)
+        # default flags: its synchronize() polls in the driver (cudaDeviceScheduleAuto spins with a core each)
+        self.spin_event: torch.cuda.Event | None = torch.cuda.Event() if spin_s > 0 and self.cuda else None
 
     @contextlib.contextmanager
     def active(self) -> Iterator[None]:

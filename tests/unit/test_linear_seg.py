@@ -1,5 +1,6 @@
-"""DINOv2 linear segmentation heads: parity with a reference on Hugging Face's Dinov2Model, the exact chunked
-upsample-argmax, official checkpoint layout and strict loading, labels and palettes, specs and planning."""
+"""DINOv2 linear segmentation heads: parity with a reference on Hugging Face's Dinov2Model, official checkpoint
+layout and strict loading, labels and palettes, specs and planning, the choice of upsampling (test_upsample_argmax.py
+tests the upsampling itself)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from vpengine.config import load_config
 from vpengine.io.visualize import overlay_segmentation
 from vpengine.models import palettes
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
-from vpengine.models.linear_seg import SIZES, LinearSegHead, checkpoint_name, upsample_argmax
+from vpengine.models.linear_seg import SIZES, LinearSegHead, checkpoint_name
 from vpengine.models.tiny import feature_specs
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
@@ -120,19 +121,6 @@ def test_logits_match_reference_on_hugging_face_dinov2(hw):
     agree = (classes.long() == ref_classes).float().mean().item()
     assert agree >= 0.999, agree  # only near-ties may flip under 1e-7 differences of the logits
     assert len(classes.unique()) > 5  # a real map, not one class everywhere
-
-
-def test_upsample_argmax_in_class_chunks_equals_one_big_resize_and_keeps_first_on_ties():
-    g = torch.Generator().manual_seed(0)
-    logits = torch.randn(1, 23, 5, 7, generator=g)
-    logits[:, 15] = logits[:, 3]  # exact tie between classes 3 and 15: 3 must win, as with argmax
-    size = (61, 83)
-    full = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)[0].argmax(0)
-    per_class = size[0] * size[1] * 4
-    for chunk in (1, 4, 7, 22, 23, 100):
-        got = upsample_argmax(logits, size, budget_bytes=chunk * per_class)
-        assert torch.equal(got, full), chunk
-    assert not (full == 15).any() and (full == 3).any()
 
 
 # ------------------------------------------------------------------------------------------------- loading
@@ -291,6 +279,21 @@ def test_more_than_256_classes_give_int16_ids():
     assert len(head.meta["labels"]) == len(head.meta["palette"]) == 400
 
 
+def test_upsample_choice_names_why_the_fused_kernel_cannot_run():
+    # The CPU: auto falls back to PyTorch, fused is refused with the reason (the kernel itself: test_upsample_argmax)
+    for choice in ("auto", "torch"):
+        head = build_head((28, 42), (2, 3), 32, options={"upsample": choice})
+        assert head.upsample == "torch"
+        out = head(head.example_inputs())["classes"]
+        assert out.dtype == torch.uint8 and out.shape == (28, 42)
+    with pytest.raises(
+        ModelBuildError, match=r"upsample is 'fused', which cannot run on cpu: it runs on CUDA only"
+    ):
+        build_head((28, 42), (2, 3), 32, options={"upsample": "fused"})
+    with pytest.raises(ModelBuildError, match=r"upsample: Input should be 'auto', 'fused' or 'torch'"):
+        build_head((28, 42), (2, 3), 32, options={"upsample": "nearest"})
+
+
 def test_bad_options_are_named():
     with pytest.raises(ModelBuildError, match=r"num_classes=20 contradicts dataset 'voc2012' \(21 classes\)"):
         build_head((28, 42), (2, 3), 32, model="dinov2_linear_voc2012_s", options={"num_classes": 20})
@@ -298,7 +301,9 @@ def test_bad_options_are_named():
         ModelBuildError, match=r"set options.dataset \(ade20k or voc2012\) or options.num_classes"
     ):
         build_head((28, 42), (2, 3), 32, options={"dataset": None})
-    with pytest.raises(ModelBuildError, match=r"bad options: .*accepted: dataset, num_classes, size"):
+    with pytest.raises(
+        ModelBuildError, match=r"bad options: .*accepted: dataset, num_classes, size, upsample"
+    ):
         build_head((28, 42), (2, 3), 32, options={"layers": 4})
     cfg = head_config((28, 42))
     specs, _ = upstream((2, 3), 32)

@@ -107,6 +107,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="stream_priority of models by kind, e.g. depth=-1 (foundation, depth, seg, det; 0 normal, negative "
         "higher): the heads of every experiment get the priority of their kind",
     )
+    p.add_argument(
+        "--seg-upsample",
+        default="auto",
+        choices=["auto", "fused", "torch"],
+        help="options.upsample of the linear segmentation head: its fused Triton kernel where it can run (auto), "
+        "or PyTorch's interpolate and argmax (torch; for comparisons; Note [Fused upsample + argmax])",
+    )
     p.add_argument("--tiny", action="store_true", help="tiny models on small frames (a CPU smoke run)")
     p.add_argument("--tag", default="", help="suffix of the results file name")
 
@@ -135,6 +142,8 @@ class Setup:
     feature_handoff: str = "event"
     inline_launch: str = "auto"
     stream_priorities: dict[str, int] = field(default_factory=dict)
+    #: options.upsample of a linear segmentation head; "auto" leaves the option out (the tiny seg head has none)
+    seg_upsample: str = "auto"
 
     @property
     def copy(self) -> bool:
@@ -145,7 +154,8 @@ class Setup:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
         launch = ", worker launch" if self.inline_launch == "never" else ""
-        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}"
+        upsample = f", seg upsample {self.seg_upsample}" if self.seg_upsample != "auto" else ""
+        return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}{upsample}"
 
     @classmethod
     def from_args(cls, a: argparse.Namespace) -> Setup:
@@ -192,11 +202,14 @@ class Setup:
             feature_handoff=a.feature_handoff,
             inline_launch=a.inline_launch,
             stream_priorities=parse_priorities(a.stream_priorities),
+            seg_upsample=a.seg_upsample,
         )
 
     def head(self, kind: str, name: str, **extra: Any) -> dict[str, Any]:
         model = {"depth": self.depth, "seg": self.seg, "det": self.det}[kind]
         opts = self.det_options if kind == "det" else {}
+        if kind == "seg" and self.seg_upsample != "auto":
+            opts = {"upsample": self.seg_upsample}
         # Faster R-CNN's NMS has data-dependent shapes: it neither compiles into a CUDA graph nor exports; eager
         backend = "eager" if kind == "det" and self.backend != "eager" else self.backend
         return {

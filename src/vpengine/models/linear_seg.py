@@ -22,19 +22,15 @@ from dataclasses import dataclass
 from typing import Literal
 
 import torch
-import torch.nn.functional as F
 from pydantic import Field
 from torch import nn
 
 from vpengine.models import palettes
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options
 from vpengine.models.dpt import seeded_init_
+from vpengine.models.upsample_argmax import fused_unavailable, fused_upsample_argmax, upsample_argmax
 from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
-
-#: Largest transient buffer of upsampled logits, in bytes. 150 ADE20K classes at 1080p are 1.2 GB in float32;
-#: upsampling a few classes at a time keeps the peak near this bound with an identical result.
-UPSAMPLE_BUDGET_BYTES = 64 * 2**20
 
 
 @dataclass(frozen=True)
@@ -66,6 +62,12 @@ class LinearSegOptions(Options):
     )
     num_classes: int | None = Field(
         None, ge=1, le=32767, description="Classes of a custom head; must agree with dataset if both are set."
+    )
+    upsample: Literal["auto", "fused", "torch"] = Field(
+        "auto",
+        description="How the logits become one class per pixel (Note [Fused upsample + argmax]): fused runs one "
+        "Triton kernel (CUDA with Triton only; an error elsewhere), torch runs PyTorch's interpolate and argmax, "
+        "auto the fused kernel where it can run and PyTorch elsewhere.",
     )
 
 
@@ -129,6 +131,18 @@ class LinearSegHead(Model):
 
         self.input_spec = {self.layer: spec}
         self.output_spec = {"classes": TensorSpec(self.out_hw, "uint8" if n <= 256 else "int16")}
+        #: "fused" or "torch": how ``forward`` upsamples (Note [Fused upsample + argmax]).
+        self.upsample = "torch"
+        if opts.upsample != "torch":
+            # planning builds on the meta device: judge by the device the model will run on
+            device = torch.device(ctx.engine.device) if ctx.plan_only else ctx.device
+            why_not = fused_unavailable(device)
+            if why_not is None:
+                self.upsample = "fused"
+            elif opts.upsample == "fused":
+                raise ModelBuildError(
+                    f"{where}: options.upsample is 'fused', which cannot run on {device}: {why_not}; use auto or torch"
+                )
         self.meta = {
             "kind": "segmentation",
             "labels": labels,
@@ -162,37 +176,11 @@ class LinearSegHead(Model):
         return self.conv_seg(self.bn(x))
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        classes = upsample_argmax(self.logits(inputs), self.out_hw)
-        return {"classes": classes.to(self.output_spec["classes"].torch_dtype)}
-
-
-def upsample_argmax(
-    logits: torch.Tensor, size: tuple[int, int], budget_bytes: int = UPSAMPLE_BUDGET_BYTES
-) -> torch.Tensor:
-    """``argmax_k(bilinear_upsample(logits)[k])`` for ``logits: [1, K, h, w]`` -> int64 ``[H, W]``.
-
-    Upsampling is per channel, so a few classes at a time give exactly the values of one big resize; keeping the
-    running maximum with a strict ``>`` keeps the first class on ties, like ``argmax`` over all classes.
-    """
-    h, w = size
-    k = logits.shape[1]
-    per_class = h * w * logits.element_size()
-    chunk = max(1, budget_bytes // max(per_class, 1))
-    if chunk >= k:
-        up = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
-        return up[0].argmax(0)
-    best_val: torch.Tensor | None = None
-    best_idx = torch.empty(0)
-    for c0 in range(0, k, chunk):
-        up = F.interpolate(logits[:, c0 : c0 + chunk], size=size, mode="bilinear", align_corners=False)[0]
-        val, idx = up.max(0)
-        if best_val is None:
-            best_val, best_idx = val, idx
-            continue
-        better = val > best_val
-        best_val = torch.where(better, val, best_val)
-        best_idx = torch.where(better, idx + c0, best_idx)
-    return best_idx
+        logits = self.logits(inputs)
+        dtype = self.output_spec["classes"].torch_dtype
+        if self.upsample == "fused" and logits.is_cuda:
+            return {"classes": fused_upsample_argmax(logits, self.out_hw, dtype)}
+        return {"classes": upsample_argmax(logits, self.out_hw).to(dtype)}
 
 
 def _spread_palette(n: int) -> list[list[int]]:

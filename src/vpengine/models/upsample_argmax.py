@@ -1,0 +1,93 @@
+"""Per-pixel class of logits upsampled to the frame: ``argmax_k(bilinear_upsample(logits)[k])``.
+
+Note [Fused upsample + argmax]
+~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+A segmentation head's logits live on the token grid ([1, K, h, w], 150 classes for ADE20K) and its output is one class per frame pixel. Upsampling all classes first, as PyTorch does, writes and reads
+K full-resolution planes: 1.2 GB in float32 at 1080p. The PyTorch path (``upsample_argmax``) bounds that memory by
+upsampling a few classes at a time, and ``torch.compile`` fuses the chunks into one kernel, but that kernel still
+took 0.82 ms on an H100, a quarter of a depth + seg frame, and it filled the whole GPU, so the depth head's short
+kernels waited behind it (benchmarks/results/h100/profile_steps_trace_depth_seg.json.gz).
+
+On CUDA with Triton installed, ``LinearSegHead`` (``options.upsample: auto``) runs one Triton kernel instead
+(``_triton_upsample_argmax.py``): each program takes a run of pixels of one output row, computes their source
+coordinates and bilinear weights as PyTorch does (``align_corners=False``), and keeps the running maximum over the
+classes in registers, reading the four source values of every class from cache; it writes the class index in the
+output's dtype (uint8 / int16), so no int64 map and no cast follow. It is the custom op
+``vpengine::upsample_argmax``, so ``torch.compile`` traces it and CUDA graphs capture it.
+
+The result is the argmax of the exact (float32) interpolation: it equals PyTorch's on float32 logits, up to the
+last bit of the interpolation's rounding at exact ties. PyTorch's eager CUDA path rounds the upsampled logits to the
+model's precision before its argmax (float16: about 3 decimal digits), so on float16 logits the two disagree only
+where two classes are within that rounding of each other, pixels on class boundaries. Everywhere else (the CPU,
+ONNX export, no Triton, ``upsample: torch``) the PyTorch path runs.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import torch
+import torch.nn.functional as F
+
+#: Largest transient buffer of upsampled logits, in bytes, of the PyTorch path. 150 ADE20K classes at 1080p are
+#: 1.2 GB in float32; upsampling a few classes at a time keeps the peak near this bound with an identical result.
+UPSAMPLE_BUDGET_BYTES = 64 * 2**20
+
+
+def upsample_argmax(
+    logits: torch.Tensor, size: tuple[int, int], budget_bytes: int = UPSAMPLE_BUDGET_BYTES
+) -> torch.Tensor:
+    """``argmax_k(bilinear_upsample(logits)[k])`` for ``logits: [1, K, h, w]`` -> int64 ``[H, W]``, in PyTorch.
+
+    Upsampling is per channel, so a few classes at a time give exactly the values of one big resize; keeping the
+    running maximum with a strict ``>`` keeps the first class on ties, like ``argmax`` over all classes.
+    """
+    h, w = size
+    k = logits.shape[1]
+    per_class = h * w * logits.element_size()
+    chunk = max(1, budget_bytes // max(per_class, 1))
+    if chunk >= k:
+        up = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
+        return up[0].argmax(0)
+    best_val: torch.Tensor | None = None
+    best_idx = torch.empty(0)
+    for c0 in range(0, k, chunk):
+        up = F.interpolate(logits[:, c0 : c0 + chunk], size=size, mode="bilinear", align_corners=False)[0]
+        val, idx = up.max(0)
+        if best_val is None:
+            best_val, best_idx = val, idx
+            continue
+        better = val > best_val
+        best_val = torch.where(better, val, best_val)
+        best_idx = torch.where(better, idx + c0, best_idx)
+    return best_idx
+
+
+@functools.cache
+def _triton_missing() -> str | None:
+    try:
+        import triton  # noqa: F401
+    except ImportError as e:
+        return f"Triton is not installed ({e})"
+    return None
+
+
+def fused_unavailable(device: torch.device) -> str | None:
+    """Why the fused kernel cannot run on ``device`` (None: it can). Registers its op the first time it can."""
+    if device.type != "cuda":
+        return f"it runs on CUDA only, not on {device.type}"
+    if os.environ.get("TRITON_INTERPRET") == "1":
+        return "TRITON_INTERPRET=1 is set (Triton's CPU interpreter)"
+    missing = _triton_missing()
+    if missing is not None:
+        return missing
+    from vpengine.models import _triton_upsample_argmax
+
+    _triton_upsample_argmax.register()
+    return None
+
+
+def fused_upsample_argmax(logits: torch.Tensor, size: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
+    """The fused kernel (Note [Fused upsample + argmax]); ``fused_unavailable(logits.device)`` must be None."""
+    return torch.ops.vpengine.upsample_argmax(logits, size[0], size[1], dtype)

@@ -1,0 +1,104 @@
+"""The class map of upsampled logits: PyTorch's chunked path and the fused Triton kernel (run here by Triton's CPU
+interpreter; tests/gpu/test_upsample_argmax_cuda.py runs it compiled on CUDA), both against float64 PyTorch."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from helpers.classmaps import assert_argmax_of, reference
+from vpengine.models.upsample_argmax import upsample_argmax
+
+
+def test_upsample_argmax_in_class_chunks_equals_one_big_resize_and_keeps_first_on_ties():
+    g = torch.Generator().manual_seed(0)
+    logits = torch.randn(1, 23, 5, 7, generator=g)
+    logits[:, 15] = logits[:, 3]  # exact tie between classes 3 and 15: 3 must win, as with argmax
+    size = (61, 83)
+    full = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)[0].argmax(0)
+    per_class = size[0] * size[1] * 4
+    for chunk in (1, 4, 7, 22, 23, 100):
+        got = upsample_argmax(logits, size, budget_bytes=chunk * per_class)
+        assert torch.equal(got, full), chunk
+    assert not (full == 15).any() and (full == 3).any()
+
+
+# ------------------------------------------------------------------------------------ the fused kernel
+@pytest.fixture
+def kernel(monkeypatch):
+    """The kernel module with its kernel built for Triton's interpreter (CPU tensors), rebuilt as usual after."""
+    pytest.importorskip("triton")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    import vpengine.models._triton_upsample_argmax as module
+
+    yield importlib.reload(module)
+    monkeypatch.delenv("TRITON_INTERPRET")
+    importlib.reload(module)
+
+
+@pytest.mark.parametrize(
+    "k, src, dst",
+    [
+        (5, (7, 9), (61, 83)),  # upsampling by uneven factors
+        (23, (5, 7), (90, 4)),  # up in one direction, down in the other
+        (3, (8, 8), (5, 5)),  # down
+        (21, (5, 7), (5, 7)),  # same size: the logits' own argmax
+        (4, (1, 1), (6, 9)),  # one source pixel
+        (1, (3, 3), (10, 10)),  # one class
+    ],
+    ids=lambda v: "x".join(map(str, v)) if isinstance(v, tuple) else str(v),
+)
+def test_fused_kernel_is_the_argmax_of_bilinear_upsampling(kernel, k, src, dst):
+    logits = torch.randn(1, k, *src, generator=torch.Generator().manual_seed(k))
+    out = torch.full(dst, 255, dtype=torch.uint8)
+    kernel.launch(logits, out)
+    up, best = reference(logits, dst)
+    assert_argmax_of(out, up, best)
+    if src == dst:
+        assert torch.equal(out.long(), logits[0].argmax(0))
+
+
+def test_fused_kernel_keeps_the_first_class_on_ties_and_writes_int16(kernel):
+    logits = torch.randn(1, 300, 4, 6, generator=torch.Generator().manual_seed(1)) * 0.1
+    logits[:, 280] += 1.0  # a class beyond int8 range wins in most places...
+    logits[:, 290] = logits[:, 280]  # ...tied with a later one, which must never win
+    out = torch.zeros(7, 29, dtype=torch.int16)
+    kernel.launch(logits, out)
+    _, best = reference(logits, (7, 29))
+    assert torch.equal(out.long(), best)
+    assert (out == 280).any() and not (out == 290).any()
+
+
+def test_fused_kernel_lets_nan_win_as_argmax_does(kernel):
+    logits = torch.randn(1, 6, 5, 5, generator=torch.Generator().manual_seed(2))
+    logits[0, 4, 2, 2] = float("nan")  # a broken logit must show, not hide behind the other classes
+    out = torch.zeros(20, 20, dtype=torch.uint8)
+    kernel.launch(logits, out)
+    up, best = reference(logits, (20, 20))
+    nan = up.isnan().any(0)
+    assert nan.any() and (out[nan] == 4).all()
+    assert torch.equal(out[~nan].long(), best[~nan])
+
+
+@pytest.mark.parametrize(
+    "scale", ["fp32", "fp64"]
+)  # a plain launch passes Python floats as fp32, inductor as fp64
+@pytest.mark.parametrize(("src", "dst"), [("*fp16", "*u8"), ("*bf16", "*u8"), ("*fp32", "*i16")])
+def test_fused_kernel_compiles_for_a_gpu_from_every_logit_and_class_type(src, dst, scale):
+    # Triton's compiler runs without a GPU: type errors that its CPU interpreter lets pass fail here, not on a robot
+    triton = pytest.importorskip("triton")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from vpengine.models import _triton_upsample_argmax as module
+
+    signature = {"src": src, "dst": dst, "K": "i32", "h": "i32", "w": "i32", "W": "i32"}
+    signature |= {"scale_h": scale, "scale_w": scale, "BLOCK": "constexpr"}
+    source = ASTSource(
+        fn=module._upsample_argmax_kernel, signature=signature, constexprs={"BLOCK": module.BLOCK}
+    )
+    compiled = triton.compile(source, target=GPUTarget("cuda", 90, 32))  # an H100's architecture
+    assert compiled.asm["cubin"]

@@ -130,21 +130,25 @@ def test_floor_rows_add_the_transfers_where_they_were_measured(tmp_path):
     )
 
 
-def test_floor_rows_say_when_thread_mode_handed_features_or_frames_over_the_older_way(tmp_path):
+def test_floor_rows_say_when_thread_mode_handed_features_or_frames_over_the_older_way_or_seg_upsampled_so(
+    tmp_path,
+):
     for name, date, runtime in (
         ("auto", "2026-01-01", {"feature_handoff": "event", "inline_launch": "auto"}),
         ("worker", "2026-01-02", {"feature_handoff": "event", "inline_launch": "never"}),
         ("host", "2026-01-03", {"feature_handoff": "host", "inline_launch": "never"}),
         ("prio", "2026-01-04", {"stream_priorities": {"depth": -1}}),
+        ("torch", "2026-01-05", {"seg_upsample": "torch"}),
     ):
         setup = {"backend": "compile", **runtime}
         _write(tmp_path, f"paper_cuda_floor_{name}", f"{date}T00:00:00", setup, floor=_floor(True))
     rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 4, rows
+    assert len(rows) == 5, rows
     assert "(dinov2_vits14_dav2, compile; " in rows[0]
     assert "(dinov2_vits14_dav2, compile, worker launch; " in rows[1]
     assert "(dinov2_vits14_dav2, compile, host hand-off, worker launch; " in rows[2]
     assert "(dinov2_vits14_dav2, compile, stream priorities depth -1; " in rows[3]
+    assert "(dinov2_vits14_dav2, compile, seg upsample torch; " in rows[4]
 
 
 def test_floor_rows_give_the_chained_floor_where_it_was_measured(tmp_path):

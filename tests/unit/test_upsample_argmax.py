@@ -42,7 +42,7 @@ def kernel(monkeypatch):
 @pytest.mark.parametrize(
     "k, src, dst",
     [
-        (5, (7, 9), (61, 83)),  # upsampling by uneven factors
+        (5, (7, 9), (31, 83)),  # upsampling by uneven factors
         (23, (5, 7), (90, 4)),  # up in one direction, down in the other
         (3, (8, 8), (5, 5)),  # down
         (21, (5, 7), (5, 7)),  # same size: the logits' own argmax
@@ -76,18 +76,48 @@ def test_fused_kernel_lets_nan_win_as_argmax_does(kernel):
     logits = torch.randn(1, 6, 5, 5, generator=torch.Generator().manual_seed(2))
     logits[0, 4, 2, 2] = float("nan")  # a broken logit must show, not hide behind the other classes
     out = torch.zeros(20, 20, dtype=torch.uint8)
-    kernel.launch(logits, out)
+    counts = kernel.launch(logits, out).view(5, 5)
     up, best = reference(logits, (20, 20))
     nan = up.isnan().any(0)
     assert nan.any() and (out[nan] == 4).all()
     assert torch.equal(out[~nan].long(), best[~nan])
+    # the four cells with the NaN among their corners search every class; the others prune
+    assert (counts[1:3, 1:3] == -1).all() and (counts >= 0).sum() == 25 - 4
 
 
-@pytest.mark.parametrize(
-    "scale", ["fp32", "fp64"]
-)  # a plain launch passes Python floats as fp32, inductor as fp64
+def smooth_logits(k: int, size: tuple[int, int], seed: int) -> torch.Tensor:
+    """Logits that change slowly over the token grid, as a trained head's do: a few classes near any token."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.randn(1, k, 2, 3, generator=g) * 4
+    return F.interpolate(coarse, size=size, mode="bilinear", align_corners=False) + 0.05 * torch.randn(
+        1, k, *size, generator=g
+    )
+
+
+def test_candidate_classes_are_few_where_logits_are_smooth_and_change_nothing(kernel):
+    logits = smooth_logits(40, (6, 8), seed=3)
+    out, every = torch.empty(30, 40, dtype=torch.uint8), torch.empty(30, 40, dtype=torch.uint8)
+    counts = kernel.launch(logits, out)
+    kernel.launch(logits, every, max_candidates=0)  # every class for every pixel
+    assert torch.equal(out, every)
+    assert (counts >= 1).all() and counts.float().median() <= 3, counts
+    up, best = reference(logits, (30, 40))
+    assert_argmax_of(out, up, best)
+
+
+def test_a_cell_with_more_candidates_than_kept_searches_every_class(kernel):
+    logits = torch.randn(1, 12, 4, 5, generator=torch.Generator().manual_seed(4))  # noise: many candidates
+    out, every = torch.empty(9, 11, dtype=torch.uint8), torch.empty(9, 11, dtype=torch.uint8)
+    counts = kernel.launch(logits, out, max_candidates=2)
+    kernel.launch(logits, every, max_candidates=0)
+    assert (counts == -1).any() and (counts > 0).any()
+    assert torch.equal(out, every)
+
+
+# a plain launch passes Python floats as fp32, inductor as fp64
+@pytest.mark.parametrize("scale", ["fp32", "fp64"])
 @pytest.mark.parametrize(("src", "dst"), [("*fp16", "*u8"), ("*bf16", "*u8"), ("*fp32", "*i16")])
-def test_fused_kernel_compiles_for_a_gpu_from_every_logit_and_class_type(src, dst, scale):
+def test_fused_kernels_compile_for_a_gpu_from_every_logit_and_class_type(src, dst, scale):
     # Triton's compiler runs without a GPU: type errors that its CPU interpreter lets pass fail here, not on a robot
     triton = pytest.importorskip("triton")
     from triton.backends.compiler import GPUTarget
@@ -95,10 +125,19 @@ def test_fused_kernel_compiles_for_a_gpu_from_every_logit_and_class_type(src, ds
 
     from vpengine.models import _triton_upsample_argmax as module
 
-    signature = {"src": src, "dst": dst, "K": "i32", "h": "i32", "w": "i32", "W": "i32"}
-    signature |= {"scale_h": scale, "scale_w": scale, "BLOCK": "constexpr"}
-    source = ASTSource(
-        fn=module._upsample_argmax_kernel, signature=signature, constexprs={"BLOCK": module.BLOCK}
-    )
-    compiled = triton.compile(source, target=GPUTarget("cuda", 90, 32))  # an H100's architecture
-    assert compiled.asm["cubin"]
+    ints = {"K": "i32", "h": "i32", "w": "i32"}
+    kernels = {
+        module._candidates_kernel: (
+            {"src": src, "cand": "*i32", "count": "*i32", **ints, "MAX_CAND": "constexpr", "CLASS_BLOCK": "constexpr"},
+            {"MAX_CAND": module.MAX_CANDIDATES, "CLASS_BLOCK": module.CLASS_BLOCK},
+        ),
+        module._upsample_argmax_kernel: (
+            {"src": src, "dst": dst, "cand": "*i32", "count": "*i32", **ints, "W": "i32", "scale_h": scale,
+             "scale_w": scale, "MAX_CAND": "constexpr", "BLOCK": "constexpr"},
+            {"MAX_CAND": module.MAX_CANDIDATES, "BLOCK": module.BLOCK},
+        ),
+    }  # fmt: skip
+    for fn, (signature, constants) in kernels.items():
+        source = ASTSource(fn=fn, signature=signature, constexprs=constants)
+        compiled = triton.compile(source, target=GPUTarget("cuda", 90, 32))  # an H100's architecture
+        assert compiled.asm["cubin"], fn.__name__

@@ -76,6 +76,9 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
     stream_priorities = setup.get("stream_priorities")
     if stream_priorities:
         label += ", stream priorities " + " ".join(f"{k} {v}" for k, v in stream_priorities.items())
+    # the linear seg head's upsampling chosen for a comparison (runs before the fused kernel have no such key)
+    if setup.get("seg_upsample", "auto") != "auto":
+        label += f", seg upsample {setup['seg_upsample']}"
     return label
 
 

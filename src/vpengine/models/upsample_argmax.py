@@ -2,24 +2,44 @@
 
 Note [Fused upsample + argmax]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
-A segmentation head's logits live on the token grid ([1, K, h, w], 150 classes for ADE20K) and its output is one class per frame pixel. Upsampling all classes first, as PyTorch does, writes and reads
-K full-resolution planes: 1.2 GB in float32 at 1080p. The PyTorch path (``upsample_argmax``) bounds that memory by
-upsampling a few classes at a time, and ``torch.compile`` fuses the chunks into one kernel, but that kernel still
-took 0.82 ms on an H100, a quarter of a depth + seg frame, and it filled the whole GPU, so the depth head's short
-kernels waited behind it (benchmarks/results/h100/profile_steps_trace_depth_seg.json.gz).
+A segmentation head's logits live on the token grid ([1, K, h, w], 150 classes for ADE20K) and its output is one
+class per frame pixel. Upsampling all classes first, as PyTorch does, writes and reads K full-resolution planes:
+1.2 GB in float32 at 1080p. The PyTorch path (``upsample_argmax``) bounds that memory by upsampling a few classes at
+a time, and ``torch.compile`` fuses the chunks into one kernel, but that kernel still took 0.82 ms on an H100, a
+quarter of a depth + seg frame, and it filled the whole GPU, so the depth head's short kernels waited behind it
+(benchmarks/results/h100/profile_steps_trace_depth_seg.json.gz).
 
-On CUDA with Triton installed, ``LinearSegHead`` (``options.upsample: auto``) runs one Triton kernel instead
-(``_triton_upsample_argmax.py``): each program takes a run of pixels of one output row, computes their source
-coordinates and bilinear weights as PyTorch does (``align_corners=False``), and keeps the running maximum over the
-classes in registers, reading the four source values of every class from cache; it writes the class index in the
-output's dtype (uint8 / int16), so no int64 map and no cast follow. It is the custom op
-``vpengine::upsample_argmax``, so ``torch.compile`` traces it and CUDA graphs capture it.
+On CUDA with Triton installed, ``LinearSegHead`` (``options.upsample: auto``) runs two Triton kernels instead
+(``_triton_upsample_argmax.py``), as the custom op ``vpengine::upsample_argmax``, which ``torch.compile`` traces and
+CUDA graphs capture:
 
-The result is the argmax of the exact (float32) interpolation: it equals PyTorch's on float32 logits, up to the
-last bit of the interpolation's rounding at exact ties. PyTorch's eager CUDA path rounds the upsampled logits to the
-model's precision before its argmax (float16: about 3 decimal digits), so on float16 logits the two disagree only
-where two classes are within that rounding of each other, pixels on class boundaries. Everywhere else (the CPU,
-ONNX export, no Triton, ``upsample: torch``) the PyTorch path runs.
+1. Candidate classes, one program per cell. Every output pixel interpolates the four source values of its cell
+   (source pixel (y0, x0) and its right, lower and lower-right neighbours) with weights >= 0 that sum to 1, so class
+   k's value there lies between the least and the greatest of its four. A class whose greatest is below the largest
+   "least" of any class can never win in that cell. The rest (less a margin for float32 rounding: too many, never too
+   few) are the cell's candidates, in increasing class order; a cell with more than ``MAX_CANDIDATES``, or with a NaN
+   or an infinity among its values, searches every class.
+2. The class map: each program takes a run of pixels of one output row, computes their source coordinates and
+   bilinear weights as PyTorch does (``align_corners=False``), and keeps the running maximum over its cell's
+   candidates in registers; it writes the class index in the output's dtype (uint8 / int16), so no int64 map and no
+   cast follow. The upsampled logits are never written.
+
+The result is the argmax of the float32 interpolation, the same with or without candidates (tested bit for bit): it
+equals the float64 argmax except at near-ties (1-4 pixels in 10^6 in the tests), and PyTorch's on float32 logits up
+to the last bit of rounding. PyTorch's eager CUDA path rounds the upsampled logits to the model's precision before
+its argmax (float16: about 3 decimal digits), so on float16 logits the two disagree only where two classes are within
+that rounding of each other, on class boundaries. Everywhere else (the CPU, ONNX export, no Triton, ``upsample:
+torch``) the PyTorch path runs.
+
+Measured on an H100 at 1080p, 150 classes, float16 (benchmarks/results/h100/upsample_argmax_candidates.json):
+logits that change slowly from token to token, as a trained head's do, keep a median of 2 candidates a cell and take
+0.07 ms, against 0.68 ms searching every class; the random-weight seg head of the floor benchmark took 0.22 ms of
+device time, against 0.91-0.96 ms with PyTorch's path (paper_cuda_floor_fused_*depth_seg*.json). Logits that are
+noise from token to token are the worst case: 96% of cells have more than 32 candidates and the kernels take 0.67
+ms, more than the first version of this kernel, which searched every class one class at a time for a whole row
+(0.47 ms; upsample_argmax_sweep.json) where the second kernel follows a class list per pixel. A block whose
+pixels all search every class could take that single-class loop again; that is written and passes the CPU tests, but
+no GPU time was left to measure it, so it is not in.
 """
 
 from __future__ import annotations

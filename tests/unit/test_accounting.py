@@ -103,4 +103,19 @@ def test_info_models_applies_overrides(capsys):
 def test_plain_info_output_is_unchanged(capsys):
     assert cli(["info", "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert {"versions", "devices", "cuda", "mps"} <= set(info)
+    assert {"versions", "devices", "cuda", "mps", "kernels"} <= set(info)
+
+
+def test_info_says_whether_the_fused_seg_kernel_runs_and_why_not(capsys):
+    import torch
+
+    assert cli(["info", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert "triton" in info["versions"]
+    fused = info["kernels"]["fused_upsample_argmax"]
+    if torch.cuda.is_available():
+        assert fused == "available" or fused.startswith("not used: ")
+    else:
+        assert fused.startswith("not used: no CUDA device visible")
+    assert cli(["info"]) == 0
+    assert f"seg heads' fused upsample + argmax: {fused}" in capsys.readouterr().out

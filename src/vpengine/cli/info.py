@@ -51,6 +51,7 @@ def collect() -> dict[str, Any]:
         "rosbags",
         "transformers",
         "cuda-bindings",
+        "triton",
     ):
         versions[dist] = _version(dist)
     devices: list[dict[str, Any]] = [
@@ -75,7 +76,24 @@ def collect() -> dict[str, Any]:
         "devices": devices,
         "cuda": cuda,
         "mps": mps.status(),
+        "kernels": {"fused_upsample_argmax": _fused_upsample_argmax()},
     }
+
+
+def _fused_upsample_argmax() -> str:
+    """Whether the linear seg head's ``upsample: auto`` runs its Triton kernel here (Note [Fused upsample + argmax])."""
+    import torch
+
+    from vpengine.models.upsample_argmax import fused_unavailable
+
+    if not torch.cuda.is_available():
+        return "not used: no CUDA device visible (PyTorch's interpolate and argmax run instead)"
+    why_not = fused_unavailable(torch.device("cuda", torch.cuda.current_device()))
+    return (
+        "available"
+        if why_not is None
+        else f"not used: {why_not} (PyTorch's interpolate and argmax run instead)"
+    )
 
 
 def models_main(args: argparse.Namespace) -> int:
@@ -109,4 +127,5 @@ def main(args: argparse.Namespace) -> int:
         f"\nCUDA MPS: {'daemon reachable' if m['reachable'] else 'not reachable'} at {m['pipe_directory']}"
         f"{'' if m['reachable'] else ' (' + m['reason'] + ')'}\n"
     )
+    w(f"seg heads' fused upsample + argmax: {info['kernels']['fused_upsample_argmax']}\n")
     return 0

@@ -8,12 +8,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from helpers import heads
 from helpers.classmaps import assert_argmax_of, reference
 from vpengine.backends import make_executor
-from vpengine.config import load_config
-from vpengine.models.tiny import feature_specs
 from vpengine.models.upsample_argmax import fused_unavailable, fused_upsample_argmax
-from vpengine.runtime.worker import build_model
 
 pytestmark = [
     pytest.mark.gpu,
@@ -35,20 +33,9 @@ def fused_kernel_available() -> None:
 
 
 def build_seg(upsample: str, precision: str = "fp16"):
-    cfg = load_config(
-        {
-            "mode": "thread",
-            "device": "cuda",
-            "precision": precision,
-            "input": {"height": FRAME[0], "width": FRAME[1]},
-            "foundation_model": {"model": "tiny_vit"},
-            "heads": [{"name": "seg", "model": "dinov2_linear_ade20k_s", "options": {"upsample": upsample}}],
-            "weights": {"random_weights": True},
-        }
-    )
-    specs = feature_specs(GRID[0] * GRID[1], DIM, "float16" if precision == "fp16" else "float32")
-    meta = {"grid": GRID, "patch_size": 14, "embed_dim": DIM}
-    return build_model(cfg, "seg", "head", specs, meta, CUDA, plan_only=False)
+    head = {"name": "seg", "model": "dinov2_linear_ade20k_s", "options": {"upsample": upsample}}
+    cfg = heads.head_config(FRAME, head, device="cuda", precision=precision)
+    return heads.build_head(cfg, GRID, DIM, "cuda", "float16" if precision == "fp16" else "float32")
 
 
 def features(seed: int = 0) -> dict[str, torch.Tensor]:

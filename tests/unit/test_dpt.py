@@ -10,11 +10,12 @@ import pytest
 import torch
 from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, Dinov2Config
 
+from helpers import heads
+from helpers.heads import upstream
 from vpengine.config import load_config
 from vpengine.io.visualize import colorize_depth, colormap_lut
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.dpt import SIZES, DepthColormap, DPTDepthHead, spectral_lut
-from vpengine.models.tiny import feature_specs
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
 from vpengine.runtime.worker import build_model
@@ -25,32 +26,11 @@ TINY_WIDTHS = {"features": 16, "out_channels": [8, 16, 32, 32]}
 # ------------------------------------------------------------------------------------------------ helpers
 def head_config(hw, options=None, checkpoint=None, model="dav2_depth_s", postprocess=None, **extra):
     head = {"name": "depth", "model": model, "options": options or {}, "postprocess": postprocess or {}}
-    if checkpoint is not None:
-        head["checkpoint"] = str(checkpoint)
-    return load_config(
-        {
-            "mode": "thread",
-            "input": {"height": hw[0], "width": hw[1]},
-            "foundation_model": {"model": "tiny_vit"},
-            "heads": [head],
-            "weights": {"random_weights": checkpoint is None},
-            **extra,
-        }
-    )
-
-
-def upstream(grid, dim):
-    return feature_specs(grid[0] * grid[1], dim, "float32"), {
-        "grid": grid,
-        "patch_size": 14,
-        "embed_dim": dim,
-    }
+    return heads.head_config(hw, head, checkpoint, **extra)
 
 
 def build_head(hw, grid, dim, **kw):
-    cfg = head_config(hw, **kw)
-    specs, meta = upstream(grid, dim)
-    return build_model(cfg, "depth", "head", specs, meta, torch.device("cpu"), plan_only=False)
+    return heads.build_head(head_config(hw, **kw), grid, dim)
 
 
 def context(cfg, grid, dim):

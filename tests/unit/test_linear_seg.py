@@ -11,12 +11,13 @@ import torch.nn.functional as F
 from torch import nn
 from transformers import Dinov2Config, Dinov2Model
 
+from helpers import heads
+from helpers.heads import upstream
 from vpengine.config import load_config
 from vpengine.io.visualize import overlay_segmentation
 from vpengine.models import palettes
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.linear_seg import SIZES, LinearSegHead, checkpoint_name
-from vpengine.models.tiny import feature_specs
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
 from vpengine.runtime.worker import build_model
@@ -27,33 +28,11 @@ N_CLASSES = {"ade20k": 150, "voc2012": 21}
 
 # ------------------------------------------------------------------------------------------------ helpers
 def head_config(hw, model="dinov2_linear_ade20k_s", options=None, checkpoint=None):
-    head = {"name": "seg", "model": model, "options": options or {}}
-    if checkpoint is not None:
-        head["checkpoint"] = str(checkpoint)
-    return load_config(
-        {
-            "mode": "thread",
-            "input": {"height": hw[0], "width": hw[1]},
-            "foundation_model": {"model": "tiny_vit"},
-            "heads": [head],
-            "weights": {"random_weights": checkpoint is None},
-        }
-    )
-
-
-def upstream(grid, dim):
-    return feature_specs(grid[0] * grid[1], dim, "float32"), {
-        "grid": grid,
-        "patch_size": 14,
-        "embed_dim": dim,
-    }
+    return heads.head_config(hw, {"name": "seg", "model": model, "options": options or {}}, checkpoint)
 
 
 def build_head(hw, grid, dim, **kw):
-    specs, meta = upstream(grid, dim)
-    return build_model(
-        head_config(hw, **kw), "seg", "head", specs, meta, torch.device("cpu"), plan_only=False
-    )
+    return heads.build_head(head_config(hw, **kw), grid, dim)
 
 
 def official_head(dim, n_classes, seed=0, counter=True):

@@ -556,16 +556,26 @@ def log(msg: str) -> None:
 
 
 # ------------------------------------------------------------------------------------------- experiments
+def engine_and_sequential(
+    setup: Setup, heads: list[dict[str, Any]], imgs: list[np.ndarray]
+) -> tuple[dict[str, Any], dict[str, Any], dict[str, float]]:
+    """The engine with ``heads`` (one frame in flight), then the same models run one after another in this process:
+    their latencies, and each model's device time alone (empty on the CPU)."""
+    with engines([setup.config(heads)]) as (eng,):
+        engine = lockstep(eng, imgs, setup)
+    seq = InProcess(setup, heads)
+    sequential = seq.latency(imgs, setup.frames)
+    device_ms = seq.device_times(imgs[0])
+    del seq  # its models' memory goes before the next engine starts
+    return engine, sequential, device_ms
+
+
 def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
     rows = []
     for n in ns:
-        heads = [setup.head("depth", f"depth{i}") for i in range(n)]
-        with engines([setup.config(heads)]) as (eng,):
-            shared = lockstep(eng, imgs, setup)
-        seq = InProcess(setup, heads)
-        sequential = seq.latency(imgs, setup.frames)
-        dt = seq.device_times(imgs[0])
-        del seq
+        shared, sequential, dt = engine_and_sequential(
+            setup, [setup.head("depth", f"depth{i}") for i in range(n)], imgs
+        )
         with engines([setup.config([setup.head("depth", "depth")], mode="process") for _ in range(n)]) as es:
             indep = independent_latency(es, imgs, setup)
         row = {
@@ -593,13 +603,9 @@ def e1(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
 def e2(setup: Setup, ns: list[int], imgs: list[np.ndarray]) -> dict[str, Any]:
     rows = []
     for n in ns:
-        heads = [setup.head("det", f"det{i}") for i in range(n)]
-        with engines([setup.config(heads)]) as (eng,):
-            parallel = lockstep(eng, imgs, setup)
-        seq = InProcess(setup, heads)
-        sequential = seq.latency(imgs, setup.frames)
-        dt = seq.device_times(imgs[0])
-        del seq
+        parallel, sequential, dt = engine_and_sequential(
+            setup, [setup.head("det", f"det{i}") for i in range(n)], imgs
+        )
         row = {
             "heads": n,
             "engine": parallel,

@@ -311,3 +311,36 @@ def test_engine_thread_mode_delivers_class_ids_for_a_frame():
     classes = np.asarray(result["classes"])
     assert result.frame_id == fid
     assert classes.dtype == np.uint8 and classes.shape == (120, 160) and classes.max() < 21
+
+
+def test_planning_for_cuda_chooses_the_fused_kernel_without_touching_the_gpu(monkeypatch):
+    pytest.importorskip("triton")
+    from vpengine.models import upsample_argmax as module
+
+    def no_probe(index):
+        raise AssertionError("planning must not run anything on the GPU")
+
+    monkeypatch.setattr(module, "_probe", no_probe)
+    cfg = heads.head_config((28, 42), {"name": "seg", "model": "dinov2_linear_ade20k_s"}, device="cuda")
+    specs, meta = upstream((2, 3), 32)
+    ctx = BuildContext(
+        "head",
+        "seg",
+        cfg.heads[0],
+        cfg,
+        specs,
+        meta,
+        torch.device("meta"),
+        plan_only=True,
+        defaults={"dataset": "ade20k"},
+    )
+    assert LinearSegHead.from_config(ctx).upsample == "fused"
+
+
+def test_a_gpu_the_fused_kernel_fails_on_is_named_and_auto_falls_back(monkeypatch):
+    pytest.importorskip("triton")
+    from vpengine.models import upsample_argmax as module
+
+    monkeypatch.setattr(module, "_probe", lambda index: f"its Triton kernels failed on cuda:{index} (boom)")
+    assert module.fused_unavailable(torch.device("cuda", 1)) == "its Triton kernels failed on cuda:1 (boom)"
+    assert module.fused_unavailable(torch.device("cuda", 1), probe=False) is None

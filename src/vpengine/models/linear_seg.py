@@ -18,6 +18,7 @@ Checkpoints: mmcv files, ``{"meta": ..., "state_dict": {"decode_head.bn.*", "dec
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Literal
 
@@ -31,6 +32,8 @@ from vpengine.models.dpt import seeded_init_
 from vpengine.models.upsample_argmax import fused_unavailable, fused_upsample_argmax, upsample_argmax
 from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -134,14 +137,18 @@ class LinearSegHead(Model):
         #: "fused" or "torch": how ``forward`` upsamples (Note [Fused upsample + argmax]).
         self.upsample = "torch"
         if opts.upsample != "torch":
-            # planning builds on the meta device: judge by the device the model will run on
+            # planning builds on the meta device: judge by the device the model will run on, without touching it
             device = torch.device(ctx.engine.device) if ctx.plan_only else ctx.device
-            why_not = fused_unavailable(device)
+            why_not = fused_unavailable(device, probe=not ctx.plan_only)
             if why_not is None:
                 self.upsample = "fused"
             elif opts.upsample == "fused":
                 raise ModelBuildError(
                     f"{where}: options.upsample is 'fused', which cannot run on {device}: {why_not}; use auto or torch"
+                )
+            elif device.type == "cuda" and not ctx.plan_only:  # on a GPU the user would expect the kernel
+                log.warning(
+                    "%s: PyTorch's upsampling and argmax run instead of the fused kernel: %s", where, why_not
                 )
         self.meta = {
             "kind": "segmentation",

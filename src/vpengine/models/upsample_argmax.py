@@ -29,9 +29,10 @@ equals the float64 argmax except at near-ties (1-4 pixels in 10^6 in the tests),
 to the last bit of rounding. PyTorch's eager CUDA path rounds the upsampled logits to the model's precision before
 its argmax (float16: about 3 decimal digits), so on float16 logits the two disagree only where two classes are within
 that rounding of each other, on class boundaries. Everywhere else (the CPU, ONNX export, no Triton, ``upsample:
-torch``) the PyTorch path runs, and so it does, with a warning that says why, on a GPU where the kernels fail: the
-head runs them once when it is built (``fused_unavailable``), so that an optional speed-up cannot stop an engine from
-starting. That probe, on a GPU, has not run yet: it came after the last GPU session's time was spent.
+torch``) the PyTorch path runs, and so it does, with a warning that says why, on a GPU Triton cannot compile for
+(compute capability below 7.0; ``fused_unavailable``). That check has not run on a GPU yet: it came after the last
+GPU session's time was spent. Any other failure of the kernels (a broken toolchain, say) stops the head at warm-up
+with the error, and ``upsample: torch`` is the way round it.
 
 Measured on an H100 at 1080p, 150 classes, float16 (benchmarks/results/h100/upsample_argmax_candidates.json):
 logits that change slowly from token to token, as a trained head's do, keep a median of 2 candidates a cell and take
@@ -98,8 +99,8 @@ def _triton_missing() -> str | None:
 def fused_unavailable(device: torch.device, probe: bool = True) -> str | None:
     """Why the fused kernel cannot run on ``device`` (None: it can). Registers its op the first time it can.
 
-    ``probe``: also run it once on the device (compiling it for the GPU), so that a GPU or toolchain Triton cannot
-    handle is found here and not in the first frame; without, no CUDA context is made (for planning)."""
+    ``probe``: also ask the GPU whether Triton can compile for it; without, no CUDA context is made (for planning).
+    Nothing is launched here: a model is built while another thread may be capturing a CUDA graph."""
     if device.type != "cuda":
         return f"it runs on CUDA only, not on {device.type}"
     if os.environ.get("TRITON_INTERPRET") == "1":
@@ -121,14 +122,6 @@ def _probe(index: int) -> str | None:
     major, minor = torch.cuda.get_device_capability(index)
     if major < 7:  # what Triton's CUDA backend compiles for
         return f"Triton needs a GPU of compute capability 7.0 or newer, and cuda:{index} is {major}.{minor}"
-    try:
-        logits = torch.zeros(1, 2, 2, 2, device=f"cuda:{index}")
-        torch.ops.vpengine.upsample_argmax(logits, 3, 3, torch.uint8)
-        torch.cuda.synchronize(index)
-    except (
-        Exception
-    ) as e:  # the toolchain, the driver, an architecture Triton gets wrong: PyTorch's path still runs
-        return f"its Triton kernels failed on cuda:{index} ({type(e).__name__}: {e})"
     return None
 
 

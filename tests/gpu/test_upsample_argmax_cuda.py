@@ -27,9 +27,8 @@ DIM = 384
 
 @pytest.fixture(autouse=True)
 def fused_kernel_available() -> None:
-    assert (
-        fused_unavailable(CUDA) is None
-    )  # Triton is part of PyTorch's CUDA wheels; this also registers the op
+    # Triton comes with PyTorch's CUDA wheels; this also registers the op
+    assert fused_unavailable(CUDA) is None
 
 
 def build_seg(upsample: str, precision: str = "fp16"):

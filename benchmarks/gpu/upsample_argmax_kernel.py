@@ -16,24 +16,15 @@ import sys
 import torch
 import torch.nn.functional as F
 
+from vpengine.bench.common import event_ms
 from vpengine.models import _triton_upsample_argmax as kernel
 
 OUT = os.environ.get("OUT", "/tmp/out")
 GRID, FRAME = (37, 66), (1080, 1920)
 
 
-def median_ms(fn, n: int = 200) -> float:
-    for _ in range(10):
-        fn()
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    times = []
-    for _ in range(n):
-        start.record()
-        fn()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return sorted(times)[n // 2]
+def median_ms(fn) -> float:  # type: ignore[no-untyped-def]
+    return event_ms(fn, 200, warmup=10)
 
 
 def logits(kind: str, classes: int) -> torch.Tensor:

@@ -11,6 +11,7 @@ import torch.nn.functional as F
 from helpers import heads
 from helpers.classmaps import assert_argmax_of, reference
 from vpengine.backends import make_executor
+from vpengine.bench.common import event_ms
 from vpengine.models.upsample_argmax import fused_unavailable, fused_upsample_argmax
 
 pytestmark = [
@@ -102,19 +103,8 @@ def test_the_head_runs_the_fused_kernel_on_cuda_and_agrees_with_the_pytorch_path
     assert len(got.unique()) > 10
 
 
-def _median_ms(fn, n: int = 200) -> float:  # type: ignore[no-untyped-def]
-    for _ in range(10):
-        fn()
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    torch.cuda.synchronize()
-    times = []
-    for _ in range(n):
-        start.record()
-        fn()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return sorted(times)[n // 2]
+def _median_ms(fn) -> float:  # type: ignore[no-untyped-def]
+    return event_ms(fn, 200, warmup=10)
 
 
 def test_compiled_head_captures_the_fused_kernel_in_its_cuda_graph_and_is_faster_even_on_noise():

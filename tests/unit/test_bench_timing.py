@@ -5,12 +5,14 @@ times each step from its call, or from the moment the step says its latency star
 from __future__ import annotations
 
 import time
-from types import SimpleNamespace
 
-from vpengine.bench.paper import _event_ms, timed
+import torch
+
+from vpengine.bench.common import event_ms
+from vpengine.bench.paper import timed
 
 
-def test_event_ms_is_the_median_of_one_sample_per_call():
+def test_event_ms_is_the_median_of_one_sample_per_call(monkeypatch):
     log: list[str] = []
     samples = iter([5.0, 1.0, 3.0, 100.0, 2.0])
 
@@ -27,8 +29,8 @@ def test_event_ms_is_the_median_of_one_sample_per_call():
         def elapsed_time(self, end: Event) -> float:
             return next(samples)
 
-    fake_torch = SimpleNamespace(cuda=SimpleNamespace(Event=Event))
-    ms = _event_ms(lambda: log.append("run"), 5, fake_torch)
+    monkeypatch.setattr(torch.cuda, "Event", Event)
+    ms = event_ms(lambda: log.append("run"), 5)
     assert ms == 3.0  # the median: one slow sample does not move it
     assert log == ["record", "run", "record", "sync"] * 5
 

@@ -51,3 +51,22 @@ def write_results(out_dir: str | Path, name: str, data: dict[str, Any]) -> Path:
     }
     path.write_text(json.dumps(payload, indent=2) + "\n")
     return path
+
+
+def event_ms(run: Any, n: int, warmup: int = 0) -> float:
+    """Median device time (ms) of ``run()`` over ``n`` calls, between CUDA events on the current stream, after
+    ``warmup`` calls not timed."""
+    import numpy as np
+    import torch
+
+    for _ in range(warmup):
+        run()
+    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+    times = []
+    for _ in range(n):
+        start.record()
+        run()
+        end.record()
+        end.synchronize()
+        times.append(start.elapsed_time(end))
+    return float(np.median(times))

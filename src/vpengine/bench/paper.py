@@ -31,6 +31,8 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.bench.common import event_ms
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--experiments", default="E1,E2,E3,E4,E5,E6,floor", help="comma-separated subset")
@@ -411,7 +413,7 @@ class InProcess:
             return {}
         parts = self._frame(img)["parts"]
         with self.torch.inference_mode():
-            return {name: _event_ms(run, n, self.torch) for name, run in parts.items()}
+            return {name: event_ms(run, n) for name, run in parts.items()}
 
     def transfer_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
         """Median device time (ms) of the copies a frame needs at least: the frame up from page-locked host memory,
@@ -420,7 +422,7 @@ class InProcess:
             return {}
         f = self._frame(img)
         with self.torch.inference_mode():
-            return {name: _event_ms(f[name], n, self.torch) for name in ("upload", "download")}
+            return {name: event_ms(f[name], n) for name in ("upload", "download")}
 
     def chained_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
         """Median device time (ms) of one frame's models run back to back on one stream and timed as one, without
@@ -442,8 +444,8 @@ class InProcess:
 
         with self.torch.inference_mode():
             return {
-                "compute": _event_ms(compute, n, self.torch),
-                "with_transfers": _event_ms(whole, n, self.torch),
+                "compute": event_ms(compute, n),
+                "with_transfers": event_ms(whole, n),
             }
 
     def _frame(self, img: np.ndarray) -> dict[str, Any]:
@@ -477,19 +479,6 @@ class InProcess:
             "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
         }
         return self._frame_runs
-
-
-def _event_ms(run: Any, n: int, torch: Any) -> float:
-    """Median device time (ms) of ``run()`` over ``n`` calls, between CUDA events on the current stream."""
-    start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
-    times = []
-    for _ in range(n):
-        start.record()
-        run()
-        end.record()
-        end.synchronize()
-        times.append(start.elapsed_time(end))
-    return float(np.median(times))
 
 
 def _graphed(fn: Any, inputs: dict[str, Any], torch: Any) -> Any:

@@ -86,9 +86,11 @@ def _fused_upsample_argmax() -> str:
 
     from vpengine.models.upsample_argmax import fused_unavailable
 
-    if not torch.cuda.is_available():
-        return "not used: no CUDA device visible (PyTorch's interpolate and argmax run instead)"
-    why_not = fused_unavailable(torch.device("cuda", torch.cuda.current_device()))
+    why_not = (
+        fused_unavailable(torch.device("cuda", torch.cuda.current_device()))
+        if torch.cuda.is_available()
+        else "no CUDA device visible"
+    )
     return (
         "available"
         if why_not is None

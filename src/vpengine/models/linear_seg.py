@@ -68,8 +68,8 @@ class LinearSegOptions(Options):
     )
     upsample: Literal["auto", "fused", "torch"] = Field(
         "auto",
-        description="How the logits become one class per pixel (Note [Fused upsample + argmax]): fused runs one "
-        "Triton kernel (CUDA with Triton only; an error elsewhere), torch runs PyTorch's interpolate and argmax, "
+        description="How the logits become one class per pixel (Note [Fused upsample + argmax]): fused runs its "
+        "Triton kernels (CUDA with Triton only; an error elsewhere), torch runs PyTorch's interpolate and argmax, "
         "auto the fused kernel where it can run and PyTorch elsewhere.",
     )
 

@@ -75,17 +75,18 @@ def test_frames_submitted_faster_than_the_foundation_runs_are_all_run_or_counted
 
 def test_a_paused_foundation_takes_no_frame_from_submit_and_resumes():
     with engine("always") as e:
-        lockstep(e, 2)
-        e.set_rate("foundation", 0)
-        runs = e.stats()["models"]["foundation"]["runs"]
-        for i in range(5):
-            e.submit(frame(i))  # at once: the worker may still be armed from before the pause
-            time.sleep(0.02)
-        time.sleep(0.3)
-        assert e.stats()["models"]["foundation"]["runs"] == runs
-        e.set_rate("foundation", None)
-        fid = e.submit(frame(7))
-        assert set(e.wait(fid, timeout=10)) == {"depth", "seg", "det"}
+        for _ in range(8):  # the pause lands wherever the worker is: armed, at its gate, or between the two
+            lockstep(e, 2)
+            e.set_rate("foundation", 0)
+            runs = e.stats()["models"]["foundation"]["runs"]
+            for i in range(5):
+                e.submit(frame(i))  # at once: the worker may still be armed from before the pause
+                time.sleep(0.01)
+            time.sleep(0.1)
+            assert e.stats()["models"]["foundation"]["runs"] == runs
+            e.set_rate("foundation", None)
+            fid = e.submit(frame(7))
+            assert set(e.wait(fid, timeout=10)) == {"depth", "seg", "det"}
 
 
 def test_stop_wakes_an_armed_foundation_at_once():

@@ -1,9 +1,18 @@
 """Note [Inline launch], the offer alone: what ``InlineLaunch.launch`` does for the thread that publishes a frame,
-with a stand-in worker (the engine-level behaviour is in tests/integration/test_inline_launch.py)."""
+with a stand-in worker, and the worker's side of it on real rings (the engine-level behaviour is in
+tests/integration/test_inline_launch.py)."""
 
 from __future__ import annotations
 
-from vpengine.runtime.worker import InlineLaunch
+import time
+
+import torch
+
+from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.worker import InlineLaunch, WorkerCore, WorkerSpec
+from vpengine.specs import TensorSpec
+from vpengine.transport.ring import latest_buffer
 
 
 class Control:
@@ -39,14 +48,14 @@ class Worker:
 def test_nothing_is_launched_unless_a_worker_is_armed():
     offer, worker = InlineLaunch(), Worker()
     assert offer.launch() is False
-    offer.arm(worker, "out")  # type: ignore[arg-type]
+    offer.arm(worker, "out", None)  # type: ignore[arg-type]
     offer.disarm(worker)  # type: ignore[arg-type]
     assert offer.launch() is False and worker.reader.pins == [] and offer.take_done() is None
 
 
 def test_an_armed_worker_gets_the_frame_pinned_launched_and_handed_over_once():
     offer, worker = InlineLaunch(), Worker()
-    offer.arm(worker, "out")  # type: ignore[arg-type]
+    offer.arm(worker, "out", None)  # type: ignore[arg-type]
     assert offer.launch() is True
     assert worker.reader.pins == ["frame"] and worker.launched == [("frame", "out")] and offer.launches == 1
     slot, _, error = offer.take_done()  # type: ignore[misc]
@@ -57,16 +66,86 @@ def test_an_armed_worker_gets_the_frame_pinned_launched_and_handed_over_once():
 
 def test_a_rate_changed_since_arming_leaves_the_frame_to_the_worker():
     offer, worker = InlineLaunch(), Worker()
-    offer.arm(worker, "out")  # type: ignore[arg-type]
+    offer.arm(worker, "out", None)  # type: ignore[arg-type]
     worker.control.hz = 0.0  # paused after it armed, before it woke to disarm
     assert offer.launch() is False and worker.reader.pins == [] and worker.launched == []
     worker.control.hz = None  # the rate it armed under again
     assert offer.launch() is True and worker.launched == [("frame", "out")]
 
 
+def test_the_rate_compared_is_the_one_the_gate_opened_under_not_the_one_at_arming():
+    offer, worker = InlineLaunch(), Worker()
+    worker.control.hz = 0.0  # paused after the worker's gate opened unlimited, before it armed
+    offer.arm(worker, "out", None)  # type: ignore[arg-type]
+    assert offer.launch() is False and worker.launched == []
+
+
 def test_a_launch_that_raises_is_handed_to_the_worker_not_raised_in_submit():
     offer, worker = InlineLaunch(), Worker(fail=True)
-    offer.arm(worker, "out")  # type: ignore[arg-type]
+    offer.arm(worker, "out", None)  # type: ignore[arg-type]
     assert offer.launch() is True  # no exception here
     slot, _, error = offer.take_done()  # type: ignore[misc]
     assert slot == "frame" and isinstance(error, RuntimeError) and "launch failed" in str(error)
+
+
+def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, ControlBlock]:
+    """A foundation worker, with its input ring's offer if ``inline`` (thread mode), and one frame published."""
+    x, f = {"x": TensorSpec((4,), "float32")}, {"f": TensorSpec((4,), "float32")}
+    in_ring, out_ring = latest_buffer("input", x, ["foundation"]), latest_buffer("features", f, ["depth"])
+    control = ControlBlock.create(["foundation"])
+    spec = WorkerSpec(
+        "foundation", "foundation", {}, {}, {}, in_ring.desc, "foundation", out_ring.desc, False
+    )  # type: ignore[arg-type]
+    core = WorkerCore(
+        spec,
+        lambda inputs: {"f": inputs["x"] * 2},
+        f,
+        in_ring,
+        out_ring,
+        control,
+        DeviceContext("cpu"),
+        poll_s,
+    )
+    if inline:
+        core._inline = in_ring.inline = InlineLaunch()
+    w = in_ring.writer()
+    slot = w.acquire(timeout=1.0)
+    assert slot is not None
+    slot.tensors["x"].fill_(1.0)
+    w.publish(slot, 7, time.monotonic(), time.monotonic())
+    return core, control
+
+
+def test_a_worker_whose_rate_changed_after_its_gate_opened_takes_no_frame():
+    """The race a CI run once hit: the gate opens unlimited, a pause is set, then the worker reaches the offer."""
+    core, control = foundation_core(poll_s=5.0)
+    control.set_rate("foundation", 0.0)
+    t0 = time.monotonic()
+    core._take_inline(t0, None)
+    assert time.monotonic() - t0 < 1.0  # back to its gate at once, not armed for poll_s
+    assert control.snapshot("foundation")["runs"] == 0 and core._inline.launches == 0  # type: ignore[union-attr]
+    # the same call under the rate the gate saw finds the frame still there, and runs it
+    control.set_rate("foundation", None)
+    core._take_inline(time.monotonic(), None)
+    assert control.snapshot("foundation")["runs"] == 1
+    out = core.writer.ring.reader("depth").pin(timeout=0)
+    assert out is not None and out.frame_id == 7 and torch.equal(out.tensors["f"], torch.full((4,), 2.0))
+
+
+def test_a_pause_set_while_a_worker_waited_for_a_frame_holds_the_frame_back_and_counts_it():
+    """Without the offer (process mode, or inline launch off) the worker waits in the ring; a pause set meanwhile
+    stops the frame that then comes."""
+    core, control = foundation_core(poll_s=5.0, inline=False)
+    control.set_rate("foundation", 0.0)
+    core._take(time.monotonic(), None)
+    st = control.snapshot("foundation")
+    assert st["runs"] == 0 and st["skipped"] == 1
+
+
+def test_a_rate_raised_while_a_worker_waited_for_a_frame_runs_it():
+    core, control = foundation_core(poll_s=5.0, inline=False)
+    core.gate.update(10.0, time.monotonic())  # its gate opened at 10 Hz
+    control.set_rate("foundation", None)
+    core._take(time.monotonic(), 10.0)
+    st = control.snapshot("foundation")
+    assert st["runs"] == 1 and st["skipped"] == 0

@@ -39,7 +39,10 @@ the features (Note [Event hand-off]) and does the rest of its run as usual: coun
 releasing the frame. Nothing else changes hands: the worker alone decides when it is ready (rate limit, pause), a
 launch that raises is raised in the worker (restart rules), and a frame published while the worker is not armed is
 taken from the ring by the worker, as before. Arming, disarming, taking a frame from the ring and the inline launch
-all happen under the offer's lock, so each frame is taken exactly once. Measured on the H100 (compiled depth + seg,
+all happen under the offer's lock, so each frame is taken exactly once. The worker arms with the rate its gate
+opened under and, under the lock, takes no frame if the rate has changed since; ``Engine.set_rate`` stores the rate
+and then takes the lock, so no frame submitted after it returns runs under the old rate (a pause set between the
+gate and the arming once let one through). Measured on the H100 (compiled depth + seg,
 benchmarks/results/h100/profile_steps_inline.json): the first graph is queued 0.19 ms after the frame is published
 instead of 0.29 ms, 3.44 instead of 3.52 ms a frame. The 0.14 ms that stayed between starting a run and the first
 graph launch, in whichever thread launched, was the launch path's code running cold (Note [Launch path]).
@@ -206,7 +209,8 @@ class WorkerCore:
         while not should_stop():
             now = time.monotonic()
             ctl.heartbeat(name)
-            self.gate.update(ctl.rate(name), now)
+            rate = ctl.rate(name)
+            self.gate.update(rate, now)
             wait = self.gate.wait_time(now)
             if wait > 0:
                 self._drop_spare()  # not armed while paused or rate-limited: takes no frames from submit
@@ -216,15 +220,35 @@ class WorkerCore:
             ctl.set_state(name, RUNNING)
             gate_open = time.monotonic()
             if self._inline is not None:
-                self._take_inline(gate_open)
-                continue
-            slot = self.reader.pin(timeout=self.poll_s, should_stop=should_stop)
-            if slot is None:
-                continue
-            try:
+                self._take_inline(gate_open, rate)
+            else:
+                self._take(gate_open, rate)
+
+    def _take(self, gate_open: float, rate: float | None) -> None:
+        """One frame from the ring, or none within ``poll_s``; ``rate`` is the rate the gate opened under."""
+        slot = self.reader.pin(timeout=self.poll_s, should_stop=self._should_stop)
+        if slot is None:
+            return
+        try:
+            if self._gate_still_open(slot, rate):
                 self._step(slot, starved=slot.t_publish > gate_open)
-            finally:
-                self.reader.release(slot)
+        finally:
+            self.reader.release(slot)
+
+    def _gate_still_open(self, slot: SlotInfo, rate: float | None) -> bool:
+        """Whether the frame in ``slot``, which came while this worker waited, may run. A rate set while it waited
+        (a pause, say) decides again: ``Engine.set_rate`` stores the rate before it returns, and a frame published
+        after that is seen only after the store, so a pause stops every frame submitted after it. A frame the new
+        rate holds back is counted skipped, with any it overtook."""
+        now_rate = self.control.rate(self.name)
+        if now_rate == rate:
+            return True
+        now = time.monotonic()
+        self.gate.update(now_rate, now)
+        if self.gate.wait_time(now) == 0:
+            return True
+        self.control.add(self.name, "skipped", 1 + slot.missed)
+        return False
 
     def _step(self, slot: SlotInfo, starved: bool, out: SlotInfo | None = None) -> None:
         """One run on a pinned ``slot``, into ``out`` (an output slot already acquired) or one it acquires."""
@@ -299,8 +323,10 @@ class WorkerCore:
             ctl.amend_last_run(name, t_end - t_start, t_end - slot.t_submit)
 
     # ---------------------------------------------------------------------- Note [Inline launch], worker side
-    def _take_inline(self, gate_open: float) -> None:
-        """One frame, taken from the ring or launched by the submitting thread, or none within ``poll_s``."""
+    def _take_inline(self, gate_open: float, rate: float | None) -> None:
+        """One frame, taken from the ring or launched by the submitting thread, or none within ``poll_s``; ``rate``
+        is the rate the gate opened under. A rate changed since (``Engine.set_rate`` sets it, then takes the
+        offer's lock to wake us) takes nothing: the loop's gate decides again."""
         offer = self._inline
         assert offer is not None
         if self._spare is None:
@@ -311,9 +337,11 @@ class WorkerCore:
                 return
         done = None
         with offer.cond:  # not armed before this: no launch can be waiting here
+            if self.control.rate(self.name) != rate:
+                return  # a pause or limit set after the gate opened: no frame submitted since may run
             slot = self.reader.pin(timeout=0)
             if slot is None:
-                offer.arm(self, self._spare)
+                offer.arm(self, self._spare, rate)
                 try:
                     offer.cond.wait(self.poll_s)
                 finally:
@@ -359,9 +387,11 @@ class InlineLaunch:
         self.launches = 0  # frames launched by submitting threads
 
     # worker side, holding cond
-    def arm(self, core: WorkerCore, out: SlotInfo) -> None:
+    def arm(self, core: WorkerCore, out: SlotInfo, rate: float | None) -> None:
+        """Offer ``core``'s output slot ``out`` to the next frame's publisher; ``rate`` is the rate its gate opened
+        under (read then, not now: a pause set in between must stop the launch)."""
         self._core, self._out = core, out
-        self._rate = core.control.rate(core.name)  # the rate its gate let it arm under
+        self._rate = rate
 
     def disarm(self, core: WorkerCore) -> None:
         if self._core is core:

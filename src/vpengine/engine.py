@@ -797,6 +797,16 @@ class Engine:
         if inline is not None and model == "foundation":
             inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
+    def rate(self, model: str) -> float | None:
+        """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
+        read of shared memory), unlike ``stats()``; for a loop that checks it every frame."""
+        self._require_running()
+        ctl = self._res.control
+        assert ctl is not None
+        if model not in ctl.index:
+            raise KeyError(f"no model named {model!r}; models: {list(ctl.names)}")
+        return ctl.rate(model)
+
     def stats(self) -> dict[str, Any]:
         """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""
         if self._state != "running":

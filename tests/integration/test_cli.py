@@ -95,13 +95,25 @@ def test_image_folder_source(tmp_path):
     frames.mkdir()
     for i in range(5):
         cv2.imwrite(str(frames / f"im{i}.png"), np.full((60, 80, 3), i * 40, np.uint8))
+    out = tmp_path / "o"
+    # a head paused from the start: lockstep waits for the others only
     p = vpengine(
-        "run", "-c", "configs/tiny.yaml", "-s", str(frames), "-o", str(tmp_path / "o"), "--no-progress"
+        "run",
+        "-c",
+        "configs/tiny.yaml",
+        "-s",
+        str(frames),
+        "-o",
+        str(out),
+        "--no-progress",
+        "--set",
+        "heads.seg.rate_hz=0",
     )
     assert p.returncode == 0, p.stderr
-    assert sorted(x.name for x in (tmp_path / "o" / "depth").glob("*.npy")) == [
-        f"im{i}.npy" for i in range(5)
-    ]
+    assert sorted(x.name for x in (out / "depth").glob("*.npy")) == [f"im{i}.npy" for i in range(5)]
+    s = json.loads((out / "summary.json").read_text())
+    assert s["models"]["seg"]["runs"] == 0 and s["models"]["depth"]["results_received"] == 5
+    assert "no output from" not in p.stderr  # never waited for the paused head
 
 
 def test_config_errors_are_reported_without_a_traceback(tmp_path):

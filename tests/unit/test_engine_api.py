@@ -93,15 +93,18 @@ def test_results_stream_in_order_and_counts_what_was_not_collected():
         assert (st["delivered"], st["missed"], st["pending"]) == (7, 14, 0)
 
 
-def test_set_rate_validates_and_stats_show_it(engine):
+def test_set_rate_validates_and_stats_and_rate_show_it(engine):
     engine.set_rate("seg", 12.5)
-    assert engine.stats()["models"]["seg"]["target_hz"] == 12.5
+    assert engine.stats()["models"]["seg"]["target_hz"] == 12.5 == engine.rate("seg")
+    engine.set_rate("seg", 0)
+    assert engine.rate("seg") == 0.0 and engine.rate("depth") is None
     engine.set_rate("seg", None)
-    assert engine.stats()["models"]["seg"]["target_hz"] is None
-    with pytest.raises(
-        KeyError, match=r"no model named 'segm'; models: \['foundation', 'depth', 'seg', 'det'\]"
-    ):
-        engine.set_rate("segm", 5)
+    assert engine.stats()["models"]["seg"]["target_hz"] is None and engine.rate("seg") is None
+    for call in (lambda: engine.set_rate("segm", 5), lambda: engine.rate("segm")):
+        with pytest.raises(
+            KeyError, match=r"no model named 'segm'; models: \['foundation', 'depth', 'seg', 'det'\]"
+        ):
+            call()
     for bad in (-1, float("nan"), float("inf"), "fast"):
         with pytest.raises(ValueError, match="must be None or a finite number >= 0 Hz"):
             engine.set_rate("seg", bad)
@@ -149,4 +152,6 @@ def test_lifecycle_stop_is_idempotent_and_a_stopped_engine_says_so():
     e.stop()
     with pytest.raises(EngineDeadError, match="stopped"):
         e.submit(frame(0))
+    with pytest.raises(EngineDeadError, match="stopped"):
+        e.rate("depth")
     assert e.stats() == {"engine": {"state": "stopped"}}

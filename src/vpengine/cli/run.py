@@ -159,7 +159,7 @@ def run_pipeline(
                 recent.popitem(last=False)
             submitted += 1
             if pace == "lockstep":
-                active = [h for h in heads if engine.stats()["models"][h]["target_hz"] != 0.0]
+                active = [h for h in heads if engine.rate(h) != 0.0]  # a paused head answers nothing
                 try:
                     handle(list(engine.wait(fid, heads=active, timeout=60.0).values()))
                 except TimeoutError as e:

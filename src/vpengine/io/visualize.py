@@ -21,19 +21,40 @@ def colormap_lut(name: str = "Spectral_r") -> np.ndarray:
 def colorize_depth(
     depth: np.ndarray, cmap: str = "Spectral_r", lo: float | None = None, hi: float | None = None
 ) -> np.ndarray:
-    """Min-max scale a float depth (or disparity) map to 0..255 and colour-map it. NaN/inf pixels are black."""
+    """Min-max scale a float depth (or disparity) map to 0..255 and colour-map it. NaN/inf pixels are black.
+
+    The on-device colour map of the DPT head (``models/dpt.py``) matches this bit for bit; keep the arithmetic
+    (float32 scaling, round half to even) the same in both."""
     d = np.asarray(depth, dtype=np.float32)
     finite = np.isfinite(d)
-    if not finite.any():
+    all_finite = bool(finite.all())
+    if not all_finite and not finite.any():
         return np.zeros((*d.shape, 3), np.uint8)
-    lo = float(d[finite].min()) if lo is None else lo
-    hi = float(d[finite].max()) if hi is None else hi
-    scaled = np.zeros(d.shape, np.float32)
-    np.divide(d - lo, max(hi - lo, 1e-12), out=scaled, where=finite)
-    idx = (np.clip(scaled, 0, 1) * 255).round().astype(np.uint8)
-    out = colormap_lut(cmap)[idx]
-    out[~finite] = 0
+    if lo is None or hi is None:
+        valid = d if all_finite else d[finite]
+        lo = float(valid.min()) if lo is None else lo
+        hi = float(valid.max()) if hi is None else hi
+    scaled = np.subtract(d, lo, dtype=np.float32)
+    scaled /= np.float32(max(hi - lo, 1e-12))
+    if not all_finite:
+        scaled[~finite] = 0
+    np.clip(scaled, 0, 1, out=scaled)
+    scaled *= 255
+    idx = np.rint(scaled, out=scaled).astype(np.uint8)
+    out = _lookup(colormap_lut(cmap), idx)
+    if not all_finite:
+        out[~finite] = 0
     return out
+
+
+def _lookup(table: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """``table[idx]`` for an (n, 3) uint8 table: OpenCV's LUT for uint8 indices into 256 entries (several times
+    faster than NumPy's gather on a 1080p map), NumPy's ``take`` otherwise (out-of-range indices raise)."""
+    if idx.dtype == np.uint8 and len(table) == 256 and idx.ndim == 2 and idx.size:
+        import cv2
+
+        return cv2.LUT(cv2.cvtColor(idx, cv2.COLOR_GRAY2BGR), np.ascontiguousarray(table).reshape(256, 1, 3))
+    return np.take(table, idx.astype(np.intp, copy=False), axis=0)
 
 
 def default_palette(n: int, seed: int = 3) -> np.ndarray:
@@ -47,15 +68,25 @@ def default_palette(n: int, seed: int = 3) -> np.ndarray:
 def overlay_segmentation(
     image: np.ndarray, classes: np.ndarray, palette: np.ndarray | None = None, alpha: float = 0.5
 ) -> np.ndarray:
-    """Blend a class-id map over a BGR image."""
-    n = int(classes.max()) + 1 if classes.size else 1
-    pal = palette if palette is not None and len(palette) >= n else default_palette(max(n, 256))
-    colour = pal[classes.astype(np.int64)]
-    if image.shape[:2] != classes.shape:
-        import cv2
+    """Blend a class-id map over a BGR image (``(1 - alpha) * image + alpha * colour``, rounded)."""
+    import cv2
 
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(
+            f"overlay_segmentation needs a uint8 (H, W, 3) image, got {image.dtype} {image.shape}"
+        )
+    n = int(classes.max()) + 1 if classes.size else 1
+    pal = np.asarray(
+        palette if palette is not None and len(palette) >= n else default_palette(max(n, 256)), np.uint8
+    )
+    if classes.dtype == np.uint8 and len(pal) != 256:  # ids < n <= len(pal): the table's other rows go unused
+        table = np.zeros((256, 3), np.uint8)
+        table[: min(len(pal), 256)] = pal[:256]
+        pal = table
+    colour = _lookup(pal, classes)
+    if image.shape[:2] != classes.shape:
         image = cv2.resize(image, (classes.shape[1], classes.shape[0]), interpolation=cv2.INTER_AREA)
-    return (image.astype(np.float32) * (1 - alpha) + colour.astype(np.float32) * alpha).astype(np.uint8)
+    return cv2.addWeighted(image, 1 - alpha, colour, alpha, 0)
 
 
 def draw_detections(

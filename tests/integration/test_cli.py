@@ -86,6 +86,10 @@ def test_run_with_the_synthetic_source_needs_no_files(tmp_path):
     assert seg["target_hz"] == 10 and 15 <= seg["runs"] <= 22  # 2 s at 10 Hz, +-1 plus the drain
     fm = s["models"]["foundation"]
     assert fm["runs"] + fm["skipped"] == 60
+    # a live source never waits for the writer (Note [Sink thread]); a result it could not write is counted
+    depth = s["models"]["depth"]
+    written = len(list((tmp_path / "depth").glob("*.npy")))
+    assert written > 0 and written + depth["results_unwritten"] == depth["results_received"]
 
 
 def test_image_folder_source(tmp_path):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import functools
 import json
 import logging
 import math
@@ -91,12 +92,13 @@ def run_pipeline(
     """Run ``config`` over ``source``; returns the summary (also written to ``out_dir/summary.json``).
 
     ``sink_factories`` make extra sinks (e.g. a rosbag2 BagSink) from the heads' ``head_info``; each gets every
-    result with its input frame and name, like the folder sink."""
+    result with its input frame and name, like the folder sink. Every sink is made, written and closed on one
+    writer thread, not the caller's (Note [Sink thread] in ``vpengine.io.sinks``)."""
     from tqdm import tqdm
 
     from vpengine.config import load_config
     from vpengine.engine import Engine
-    from vpengine.io.sinks import FolderSink
+    from vpengine.io.sinks import FolderSink, SinkThread
 
     cfg = load_config(
         config,
@@ -116,9 +118,14 @@ def run_pipeline(
     engine.start()
     log.info("engine started in %.1f s", time.monotonic() - t0)
     heads = list(engine.plan.heads)
-    sink = FolderSink(out_dir, {h: engine.head_info(h) for h in heads}, viz, save_every) if out_dir else None
     try:
-        extra_sinks = [make({h: engine.head_info(h) for h in heads}) for make in sink_factories]
+        info = {h: engine.head_info(h) for h in heads}
+        factories: list[Callable[[], Any]] = []
+        if out_dir:
+            factories.append(functools.partial(FolderSink, out_dir, info, viz, save_every))
+        factories += [functools.partial(make, info) for make in sink_factories]
+        # Note [Sink thread]: lockstep waits for the writer (nothing lost), a live source never does (counted)
+        writer = SinkThread(factories, max_pending=4 * max(len(heads), 1), block=pace == "lockstep")
     except BaseException:
         engine.stop()
         raise
@@ -132,10 +139,8 @@ def run_pipeline(
             received[r.head] += 1
             latencies[r.head].append(r.latency)
             frame, name = recent.get(r.frame_id, (None, str(r.frame_id)))
-            if sink is not None:
-                sink.write(r, frame, name)
-            for s in extra_sinks:
-                s.write(r, frame, name)
+            if factories:
+                writer.put(r, frame, name)
 
     submitted = 0
     t_start = time.monotonic()
@@ -184,10 +189,7 @@ def run_pipeline(
     finally:
         bar.close()
         engine.stop()
-        if sink is not None:
-            sink.close()
-        for s in extra_sinks:
-            s.close()
+        writer.close()  # writes what is queued; raises a sink's error
 
     models = {}
     for name, m in stats["models"].items():
@@ -205,6 +207,7 @@ def run_pipeline(
             models[name]["e2e_latency_ms"] = _percentiles(latencies[name])
             models[name]["results_received"] = received[name]
             models[name]["results_missed"] = stats["results"][name]["missed"]
+            models[name]["results_unwritten"] = writer.unwritten[name]
     summary = {
         "config": cfg.name,
         "source": str(getattr(source, "path", type(source).__name__)),
@@ -248,6 +251,12 @@ def format_summary(s: dict[str, Any]) -> str:
             f"{m['dropped']:8d} {m['errors']:6d} {f(lat['p50']):>8s} {f(lat['p99']):>8s}"
         )
     lines.append("(latency: submit -> result for heads; model time for the foundation model)")
+    unwritten = {n: m["results_unwritten"] for n, m in s["models"].items() if m.get("results_unwritten")}
+    if unwritten:
+        lines.append(
+            "results not written, the output writer being behind the live source: "
+            + ", ".join(f"{n} {k}" for n, k in unwritten.items())
+        )
     return "\n".join(lines)
 
 

@@ -10,7 +10,8 @@ import sys
 import numpy as np
 import pytest
 
-from tests_paths import MEDIA, ROOT
+from helpers.camera import FakeCamera
+from tests_paths import MEDIA, ROOT, tiny
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -90,6 +91,25 @@ def test_run_with_the_synthetic_source_needs_no_files(tmp_path):
     depth = s["models"]["depth"]
     written = len(list((tmp_path / "depth").glob("*.npy")))
     assert written > 0 and written + depth["results_unwritten"] == depth["results_received"]
+
+
+def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_is_submitted_or_counted(
+    tmp_path,
+):
+    """Note [Live capture]: a camera is read on its own thread; the loop takes the newest frame, never a stale one
+    from the driver's queue, and the ones it never took are in the summary."""
+    from vpengine.cli.run import format_summary, run_pipeline
+    from vpengine.io.sources import VideoSource
+
+    cam = FakeCamera(end_at=150, width=160, height=120)
+    source = VideoSource(0, capture=cam)
+    cam.stream(fps=300)  # faster than 2 CPU cores run three heads: frames pile up unless the newest is taken
+    # lockstep: every frame taken runs through every head and is written, so the files show what was taken
+    s = run_pipeline(tiny("thread"), source, tmp_path / "o", pace="lockstep", progress=False)
+    assert s["frames_submitted"] + s["source_missed"] == 150 and s["source_missed"] > 0
+    assert f"camera frames a newer one replaced: {s['source_missed']}" in format_summary(s)
+    names = [int(p.stem) for p in sorted((tmp_path / "o" / "depth").glob("*.npy"))]
+    assert len(names) == s["frames_submitted"] and names[-1] == 149  # gaps where frames were replaced
 
 
 def test_image_folder_source(tmp_path):

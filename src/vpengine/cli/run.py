@@ -104,7 +104,10 @@ def run_pipeline(
         config,
         [f"input.height={source.height}", f"input.width={source.width}", f"input.color={source.color}"],
     )
-    live = getattr(source, "live", False) or type(source).__name__ == "SyntheticSource"
+    camera = getattr(
+        source, "live", False
+    )  # paces itself: the loop takes its newest frame (Note [Live capture])
+    live = camera or type(source).__name__ == "SyntheticSource"
     pace = pace or ("realtime" if live else "lockstep")
     if pace not in ("realtime", "lockstep"):
         raise ValueError(f"pace must be 'realtime' or 'lockstep', got {pace!r}")
@@ -151,7 +154,7 @@ def run_pipeline(
         for frame in source:
             if max_frames is not None and submitted >= max_frames:
                 break
-            if pace == "realtime":
+            if pace == "realtime" and (fps is not None or not camera):
                 now = time.monotonic()
                 if next_t > now:
                     handle(engine.results(timeout=next_t - now))
@@ -213,6 +216,7 @@ def run_pipeline(
         "source": str(getattr(source, "path", type(source).__name__)),
         "pace": pace,
         "frames_submitted": submitted,
+        "source_missed": getattr(source, "missed", 0),
         "wall_s": wall,
         "input_hz": submitted / wall if wall > 0 else 0.0,
         "mode": cfg.mode,
@@ -233,9 +237,10 @@ def _json_default(o: Any) -> Any:
 
 
 def format_summary(s: dict[str, Any]) -> str:
+    missed = f"; camera frames a newer one replaced: {s['source_missed']}" if s.get("source_missed") else ""
     lines = [
         f"{s['frames_submitted']} frames in {s['wall_s']:.1f} s ({s['input_hz']:.1f} Hz in, {s['pace']}, "
-        f"{s['mode']} mode on {s['device']})",
+        f"{s['mode']} mode on {s['device']}{missed})",
         f"{'model':14s} {'target':>7s} {'achieved':>9s} {'runs':>6s} {'skipped':>8s} {'dropped':>8s} "
         f"{'errors':>6s} {'p50 ms':>8s} {'p99 ms':>8s}",
     ]

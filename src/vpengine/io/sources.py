@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import math
 import re
+import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -143,13 +145,16 @@ class ImageFolderSource(Source):
 
 
 class VideoSource(Source):
-    """A video file (or camera index) through OpenCV."""
+    """A video file (or camera index) through OpenCV. ``capture``: an opened ``cv2.VideoCapture``-like object to
+    read instead of opening ``path`` (tests use a stand-in camera)."""
 
-    def __init__(self, path: str | Path | int) -> None:
+    def __init__(self, path: str | Path | int, capture: Any = None) -> None:
         import cv2
 
         self.path = path
-        self._cap = cv2.VideoCapture(path if isinstance(path, int) else str(path))
+        self._cap = (
+            capture if capture is not None else cv2.VideoCapture(path if isinstance(path, int) else str(path))
+        )
         if not self._cap.isOpened():
             raise ValueError(f"cannot open video {str(path)!r} (missing file or unsupported codec)")
         self.width = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH))
@@ -158,11 +163,16 @@ class VideoSource(Source):
         self.fps = fps if fps and math.isfinite(fps) and fps > 0 else None
         self._n = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT)) if not isinstance(path, int) else 0
         self.live = isinstance(path, int)
+        #: A camera's frames that a newer frame replaced before anyone took them (Note [Live capture]).
+        self.missed = 0
 
     def __len__(self) -> int:
         return max(self._n, 0)
 
     def __iter__(self) -> Iterator[Frame]:
+        if self.live:
+            yield from self._newest()
+            return
         import cv2
 
         i = 0
@@ -170,10 +180,61 @@ class VideoSource(Source):
             ok, img = self._cap.read()
             if not ok:
                 return
-            # live: wall-clock capture time; files: the frame's position in the video, in seconds
-            ts = time.time() if self.live else self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
+            # the frame's position in the video, in seconds
+            ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
             yield Frame(np.ascontiguousarray(img), ts, f"{i:06d}")
             i += 1
+
+    def _newest(self) -> Iterator[Frame]:
+        """Note [Live capture]: a camera delivers frames at its own rate whether or not they are read. Read in the
+        frame loop, a loop slower than the camera gets ever older frames from the driver's queue (latency grows
+        by a frame each time round) until the driver drops some, uncounted. So a thread reads the camera as fast
+        as it delivers and keeps only the newest frame, stamped with the time it arrived; the loop takes that one
+        (waiting if it has taken it already), and every frame replaced before it was taken is counted in
+        ``missed``. Frame names number every frame the camera delivered, so the gaps show in the output too."""
+        cond = threading.Condition()
+        newest: list[Frame | None] = [None]
+        ended: list[BaseException | bool] = [False]  # True at the camera's end; the error if reading raised
+        stop = threading.Event()
+
+        def grab() -> None:
+            i = 0
+            try:
+                while not stop.is_set():
+                    ok, img = self._cap.read()
+                    t = time.time()
+                    with cond:
+                        if not ok:
+                            break
+                        if newest[0] is not None:
+                            self.missed += 1
+                        newest[0] = Frame(np.ascontiguousarray(img), t, f"{i:06d}")
+                        i += 1
+                        cond.notify()
+            except BaseException as e:
+                with cond:
+                    ended[0] = e
+            with cond:
+                ended[0] = ended[0] or True
+                cond.notify()
+
+        reader = threading.Thread(target=grab, name="vpengine-camera", daemon=True)
+        reader.start()
+        try:
+            while True:
+                with cond:
+                    cond.wait_for(lambda: newest[0] is not None or ended[0] is not False)
+                    frame, newest[0] = newest[0], None
+                    if frame is None:
+                        if isinstance(ended[0], BaseException):
+                            raise RuntimeError(f"reading camera {self.path} failed: {ended[0]!r}") from ended[
+                                0
+                            ]
+                        return
+                yield frame
+        finally:
+            stop.set()
+            reader.join(timeout=1.0)  # a read in progress ends with the camera's next frame
 
     def close(self) -> None:
         self._cap.release()

@@ -2,7 +2,8 @@
 
 Folder layout (``vpengine run --out DIR``)::
 
-    DIR/summary.json            achieved rates, skipped/dropped frames, latency percentiles per model
+    DIR/summary.json            achieved rates, skipped/dropped frames, latency percentiles per model, results
+                                left unwritten (Note [Sink thread]), camera frames replaced (Note [Live capture])
     DIR/<head>/<frame>.npy      depth, float32 at input resolution (never quantised)
     DIR/<head>/<frame>.png      segmentation class ids (uint8, uint16 beyond 256 classes)
     DIR/<head>/detections.jsonl one line per frame: every detection with box, score, label and name

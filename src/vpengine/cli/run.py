@@ -6,6 +6,10 @@ Pacing decides what happens when models are slower than the source:
   so nothing is skipped and the run is as fast as the slowest head allows;
 * ``realtime`` (default for cameras and the synthetic scene): frames go in at the source's rate like a live camera;
   models take the newest frame and every frame they skip is counted in the summary.
+
+A camera is read on its own thread and the loop takes its newest frame; frames it replaced are counted too (Note
+[Live capture] in ``vpengine.io.sources``). Outputs are written on a writer thread (Note [Sink thread] in
+``vpengine.io.sinks``).
 """
 
 from __future__ import annotations
@@ -55,7 +59,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--pace", choices=["lockstep", "realtime"], help="see `vpengine run --help` (default by source)"
     )
-    p.add_argument("--fps", type=float, help="realtime pace for sources without a frame rate (default 30)")
+    p.add_argument(
+        "--fps",
+        type=float,
+        help="realtime pace in Hz (default: the source's own rate, else 30; a camera paces itself unless given)",
+    )
     p.add_argument("--max-frames", type=int, help="stop after this many frames")
     p.add_argument("--save-every", type=int, default=1, help="write every Nth output per head (default: all)")
     p.add_argument(

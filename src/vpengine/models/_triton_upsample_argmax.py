@@ -39,6 +39,17 @@ def _add_fn(a, b):
 
 
 @triton.jit
+def _corners(src, kk, m, h, w, y0, x0, y1, x1):
+    # classes kk's values at a cell's four corners, in float32 (0 where m is false)
+    plane = src + kk * h * w
+    a = tl.load(plane + y0 * w + x0, mask=m, other=0.0).to(tl.float32)
+    b = tl.load(plane + y0 * w + x1, mask=m, other=0.0).to(tl.float32)
+    c = tl.load(plane + y1 * w + x0, mask=m, other=0.0).to(tl.float32)
+    d = tl.load(plane + y1 * w + x1, mask=m, other=0.0).to(tl.float32)
+    return a, b, c, d
+
+
+@triton.jit
 def _candidates_kernel(src, cand, count, K, h, w, MAX_CAND: tl.constexpr, CLASS_BLOCK: tl.constexpr):
     # One program per cell: the source pixel (y0, x0) and its right, lower and lower-right neighbours (clamped at
     # the edges), whose values every output pixel with that (y0, x0) interpolates with weights >= 0 summing to 1.
@@ -56,11 +67,7 @@ def _candidates_kernel(src, cand, count, K, h, w, MAX_CAND: tl.constexpr, CLASS_
     for k0 in range(0, K, CLASS_BLOCK):
         kk = k0 + ks
         m = kk < K
-        plane = src + kk * h * w
-        a = tl.load(plane + y0 * w + x0, mask=m, other=0.0).to(tl.float32)
-        b = tl.load(plane + y0 * w + x1, mask=m, other=0.0).to(tl.float32)
-        c = tl.load(plane + y1 * w + x0, mask=m, other=0.0).to(tl.float32)
-        d = tl.load(plane + y1 * w + x1, mask=m, other=0.0).to(tl.float32)
+        a, b, c, d = _corners(src, kk, m, h, w, y0, x0, y1, x1)
         lo = tl.minimum(tl.minimum(a, b), tl.minimum(c, d))
         best_lo = tl.where(m, tl.maximum(best_lo, lo), best_lo)
         big = tl.maximum(tl.maximum(tl.abs(a), tl.abs(b)), tl.maximum(tl.abs(c), tl.abs(d)))
@@ -76,11 +83,7 @@ def _candidates_kernel(src, cand, count, K, h, w, MAX_CAND: tl.constexpr, CLASS_
     for k0 in range(0, K, CLASS_BLOCK):
         kk = k0 + ks
         m = kk < K
-        plane = src + kk * h * w
-        a = tl.load(plane + y0 * w + x0, mask=m, other=0.0).to(tl.float32)
-        b = tl.load(plane + y0 * w + x1, mask=m, other=0.0).to(tl.float32)
-        c = tl.load(plane + y1 * w + x0, mask=m, other=0.0).to(tl.float32)
-        d = tl.load(plane + y1 * w + x1, mask=m, other=0.0).to(tl.float32)
+        a, b, c, d = _corners(src, kk, m, h, w, y0, x0, y1, x1)
         hi = tl.maximum(tl.maximum(a, b), tl.maximum(c, d))
         keep = (m & (hi >= threshold)).to(tl.int32)
         slot = n + tl.associative_scan(keep, 0, _add_fn) - 1  # classes stay in increasing order

@@ -785,11 +785,7 @@ class Engine:
     # ------------------------------------------------------------------------------------------ control
     def set_rate(self, model: str, hz: float | None) -> None:
         """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause."""
-        self._require_running()
-        ctl = self._res.control
-        assert ctl is not None
-        if model not in ctl.index:
-            raise KeyError(f"no model named {model!r}; models: {list(ctl.names)}")
+        ctl = self._model_control(model)
         if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
             raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
         ctl.set_rate(model, None if hz is None else float(hz))
@@ -800,12 +796,17 @@ class Engine:
     def rate(self, model: str) -> float | None:
         """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
         read of shared memory), unlike ``stats()``; for a loop that checks it every frame."""
+        ctl = self._model_control(model)
+        return ctl.rate(model)
+
+    def _model_control(self, model: str) -> ControlBlock:
+        """The running engine's control block, once ``model`` is known to be one of its models."""
         self._require_running()
         ctl = self._res.control
         assert ctl is not None
         if model not in ctl.index:
             raise KeyError(f"no model named {model!r}; models: {list(ctl.names)}")
-        return ctl.rate(model)
+        return ctl
 
     def stats(self) -> dict[str, Any]:
         """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""

@@ -112,9 +112,8 @@ def run_pipeline(
         config,
         [f"input.height={source.height}", f"input.width={source.width}", f"input.color={source.color}"],
     )
-    camera = getattr(
-        source, "live", False
-    )  # paces itself: the loop takes its newest frame (Note [Live capture])
+    # a camera paces itself: the loop takes its newest frame (Note [Live capture])
+    camera = getattr(source, "live", False)
     live = camera or type(source).__name__ == "SyntheticSource"
     pace = pace or ("realtime" if live else "lockstep")
     if pace not in ("realtime", "lockstep"):

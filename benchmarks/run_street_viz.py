@@ -8,26 +8,16 @@ benchmarks/results/run_street_viz_cpu.json (the numbers the README's Quick start
 from __future__ import annotations
 
 import json
-import os
-import platform
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
+from vpengine.bench.common import machine_info
+
 ROOT = Path(__file__).resolve().parents[1]
 VIDEO = ROOT.parent / "shared" / "data" / "media" / "vtest.avi"
 OUT = ROOT / "benchmarks" / "results" / "run_street_viz_cpu.json"
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main() -> int:
@@ -52,7 +42,7 @@ def main() -> int:
         "command": " ".join(["vpengine", *cmd[1:]])
         .replace(str(VIDEO), "../shared/data/media/vtest.avi")
         .replace(str(out), "TMP/demo"),
-        "machine": {"cpu": cpu_name(), "cores": os.cpu_count(), "gpu": None},
+        "machine": machine_info(),
         "printed": p.stdout.strip().splitlines(),
         "bytes_written": written,
         "summary": summary,

@@ -9,9 +9,12 @@ the moment ``wait`` returns. The mean of each stage over the frames is the water
 * slot: ``Engine.frame_slot`` (the frame written in place), latency from the end of the write; the foundation hands
   its features to the heads by CUDA event (Note [Event hand-off]): its ``copies_enqueued`` and ``device_done`` come
   after the heads' ``input_published``; when it is slot-bound, the thread that closes the frame slot queues its work
-  (Note [Inline launch]): its ``pinned`` is then when that began, and ``finish_started`` when its worker took over;
+  (Note [Inline launch]) before it publishes it: its ``pinned`` is then when that began (before
+  ``input_published``), and ``finish_started`` when its worker took over;
 * slot worker launch: the same on an engine of its own with ``runtime.inline_launch: never`` (run first);
 * slot host hand-off: the foundation waits for its work on the host before it publishes (as before that Note);
+* slot results on host: each head waits for its work on the host before it publishes its results (as before Note
+  [Result hand-off]; with it, a head's ``published`` comes before its ``copies_enqueued`` and ``device_done``);
 * slot unbound: compiled models called with the slots' tensors and their outputs copied by the worker, one copy per
   tensor (as before Note [Slot-bound runs]), instead of running from graphs bound to the slots;
 * slot+spin200 / slot+spin100: ``runtime.sync_spin_us`` 200 / 100 (sleep through the predicted device time, spin
@@ -133,6 +136,7 @@ class _Stamped:
 def _stamped_launch(self, slot, out):  # type: ignore[no-untyped-def]
     # in the submitting thread when it launches the foundation (Note [Inline launch]): its "pinned" is then when
     # that thread began queueing, and its "finish_started" when the worker thread took over
+    # launched before the frame is published (by the submitting thread): keyed -1 until _stamped_finish knows it
     rec = {"input_published": slot.t_publish, "pinned": time.monotonic()}
     stamps[self.name][slot.frame_id] = rec
     model, dev = self.model, self.dev
@@ -159,6 +163,10 @@ def _stamped_launch(self, slot, out):  # type: ignore[no-untyped-def]
 
 
 def _stamped_finish(self, slot, out, t_start):  # type: ignore[no-untyped-def]
+    early = stamps[self.name].pop(-1, None)
+    if early is not None:  # launched before it was published: its times are known now
+        early["input_published"] = slot.t_publish
+        stamps[self.name][slot.frame_id] = early
     rec = stamps[self.name].setdefault(slot.frame_id, {})
     rec["finish_started"] = time.monotonic()
     dev = self.dev
@@ -174,7 +182,8 @@ def _stamped_finish(self, slot, out, t_start):  # type: ignore[no-untyped-def]
         _plain_finish(self, slot, out, t_start)
     finally:
         del dev.complete
-    rec["published"] = time.monotonic()
+    rec["published"] = out.t_publish  # set by the publish, before or after the device work is done
+    rec["finished"] = time.monotonic()
 
 
 def _fullspin_complete(self):  # type: ignore[no-untyped-def]
@@ -285,6 +294,14 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
         fm._handoff = fm.writer.ring.device_events = None  # between frames: none in flight
         report["slot host hand-off"] = run_variant(eng, "slot host hand-off", setup.frames)
         fm._handoff = fm.writer.ring.device_events = handoff
+    if want("slot results on host"):
+        head_cores = [c for c in cores if c.name != "foundation"]
+        saved = {c: c._handoff for c in head_cores}
+        for c in head_cores:  # between frames: none in flight
+            c._handoff = c.writer.ring.device_events = None
+        report["slot results on host"] = run_variant(eng, "slot results on host", setup.frames)
+        for c, events in saved.items():
+            c._handoff = c.writer.ring.device_events = events
     if want("slot unbound"):
         bound = {c: c._bound for c in cores}
         for c in cores:

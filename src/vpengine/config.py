@@ -230,6 +230,24 @@ class RuntimeConfig(_Strict):
         "being computed. host: it waits for the work to finish on the host first. Process mode and the CPU always "
         "hand off on the host.",
     )
+    result_handoff: Literal["event", "host"] = Field(
+        "event",
+        description="How each head hands its results to the engine in thread mode on CUDA (Note [Result hand-off]). "
+        "event: it publishes them as soon as their device work (with the copy to the host) is queued, with a CUDA "
+        "event; Engine.wait takes them at once and sleeps in the driver until they are there, so a result reaches "
+        "the caller without a head thread's wake-up on the way; Engine.results and Engine.latest take only "
+        "results that are there. host: the head waits for its work on the host first and then publishes. "
+        "Process mode and the CPU always hand off on the host.",
+    )
+    wait_spin_us: float = Field(
+        0.0,
+        ge=0,
+        le=5000,
+        description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). 0: it sleeps "
+        "in the driver until the result is there (waking up takes about 0.1 ms). > 0: it sleeps through the part "
+        "of the head's work that its recent results predict, then spins in the driver for the rest: about this "
+        "much CPU time per result waited for, for a faster wake-up. Only while a result is pending: never idle.",
+    )
     inline_launch: Literal["auto", "always", "never"] = Field(
         "auto",
         description="Who queues the foundation model's device work for a new frame in thread mode (Note [Inline "

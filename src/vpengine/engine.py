@@ -174,13 +174,14 @@ class Result:
     frame_id: int
     #: The frame's capture time as given to submit (or the wall-clock time of submit), seconds since the epoch.
     capture_time: float
-    #: Seconds from submit to this output being published.
+    #: Seconds from submit to this output being on the host (published, and its device work done).
     latency: float
     #: Output tensors: numpy arrays (host outputs) or torch tensors (device outputs, bfloat16). A host array's memory
     #: is reused for a later result of the same head once nothing refers to the array (nor to any view of it) any
     #: more, so keeping a reference (or a view, or ``torch.from_numpy`` of it) keeps its content.
     outputs: dict[str, Any]
     seq: int = 0
+    #: When the output was there to read (``time.monotonic()``).
     t_publish: float = 0.0
     extra: dict[str, Any] = field(default_factory=dict)
     #: True: the host arrays are read-only views of the head's output slot, kept for as long as they are referenced
@@ -623,10 +624,11 @@ class Engine:
         """Publish a filled input slot; the caller holds ``_submit_lock``."""
         fid = self._next_id if frame_id is None else int(frame_id)
         self._next_id = fid + 1
-        seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
         inline = self._input_writer.ring.inline
         if inline is not None:  # thread mode: queue the foundation's work from here (Note [Inline launch])
-            inline.launch()
+            seq = inline.publish(self._input_writer, slot, fid, t_capture, t_submit)
+        else:
+            seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
         self._submitted += 1
         self._origins[fid] = seq
         if len(self._origins) > _ORIGINS_KEPT:
@@ -635,6 +637,8 @@ class Engine:
 
     # ------------------------------------------------------------------------------------------- output
     def _to_result(self, head: str, slot: SlotInfo, copy: bool = True) -> Result:
+        # Note [Result hand-off]
+        t_ready = self._results_readers[head].ring.wait_done(slot, self.config.runtime.wait_spin_us * 1e-6)
         outputs: dict[str, Any] | None = None
         if not copy and all(_numpy_output(t) for t in slot.tensors.values()):
             outputs = self._leases.borrow(head, slot)
@@ -650,10 +654,10 @@ class Engine:
             head,
             slot.frame_id,
             slot.t_capture,
-            slot.t_publish - slot.t_submit,
+            t_ready - slot.t_submit,
             outputs,
             slot.seq,
-            slot.t_publish,
+            t_ready,
             borrowed=borrowed,
         )
 
@@ -685,7 +689,7 @@ class Engine:
         reader = self._peek_readers[self._head(head)]
         with self._read_lock:
             self._leases.drain()
-            slot = reader.pin(peek=True)
+            slot = reader.pin(peek=True, done=True)
             if slot is None:
                 return None
             try:
@@ -722,7 +726,7 @@ class Engine:
                     pinned: list[tuple[str, SlotInfo]] = []
                     try:
                         for h in more:
-                            slot = self._results_readers[h].pin()
+                            slot = self._results_readers[h].pin(done=True)
                             if slot is not None:
                                 pinned.append((h, slot))
                         out.extend(self._copy_out(pinned, copy).values())
@@ -741,8 +745,10 @@ class Engine:
         """The outputs of ``heads`` (default: all) for frame ``frame_id``, waiting up to ``timeout`` s.
 
         Heads that skipped the frame (rate limit, newer frame) or whose output for it was already overwritten
-        are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout.
-        ``copy=False``: results are borrowed, not copied, while a lease is free (Note [Borrowed results]).
+        are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout. A result
+        published while its device work still runs is waited for until that work is done, even past ``timeout``
+        (Note [Result hand-off]). ``copy=False``: results are borrowed, not copied, while a lease is free (Note
+        [Borrowed results]).
         """
         self._require_running()
         ctl = self._res.control

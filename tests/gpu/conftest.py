@@ -47,9 +47,10 @@ SLEEP_CYCLES = 5_000_000  # a few ms of device time
 
 
 class SlowOnDevice:
-    """The foundation's executor with a device-side delay (a ``torch.cuda._sleep`` kernel) queued after the model,
-    before the worker copies its outputs into the feature slot: however the model itself syncs with the host, the
-    slot is written only this long after the features are published. Never slot-bound (the worker copies)."""
+    """A model's executor with a device-side delay (a ``torch.cuda._sleep`` kernel) queued after the model, before
+    the worker copies its outputs into the output slot: however the model itself syncs with the host, the slot is
+    written only this long after its work is queued (and, handed off by event, published). Never slot-bound (the
+    worker copies)."""
 
     def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
         self.inner, self.output_spec = inner, inner.output_spec
@@ -65,15 +66,25 @@ class SlowOnDevice:
         return False
 
 
-@pytest.fixture
-def slow_foundation(monkeypatch):  # type: ignore[no-untyped-def]
-    """Engines built while this is active get a SlowOnDevice foundation executor."""
+def _slow(monkeypatch, slow) -> None:  # type: ignore[no-untyped-def]
     import vpengine.backends as backends
 
     plain = backends.make_executor
 
     def make(model, backend, device, name, **kw):  # type: ignore[no-untyped-def]
         ex = plain(model, backend, device, name, **kw)
-        return SlowOnDevice(ex) if name == "foundation" else ex
+        return SlowOnDevice(ex) if slow(name) else ex
 
     monkeypatch.setattr(backends, "make_executor", make)
+
+
+@pytest.fixture
+def slow_foundation(monkeypatch):  # type: ignore[no-untyped-def]
+    """Engines built while this is active get a SlowOnDevice foundation executor."""
+    _slow(monkeypatch, lambda name: name == "foundation")
+
+
+@pytest.fixture
+def slow_heads(monkeypatch):  # type: ignore[no-untyped-def]
+    """Engines built while this is active get a SlowOnDevice executor for every head."""
+    _slow(monkeypatch, lambda name: name != "foundation")

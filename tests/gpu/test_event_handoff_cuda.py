@@ -1,8 +1,11 @@
-"""Note [Event hand-off] on CUDA: in thread mode the foundation model publishes features whose device work is still
-queued, and each head's stream waits on the slot's event. Run on the GPU machine: ``pytest -m gpu tests/gpu``.
+"""Note [Event hand-off] and Note [Result hand-off] on CUDA: in thread mode the foundation model publishes features
+whose device work is still queued, and each head's stream waits on the slot's event; each head publishes results
+whose device work (and copy to the host) is still queued, and the engine waits on the slot's event before it reads.
+Run on the GPU machine: ``pytest -m gpu tests/gpu``.
 
-The foundation's work is made slow on the device (the ``slow_foundation`` fixture of conftest.py) so that the heads are woken long before the features are there: a head that read without waiting would get the slot's previous frame.
-The same engine with the wait taken out shows that this test sees that happen.
+The model whose hand-off is tested is made slow on the device (the ``slow_foundation`` and ``slow_heads`` fixtures
+of conftest.py), so its readers are woken long before its slots are written: a reader that did not wait would get
+the slot's previous content. The same engine with the wait taken out shows that these tests see that happen.
 """
 
 from __future__ import annotations
@@ -14,21 +17,31 @@ from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.engine import Engine
 from vpengine.runtime.device import DeviceContext
+from vpengine.transport.ring import SlotRing
 
 pytestmark = [pytest.mark.gpu, pytest.mark.timeout(900), pytest.mark.usefixtures("require_cuda")]
 
+HEADS = {"depth", "seg", "det"}
+Outputs = dict[int, dict[str, dict[str, np.ndarray]]]
 
-def run(handoff: str, n: int = 8) -> tuple[dict[int, dict[str, dict[str, np.ndarray]]], bool]:
-    cfg = tiny("thread", "device=cuda", f"runtime.feature_handoff={handoff}")
-    out = {}
+
+def arrays(r) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def]
+    return {k: np.array(v) for k, v in r.outputs.items()}
+
+
+def run(*overrides: str, n: int = 8, copy: bool = True) -> tuple[Outputs, dict[str, bool], list[float]]:
+    """n frames one at a time through Engine.wait: outputs, which rings hand off by event, every result's latency."""
+    cfg = tiny("thread", "device=cuda", *overrides)
+    out, latencies = {}, []
     with Engine(cfg) as e:
-        events = e._res.rings["features"].device_events
         for i in range(n):
-            res = e.wait(e.submit(frame(i), frame_id=i), timeout=120)
-            assert set(res) == {"depth", "seg", "det"}, (handoff, i, sorted(res))
-            out[i] = {h: {k: np.array(v) for k, v in r.outputs.items()} for h, r in res.items()}
+            res = e.wait(e.submit(frame(i), frame_id=i), timeout=120, copy=copy)
+            assert set(res) == HEADS, (overrides, i, sorted(res))
+            out[i] = {h: arrays(r) for h, r in res.items()}
+            latencies += [r.latency for r in res.values()]
         assert all(m["errors"] == 0 for m in e.stats()["models"].values())
-    return out, events is not None
+        events = {name: ring.device_events is not None for name, ring in e._res.rings.items()}
+    return out, events, latencies
 
 
 def same(a, b) -> bool:  # type: ignore[no-untyped-def]
@@ -36,14 +49,62 @@ def same(a, b) -> bool:  # type: ignore[no-untyped-def]
 
 
 def test_heads_read_features_handed_off_by_event_exactly_as_if_handed_off_on_the_host(slow_foundation):
-    host, host_events = run("host")
-    event, event_events = run("event")
-    assert not host_events and event_events
+    host, host_events, _ = run("runtime.feature_handoff=host")
+    event, event_events, _ = run("runtime.feature_handoff=event")
+    assert not host_events["features"] and event_events["features"]
     assert same(event, host)
 
 
 def test_without_the_device_wait_the_heads_would_read_the_previous_frame(slow_foundation, monkeypatch):
-    host, _ = run("host")
+    host, _, _ = run("runtime.feature_handoff=host")
     monkeypatch.setattr(DeviceContext, "wait_on", lambda self, event: None)
-    unordered, _ = run("event")
+    unordered, _, _ = run("runtime.feature_handoff=event")
     assert not same(unordered, host)
+
+
+@pytest.mark.parametrize(
+    "copy, spin", [(True, 0), (False, 0), (True, 200)], ids=["copied", "borrowed", "copied-wait-spin"]
+)
+def test_results_handed_off_by_event_reach_the_caller_exactly_as_if_handed_off_on_the_host(
+    slow_heads, copy, spin
+):
+    host, host_events, host_latency = run("runtime.result_handoff=host", copy=copy)
+    event, event_events, event_latency = run(
+        "runtime.result_handoff=event", f"runtime.wait_spin_us={spin}", copy=copy
+    )
+    assert not any(host_events[f"out.{h}"] for h in HEADS)
+    assert all(event_events[f"out.{h}"] for h in HEADS)
+    assert same(event, host)
+    # each head's work sleeps a few ms on the device after it is published: a result's latency is when it was
+    # there, not when it was published
+    assert min(event_latency) > 1e-3 and min(host_latency) > 1e-3, (min(event_latency), min(host_latency))
+
+
+def test_without_waiting_for_the_device_the_caller_would_read_an_older_result(slow_heads, monkeypatch):
+    host, _, _ = run("runtime.result_handoff=host")
+    monkeypatch.setattr(SlotRing, "wait_done", lambda self, slot, spin_s=0.0: slot.t_publish)
+    unordered, _, _ = run("runtime.result_handoff=event")
+    assert not same(unordered, host)
+
+
+def test_results_and_latest_give_only_results_whose_device_work_is_done(slow_heads):
+    host, _, _ = run("runtime.result_handoff=host", n=6)
+    cfg = tiny("thread", "device=cuda", "runtime.result_handoff=event")
+    with Engine(cfg) as e:
+        e.results()  # starts the stream
+        for i in range(6):
+            fid = e.submit(frame(i), frame_id=i)
+            got: dict[str, np.ndarray] = {}
+            while set(got) != HEADS:
+                for r in e.results(timeout=30):
+                    assert r.frame_id == fid and r.head not in got, (r.head, r.frame_id, fid)
+                    got[r.head] = arrays(r)
+                    assert all(np.array_equal(got[r.head][k], host[i][r.head][k]) for k in got[r.head]), (
+                        i,
+                        r.head,
+                    )
+                    latest = e.latest(
+                        r.head
+                    )  # the newest that is there: this frame's (the next is not submitted)
+                    assert latest is not None and latest.frame_id == fid, (r.head, latest)
+        assert all(r["missed"] == 0 and r["delivered"] == 6 for r in e.stats()["results"].values())

@@ -51,15 +51,19 @@ class Dev:
                 "complete",
                 self.rings["features"].last_seq,
                 self.rings["input"].pins()["foundation"],
+                self.rings["out"].last_seq,
+                self.rings["features"].pins()["depth"],
             )
         )
 
 
-def spec(name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream) -> WorkerSpec:  # type: ignore[no-untyped-def]
-    return WorkerSpec(name, role, {}, upstream, {}, in_ring.desc, name, out_ring.desc, False)  # type: ignore[arg-type]
+def spec(
+    name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream, notify: bool = False
+) -> WorkerSpec:  # type: ignore[no-untyped-def]
+    return WorkerSpec(name, role, {}, upstream, {}, in_ring.desc, name, out_ring.desc, notify)  # type: ignore[arg-type]
 
 
-def pipeline(handoff: bool, work_s: float = 0.0):  # type: ignore[no-untyped-def]
+def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type: ignore[no-untyped-def]
     rings = {
         "input": latest_buffer("input", X, ["foundation"]),
         "features": latest_buffer("features", F, ["depth"]),
@@ -67,6 +71,8 @@ def pipeline(handoff: bool, work_s: float = 0.0):  # type: ignore[no-untyped-def
     }
     if handoff:  # what prepare_worker does for a thread-mode foundation on CUDA
         rings["features"].device_events = [Event(i) for i in range(rings["features"].n_slots)]
+    if results:  # and for a head's results (Note [Result hand-off])
+        rings["out"].device_events = [Event(i) for i in range(rings["out"].n_slots)]
     control = ControlBlock.create(["foundation", "depth"])
     log: list[tuple] = []
 
@@ -88,7 +94,7 @@ def pipeline(handoff: bool, work_s: float = 0.0):  # type: ignore[no-untyped-def
         Dev("foundation", log, rings, work_s),  # type: ignore[arg-type]
     )
     head = WorkerCore(
-        spec("depth", "head", rings["features"], rings["out"], F),
+        spec("depth", "head", rings["features"], rings["out"], F, notify=True),
         depth,
         D,
         rings["features"],
@@ -160,3 +166,40 @@ def test_a_handed_off_run_is_timed_by_its_device_work_not_by_its_queueing():
     step(fm)
     lat, e2e = control.recent_latencies("foundation")
     assert len(lat) == 1 and lat[0] >= 0.03 and e2e[0] >= lat[0], (lat, e2e)
+
+
+def test_with_result_hand_off_a_head_publishes_before_its_work_is_done_and_marks_when_it_was():
+    rings, control, log, fm, head = pipeline(handoff=True, results=True)
+    for i in range(4):
+        log.clear()
+        submit(rings, i)
+        step(fm)
+        word = control.output_word()
+        t0 = time.monotonic()
+        step(head)
+        t1 = time.monotonic()
+        head_log = [e for e in log if e[0] == "depth"]
+        assert [e[1] for e in head_log] == ["wait_on", "model", "mark", "complete"], head_log
+        # published (out seq = i + 1) before the head waited for its work, with the features still pinned: the
+        # foundation cannot overwrite what the queued work reads
+        assert head_log[-1][4] == i + 1 and head_log[-1][5] >= 0, head_log
+        # the engine was woken twice, at publish and once the work was done, and knows when that was
+        assert control.output_word() == (word + 2) & 0xFFFFFFFF
+        slot = rings["out"].reader("results").pin(done=True)
+        assert slot is not None and slot.seq == i + 1
+        seq, t_done = rings["out"].done_at[slot.index]
+        assert seq == slot.seq and t0 <= t_done <= t1 and rings["out"].wait_done(slot) == t_done
+        rings["out"].reader("results").release(slot)
+    assert control.snapshot("depth")["runs"] == 4
+
+
+def test_with_results_handed_off_on_the_host_a_head_publishes_only_completed_work():
+    rings, control, log, fm, head = pipeline(handoff=True, results=False)
+    submit(rings, 0)
+    step(fm)
+    word = control.output_word()
+    step(head)
+    done = [e for e in log if e[0] == "depth" and e[1] == "complete"]
+    assert done[0][4] == 0, "published before its work was complete"
+    assert control.output_word() == (word + 1) & 0xFFFFFFFF
+    assert rings["out"].done_at == [(0, 0.0)] * rings["out"].n_slots

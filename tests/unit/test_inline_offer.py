@@ -1,4 +1,4 @@
-"""Note [Inline launch], the offer alone: what ``InlineLaunch.launch`` does for the thread that publishes a frame,
+"""Note [Inline launch], the offer alone: what ``InlineLaunch.publish`` does for the thread that publishes a frame,
 with a stand-in worker, and the worker's side of it on real rings (the engine-level behaviour is in
 tests/integration/test_inline_launch.py)."""
 
@@ -24,68 +24,101 @@ class Control:
 
 
 class Reader:
-    def __init__(self) -> None:
-        self.pins: list[str] = []
+    name = "foundation"
 
-    def pin(self, timeout: float = 0.0) -> str | None:
-        self.pins.append("frame")
-        return "frame"
+
+class Slot:
+    def __init__(self) -> None:
+        self.extra: dict[str, object] = {}
+
+
+class Writer:
+    """The input ring's writer: records each publish, and whether it pinned the frame for a reader."""
+
+    def __init__(self, log: list[str]) -> None:
+        self.log, self.seq = log, 0
+
+    def publish(self, slot, frame_id, t_capture, t_submit, pin_for=None) -> int:  # type: ignore[no-untyped-def]
+        self.seq += 1
+        self.log.append("publish" if pin_for is None else f"publish pinned for {pin_for.name}")
+        if pin_for is not None:
+            slot.extra["pin"] = "pinned frame"
+        return self.seq
 
 
 class Worker:
     name = "foundation"
 
-    def __init__(self, fail: bool = False) -> None:
-        self.control, self.reader, self.fail = Control(), Reader(), fail
+    def __init__(self, log: list[str], fail: bool = False) -> None:
+        self.control, self.reader, self.fail, self.log = Control(), Reader(), fail, log
         self.launched: list[tuple[object, object]] = []
 
     def _launch(self, slot: object, out: object) -> None:
+        self.log.append("launch")
         if self.fail:
             raise RuntimeError("launch failed")
         self.launched.append((slot, out))
 
 
+def offer_worker(fail: bool = False) -> tuple[InlineLaunch, Worker, Writer, list[str]]:
+    log: list[str] = []
+    return InlineLaunch(), Worker(log, fail), Writer(log), log
+
+
+def publish(offer: InlineLaunch, writer: Writer, slot: Slot | None = None) -> int:
+    return offer.publish(writer, slot or Slot(), 1, 0.0, 0.0)  # type: ignore[arg-type]
+
+
 def test_nothing_is_launched_unless_a_worker_is_armed():
-    offer, worker = InlineLaunch(), Worker()
-    assert offer.launch() is False
+    offer, worker, writer, log = offer_worker()
+    assert publish(offer, writer) == 1
     offer.arm(worker, "out", None)  # type: ignore[arg-type]
     offer.disarm(worker)  # type: ignore[arg-type]
-    assert offer.launch() is False and worker.reader.pins == [] and offer.take_done() is None
+    assert publish(offer, writer) == 2
+    assert log == ["publish", "publish"] and offer.take_done() is None and offer.launches == 0
 
 
-def test_an_armed_worker_gets_the_frame_pinned_launched_and_handed_over_once():
-    offer, worker = InlineLaunch(), Worker()
+def test_an_armed_worker_gets_its_work_queued_before_the_frame_is_published_pinned_for_it_and_handed_over_once():
+    offer, worker, writer, log = offer_worker()
     offer.arm(worker, "out", None)  # type: ignore[arg-type]
-    assert offer.launch() is True
-    assert worker.reader.pins == ["frame"] and worker.launched == [("frame", "out")] and offer.launches == 1
-    slot, _, error = offer.take_done()  # type: ignore[misc]
-    assert slot == "frame" and error is None
-    assert offer.launch() is False  # disarmed by the launch: the next frame waits for the worker
+    slot = Slot()
+    assert publish(offer, writer, slot) == 1
+    assert log == ["launch", "publish pinned for foundation"]  # queued first: nobody can see the slot yet
+    assert worker.launched == [(slot, "out")] and offer.launches == 1
+    pinned, _, error = offer.take_done()  # type: ignore[misc]
+    assert pinned == "pinned frame" and error is None and "pin" not in slot.extra
+    assert (
+        publish(offer, writer) == 2 and log[-1] == "publish"
+    )  # disarmed: the next frame waits for the worker
     assert offer.take_done() is None and offer.launches == 1
 
 
 def test_a_rate_changed_since_arming_leaves_the_frame_to_the_worker():
-    offer, worker = InlineLaunch(), Worker()
+    offer, worker, writer, log = offer_worker()
     offer.arm(worker, "out", None)  # type: ignore[arg-type]
     worker.control.hz = 0.0  # paused after it armed, before it woke to disarm
-    assert offer.launch() is False and worker.reader.pins == [] and worker.launched == []
+    publish(offer, writer)
+    assert log == ["publish"] and worker.launched == []
     worker.control.hz = None  # the rate it armed under again
-    assert offer.launch() is True and worker.launched == [("frame", "out")]
+    publish(offer, writer)
+    assert log[1:] == ["launch", "publish pinned for foundation"]
 
 
 def test_the_rate_compared_is_the_one_the_gate_opened_under_not_the_one_at_arming():
-    offer, worker = InlineLaunch(), Worker()
+    offer, worker, writer, log = offer_worker()
     worker.control.hz = 0.0  # paused after the worker's gate opened unlimited, before it armed
     offer.arm(worker, "out", None)  # type: ignore[arg-type]
-    assert offer.launch() is False and worker.launched == []
+    publish(offer, writer)
+    assert log == ["publish"] and worker.launched == []
 
 
 def test_a_launch_that_raises_is_handed_to_the_worker_not_raised_in_submit():
-    offer, worker = InlineLaunch(), Worker(fail=True)
+    offer, worker, writer, log = offer_worker(fail=True)
     offer.arm(worker, "out", None)  # type: ignore[arg-type]
-    assert offer.launch() is True  # no exception here
-    slot, _, error = offer.take_done()  # type: ignore[misc]
-    assert slot == "frame" and isinstance(error, RuntimeError) and "launch failed" in str(error)
+    assert publish(offer, writer) == 1  # no exception here, and the frame is published all the same
+    pinned, _, error = offer.take_done()  # type: ignore[misc]
+    assert log == ["launch", "publish pinned for foundation"]
+    assert pinned == "pinned frame" and isinstance(error, RuntimeError) and "launch failed" in str(error)
 
 
 def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, ControlBlock]:

@@ -327,3 +327,30 @@ def test_layout_is_one_allocation_with_aligned_non_overlapping_views():
     assert all(a[1] <= b[0] for a, b in itertools.pairwise(spans))  # no overlap
     # tiny tensors share the slot: far less than one 2 MiB page per tensor
     assert layout.slot_bytes < 1369 * 384 * 4 + 384 * 4 + 3 * ALIGN + 105
+
+
+def test_publish_can_pin_the_new_slot_for_a_reader_counting_the_read_as_a_pin_would():
+    ring = latest_buffer("t", SPECS, ["a", "b"])
+    try:
+        write(ring, 1)  # a never saw this one: counted missed when it gets the next
+        w, a = ring.writer(), ring.reader("a")
+        slot = w.acquire(timeout=0)
+        slot.tensors["n"].fill_(2)
+        seq = w.publish(slot, 2, 0.0, time.monotonic(), pin_for=a)
+        pinned = slot.extra.pop("pin")
+        assert (pinned.index, pinned.seq, pinned.frame_id, pinned.missed) == (slot.index, seq, 2, 1)
+        assert ring.pins()["a"] == slot.index and a.cursor == seq
+        assert not a.available()  # nothing unseen: the publish's pin was this reader's read
+        st = ring.stats()["readers"]["a"]
+        assert (st["reads"], st["missed"]) == (1, 1)
+        b = ring.reader("b")
+        got = b.pin()
+        assert got is not None and got.seq == seq  # other readers see it as usual
+        b.release(got)
+        slot2 = w.acquire(timeout=0)
+        assert slot2.index != slot.index  # pinned by a: not reused
+        with pytest.raises(RuntimeError, match="already pins"):
+            w.publish(slot2, 3, 0.0, time.monotonic(), pin_for=a)
+        a.release(pinned)
+    finally:
+        ring.close()

@@ -80,11 +80,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "sleeps through the predicted part and polls the rest (Note [Device sync])",
     )
     p.add_argument(
+        "--wait-spin-us",
+        type=float,
+        default=0.0,
+        help="runtime.wait_spin_us: Engine.wait sleeps in the driver for a result handed off by event (0), or "
+        "sleeps through its predicted part and spins in the driver for the rest (Note [Result hand-off])",
+    )
+    p.add_argument(
         "--feature-handoff",
         default="event",
         choices=["event", "host"],
         help="runtime.feature_handoff: in thread mode on CUDA the foundation model publishes queued features with "
         "a device event the heads wait on (event), or waits for them on the host first (host; Note [Event hand-off])",
+    )
+    p.add_argument(
+        "--result-handoff",
+        default="event",
+        choices=["event", "host"],
+        help="runtime.result_handoff: in thread mode on CUDA each head publishes queued results with a device event "
+        "Engine.wait sleeps on (event), or waits for them on the host first (host; Note [Result hand-off])",
     )
     p.add_argument(
         "--inline-launch",
@@ -140,8 +154,10 @@ class Setup:
     mps_pipe_directory: str | None = None
     results: str = "copy"
     sync_spin_us: float = 0.0
+    wait_spin_us: float = 0.0
     slot_bound: bool = True
     feature_handoff: str = "event"
+    result_handoff: str = "event"
     inline_launch: str = "auto"
     stream_priorities: dict[str, int] = field(default_factory=dict)
     #: options.upsample of a linear segmentation head; "auto" leaves the option out (the tiny seg head has none)
@@ -154,7 +170,9 @@ class Setup:
     @property
     def engine_label(self) -> str:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
+        spin += f", wait spin {self.wait_spin_us:g} us" if self.wait_spin_us else ""
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
+        handoff += ", results handed off on the host" if self.result_handoff == "host" else ""
         launch = ", worker launch" if self.inline_launch == "never" else ""
         upsample = f", seg upsample {self.seg_upsample}" if self.seg_upsample != "auto" else ""
         return f"{self.mode} mode, MPS {self.mps}, results {self.results}{spin}{handoff}{launch}{upsample}"
@@ -180,8 +198,10 @@ class Setup:
                 mps=a.mps,
                 results=a.results,
                 sync_spin_us=a.sync_spin_us,
+                wait_spin_us=a.wait_spin_us,
                 slot_bound=not a.no_slot_bound,
                 feature_handoff=a.feature_handoff,
+                result_handoff=a.result_handoff,
                 inline_launch=a.inline_launch,
                 stream_priorities=parse_priorities(a.stream_priorities),
             )
@@ -200,8 +220,10 @@ class Setup:
             mps=a.mps,
             results=a.results,
             sync_spin_us=a.sync_spin_us,
+            wait_spin_us=a.wait_spin_us,
             slot_bound=not a.no_slot_bound,
             feature_handoff=a.feature_handoff,
+            result_handoff=a.result_handoff,
             inline_launch=a.inline_launch,
             stream_priorities=parse_priorities(a.stream_priorities),
             seg_upsample=a.seg_upsample,
@@ -255,7 +277,9 @@ class Setup:
             "weights": {"random_weights": True},
             "runtime": {
                 "sync_spin_us": self.sync_spin_us,
+                "wait_spin_us": self.wait_spin_us,
                 "feature_handoff": self.feature_handoff,
+                "result_handoff": self.result_handoff,
                 "inline_launch": self.inline_launch,
             },
             "logging": {"level": "WARNING"},

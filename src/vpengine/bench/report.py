@@ -66,10 +66,15 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
         label += ", not slot-bound"
     if setup.get("sync_spin_us"):
         label += f", sync spin {setup['sync_spin_us']:g} us"
+    if setup.get("wait_spin_us"):
+        label += f", wait spin {setup['wait_spin_us']:g} us"
     # thread mode's features waited for on the host (runs before Note [Event hand-off] have no such key and
     # handed off on the host too)
     if setup.get("feature_handoff") == "host":
         label += ", host hand-off"
+    # thread mode's results waited for by the heads on the host (as in runs before Note [Result hand-off], unlabelled)
+    if setup.get("result_handoff") == "host":
+        label += ", results handed off on the host"
     # thread mode's foundation launched by its worker, never by submit (so were runs before Note [Inline launch])
     if setup.get("inline_launch") == "never":
         label += ", worker launch"

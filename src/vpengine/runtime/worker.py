@@ -26,6 +26,23 @@ the host on the host's terms as before: they sync, then publish. Process mode ke
 would have to cross processes), and so does the CPU, where work is synchronous. The foundation's run is counted
 when it is published and its times corrected once its work is done (``ControlBlock.amend_last_run``).
 
+Note [Result hand-off]
+~~~~~~~~~~~~~~~~~~~~~~
+The last hop, from a head to the caller waiting for the frame, cost two wake-ups after the device was done: the
+head's thread woke from the driver, published, and woke the caller, who then pinned and read the result (on an H100,
+0.2 ms of a 3.4 ms depth + seg frame). In thread mode on CUDA (``runtime.result_handoff: event``, the default) a
+head records a blocking CUDA event per output slot after queueing its work and the copy to the host, publishes at
+once, and wakes the caller, who pins the result while the device still computes it. ``Engine.wait`` then sleeps in
+the driver on the slot's event (``SlotRing.wait_done``) and returns as soon as the device is done: the wake-ups happen
+while the device works, not after. The head's thread still waits for its own work before it releases its input
+slot, counts the run by its device time (``amend_last_run``), and records when the work was done
+(``SlotRing.mark_done``), which is each result's ``latency``; then it wakes readers again. ``Engine.results`` and
+``Engine.latest`` take only results that are done (``pin(done=True)``): they never block on device work, and a
+FIFO reader never takes a result out of order. No reader reads a slot before its content is there: ``wait_done``
+is called on every pinned result before its tensors are touched. Process mode keeps the host hand-off (its events
+would have to cross processes), and so does the CPU. The price: ``Engine.wait`` may outlast its timeout by the
+remaining device time of a result it already holds.
+
 Note [Inline launch]
 ~~~~~~~~~~~~~~~~~~~~
 The frame's own hop, from the submitting thread to the foundation model, costs a wake-up too: on an H100 the
@@ -33,8 +50,10 @@ foundation thread began its run 0.14 ms after the frame was published, while the
 the foundation model runs from graphs bound to the slots (``runtime.inline_launch: auto``), its worker does not
 wait for frames in the ring when it is ready for one: it acquires its output slot and *arms* the input ring's
 ``InlineLaunch`` with it. The thread that publishes the next frame (``Engine.submit`` or a
-``frame_slot`` closing) then pins that frame for the foundation's reader and queues the foundation's work itself,
-on the foundation's stream (three graph launches), and hands the pinned slots to the worker, which wakes, publishes
+``frame_slot`` closing) then queues the foundation's work itself, on the foundation's stream (three graph
+launches), *before* it publishes the frame: the slot is still its writer's, so no one else can see it, let alone
+reuse it. It then publishes the frame already pinned for the foundation's reader (``publish(pin_for=...)``, one
+critical section, the read counted as any other) and hands the pinned slots to the worker, which wakes, publishes
 the features (Note [Event hand-off]) and does the rest of its run as usual: counting, waiting for its work,
 releasing the frame. Nothing else changes hands: the worker alone decides when it is ready (rate limit, pause), a
 launch that raises is raised in the worker (restart rules), and a frame published while the worker is not armed is
@@ -74,7 +93,7 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import torch
 
@@ -85,7 +104,7 @@ from vpengine.runtime.control import PAUSED, RUNNING, ControlBlock, ControlDesc
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.rate import RateGate
 from vpengine.specs import SpecDict
-from vpengine.transport.ring import RingDesc, SlotInfo, SlotRing
+from vpengine.transport.ring import RingDesc, RingWriter, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine.worker")
 
@@ -321,6 +340,10 @@ class WorkerCore:
             self.dev.complete()
             t_end = time.monotonic()
             ctl.amend_last_run(name, t_end - t_start, t_end - slot.t_submit)
+            if self.spec.notify_output:
+                # Note [Result hand-off]: when it was there; wakes readers waiting for done results
+                self.writer.ring.mark_done(out, t_end)
+                ctl.notify_output()
 
     # ---------------------------------------------------------------------- Note [Inline launch], worker side
     def _take_inline(self, gate_open: float, rate: float | None) -> None:
@@ -402,30 +425,29 @@ class InlineLaunch:
         return done
 
     # submitting side
-    def launch(self) -> bool:
-        """Right after a frame is published: if a worker is armed, pin the frame for it, queue its work and hand
-        it over. True if it did."""
+    def publish(
+        self, writer: RingWriter, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float
+    ) -> int:
+        """Publish the frame filled in ``slot`` (the input ring's ``writer`` holds it); if a worker is armed, queue
+        its work on the frame first, then publish the frame pinned for its reader and hand it over. The frame's seq.
+        """
         with self.cond:
             core, out = self._core, self._out
-            if core is None or out is None:
-                return False
-            rate = core.control.rate(core.name)
-            if rate != self._rate:
-                return False  # changed since it armed (a pause, say): the worker's gate decides, once woken
-            slot = core.reader.pin(timeout=0)
-            if slot is None:  # nothing new for its reader (it is not active): leave it armed
-                return False
+            if core is None or out is None or core.control.rate(core.name) != self._rate:
+                # no worker armed, or the rate changed since (a pause, say): the worker's gate decides, once woken
+                return writer.publish(slot, frame_id, t_capture, t_submit)
             self._core = self._out = None
             t_start = time.monotonic()
             error: BaseException | None = None
-            try:
+            try:  # queued before the frame is published: nobody else can see the slot yet, let alone reuse it
                 core._launch(slot, out)
             except Exception as e:  # raised in the worker, under its restart rules; never in submit
                 error = e
-            self._done = (slot, t_start, error)
+            seq = writer.publish(slot, frame_id, t_capture, t_submit, pin_for=core.reader)
+            self._done = (cast(SlotInfo, slot.extra.pop("pin")), t_start, error)
             self.launches += 1
             self.cond.notify_all()
-            return True
+            return seq
 
     def wake(self) -> None:
         """Wake an armed worker (at stop), which then disarms."""
@@ -510,10 +532,15 @@ def prepare_worker(
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
     # Note [Event hand-off]: every reader of the features is a head thread of this process on this device. A
-    # restarted foundation keeps the events: a slot its predecessor published is still ordered by them.
-    handoff = spec.role == "foundation" and not own_process and cfg.runtime.feature_handoff == "event"
-    if handoff and dev.cuda and out_ring.device_events is None:
-        out_ring.device_events = [torch.cuda.Event() for _ in range(out_ring.n_slots)]
+    # restarted model keeps the events: a slot its predecessor published is still ordered by them.
+    if dev.cuda and not own_process and out_ring.device_events is None:
+        if spec.role == "foundation" and cfg.runtime.feature_handoff == "event":
+            out_ring.device_events = [torch.cuda.Event() for _ in range(out_ring.n_slots)]
+        elif spec.role == "head" and cfg.runtime.result_handoff == "event":
+            # Note [Result hand-off]: read on the host by the engine, which sleeps in the driver on them, or spins
+            # there at the end of each wait (runtime.wait_spin_us > 0: events with default flags)
+            blocking = cfg.runtime.wait_spin_us <= 0
+            out_ring.device_events = [torch.cuda.Event(blocking=blocking) for _ in range(out_ring.n_slots)]
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())
     core = WorkerCore(

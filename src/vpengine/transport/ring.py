@@ -151,6 +151,11 @@ class SlotRing:
         # runtime/worker.py): a reader's stream waits on the slot's event before reading it. Thread mode only, so a
         # plain attribute of this process's ring object; None: the writer published only completed work.
         self.device_events: list[Any] | None = None
+        # Per slot, (seq, monotonic time) of the last publish whose queued device work the writer saw finish
+        # (Note [Result hand-off] in runtime/worker.py): when a handed-off result was ready, for its latency.
+        self.done_at: list[tuple[int, float]] = [(0, 0.0)] * self.n_slots
+        # Moving average of the time from a slot's publish to its work done (0: none seen yet), for ``wait_done``
+        self.publish_to_done_s = 0.0
         # The input ring's reader in thread mode may take frames from the submitting thread (Note [Inline launch] in
         # runtime/worker.py): its ``InlineLaunch``, also in-process only; woken by ``wake_all``.
         self.inline: Any = None
@@ -348,6 +353,56 @@ class SlotRing:
     def last_seq(self) -> int:
         return self._q[_H_LAST_SEQ]
 
+    # ------------------------------------------------------- slots published with queued work (thread mode)
+    def mark_done(self, slot: SlotInfo, t_done: float) -> None:
+        """The writer saw the device work behind its published ``slot`` finish at ``t_done`` (monotonic); wakes
+        readers waiting for a done slot (``pin(done=True)``)."""
+        self._record_done(slot, t_done)
+        with self._mutex:
+            self._u[_PUBLISH_WORD_OFF // 4] = (self._u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
+        self._wake_publish()
+
+    def _record_done(self, slot: SlotInfo, t_done: float) -> None:
+        """The first to see a slot's work done (its writer, or a reader waiting for it) says when; each slot's time
+        from publish to done goes into the moving average that ``wait_done`` predicts with."""
+        if self.done_at[slot.index][0] == slot.seq:
+            return
+        self.done_at[slot.index] = (slot.seq, t_done)
+        took = t_done - slot.t_publish
+        ema = self.publish_to_done_s
+        self.publish_to_done_s = took if ema <= 0 else ema + 0.125 * (took - ema)
+
+    def _done(self, i: int, seq: int) -> bool:
+        """Whether published slot ``i`` (sequence ``seq``) holds its content now, not only queued work."""
+        events = self.device_events
+        return events is None or self.done_at[i][0] == seq or bool(events[i].query())
+
+    def wait_done(self, slot: SlotInfo, spin_s: float = 0.0) -> float:
+        """Block until the content of pinned ``slot`` is there to read (its device work, if it was published
+        queued, is done); returns when it was, in monotonic seconds: its publish time if it was published
+        complete, else when its writer or this call saw its work finish, whichever came first.
+
+        The wait is the event's: a blocking event sleeps in the driver, a default one spins there, with the
+        interpreter lock free either way. ``spin_s`` > 0 (default-flag events): sleep first through the part of
+        the work that recent slots predict, less ``spin_s``, then spin for the rest (Note [Result hand-off])."""
+        events = self.device_events
+        if events is None:
+            return slot.t_publish
+        seq, t_done = self.done_at[slot.index]
+        if seq == slot.seq:
+            return t_done
+        event = events[slot.index]
+        if not event.query():
+            if spin_s > 0 and self.publish_to_done_s > 0:
+                ahead = slot.t_publish + self.publish_to_done_s - spin_s - time.monotonic()
+                if ahead > 0:
+                    time.sleep(ahead)
+            event.synchronize()
+            t_done = time.monotonic()
+            self._record_done(slot, t_done)
+            return t_done
+        return time.monotonic()
+
 
 class RingWriter:
     """The single writer of a ring. ``acquire`` -> fill ``slot.tensors`` -> ``publish`` (or ``abort``)."""
@@ -413,18 +468,29 @@ class RingWriter:
             _linux.futex_wait(ring._release_addr, word, min(remaining, _MAX_SLEEP))
 
     def publish(
-        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, origin: int | None = None
+        self,
+        slot: SlotInfo,
+        frame_id: int,
+        t_capture: float,
+        t_submit: float,
+        origin: int | None = None,
+        pin_for: RingReader | None = None,
     ) -> int:
         """Make a filled slot visible to readers and wake them. The slot's content must be complete, or its device
         work queued before the slot's event in ``ring.device_events`` (Note [Event hand-off] in runtime/worker.py).
 
         ``origin`` carries the frame's identity down the pipeline; None means this ring is the input ring and
-        the new slot's own seq is the origin.
+        the new slot's own seq is the origin. ``pin_for``: a reader that pins the slot (and counts the read) in
+        the same critical section, before any other reader can see it, whose pin is then ``slot.extra["pin"]``:
+        how a reader whose work on the slot was queued before it was published keeps it (Note [Inline launch]
+        in runtime/worker.py). The reader must pin nothing.
         """
         ring, q, d, u = self.ring, self.ring._q, self.ring._d, self.ring._u
         b = ring._slot(slot.index)
         now = time.monotonic()
         with ring._mutex:
+            if pin_for is not None and q[pin_for._b + _R_PINNED] >= 0:
+                raise RuntimeError(f"reader {pin_for.name!r} of ring {ring.name!r} already pins a slot")
             seq = q[_H_LAST_SEQ] + 1
             q[b + _S_SEQ] = seq
             q[b + _S_FRAME] = frame_id
@@ -436,6 +502,8 @@ class RingWriter:
             q[_H_LAST_SEQ] = seq
             q[_H_PUBLISHED] += 1
             u[_PUBLISH_WORD_OFF // 4] = (u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
+            if pin_for is not None:
+                slot.extra["pin"] = pin_for._pin_locked(slot.index)
         ring._wake_publish()
         slot.seq, slot.frame_id, slot.t_capture, slot.t_submit, slot.t_publish = (
             seq,
@@ -490,10 +558,13 @@ class RingReader:
         return self.ring._q[self._b + _R_CURSOR]
 
     # -------------------------------------------------------------------------------------------- reading
-    def _find(self, peek: bool) -> int | None:
+    def _find(self, peek: bool, done: bool = False) -> int | None:
+        """The slot to pin next; ``done``: only one whose content is there, not queued on the device. A peek then
+        takes the newest such slot; a read takes its usual slot only once it is done (never one out of order)."""
         ring, q = self.ring, self.ring._q
         cursor = q[self._b + _R_CURSOR]
         fifo = self._mode == _MODE_CODE["fifo"] and not peek
+        done = done and ring.device_events is not None
         best, best_seq = None, None
         for i in range(ring.n_slots):
             b = ring._slot(i)
@@ -502,8 +573,12 @@ class RingReader:
             seq = q[b + _S_SEQ]
             if not peek and seq <= cursor:
                 continue
+            if peek and done and not ring._done(i, seq):
+                continue
             if best_seq is None or (seq < best_seq if fifo else seq > best_seq):
                 best, best_seq = i, seq
+        if done and not peek and best is not None and best_seq is not None and not ring._done(best, best_seq):
+            return None
         return best
 
     def pin_origin(self, origin: int) -> tuple[SlotInfo | None, int]:
@@ -556,13 +631,19 @@ class RingReader:
             return self._find(False) is not None
 
     def pin(
-        self, timeout: float = 0.0, should_stop: Callable[[], bool] | None = None, peek: bool = False
+        self,
+        timeout: float = 0.0,
+        should_stop: Callable[[], bool] | None = None,
+        peek: bool = False,
+        done: bool = False,
     ) -> SlotInfo | None:
         """Pin the next slot for this reader (newest unseen, or next in order for FIFO readers).
 
         Waits up to ``timeout`` seconds for one (0: do not wait); returns None on timeout or when ``should_stop``
         says so. ``peek`` pins the newest published slot even if already seen, without counting anything.
-        The returned tensors are views into the pool: use them, then :meth:`release`.
+        ``done``: only a slot whose device work is done, if its writer publishes queued work (a writer that does
+        wakes readers again when it is done). The returned tensors are views into the pool: use them, then
+        :meth:`release`.
         """
         ring, q, u = self.ring, self.ring._q, self.ring._u
         b = self._b
@@ -574,19 +655,9 @@ class RingReader:
                         f"reader {self.name!r} of ring {ring.name!r} already pins slot {q[b + _R_PINNED]}; "
                         "release it before pinning another"
                     )
-                i = self._find(peek)
+                i = self._find(peek, done)
                 if i is not None:
-                    q[b + _R_PINNED] = i
-                    q[b + _R_PID] = ring._pid
-                    info = ring._slot_info(i)
-                    if not peek:
-                        cursor = q[b + _R_CURSOR]
-                        if q[b + _R_ACTIVE]:
-                            info.missed = info.seq - cursor - 1
-                            q[b + _R_MISSED] += info.missed
-                            q[b + _R_READS] += 1
-                        q[b + _R_CURSOR] = info.seq
-                    return info
+                    return self._pin_locked(i, peek)
                 word = u[_PUBLISH_WORD_OFF // 4]
             if should_stop is not None and should_stop():
                 return None
@@ -594,6 +665,21 @@ class RingReader:
             if remaining <= 0:
                 return None
             _linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
+
+    def _pin_locked(self, i: int, peek: bool = False) -> SlotInfo:
+        """Pin published slot ``i`` and count the read (not a peek); the caller holds the ring's mutex."""
+        ring, q, b = self.ring, self.ring._q, self._b
+        q[b + _R_PINNED] = i
+        q[b + _R_PID] = ring._pid
+        info = ring._slot_info(i)
+        if not peek:
+            cursor = q[b + _R_CURSOR]
+            if q[b + _R_ACTIVE]:
+                info.missed = info.seq - cursor - 1
+                q[b + _R_MISSED] += info.missed
+                q[b + _R_READS] += 1
+            q[b + _R_CURSOR] = info.seq
+        return info
 
     def release(self, slot: SlotInfo | None = None) -> None:
         """Unpin. The work that read the slot's tensors must be complete (see Note [Slot lifetime])."""

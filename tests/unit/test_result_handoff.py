@@ -1,0 +1,245 @@
+"""Note [Result hand-off]: a head publishes results whose device work is still queued, with one event per slot.
+Here stand-in events say when that work is done (a real one needs a GPU: tests/gpu/test_event_handoff_cuda.py runs
+the engine both ways). What must hold: a reader that asks for done results never gets a queued one, nor one out of
+order; ``wait_done`` never returns before the work is done; the writer's wake-up reaches readers waiting for done
+results; a result's time is when its work was done."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import pytest
+import torch
+
+from vpengine.specs import TensorSpec
+from vpengine.transport import ring as ring_module
+from vpengine.transport.ring import SlotRing, fifo_queue, latest_buffer
+
+SPECS = {"x": TensorSpec((4,), "float32")}
+
+
+class Event:
+    """A slot's event: done once the 'device' finished; ``synchronize`` is that wait (here: the work finishes)."""
+
+    def __init__(self) -> None:
+        self.done = True  # a CUDA event never recorded reports done
+        self.syncs = 0
+
+    def record(self) -> None:
+        self.done = False
+
+    def query(self) -> bool:
+        return self.done
+
+    def synchronize(self) -> None:
+        self.syncs += 1
+        self.synced_at = time.monotonic()
+        self.done = True
+
+
+def handed_off(ring: SlotRing) -> list[Event]:
+    ring.device_events = events = [Event() for _ in range(ring.n_slots)]
+    return events
+
+
+def publish_queued(ring: SlotRing, value: float) -> tuple[int, int]:
+    """What a head does: queue the work into a slot, record its event, publish at once. (slot index, seq)."""
+    w = ring.writer()
+    slot = w.acquire(timeout=0)
+    assert slot is not None
+    slot.tensors["x"].fill_(value)
+    ring.device_events[slot.index].record()  # type: ignore[index]
+    seq = w.publish(slot, int(value), 0.0, time.monotonic())
+    return slot.index, seq
+
+
+def finish(ring: SlotRing, index: int, seq: int) -> float:
+    """The device finished the slot's work and its writer saw it."""
+    ring.device_events[index].done = True  # type: ignore[index]
+    t = time.monotonic()
+    slot = ring._slot_info(index, tensors=False)
+    assert slot.seq == seq
+    ring.mark_done(slot, t)
+    return t
+
+
+@pytest.mark.parametrize(
+    "make", [latest_buffer, lambda *a: fifo_queue(*a, n_slots=4)], ids=["latest", "fifo"]
+)
+def test_a_reader_asking_for_done_results_does_not_take_queued_ones_and_takes_them_once_done(make):
+    ring = make("out", SPECS, ["results"])
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        _, seq = publish_queued(ring, 1.0)
+        assert r.pin(done=True) is None  # queued: not there yet, and not consumed either
+        assert r.cursor == 0
+        slot = r.pin()  # a reader that orders on the device (a head reading features) takes it at once
+        assert slot is not None and slot.seq == seq
+        r.release(slot)
+        i2, seq2 = publish_queued(ring, 2.0)
+        assert r.pin(done=True) is None
+        finish(ring, i2, seq2)
+        slot = r.pin(done=True)
+        assert slot is not None and slot.seq == seq2 and slot.tensors["x"][0].item() == 2.0
+        r.release(slot)
+    finally:
+        ring.close()
+
+
+def test_a_fifo_reader_asking_for_done_results_never_takes_one_out_of_order():
+    ring = fifo_queue("out", SPECS, ["results"], n_slots=4)
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        a = publish_queued(ring, 1.0)
+        b = publish_queued(ring, 2.0)
+        finish(ring, *b)  # the later one is done first
+        assert r.pin(done=True) is None
+        finish(ring, *a)
+        got = []
+        while (s := r.pin(done=True)) is not None:
+            got.append(s.seq)
+            r.release(s)
+        assert got == [a[1], b[1]]
+    finally:
+        ring.close()
+
+
+def test_a_done_peek_takes_the_newest_done_result_not_a_queued_newer_one():
+    ring = latest_buffer("out", SPECS, ["peek"])
+    try:
+        handed_off(ring)
+        r = ring.reader("peek")
+        assert r.pin(peek=True, done=True) is None
+        a = publish_queued(ring, 1.0)
+        finish(ring, *a)
+        publish_queued(ring, 2.0)
+        slot = r.pin(peek=True, done=True)
+        assert slot is not None and slot.seq == a[1] and slot.tensors["x"][0].item() == 1.0
+        r.release(slot)
+        slot = r.pin(peek=True)
+        assert slot is not None and slot.seq == a[1] + 1  # without done: the newest, queued or not
+        r.release(slot)
+    finally:
+        ring.close()
+
+
+def test_wait_done_waits_for_queued_work_and_times_each_result_by_when_it_was_done():
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        r = ring.reader("results")
+        w = ring.writer()
+        s = w.acquire(timeout=0)
+        w.publish(s, 0, 0.0, time.monotonic())
+        slot = r.pin()
+        assert ring.wait_done(slot) == slot.t_publish  # published complete: its publish time
+        r.release(slot)
+
+        events = handed_off(ring)
+        i, seq = publish_queued(ring, 1.0)
+        slot = r.pin()
+        before = time.monotonic()
+        t = ring.wait_done(slot)
+        assert events[i].syncs == 1 and events[i].done and t >= before  # waited, then timed by the wait
+        r.release(slot)
+
+        i, seq = publish_queued(ring, 2.0)
+        t_done = finish(ring, i, seq)
+        time.sleep(0.01)
+        slot = r.pin()
+        assert (
+            ring.wait_done(slot) == t_done and events[i].syncs == 0
+        )  # done before: the writer's time, no wait
+        r.release(slot)
+    finally:
+        ring.close()
+
+
+def test_mark_done_wakes_a_reader_waiting_for_a_done_result(monkeypatch):
+    monkeypatch.setattr(
+        ring_module, "_MAX_SLEEP", 10.0
+    )  # no periodic re-check: only the wake-up can end the wait
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        i, seq = publish_queued(ring, 1.0)
+        got: list[object] = []
+        t = threading.Thread(target=lambda: got.append(r.pin(timeout=8.0, done=True)))
+        t.start()
+        time.sleep(0.2)
+        assert t.is_alive()  # the slot is published, but queued: the reader keeps waiting
+        woke = time.monotonic()
+        finish(ring, i, seq)
+        t.join(5.0)
+        assert not t.is_alive() and time.monotonic() - woke < 5.0
+        assert got and got[0] is not None and got[0].seq == seq  # type: ignore[attr-defined]
+        r.release(got[0])  # type: ignore[arg-type]
+    finally:
+        ring.close()
+
+
+def test_results_without_device_events_are_done_when_published():
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        w = ring.writer()
+        s = w.acquire(timeout=0)
+        s.tensors["x"].fill_(3.0)
+        w.publish(s, 3, 0.0, time.monotonic())
+        slot = ring.reader("results").pin(done=True)
+        assert slot is not None and torch.equal(slot.tensors["x"], torch.full((4,), 3.0))
+    finally:
+        ring.close()
+
+
+def test_the_first_to_see_a_result_done_says_when_and_each_result_teaches_the_prediction():
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        i, seq = publish_queued(ring, 1.0)
+        slot = r.pin()
+        t_reader = ring.wait_done(slot)  # the reader waited: its time is the result's
+        ring.mark_done(slot, t_reader + 0.5)  # the writer, later: ignored
+        assert ring.done_at[i] == (seq, t_reader)
+        assert ring.publish_to_done_s == pytest.approx(t_reader - slot.t_publish)
+        r.release(slot)
+        first = ring.publish_to_done_s
+        i, seq = publish_queued(ring, 2.0)
+        slot = ring._slot_info(i, tensors=False)
+        ring.mark_done(slot, slot.t_publish + first + 0.08)
+        assert ring.publish_to_done_s == pytest.approx(first + 0.125 * 0.08)  # a moving average
+    finally:
+        ring.close()
+
+
+def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_spins_only_for_the_rest():
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        events = handed_off(ring)
+        r = ring.reader("results")
+        i, _ = publish_queued(ring, 1.0)
+        slot = r.pin()
+        ring.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no sleep, the whole wait in the driver
+        assert events[i].synced_at - slot.t_publish < 0.05
+        r.release(slot)
+
+        ring.publish_to_done_s = 0.15
+        i, _ = publish_queued(ring, 2.0)
+        slot = r.pin()
+        t = ring.wait_done(slot, spin_s=0.02)
+        assert (
+            events[i].syncs == 1 and events[i].synced_at - slot.t_publish >= 0.13
+        )  # slept 0.15 - 0.02 first
+        assert t >= events[i].synced_at
+        r.release(slot)
+
+        i, _ = publish_queued(ring, 3.0)
+        slot = r.pin()
+        ring.wait_done(slot)  # no spin window: straight to the (sleeping) wait in the driver
+        assert events[i].synced_at - slot.t_publish < 0.05
+        r.release(slot)
+    finally:
+        ring.close()

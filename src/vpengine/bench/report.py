@@ -332,7 +332,8 @@ def waterfall(profile: dict[str, Any], path: Path) -> bool:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(len(variants), 1, figsize=(11, 1.0 + 1.9 * len(variants)), dpi=110, sharex=True)
+    height = 1.0 + 1.9 * len(variants)
+    fig, axes = plt.subplots(len(variants), 1, figsize=(11, height), dpi=110, sharex=True)
     axes = np.atleast_1d(axes)
     for ax, v in zip(axes, variants, strict=True):
         rows = waterfall_rows(profile[v]["stages_ms_from_start"])
@@ -354,7 +355,7 @@ def waterfall(profile: dict[str, Any], path: Path) -> bool:
     fig.suptitle(
         f"Where one frame's time goes, thread mode ({', '.join(setup.get('heads', []))}, {setup.get('backend', '?')})"
     )
-    fig.tight_layout(rect=(0, 0.08, 1, 1))
+    fig.tight_layout(rect=(0, 0.7 / height, 1, 1))  # the legend's two rows below the axis label, whatever the height
     fig.savefig(path)
     plt.close(fig)
     return True

@@ -43,6 +43,16 @@ is called on every pinned result before its tensors are touched. Process mode ke
 would have to cross processes), and so does the CPU. The price: ``Engine.wait`` may outlast its timeout by the
 remaining device time of a result it already holds.
 
+Measured on an H200 (thread mode, compiled depth + seg, frame slot, variants alternated round by round on one
+engine, median of 10-14 rounds' p50s; benchmarks/results/h200/ab_result_handoff_*.json): with blocking events this
+alone gains little (2.47-2.51 against 2.45-2.53 ms with the host hand-off): the caller's wake-up from the driver
+costs as much as the head thread's did. What the hand-off makes possible is spending CPU on that one wake-up only:
+``runtime.wait_spin_us: 200`` (default-flag events; sleep through the part of the wait that recent results predict,
+learnt from when each was done, then spin in the driver) gives 2.31-2.38 ms, as fast as spinning through the whole
+wait (2.31-2.37). It is off by default: a head slower than predicted is spun through. Tried and not kept: a head
+woken by its work sleeping until a caller woken by the same work had taken the interpreter lock (no gain: 2.50
+against 2.51 ms).
+
 Note [Inline launch]
 ~~~~~~~~~~~~~~~~~~~~
 The frame's own hop, from the submitting thread to the foundation model, costs a wake-up too: on an H100 the
@@ -64,7 +74,9 @@ and then takes the lock, so no frame submitted after it returns runs under the o
 gate and the arming once let one through). Measured on the H100 (compiled depth + seg,
 benchmarks/results/h100/profile_steps_inline.json): the first graph is queued 0.19 ms after the frame is published
 instead of 0.29 ms, 3.44 instead of 3.52 ms a frame. The 0.14 ms that stayed between starting a run and the first
-graph launch, in whichever thread launched, was the launch path's code running cold (Note [Launch path]).
+graph launch, in whichever thread launched, was the launch path's code running cold (Note [Launch path]). Queueing
+the work before the frame is published, not after, took a further 0.05 ms off (H200, one engine, 14 rounds: 2.50
+against 2.55 ms p50; 2.37 against 2.41 ms with ``wait_spin_us: 200``; ab_result_handoff_prelaunch_ab.json).
 
 Note [Launch path]
 ~~~~~~~~~~~~~~~~~~

@@ -14,8 +14,10 @@ borrowed results, one frame in flight, as the floor experiment runs it:
 
 VARIANTS (separated by ";") picks which.
 
-ROUNDS rounds (default 8) of FRAMES frames (default 200) per variant. Writes ``ab_result_handoff.json`` under $OUT:
-each round's p50 and mean per variant, and each variant's median of those. Set TINY=1 for a CPU smoke run.
+ROUNDS rounds (default 8) of FRAMES frames (default 200) per variant; HEADS as in profile_steps.py
+(default depth,seg; depth:8 for E1's eight depth heads). Writes ``ab_result_handoff{TAG}.json`` under $OUT: each
+round's p50, mean and the caller's CPU time per frame (its thread's: a spin in the driver counts) per variant, and
+each variant's median of those. Set TINY=1 for a CPU smoke run.
 """
 
 from __future__ import annotations
@@ -40,7 +42,10 @@ if os.environ.get("TINY"):
         "cpu", "fp32", 120, 160, "tiny_vit", "tiny_depth", "tiny_seg", "tiny_det", {}, {}, "eager", 20, True
     )
     setup.results = "borrow"
-heads = [setup.head("depth", "depth"), setup.head("seg", "seg")]
+heads = []
+for spec in os.environ.get("HEADS", "depth,seg").split(","):  # "kind" or "kind:count" (depth:8: E1's eight)
+    kind, _, count = spec.partition(":")
+    heads += [setup.head(kind, f"{kind}{i}" if count else kind) for i in range(int(count or 1))]
 imgs = frames(setup)
 
 cores: list[worker_mod.WorkerCore] = []
@@ -106,7 +111,9 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
     for r in range(rounds):
         for n in names:
             variant(n)
+            cpu = time.thread_time()  # this (the caller's) thread only: a spin in the driver counts here
             rows[n].append(lockstep(eng, imgs, setup, slot=True))
+            rows[n][-1]["caller_cpu_ms_per_frame"] = (time.thread_time() - cpu) * 1e3 / (setup.frames + 10)
         print(
             f"round {r + 1}/{rounds}: " + ", ".join(f"{n} {rows[n][-1]['p50']:.3f}" for n in names),
             flush=True,
@@ -116,6 +123,7 @@ summary = {
     n: {
         "median_p50_ms": statistics.median(x["p50"] for x in rows[n]),
         "median_mean_ms": statistics.median(x["mean"] for x in rows[n]),
+        "median_caller_cpu_ms_per_frame": statistics.median(x["caller_cpu_ms_per_frame"] for x in rows[n]),
         "rounds_p50_ms": [round(x["p50"], 4) for x in rows[n]],
         "rounds_mean_ms": [round(x["mean"], 4) for x in rows[n]],
     }
@@ -123,6 +131,9 @@ summary = {
 }
 report["variants"] = summary
 for n, s in summary.items():
-    print(f"{n}: median p50 {s['median_p50_ms']:.3f} ms, median mean {s['median_mean_ms']:.3f} ms")
+    print(
+        f"{n}: median p50 {s['median_p50_ms']:.3f} ms, median mean {s['median_mean_ms']:.3f} ms, "
+        f"caller CPU {s['median_caller_cpu_ms_per_frame']:.3f} ms a frame"
+    )
 with open(os.path.join(out_dir, f"ab_result_handoff{os.environ.get('TAG', '')}.json"), "w") as f:
     json.dump(report, f, indent=1)

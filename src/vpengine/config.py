@@ -245,8 +245,9 @@ class RuntimeConfig(_Strict):
         le=5000,
         description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). 0: it sleeps "
         "in the driver until the result is there (waking up takes about 0.1 ms). > 0: it sleeps through the part "
-        "of the head's work that its recent results predict, then spins in the driver for the rest: about this "
-        "much CPU time per result waited for, for a faster wake-up. Only while a result is pending: never idle.",
+        "of the head's work that its recent results predict, then spins in the driver for the rest: up to about "
+        "this much CPU time per result waited for while the prediction holds, for a faster wake-up (on an H200, "
+        "200 took 0.14 ms off a depth + seg frame for 0.13 ms of CPU). Only while a result is pending: never idle.",
     )
     inline_launch: Literal["auto", "always", "never"] = Field(
         "auto",

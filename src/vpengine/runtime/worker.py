@@ -49,7 +49,9 @@ alone gains little (2.47-2.51 against 2.45-2.53 ms with the host hand-off): the 
 costs as much as the head thread's did. What the hand-off makes possible is spending CPU on that one wake-up only:
 ``runtime.wait_spin_us: 200`` (default-flag events; sleep through the part of the wait that recent results predict,
 learnt from when each was done, then spin in the driver) gives 2.31-2.38 ms, as fast as spinning through the whole
-wait (2.31-2.37). It is off by default: a head slower than predicted is spun through. Tried and not kept: a head
+wait (2.31-2.37), for 0.13 ms more of the caller's CPU a frame. With eight depth heads the hand-off itself counts:
+6.05 ms on the host, 5.77 ms by event, 5.68 ms with the spin (0.41 ms more CPU; ab_result_handoff_depth8.json).
+The spin is off by default: a head slower than predicted is spun through. Tried and not kept: a head
 woken by its work sleeping until a caller woken by the same work had taken the interpreter lock (no gain: 2.50
 against 2.51 ms).
 

@@ -746,9 +746,10 @@ class Engine:
 
         Heads that skipped the frame (rate limit, newer frame) or whose output for it was already overwritten
         are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout. A result
-        published while its device work still runs is waited for until that work is done, even past ``timeout``
-        (Note [Result hand-off]). ``copy=False``: results are borrowed, not copied, while a lease is free (Note
-        [Borrowed results]).
+        published while its device work still runs (Note [Result hand-off]) is waited for in the driver when its
+        head's recent results say it will be done in time, and otherwise left for its head to report done; so a
+        wait outlasts ``timeout`` only by how much a result is late on that prediction. ``copy=False``: results are
+        borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
         ctl = self._res.control
@@ -768,7 +769,13 @@ class Engine:
                 found: list[tuple[str, SlotInfo]] = []
                 try:
                     for h in list(pending):
-                        slot, newest = self._peek_readers[h].pin_origin(origin)
+                        reader = self._peek_readers[h]
+                        slot, newest = reader.pin_origin(origin)
+                        if slot is not None and reader.ring.done_after(slot, deadline):
+                            # Note [Result hand-off]: its queued work is not expected to be done in time; leave
+                            # it until its head says it is done (or the timeout), rather than wait past it
+                            reader.release(slot)
+                            continue
                         if slot is not None:
                             found.append((h, slot))
                         if slot is not None or newest > origin or ctl.state(h) == "failed":

@@ -52,28 +52,28 @@ class SlowOnDevice:
     written only this long after its work is queued (and, handed off by event, published). Never slot-bound (the
     worker copies)."""
 
-    def __init__(self, inner) -> None:  # type: ignore[no-untyped-def]
-        self.inner, self.output_spec = inner, inner.output_spec
+    def __init__(self, inner, cycles: int = SLEEP_CYCLES) -> None:  # type: ignore[no-untyped-def]
+        self.inner, self.output_spec, self.cycles = inner, inner.output_spec, cycles
 
     def __call__(self, inputs):  # type: ignore[no-untyped-def]
         import torch
 
         out = self.inner(inputs)
-        torch.cuda._sleep(SLEEP_CYCLES)
+        torch.cuda._sleep(self.cycles)
         return out
 
     def bind(self, inputs, outputs) -> bool:  # type: ignore[no-untyped-def]
         return False
 
 
-def _slow(monkeypatch, slow) -> None:  # type: ignore[no-untyped-def]
+def _slow(monkeypatch, slow, cycles: int = SLEEP_CYCLES) -> None:  # type: ignore[no-untyped-def]
     import vpengine.backends as backends
 
     plain = backends.make_executor
 
     def make(model, backend, device, name, **kw):  # type: ignore[no-untyped-def]
         ex = plain(model, backend, device, name, **kw)
-        return SlowOnDevice(ex) if slow(name) else ex
+        return SlowOnDevice(ex, cycles) if slow(name) else ex
 
     monkeypatch.setattr(backends, "make_executor", make)
 
@@ -88,3 +88,9 @@ def slow_foundation(monkeypatch):  # type: ignore[no-untyped-def]
 def slow_heads(monkeypatch):  # type: ignore[no-untyped-def]
     """Engines built while this is active get a SlowOnDevice executor for every head."""
     _slow(monkeypatch, lambda name: name != "foundation")
+
+
+@pytest.fixture
+def very_slow_heads(monkeypatch):  # type: ignore[no-untyped-def]
+    """Every head's work sleeps about 0.1 s on the device (200 million cycles) after its model."""
+    _slow(monkeypatch, lambda name: name != "foundation", 200_000_000)

@@ -108,3 +108,21 @@ def test_results_and_latest_give_only_results_whose_device_work_is_done(slow_hea
                     )  # the newest that is there: this frame's (the next is not submitted)
                     assert latest is not None and latest.frame_id == fid, (r.head, latest)
         assert all(r["missed"] == 0 and r["delivered"] == 6 for r in e.stats()["results"].values())
+
+
+def test_a_wait_does_not_sit_in_the_driver_past_its_timeout_for_a_result_due_later(very_slow_heads):
+    import time
+
+    cfg = tiny("thread", "device=cuda", "runtime.result_handoff=event")
+    with Engine(cfg) as e:
+        for i in range(3):  # the heads' results teach the engine how long their work takes (about 0.1 s)
+            e.wait(e.submit(frame(i), frame_id=i), timeout=120)
+        fid = e.submit(frame(3), frame_id=3)
+        time.sleep(0.02)  # every head has published its queued results by now
+        t0 = time.monotonic()
+        with pytest.raises(TimeoutError):
+            e.wait(fid, timeout=0.01)
+        took = time.monotonic() - t0
+        assert took < 0.05, f"waited {took * 1e3:.0f} ms for a 10 ms timeout"
+        res = e.wait(fid, timeout=120)
+        assert set(res) == HEADS and all(r.latency > 0.09 for r in res.values())

@@ -243,3 +243,61 @@ def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_spins
         r.release(slot)
     finally:
         ring.close()
+
+
+class SlowEvent(Event):
+    """A result's event whose 'device work' takes ``work_s`` from when the wait for it starts."""
+
+    def __init__(self, work_s: float) -> None:
+        super().__init__()
+        self.done, self.work_s = False, work_s
+
+    def synchronize(self) -> None:
+        time.sleep(self.work_s)
+        super().synchronize()
+
+
+def queued_results(engine, head: str, work_s: float, predicted_s: float) -> list[SlowEvent]:  # type: ignore[no-untyped-def]
+    """Make ``head``'s results look published with their device work still queued (stand-in events, as a head
+    hands off on CUDA), its recent results predicting ``predicted_s`` from publish to done."""
+    ring = engine._peek_readers[head].ring
+    events = [SlowEvent(work_s) for _ in range(ring.n_slots)]
+    ring.device_events, ring.publish_to_done_s = events, predicted_s
+    return events
+
+
+def test_wait_waits_in_the_driver_for_a_result_predicted_to_be_done_in_time():
+    from helpers.frames import frame
+    from tests_paths import tiny
+    from vpengine.engine import Engine
+
+    with Engine(tiny("thread")) as e:
+        fid = e.submit(frame(0))
+        e.wait(fid, timeout=30)  # every head has published it
+        events = queued_results(e, "depth", work_s=0.3, predicted_s=0.01)
+        t0 = time.monotonic()
+        res = e.wait(fid, timeout=5)
+        took = time.monotonic() - t0
+        assert set(res) == {"depth", "seg", "det"} and sum(ev.syncs for ev in events) == 1
+        assert took >= 0.3 and res["depth"].t_publish >= t0 + 0.3  # the result is timed by its wait
+
+
+def test_wait_leaves_a_result_not_predicted_to_be_done_in_time_and_keeps_its_timeout():
+    from helpers.frames import frame
+    from tests_paths import tiny
+    from vpengine.engine import Engine
+
+    with Engine(tiny("thread")) as e:
+        fid = e.submit(frame(0))
+        e.wait(fid, timeout=30)
+        events = queued_results(e, "depth", work_s=3.0, predicted_s=3.0)
+        t0 = time.monotonic()
+        with pytest.raises(TimeoutError, match=r"no output from \['depth'\]"):
+            e.wait(fid, timeout=0.3)
+        assert (
+            time.monotonic() - t0 < 2.0 and sum(ev.syncs for ev in events) == 0
+        )  # never waited in the driver
+        assert set(e.wait(fid, heads=["seg", "det"], timeout=0.3)) == {
+            "seg",
+            "det",
+        }  # the done ones as before

@@ -40,8 +40,9 @@ slot, counts the run by its device time (``amend_last_run``), and records when t
 ``Engine.latest`` take only results that are done (``pin(done=True)``): they never block on device work, and a
 FIFO reader never takes a result out of order. No reader reads a slot before its content is there: ``wait_done``
 is called on every pinned result before its tensors are touched. Process mode keeps the host hand-off (its events
-would have to cross processes), and so does the CPU. The price: ``Engine.wait`` may outlast its timeout by the
-remaining device time of a result it already holds.
+would have to cross processes), and so does the CPU. A wait in the driver cannot be cut short, so ``Engine.wait``
+waits there only for a result that its head's recent results say will be done before the caller's timeout; any
+other it leaves pinned by nobody until the head, having seen the work done, wakes it (or the timeout comes).
 
 Measured on an H200 (thread mode, compiled depth + seg, frame slot, variants alternated round by round on one
 engine, median of 10-14 rounds' p50s; benchmarks/results/h200/ab_result_handoff_*.json): with blocking events this

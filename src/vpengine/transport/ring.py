@@ -377,6 +377,14 @@ class SlotRing:
         events = self.device_events
         return events is None or self.done_at[i][0] == seq or bool(events[i].query())
 
+    def done_after(self, slot: SlotInfo, deadline: float) -> bool:
+        """Whether pinned ``slot``'s queued device work is expected to finish only after ``deadline`` (monotonic
+        seconds): never if it is done; else by its publish time plus the moving average of publish-to-done times
+        (none seen yet: expected at once)."""
+        if self._done(slot.index, slot.seq):
+            return False
+        return slot.t_publish + self.publish_to_done_s > deadline
+
     def wait_done(self, slot: SlotInfo, spin_s: float = 0.0) -> float:
         """Block until the content of pinned ``slot`` is there to read (its device work, if it was published
         queued, is done); returns when it was, in monotonic seconds: its publish time if it was published

@@ -5,6 +5,7 @@ tests/integration/test_inline_launch.py)."""
 from __future__ import annotations
 
 import time
+from types import SimpleNamespace
 
 import torch
 
@@ -28,8 +29,7 @@ class Reader:
 
 
 class Slot:
-    def __init__(self) -> None:
-        self.extra: dict[str, object] = {}
+    pass
 
 
 class Writer:
@@ -38,12 +38,16 @@ class Writer:
     def __init__(self, log: list[str]) -> None:
         self.log, self.seq = log, 0
 
-    def publish(self, slot, frame_id, t_capture, t_submit, pin_for=None) -> int:  # type: ignore[no-untyped-def]
+    def publish(self, slot, frame_id, t_capture, t_submit) -> int:  # type: ignore[no-untyped-def]
         self.seq += 1
-        self.log.append("publish" if pin_for is None else f"publish pinned for {pin_for.name}")
-        if pin_for is not None:
-            slot.extra["pin"] = "pinned frame"
+        self.log.append("publish")
         return self.seq
+
+    def publish_pinned(self, slot, frame_id, t_capture, t_submit, reader):  # type: ignore[no-untyped-def]
+        self.seq += 1
+        self.log.append(f"publish pinned for {reader.name}")
+        self.pinned = SimpleNamespace(seq=self.seq)  # the reader's pin of the frame
+        return self.pinned
 
 
 class Worker:
@@ -86,7 +90,7 @@ def test_an_armed_worker_gets_its_work_queued_before_the_frame_is_published_pinn
     assert log == ["launch", "publish pinned for foundation"]  # queued first: nobody can see the slot yet
     assert worker.launched == [(slot, "out")] and offer.launches == 1
     pinned, _, error = offer.take_done()  # type: ignore[misc]
-    assert pinned == "pinned frame" and error is None and "pin" not in slot.extra
+    assert pinned is writer.pinned and error is None
     assert (
         publish(offer, writer) == 2 and log[-1] == "publish"
     )  # disarmed: the next frame waits for the worker
@@ -118,7 +122,7 @@ def test_a_launch_that_raises_is_handed_to_the_worker_not_raised_in_submit():
     assert publish(offer, writer) == 1  # no exception here, and the frame is published all the same
     pinned, _, error = offer.take_done()  # type: ignore[misc]
     assert log == ["launch", "publish pinned for foundation"]
-    assert pinned == "pinned frame" and isinstance(error, RuntimeError) and "launch failed" in str(error)
+    assert pinned is writer.pinned and isinstance(error, RuntimeError) and "launch failed" in str(error)
 
 
 def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, ControlBlock]:

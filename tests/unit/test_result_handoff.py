@@ -12,6 +12,9 @@ import time
 import pytest
 import torch
 
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.engine import Engine
 from vpengine.specs import TensorSpec
 from vpengine.transport import ring as ring_module
 from vpengine.transport.ring import SlotRing, fifo_queue, latest_buffer
@@ -267,10 +270,6 @@ def queued_results(engine, head: str, work_s: float, predicted_s: float) -> list
 
 
 def test_wait_waits_in_the_driver_for_a_result_predicted_to_be_done_in_time():
-    from helpers.frames import frame
-    from tests_paths import tiny
-    from vpengine.engine import Engine
-
     with Engine(tiny("thread")) as e:
         fid = e.submit(frame(0))
         e.wait(fid, timeout=30)  # every head has published it
@@ -283,10 +282,6 @@ def test_wait_waits_in_the_driver_for_a_result_predicted_to_be_done_in_time():
 
 
 def test_wait_leaves_a_result_not_predicted_to_be_done_in_time_and_keeps_its_timeout():
-    from helpers.frames import frame
-    from tests_paths import tiny
-    from vpengine.engine import Engine
-
     with Engine(tiny("thread")) as e:
         fid = e.submit(frame(0))
         e.wait(fid, timeout=30)

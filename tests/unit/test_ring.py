@@ -336,8 +336,8 @@ def test_publish_can_pin_the_new_slot_for_a_reader_counting_the_read_as_a_pin_wo
         w, a = ring.writer(), ring.reader("a")
         slot = w.acquire(timeout=0)
         slot.tensors["n"].fill_(2)
-        seq = w.publish(slot, 2, 0.0, time.monotonic(), pin_for=a)
-        pinned = slot.extra.pop("pin")
+        pinned = w.publish_pinned(slot, 2, 0.0, time.monotonic(), a)
+        seq = slot.seq
         assert (pinned.index, pinned.seq, pinned.frame_id, pinned.missed) == (slot.index, seq, 2, 1)
         assert ring.pins()["a"] == slot.index and a.cursor == seq
         assert not a.available()  # nothing unseen: the publish's pin was this reader's read
@@ -350,7 +350,7 @@ def test_publish_can_pin_the_new_slot_for_a_reader_counting_the_read_as_a_pin_wo
         slot2 = w.acquire(timeout=0)
         assert slot2.index != slot.index  # pinned by a: not reused
         with pytest.raises(RuntimeError, match="already pins"):
-            w.publish(slot2, 3, 0.0, time.monotonic(), pin_for=a)
+            w.publish_pinned(slot2, 3, 0.0, time.monotonic(), a)
         a.release(pinned)
     finally:
         ring.close()

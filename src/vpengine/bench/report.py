@@ -355,9 +355,8 @@ def waterfall(profile: dict[str, Any], path: Path) -> bool:
     fig.suptitle(
         f"Where one frame's time goes, thread mode ({', '.join(setup.get('heads', []))}, {setup.get('backend', '?')})"
     )
-    fig.tight_layout(
-        rect=(0, 0.7 / height, 1, 1)
-    )  # the legend's two rows below the axis label, whatever the height
+    # room for the legend's two rows below the axis label, whatever the height
+    fig.tight_layout(rect=(0, 0.7 / height, 1, 1))
     fig.savefig(path)
     plt.close(fig)
     return True

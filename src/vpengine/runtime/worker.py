@@ -65,7 +65,7 @@ wait for frames in the ring when it is ready for one: it acquires its output slo
 ``InlineLaunch`` with it. The thread that publishes the next frame (``Engine.submit`` or a
 ``frame_slot`` closing) then queues the foundation's work itself, on the foundation's stream (three graph
 launches), *before* it publishes the frame: the slot is still its writer's, so no one else can see it, let alone
-reuse it. It then publishes the frame already pinned for the foundation's reader (``publish(pin_for=...)``, one
+reuse it. It then publishes the frame already pinned for the foundation's reader (``publish_pinned``, one
 critical section, the read counted as any other) and hands the pinned slots to the worker, which wakes, publishes
 the features (Note [Event hand-off]) and does the rest of its run as usual: counting, waiting for its work,
 releasing the frame. Nothing else changes hands: the worker alone decides when it is ready (rate limit, pause), a
@@ -108,7 +108,7 @@ import time
 import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, cast
+from typing import Any
 
 import torch
 
@@ -458,11 +458,11 @@ class InlineLaunch:
                 core._launch(slot, out)
             except Exception as e:  # raised in the worker, under its restart rules; never in submit
                 error = e
-            seq = writer.publish(slot, frame_id, t_capture, t_submit, pin_for=core.reader)
-            self._done = (cast(SlotInfo, slot.extra.pop("pin")), t_start, error)
+            pinned = writer.publish_pinned(slot, frame_id, t_capture, t_submit, core.reader)
+            self._done = (pinned, t_start, error)
             self.launches += 1
             self.cond.notify_all()
-            return seq
+            return pinned.seq
 
     def wake(self) -> None:
         """Wake an armed worker (at stop), which then disarms."""

@@ -476,26 +476,39 @@ class RingWriter:
             _linux.futex_wait(ring._release_addr, word, min(remaining, _MAX_SLEEP))
 
     def publish(
-        self,
-        slot: SlotInfo,
-        frame_id: int,
-        t_capture: float,
-        t_submit: float,
-        origin: int | None = None,
-        pin_for: RingReader | None = None,
+        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, origin: int | None = None
     ) -> int:
         """Make a filled slot visible to readers and wake them. The slot's content must be complete, or its device
         work queued before the slot's event in ``ring.device_events`` (Note [Event hand-off] in runtime/worker.py).
 
         ``origin`` carries the frame's identity down the pipeline; None means this ring is the input ring and
-        the new slot's own seq is the origin. ``pin_for``: a reader that pins the slot (and counts the read) in
-        the same critical section, before any other reader can see it, whose pin is then ``slot.extra["pin"]``:
-        how a reader whose work on the slot was queued before it was published keeps it (Note [Inline launch]
-        in runtime/worker.py). The reader must pin nothing.
+        the new slot's own seq is the origin.
         """
+        return self._publish(slot, frame_id, t_capture, t_submit, origin, None)[0]
+
+    def publish_pinned(
+        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, reader: RingReader
+    ) -> SlotInfo:
+        """``publish`` an input-ring slot already pinned for ``reader`` (which must pin nothing), the read counted,
+        in the same critical section, before any other reader can see it: how a reader whose work on the slot was
+        queued before it was published keeps it (Note [Inline launch] in runtime/worker.py). Returns the pin."""
+        pinned = self._publish(slot, frame_id, t_capture, t_submit, None, reader)[1]
+        assert pinned is not None
+        return pinned
+
+    def _publish(
+        self,
+        slot: SlotInfo,
+        frame_id: int,
+        t_capture: float,
+        t_submit: float,
+        origin: int | None,
+        pin_for: RingReader | None,
+    ) -> tuple[int, SlotInfo | None]:
         ring, q, d, u = self.ring, self.ring._q, self.ring._d, self.ring._u
         b = ring._slot(slot.index)
         now = time.monotonic()
+        pinned = None
         with ring._mutex:
             if pin_for is not None and q[pin_for._b + _R_PINNED] >= 0:
                 raise RuntimeError(f"reader {pin_for.name!r} of ring {ring.name!r} already pins a slot")
@@ -511,7 +524,7 @@ class RingWriter:
             q[_H_PUBLISHED] += 1
             u[_PUBLISH_WORD_OFF // 4] = (u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
             if pin_for is not None:
-                slot.extra["pin"] = pin_for._pin_locked(slot.index)
+                pinned = pin_for._pin_locked(slot.index)
         ring._wake_publish()
         slot.seq, slot.frame_id, slot.t_capture, slot.t_submit, slot.t_publish = (
             seq,
@@ -521,7 +534,7 @@ class RingWriter:
             now,
         )
         slot.origin = seq if origin is None else origin
-        return seq
+        return seq, pinned
 
     def abort(self, slot: SlotInfo) -> None:
         """Give back a slot that will not be published (the work that should fill it failed)."""

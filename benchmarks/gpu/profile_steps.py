@@ -50,6 +50,7 @@ from collections import defaultdict
 import numpy as np
 import torch
 
+from vpengine.bench.common import machine_info
 from vpengine.bench.paper import Setup, engines, frames, parse_priorities
 from vpengine.runtime import worker as worker_mod
 from vpengine.runtime.device import DeviceContext
@@ -241,12 +242,13 @@ def run_variant(eng, variant: str, n: int) -> dict[str, object]:  # type: ignore
 
 
 report: dict[str, object] = {
+    "machine": machine_info(),
     "setup": {
         "heads": kinds,
         "backend": setup.backend,
         "results": setup.results,
         "stream_priorities": setup.stream_priorities,
-    }
+    },
 }
 worker_mod.WorkerCore._launch = _stamped_launch  # type: ignore[method-assign]
 worker_mod.WorkerCore._finish = _stamped_finish  # type: ignore[method-assign]

@@ -334,9 +334,10 @@ with engines([setup.config(heads, mode="thread")]) as (eng,):
         acts.append(torch.profiler.ProfilerActivity.CUDA)
     with torch.profiler.profile(activities=acts) as prof:
         for i in range(20):
-            with eng.frame_slot() as s:
+            with eng.frame_slot() as s, torch.profiler.record_function("write frame"):
                 np.copyto(s.array, imgs[i % len(imgs)])
-            eng.wait(s.frame_id, timeout=60, copy=setup.copy)
+            with torch.profiler.record_function("wait"):
+                eng.wait(s.frame_id, timeout=60, copy=setup.copy)
     trace = os.path.join(out_dir, "profile_steps_trace.json")
     prof.export_chrome_trace(trace)
     with open(trace, "rb") as f, gzip.open(trace + ".gz", "wb") as g:

@@ -240,14 +240,15 @@ class RuntimeConfig(_Strict):
         "Process mode and the CPU always hand off on the host.",
     )
     wait_spin_us: float = Field(
-        0.0,
+        200.0,
         ge=0,
         le=5000,
-        description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). 0: it sleeps "
-        "in the driver until the result is there (waking up takes about 0.1 ms). > 0: it sleeps through the part "
-        "of the head's work that its recent results predict, then spins in the driver for the rest: up to about "
-        "this much CPU time per result waited for while the prediction holds, for a faster wake-up (on an H200, "
-        "200 took 0.14 ms off a depth + seg frame for 0.13 ms of CPU). Only while a result is pending: never idle.",
+        description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). > 0: it sleeps "
+        "through the part of the head's work that its recent results predict, less this window, then polls for "
+        "the result (offering the interpreter lock between polls) until at most this long past the predicted end, "
+        "then sleeps in the driver: at most about twice this much CPU time per result waited for, however late the "
+        "result; only while a result is pending, never idle. 0: it sleeps in the driver until the result is there, "
+        "and waking up takes about 0.1 ms.",
     )
     inline_launch: Literal["auto", "always", "never"] = Field(
         "auto",

@@ -290,6 +290,7 @@ class Engine:
         self._results_active = False
         self._pool: Any = None
         self._host_outputs = _HostOutputs()
+        self._numpy_heads: dict[str, bool] = {}  # head -> its outputs are handed out as numpy arrays
         self._t_start = 0.0
         self.memory_report: dict[str, Any] = {}
         self._mps_dir: str | None = None
@@ -636,14 +637,23 @@ class Engine:
         return fid
 
     # ------------------------------------------------------------------------------------------- output
-    def _to_result(self, head: str, slot: SlotInfo, copy: bool = True) -> Result:
+    def _borrow(self, head: str, slot: SlotInfo) -> dict[str, np.ndarray] | None:
+        """Read-only arrays over pinned ``slot``'s host outputs (Note [Borrowed results]), or None (no lease free,
+        or an output that is not a numpy array). Their content is there only once ``wait_done`` says so."""
+        numpy = self._numpy_heads.get(head)
+        if numpy is None:  # a head's outputs are host arrays, or not, in every slot
+            numpy = self._numpy_heads[head] = all(_numpy_output(t) for t in slot.tensors.values())
+        return self._leases.borrow(head, slot) if numpy else None
+
+    def _to_result(self, head: str, slot: SlotInfo, borrowed: dict[str, np.ndarray] | None = None) -> Result:
+        """``head``'s result from pinned ``slot`` once its device work is done: ``borrowed``, ``_borrow``'s arrays
+        (taken before the wait), or else copied."""
         # Note [Result hand-off]
         t_ready = self._results_readers[head].ring.wait_done(slot, self.config.runtime.wait_spin_us * 1e-6)
-        outputs: dict[str, Any] | None = None
-        if not copy and all(_numpy_output(t) for t in slot.tensors.values()):
-            outputs = self._leases.borrow(head, slot)
-        borrowed = outputs is not None
-        if outputs is None:
+        outputs: dict[str, Any]
+        if borrowed is not None:
+            outputs = borrowed
+        else:
             outputs = {
                 k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()
                 for k, t in slot.tensors.items()
@@ -658,15 +668,17 @@ class Engine:
             outputs,
             slot.seq,
             t_ready,
-            borrowed=borrowed,
+            borrowed=borrowed is not None,
         )
 
     def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:
-        """Results for pinned slots. Several heads' outputs are copied at once (numpy releases the GIL), which
-        matters with many full-resolution outputs: eight 1080p float32 depth maps are 64 MB per frame."""
+        """Results for pinned slots. Borrowed ones are borrowed before any is waited for, so that what can be done
+        while the device finishes is done by then. Several heads' outputs are copied at once (numpy releases the
+        GIL), which matters with many full-resolution outputs: eight 1080p float32 depth maps are 64 MB per frame."""
         small = sum(t.nbytes for _, s in pinned for t in s.tensors.values()) < 4 << 20
         if not copy or len(pinned) <= 1 or small:
-            return {h: self._to_result(h, s, copy) for h, s in pinned}
+            borrowed = [None if copy else self._borrow(h, s) for h, s in pinned]
+            return {h: self._to_result(h, s, b) for (h, s), b in zip(pinned, borrowed)}
         if self._pool is None:
             from concurrent.futures import ThreadPoolExecutor
 
@@ -693,7 +705,7 @@ class Engine:
             if slot is None:
                 return None
             try:
-                return self._to_result(head, slot, copy)
+                return self._to_result(head, slot, None if copy else self._borrow(head, slot))
             finally:
                 reader.release(slot)
 

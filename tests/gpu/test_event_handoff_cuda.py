@@ -63,7 +63,7 @@ def test_without_the_device_wait_the_heads_would_read_the_previous_frame(slow_fo
 
 
 @pytest.mark.parametrize(
-    "copy, spin", [(True, 0), (False, 0), (True, 200)], ids=["copied", "borrowed", "copied-wait-spin"]
+    "copy, spin", [(True, 200), (False, 200), (True, 0)], ids=["copied", "borrowed", "copied-no-wait-spin"]
 )
 def test_results_handed_off_by_event_reach_the_caller_exactly_as_if_handed_off_on_the_host(
     slow_heads, copy, spin
@@ -126,3 +126,24 @@ def test_a_wait_does_not_sit_in_the_driver_past_its_timeout_for_a_result_due_lat
         assert took < 0.05, f"waited {took * 1e3:.0f} ms for a 10 ms timeout"
         res = e.wait(fid, timeout=120)
         assert set(res) == HEADS and all(r.latency > 0.09 for r in res.values())
+
+
+def test_the_default_wait_polls_for_each_result_near_its_predicted_end_and_catches_it(
+    slow_heads, monkeypatch
+):
+    from vpengine.transport import ring as ring_module
+
+    caught: list[bool] = []
+    poll = ring_module._poll
+
+    def counted(*a):  # type: ignore[no-untyped-def]
+        caught.append(poll(*a))
+        return caught[-1]
+
+    monkeypatch.setattr(ring_module, "_poll", counted)
+    host, _, _ = run("runtime.result_handoff=host", n=20)
+    event, _, _ = run("runtime.result_handoff=event", n=20)  # runtime.wait_spin_us: its default
+    assert same(event, host)
+    # every head's work takes the same few ms on the device, so the prediction holds: the poll, not the driver,
+    # sees the results done (a wait that finds its result already done does not poll)
+    assert len(caught) >= 10 and sum(caught) >= 0.8 * len(caught), caught

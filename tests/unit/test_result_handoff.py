@@ -6,6 +6,8 @@ results; a result's time is when its work was done."""
 
 from __future__ import annotations
 
+import statistics
+import sys
 import threading
 import time
 
@@ -214,37 +216,157 @@ def test_the_first_to_see_a_result_done_says_when_and_each_result_teaches_the_pr
         slot = ring._slot_info(i, tensors=False)
         ring.mark_done(slot, slot.t_publish + first + 0.08)
         assert ring.publish_to_done_s == pytest.approx(first + 0.125 * 0.08)  # a moving average
+        assert ring.publish_to_done_dev_s == pytest.approx(0.25 * 0.08)  # and its spread
     finally:
         ring.close()
 
 
-def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_spins_only_for_the_rest():
+class DueEvent(Event):
+    """A slot's event whose 'device work' ends at ``due`` (monotonic), polled or not; ``synchronize`` sleeps until
+    then. Records when it was polled and when the wait in the driver began."""
+
+    def __init__(self, due: float) -> None:
+        super().__init__()
+        self.done, self.due = False, due
+        self.polled_at: list[float] = []
+
+    @property
+    def polls(self) -> int:
+        return len(self.polled_at)
+
+    def query(self) -> bool:
+        now = time.monotonic()
+        self.polled_at.append(now)
+        return now >= self.due
+
+    def synchronize(self) -> None:
+        self.sync_called_at = time.monotonic()
+        time.sleep(max(0.0, self.due - self.sync_called_at))
+        super().synchronize()
+
+
+def publish_due(ring: SlotRing, value: float, work_s: float) -> tuple[int, DueEvent]:
+    i, _ = publish_queued(ring, value)
+    slot = ring._slot_info(i, tensors=False)
+    ring.device_events[i] = event = DueEvent(slot.t_publish + work_s)  # type: ignore[index]
+    return i, event
+
+
+def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_polls_only_for_the_rest():
     ring = latest_buffer("out", SPECS, ["results"])
     try:
-        events = handed_off(ring)
+        handed_off(ring)
         r = ring.reader("results")
-        i, _ = publish_queued(ring, 1.0)
+        i, event = publish_due(ring, 1.0, 0.05)
         slot = r.pin()
-        ring.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no sleep, the whole wait in the driver
-        assert events[i].synced_at - slot.t_publish < 0.05
+        ring.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no polling, the whole wait in the driver
+        assert event.syncs == 1 and event.polls == 1  # the one query that found it not done yet
         r.release(slot)
 
         ring.publish_to_done_s = 0.15
-        i, _ = publish_queued(ring, 2.0)
+        i, event = publish_due(ring, 2.0, 0.15)
         slot = r.pin()
         t = ring.wait_done(slot, spin_s=0.02)
-        assert (
-            events[i].syncs == 1 and events[i].synced_at - slot.t_publish >= 0.13
-        )  # slept 0.15 - 0.02 first
-        assert t >= events[i].synced_at
+        assert event.syncs == 0  # done while polled: never waited in the driver
+        # the first query, then a sleep through 0.15 - 0.02 s, then the polls
+        assert event.polls > 2 and event.polled_at[1] >= slot.t_publish + 0.13
+        assert t >= event.due and t - event.due < 0.01
+        assert ring.done_at[i] == (slot.seq, t)
         r.release(slot)
 
-        i, _ = publish_queued(ring, 3.0)
+        i, event = publish_due(ring, 3.0, 0.05)
         slot = r.pin()
         ring.wait_done(slot)  # no spin window: straight to the (sleeping) wait in the driver
-        assert events[i].synced_at - slot.t_publish < 0.05
+        assert event.syncs == 1 and event.polls == 1
         r.release(slot)
     finally:
+        ring.close()
+
+
+def test_a_spinning_wait_polls_no_longer_than_its_window_past_the_predicted_end():
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        ring.publish_to_done_s = 0.05  # predicted: 0.05 s; the work takes 0.4 s
+        _, event = publish_due(ring, 1.0, 0.4)
+        slot = r.pin()
+        cpu = time.thread_time()
+        t = ring.wait_done(slot, spin_s=0.02)
+        spent = time.thread_time() - cpu
+        assert (
+            event.syncs == 1 and event.sync_called_at >= slot.t_publish + 0.05 + 0.02
+        )  # polled to the window's end
+        assert (
+            event.sync_called_at < event.due - 0.2
+        )  # then waited in the driver, long before the work was done
+        assert t >= event.due
+        assert spent < 0.2  # at most the two windows' polling, not the whole 0.4 s wait
+        r.release(slot)
+    finally:
+        ring.close()
+
+
+@pytest.mark.parametrize(
+    "spread, work_s, polled",
+    [(0.0, 0.1, False), (0.02, 0.1, True), (1.0, 0.4, False)],
+    ids=["no-spread", "spread-widens-the-window", "window-capped"],
+)
+def test_a_spinning_wait_widens_its_window_by_the_spread_of_recent_results_up_to_a_cap(
+    spread, work_s, polled
+):
+    ring = latest_buffer("out", SPECS, ["results"])
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        # predicted 0.05 s; window 0.02 s plus twice the spread, at most 0.06 s: polled until 0.07 or 0.11 s
+        ring.publish_to_done_s, ring.publish_to_done_dev_s = 0.05, spread
+        _, event = publish_due(ring, 1.0, work_s)
+        slot = r.pin()
+        t = ring.wait_done(slot, spin_s=0.02)
+        assert t >= event.due
+        assert event.syncs == (0 if polled else 1)
+        if not polled:
+            window = 0.02 + min(2 * spread, 0.04)
+            assert event.sync_called_at >= slot.t_publish + 0.05 + window
+            assert event.sync_called_at < slot.t_publish + 0.05 + window + 0.05
+        r.release(slot)
+    finally:
+        ring.close()
+
+
+def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads():
+    """A head thread woken while the caller polls must not wait for the poll to end: with a 50 ms switch interval,
+    a poll that kept the lock would hold each wake-up about that long."""
+    ring = latest_buffer("out", SPECS, ["results"])
+    delays: list[float] = []
+    stop = threading.Event()
+
+    def wake_up_often() -> None:
+        while not stop.is_set():
+            t = time.monotonic()
+            time.sleep(0.001)
+            delays.append(time.monotonic() - t - 0.001)
+
+    interval = sys.getswitchinterval()
+    try:
+        handed_off(ring)
+        r = ring.reader("results")
+        ring.publish_to_done_s = 0.3
+        _, event = publish_due(ring, 1.0, 0.5)
+        slot = r.pin()
+        sys.setswitchinterval(0.05)
+        other = threading.Thread(target=wake_up_often)
+        other.start()
+        ring.wait_done(slot, spin_s=0.3)  # polls from publish to 0.5 s
+        stop.set()
+        other.join()
+        assert event.syncs == 0 and event.polls > 100
+        assert len(delays) > 20 and statistics.median(delays) < 0.01
+        r.release(slot)
+    finally:
+        sys.setswitchinterval(interval)
+        stop.set()
         ring.close()
 
 
@@ -296,3 +418,25 @@ def test_wait_leaves_a_result_not_predicted_to_be_done_in_time_and_keeps_its_tim
             "seg",
             "det",
         }  # the done ones as before
+
+
+def test_wait_borrows_every_result_before_it_waits_for_any_device_work(monkeypatch):
+    """What can be done while the device finishes is done by then: borrowing a result's arrays reads none of its
+    content, so every pinned result is borrowed before the first wait for device work begins."""
+    with Engine(tiny("thread")) as e:
+        fid = e.submit(frame(0))
+        e.wait(fid, timeout=30)
+        queued_results(e, "depth", work_s=0.2, predicted_s=0.01)  # waited for first: heads in config order
+        borrowed_at: dict[str, float] = {}
+        plain = e._leases.borrow
+
+        def borrow(head, slot):  # type: ignore[no-untyped-def]
+            borrowed_at[head] = time.monotonic()
+            return plain(head, slot)
+
+        monkeypatch.setattr(e._leases, "borrow", borrow)
+        t0 = time.monotonic()
+        res = e.wait(fid, timeout=5, copy=False)
+        assert time.monotonic() - t0 >= 0.2 and all(r.borrowed for r in res.values())
+        assert set(borrowed_at) == {"depth", "seg", "det"}
+        assert max(borrowed_at.values()) < t0 + 0.1, {h: t - t0 for h, t in borrowed_at.items()}

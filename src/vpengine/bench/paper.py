@@ -32,6 +32,9 @@ from typing import Any
 import numpy as np
 
 from vpengine.bench.common import event_ms
+from vpengine.config import RuntimeConfig
+
+WAIT_SPIN_US: float = RuntimeConfig.model_fields["wait_spin_us"].default
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -82,9 +85,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--wait-spin-us",
         type=float,
-        default=0.0,
-        help="runtime.wait_spin_us: Engine.wait sleeps in the driver for a result handed off by event (0), or "
-        "sleeps through its predicted part and spins in the driver for the rest (Note [Result hand-off])",
+        default=WAIT_SPIN_US,
+        help="runtime.wait_spin_us: Engine.wait sleeps through the predicted part of a result handed off by event "
+        "and polls for it within this window of its predicted end (default %(default)g), or sleeps in the driver "
+        "until it is there (0) (Note [Result hand-off])",
     )
     p.add_argument(
         "--feature-handoff",
@@ -154,7 +158,7 @@ class Setup:
     mps_pipe_directory: str | None = None
     results: str = "copy"
     sync_spin_us: float = 0.0
-    wait_spin_us: float = 0.0
+    wait_spin_us: float = WAIT_SPIN_US
     slot_bound: bool = True
     feature_handoff: str = "event"
     result_handoff: str = "event"

@@ -39,22 +39,35 @@ slot, counts the run by its device time (``amend_last_run``), and records when t
 (``SlotRing.mark_done``), which is each result's ``latency``; then it wakes readers again. ``Engine.results`` and
 ``Engine.latest`` take only results that are done (``pin(done=True)``): they never block on device work, and a
 FIFO reader never takes a result out of order. No reader reads a slot before its content is there: ``wait_done``
-is called on every pinned result before its tensors are touched. Process mode keeps the host hand-off (its events
+is called on every pinned result before its content is read (borrowed arrays over it may be made before). Process mode keeps the host hand-off (its events
 would have to cross processes), and so does the CPU. A wait in the driver cannot be cut short, so ``Engine.wait``
 waits there only for a result that its head's recent results say will be done before the caller's timeout; any
 other it leaves pinned by nobody until the head, having seen the work done, wakes it (or the timeout comes).
 
 Measured on an H200 (thread mode, compiled depth + seg, frame slot, variants alternated round by round on one
-engine, median of 10-14 rounds' p50s; benchmarks/results/h200/ab_result_handoff_*.json): with blocking events this
-alone gains little (2.47-2.51 against 2.45-2.53 ms with the host hand-off): the caller's wake-up from the driver
-costs as much as the head thread's did. What the hand-off makes possible is spending CPU on that one wake-up only:
-``runtime.wait_spin_us: 200`` (default-flag events; sleep through the part of the wait that recent results predict,
-learnt from when each was done, then spin in the driver) gives 2.31-2.38 ms, as fast as spinning through the whole
-wait (2.31-2.37), for 0.13 ms more of the caller's CPU a frame. With eight depth heads the hand-off itself counts:
-6.05 ms on the host, 5.77 ms by event, 5.68 ms with the spin (0.41 ms more CPU; ab_result_handoff_depth8.json).
-The spin is off by default: a head slower than predicted is spun through. Tried and not kept: a head
-woken by its work sleeping until a caller woken by the same work had taken the interpreter lock (no gain: 2.50
-against 2.51 ms).
+engine, median of 8-14 rounds' p50s; benchmarks/results/h200/ab_result_handoff_*.json): with the caller sleeping in
+the driver this alone gains little (2.47-2.51 against 2.45-2.53 ms with the host hand-off): its wake-up costs as
+much as the head thread's did. What the hand-off makes possible is spending CPU on that one wake-up only, which
+``runtime.wait_spin_us`` (default 200) does: ``wait_done`` sleeps through the part of the wait that the head's
+recent results predict (learnt from when each was done), then polls the event, offering the interpreter lock
+between polls with ``os.sched_yield`` (``time.sleep(0)`` sleeps out the timer slack, about 55 us: 2.367 against
+2.302 ms), until a window past the predicted end: ``wait_spin_us`` plus twice the results' recent spread, at most
+three times ``wait_spin_us``. A result later than that is waited for in the driver, asleep. So the CPU a wait
+spends is bounded however late a head is; the first version spun in the driver (default-flag events) until the
+result came, which is why it was off by default. Depth + seg, three machines: 2.302, 2.308 and 2.341 ms with the
+poll against 2.439, 2.457 and 2.477 asleep, as fast as that driver spin (2.313, 2.314) or spinning through the whole
+wait (2.301, 2.302), for 0 to 0.29 ms more of the caller's CPU a frame (1.36-1.89 ms, the frame's 6 MB write
+included). Eight depth heads, whose results' times vary more: 5.70 ms with the poll against 5.69-5.74 asleep and
+5.61-5.65 with the unbounded driver spin; the spread in the window took the waits the poll left to the driver from
+21% to 7% (ab_result_handoff_poll{,_spread}_depth8.json). Before any wait for the
+device, ``Engine.wait`` borrows every result it pinned (``Engine._copy_out``: the arrays over a slot read nothing
+of its content), so that what is left once the last result is there is little more than returning: 2.341 against
+2.406 ms (ab_result_handoff_launch.json). Tried and not kept: a head woken by its work sleeping until a caller woken
+by the same work had taken the interpreter lock (no gain: 2.50 against 2.51 ms); the frame copied into the
+foundation's static input with one cudaMemcpyAsync instead of its one-copy graph's launch (2.341 against 2.336 ms);
+the depth head's stream above seg's: the device trace shows depth's next kernel still waiting about 66 us behind
+seg's upsample + argmax kernel either way (profile_steps_trace_depth_first.json.gz; that kernel's 16,200 blocks
+of 64 threads may take the slots that free up before a 256-thread block of depth's fits: not verified).
 
 Note [Inline launch]
 ~~~~~~~~~~~~~~~~~~~~
@@ -552,10 +565,9 @@ def prepare_worker(
         if spec.role == "foundation" and cfg.runtime.feature_handoff == "event":
             out_ring.device_events = [torch.cuda.Event() for _ in range(out_ring.n_slots)]
         elif spec.role == "head" and cfg.runtime.result_handoff == "event":
-            # Note [Result hand-off]: read on the host by the engine, which sleeps in the driver on them, or spins
-            # there at the end of each wait (runtime.wait_spin_us > 0: events with default flags)
-            blocking = cfg.runtime.wait_spin_us <= 0
-            out_ring.device_events = [torch.cuda.Event(blocking=blocking) for _ in range(out_ring.n_slots)]
+            # Note [Result hand-off]: read on the host by the engine, which sleeps in the driver on them, or polls
+            # them at the end of each wait (runtime.wait_spin_us > 0)
+            out_ring.device_events = [torch.cuda.Event(blocking=True) for _ in range(out_ring.n_slots)]
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())
     core = WorkerCore(

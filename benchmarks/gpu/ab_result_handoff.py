@@ -26,7 +26,8 @@ engine with those stream priorities and runs every variant on both, the second's
 ``[PRIORITIES]``.
 
 ROUNDS rounds (default 8) of FRAMES frames (default 200) per variant; HEADS as in profile_steps.py
-(default depth,seg; depth:8 for E1's eight depth heads). Writes ``ab_result_handoff{TAG}.json`` under $OUT: each
+(default depth,seg; depth:8 for E1's eight depth heads); SEG_BLOCK=PIXELS,WARPS sets the seg head's fused kernel's
+programs (default 128,2). Writes ``ab_result_handoff{TAG}.json`` under $OUT: each
 round's p50, mean and the caller's CPU time per frame (its thread's: a spin in the driver counts) per variant, and
 each variant's median of those, and how many spinning waits caught their result and how many were left to the
 driver. Set TINY=1 for a CPU smoke run.
@@ -62,6 +63,11 @@ for spec in os.environ.get("HEADS", "depth,seg").split(","):  # "kind" or "kind:
     kind, _, count = spec.partition(":")
     heads += [setup.head(kind, f"{kind}{i}" if count else kind) for i in range(int(count or 1))]
 imgs = frames(setup)
+if os.environ.get("SEG_BLOCK"):  # the seg head's fused kernel's pixels per program and warps, e.g. 512,8
+    from vpengine.models import _triton_upsample_argmax as seg_kernel
+
+    block, warps = (int(v) for v in os.environ["SEG_BLOCK"].split(","))
+    seg_kernel.BLOCK, seg_kernel.NUM_WARPS = block, warps
 
 cores: list[worker_mod.WorkerCore] = []
 _plain_init = worker_mod.WorkerCore.__init__

@@ -66,8 +66,9 @@ of its content), so that what is left once the last result is there is little mo
 by the same work had taken the interpreter lock (no gain: 2.50 against 2.51 ms); the frame copied into the
 foundation's static input with one cudaMemcpyAsync instead of its one-copy graph's launch (2.341 against 2.336 ms);
 the depth head's stream above seg's: the device trace shows depth's next kernel still waiting about 66 us behind
-seg's upsample + argmax kernel either way (profile_steps_trace_depth_first.json.gz; that kernel's 16,200 blocks
-of 64 threads may take the slots that free up before a 256-thread block of depth's fits: not verified).
+seg's upsample + argmax kernel either way (profile_steps_trace_depth_first.json.gz), and neither that priority nor
+seg's kernel in 256-thread blocks instead of 64 (a wider block of depth's then fits where one of seg's ends) changed
+the frame: 2.280, 2.278, 2.282 and 2.283 ms (ab_result_handoff_seg_block{128,512}.json).
 
 Note [Inline launch]
 ~~~~~~~~~~~~~~~~~~~~

@@ -244,9 +244,10 @@ class RuntimeConfig(_Strict):
         ge=0,
         le=5000,
         description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). > 0: it sleeps "
-        "through the part of the head's work that its recent results predict, less this window, then polls for "
-        "the result (offering the interpreter lock between polls) until at most this long past the predicted end, "
-        "then sleeps in the driver: at most about twice this much CPU time per result waited for, however late the "
+        "through the part of the head's work that its recent results predict, less a window, then polls for the "
+        "result (offering the interpreter lock between polls) until at most that window past the predicted end, "
+        "then sleeps in the driver. The window is this plus twice the spread of the head's recent results, at most "
+        "three times this: at most about six times this much CPU time per result waited for, however late the "
         "result; only while a result is pending, never idle. 0: it sleeps in the driver until the result is there, "
         "and waking up takes about 0.1 ms.",
     )

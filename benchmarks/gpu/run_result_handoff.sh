@@ -59,7 +59,7 @@ suite)
   ;;
 e5)
   timeout 520 python3 -m vpengine.cli.main bench paper --experiments E5 --e5-frames "${E5_FRAMES:-10000}" \
-    --det-head frcnn_dinov2_lite --backend compile --tag e5_result_handoff --out "$OUT" 2>&1 \
+    --det-head frcnn_dinov2_lite --backend compile --tag "e5_result_handoff${SUFFIX:-}" --out "$OUT" 2>&1 \
     | grep -v "RANDOM\|WARNING" | tail -4
   ;;
 esac

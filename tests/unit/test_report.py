@@ -7,7 +7,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from vpengine.bench.report import collect, table
+import pytest
+
+from vpengine.bench.report import FLOOR_RUNS_DRAWN, build_figure, collect, floor_panel_rows, table
 
 
 def _lat(ms: float) -> dict[str, float]:
@@ -196,6 +198,43 @@ def test_every_e5_run_gets_a_row_and_the_figure_shows_the_longest(tmp_path):
     assert "E5 10000 frames" in rows[0] and "p50 12.9 ms" in rows[0] and "not slot-bound" not in rows[0]
     assert "E5 3000 frames" in rows[1] and "not slot-bound" in rows[1] and "lost 0.10%" in rows[1]
     assert r["E5"]["file"] == "paper_cuda_e5.json"  # the longest stream, not the newest
+
+
+def test_the_floor_panel_shows_the_newest_runs_that_timed_frames_written_in_place(tmp_path):
+    _write(tmp_path, "paper_cuda_floor_old", "2026-01-01T00:00:00", {}, floor=_floor(True))  # no frame slot
+    _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", {}, floor=_floor(True, True))
+    _write(tmp_path, "paper_cuda_floor_y", "2026-01-03T00:00:00", {}, floor=_floor(False, True))
+    assert floor_panel_rows(collect(tmp_path)) == [("x", 2.0, 2.5, 2.25), ("y", 2.0, None, 2.25)]
+    for i in range(FLOOR_RUNS_DRAWN + 2):
+        _write(
+            tmp_path,
+            f"paper_cuda_floor_z{i:02}",
+            f"2026-02-{i + 1:02}T00:00:00",
+            {},
+            floor=_floor(True, True),
+        )
+    rows = floor_panel_rows(collect(tmp_path))
+    assert [x[0] for x in rows] == [
+        f"z{i:02}" for i in range(2, FLOOR_RUNS_DRAWN + 2)
+    ]  # the newest, oldest first
+
+
+def test_the_figure_has_a_panel_for_each_experiment_the_folder_has_and_no_empty_ones(tmp_path):
+    empty = build_figure(collect(tmp_path))
+    assert empty.axes == [] and "no results in this folder" in [t.get_text() for t in empty.texts]
+    e5 = _e5(10000, 12.9, 0.0)
+    e5["memory"] = [{"t": float(t), "device_used": 1 << 30} for t in range(5)]
+    _write(tmp_path, "paper_cuda_e5", "2026-01-01T00:00:00", {}, E5=e5)
+    _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", {}, floor=_floor(True, True))
+    fig = build_figure(collect(tmp_path))
+    titles = [ax.get_title() for ax in fig.axes]
+    assert titles == [
+        "E5: 10000 frames at 30 Hz",
+        "E5: device memory over the stream",
+        "engine vs device-time floor (newest runs)",
+    ]
+    # the transfers alone (2.5 ms against 2.0 ms summed: +25%), then the engine (2.25 ms: +12.5%)
+    assert [p.get_width() for p in fig.axes[2].patches] == [pytest.approx(25.0), pytest.approx(12.5)]
 
 
 EVENT_STAGES = {  # one profile_steps.py variant: mean ms after the frame is in its slot

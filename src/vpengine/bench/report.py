@@ -205,77 +205,150 @@ def table(r: dict[str, Any]) -> str:
     return "\n".join(rows)
 
 
-def figure(r: dict[str, Any], path: Path) -> None:
+def _e1(ax: Any, r: dict[str, Any]) -> None:
+    rows = r["E1"]["rows"]
+    ns = [x["heads"] for x in rows]
+    for s, style in (("engine", "o-"), ("independent", "s--"), ("sequential", "^:")):
+        ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
+    ax.set(
+        xlabel="depth heads",
+        ylabel="frames/s, one frame in flight",
+        title=f"E1: shared backbone vs not\n({_setup_label(r['E1'].get('setup', {}))})",
+    )
+    ax.legend()
+
+
+def _e2(ax: Any, r: dict[str, Any]) -> None:
+    rows = r["E2"]["rows"]
+    ns = [x["heads"] for x in rows]
+    for s, style in (("engine", "o-"), ("sequential", "^:")):
+        ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
+    ax.set(
+        xlabel="detection heads",
+        ylabel="frames/s",
+        title=f"E2: parallel vs sequential heads\n({_setup_label(r['E2'].get('setup', {}), det=True)})",
+    )
+    ax.legend()
+
+
+def _e3(ax: Any, r: dict[str, Any]) -> None:
+    rows = r["E3"]["rows"]
+    labels = [f"{x['head']} x{x['heads']}" for x in rows]
+    x = np.arange(len(labels))
+    ax.bar(x - 0.2, [y["mps_off"]["hz"] for y in rows], 0.4, label="MPS off")
+    ax.bar(x + 0.2, [y["mps_on"]["hz"] for y in rows], 0.4, label="MPS on")
+    ax.set_xticks(x, labels)
+    ax.set(ylabel="frames/s", title=f"E3: CUDA MPS\n({_setup_label(r['E3'].get('setup', {}), det=True)})")
+    ax.legend()
+
+
+def _e4(ax: Any, r: dict[str, Any]) -> None:
+    rows = r["E4"]["rows"]
+    rates = [x["rate_hz"] for x in rows]
+    ax.plot(rates, [x["ideal"] for x in rows], "k--", label="ideal")
+    ax.plot(rates, [x["runs"] for x in rows], "o", label="measured")
+    ax.set(xlabel="rate limit (Hz)", ylabel="runs in 10 s", title="E4: rate limits (30 Hz input)")
+    ax.legend()
+
+
+def _e5_latency(ax: Any, r: dict[str, Any]) -> None:
+    lat = r["E5"]["per_head_latency_ms"]
+    names = list(lat)
+    ax.bar(np.arange(len(names)) - 0.2, [lat[n]["p50"] for n in names], 0.4, label="p50")
+    ax.bar(np.arange(len(names)) + 0.2, [lat[n]["p99"] for n in names], 0.4, label="p99")
+    ax.set_xticks(np.arange(len(names)), names)
+    ax.set(ylabel="submit -> result (ms)", title=f"E5: {r['E5']['frames']} frames at 30 Hz")
+    ax.axhline(33.3, color="grey", lw=0.8, ls=":")
+    ax.legend()
+
+
+def _e5_memory(ax: Any, r: dict[str, Any]) -> None:
+    mem = r["E5"]["memory"]
+    base = mem[0]["device_used"]
+    ax.plot([m["t"] for m in mem], [(m["device_used"] - base) / 2**20 for m in mem])
+    ax.set(xlabel="seconds", ylabel="device memory change (MiB)", title="E5: device memory over the stream")
+    ax.set_ylim(-8, 8)
+    ax.ticklabel_format(useOffset=False)
+
+
+#: floor runs drawn, newest last
+FLOOR_RUNS_DRAWN = 8
+
+
+def floor_panel_rows(r: dict[str, Any]) -> list[tuple[str, float, float | None, float]]:
+    """The floor panel's runs, newest last: (file name less ``paper_cuda_floor_`` and ``.json``, summed device
+    time, the same with the frame's upload and the results' download or None, the engine's thread-mode mean from a
+    frame slot, as the table's percentages), in ms; only runs that timed frames written in place."""
+    rows = []
+    for f in r.get("floor_all", []):
+        if "floor_sum_ms" not in f or "thread_frame_slot" not in f:
+            continue
+        name = f["file"].removeprefix("paper_cuda_floor_").removesuffix(".json")
+        rows.append(
+            (name, f["floor_sum_ms"], f.get("floor_with_transfers_ms"), f["thread_frame_slot"]["p50"])
+        )
+    return rows[-FLOOR_RUNS_DRAWN:]
+
+
+def _floor(ax: Any, r: dict[str, Any]) -> None:
+    rows = floor_panel_rows(r)
+    y = np.arange(len(rows))
+    over = [100 * (x[3] / x[1] - 1) for x in rows]
+    xfer = [100 * (x[2] / x[1] - 1) if x[2] else 0.0 for x in rows]
+    ax.barh(y - 0.2, xfer, 0.4, color="#bbbbbb", label="the frame's upload and the results' download alone")
+    ax.barh(y + 0.2, over, 0.4, color="#4a7fc0", label="engine, thread mode, frame written in place (mean)")
+    for yi, v in zip(y, over):
+        ax.text(v, yi + 0.2, f" {v:+.0f}%", va="center", fontsize=7)
+    ax.axvline(20, color="#c04040", lw=1, ls="--", label="target: +20%")
+    ax.set_yticks(y, [x[0] for x in rows], fontsize=7)
+    ax.invert_yaxis()
+    ax.set(xlabel="% over the models' summed device time", title="engine vs device-time floor (newest runs)")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=1, frameon=False)
+
+
+def _panels(r: dict[str, Any]) -> list[Any]:
+    """The figure's panels that ``r`` has data for, in order."""
+    mem = r.get("E5", {}).get("memory")
+    have = {
+        _e1: "E1" in r,
+        _e2: "E2" in r,
+        _e3: "E3" in r,
+        _e4: "E4" in r,
+        _e5_latency: "E5" in r,
+        _e5_memory: bool(mem) and mem[0]["device_used"] is not None,
+        _floor: bool(floor_panel_rows(r)),
+    }
+    return [draw for draw, present in have.items() if present]
+
+
+def build_figure(r: dict[str, Any]) -> Any:
+    """One panel per experiment the folder has results for, three to a row (none: a figure saying so)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(2, 3, figsize=(15, 8), dpi=110)
-    ax = axes[0, 0]
-    if "E1" in r:
-        rows = r["E1"]["rows"]
-        ns = [x["heads"] for x in rows]
-        for s, style in (("engine", "o-"), ("independent", "s--"), ("sequential", "^:")):
-            ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
-        ax.set(
-            xlabel="depth heads",
-            ylabel="frames/s, one frame in flight",
-            title=f"E1: shared backbone vs not ({_setup_label(r['E1'].get('setup', {}))})",
-        )
-        ax.legend()
-    ax = axes[0, 1]
-    if "E2" in r:
-        rows = r["E2"]["rows"]
-        ns = [x["heads"] for x in rows]
-        for s, style in (("engine", "o-"), ("sequential", "^:")):
-            ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
-        ax.set(
-            xlabel="detection heads",
-            ylabel="frames/s",
-            title=f"E2: parallel vs sequential heads\n({_setup_label(r['E2'].get('setup', {}), det=True)})",
-        )
-        ax.legend()
-    ax = axes[0, 2]
-    if "E3" in r:
-        rows = r["E3"]["rows"]
-        labels = [f"{x['head']} x{x['heads']}" for x in rows]
-        x = np.arange(len(labels))
-        ax.bar(x - 0.2, [y["mps_off"]["hz"] for y in rows], 0.4, label="MPS off")
-        ax.bar(x + 0.2, [y["mps_on"]["hz"] for y in rows], 0.4, label="MPS on")
-        ax.set_xticks(x, labels)
-        ax.set(ylabel="frames/s", title=f"E3: CUDA MPS ({_setup_label(r['E3'].get('setup', {}), det=True)})")
-        ax.legend()
-    ax = axes[1, 0]
-    if "E4" in r:
-        rows = r["E4"]["rows"]
-        rates = [x["rate_hz"] for x in rows]
-        ax.plot(rates, [x["ideal"] for x in rows], "k--", label="ideal")
-        ax.plot(rates, [x["runs"] for x in rows], "o", label="measured")
-        ax.set(xlabel="rate limit (Hz)", ylabel="runs in 10 s", title="E4: rate limits (30 Hz input)")
-        ax.legend()
-    ax = axes[1, 1]
-    if "E5" in r:
-        lat = r["E5"]["per_head_latency_ms"]
-        names = list(lat)
-        ax.bar(np.arange(len(names)) - 0.2, [lat[n]["p50"] for n in names], 0.4, label="p50")
-        ax.bar(np.arange(len(names)) + 0.2, [lat[n]["p99"] for n in names], 0.4, label="p99")
-        ax.set_xticks(np.arange(len(names)), names)
-        ax.set(ylabel="submit -> result (ms)", title=f"E5: {r['E5']['frames']} frames at 30 Hz")
-        ax.axhline(33.3, color="grey", lw=0.8, ls=":")
-        ax.legend()
-    ax = axes[1, 2]
-    if "E5" in r and r["E5"]["memory"] and r["E5"]["memory"][0]["device_used"] is not None:
-        mem = r["E5"]["memory"]
-        base = mem[0]["device_used"]
-        ax.plot([m["t"] for m in mem], [(m["device_used"] - base) / 2**20 for m in mem])
-        ax.set(
-            xlabel="seconds", ylabel="device memory change (MiB)", title="E5: device memory over the stream"
-        )
-        ax.set_ylim(-8, 8)
-        ax.ticklabel_format(useOffset=False)
-    fig.suptitle(f"vpengine on {r.get('E5', r.get('E1', {})).get('machine', {}).get('gpu', '?')}")
+    panels = _panels(r)
+    cols = min(3, max(1, len(panels)))
+    rows = max(1, -(-len(panels) // cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 4 * rows), dpi=110, squeeze=False)
+    flat = list(axes.flat)
+    for draw, ax in zip(panels, flat):
+        draw(ax, r)
+    for ax in flat[len(panels) :]:
+        fig.delaxes(ax)
+    if not panels:
+        fig.text(0.5, 0.5, "no results in this folder", ha="center", va="center")
+    newest = r.get("E5") or r.get("E1") or r.get("floor") or {}
+    fig.suptitle(f"vpengine on {newest.get('machine', {}).get('gpu', '?')}")
     fig.tight_layout()
+    return fig
+
+
+def figure(r: dict[str, Any], path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig = build_figure(r)
     fig.savefig(path)
     plt.close(fig)
 

@@ -200,6 +200,32 @@ def test_every_e5_run_gets_a_row_and_the_figure_shows_the_longest(tmp_path):
     assert r["E5"]["file"] == "paper_cuda_e5.json"  # the longest stream, not the newest
 
 
+def test_the_wait_spin_is_in_a_label_only_where_it_ran_on_cuda(tmp_path):
+    _write(
+        tmp_path,
+        "paper_cuda_floor_a",
+        "2026-01-01T00:00:00",
+        {"device": "cuda", "wait_spin_us": 200.0},
+        floor=_floor(True),
+    )
+    _write(
+        tmp_path,
+        "paper_cuda_floor_b",
+        "2026-01-02T00:00:00",
+        {"device": "cuda", "wait_spin_us": 0.0},
+        floor=_floor(True),
+    )
+    _write(
+        tmp_path,
+        "paper_cpu_floor",
+        "2026-01-03T00:00:00",
+        {"device": "cpu", "wait_spin_us": 200.0},
+        floor=_floor(True),
+    )
+    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
+    assert ["wait spin 200 us" in row for row in rows] == [True, False, False]
+
+
 def test_the_floor_panel_shows_the_newest_runs_that_timed_frames_written_in_place(tmp_path):
     _write(tmp_path, "paper_cuda_floor_old", "2026-01-01T00:00:00", {}, floor=_floor(True))  # no frame slot
     _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", {}, floor=_floor(True, True))

@@ -174,7 +174,12 @@ class Setup:
     @property
     def engine_label(self) -> str:
         spin = f", sync spin {self.sync_spin_us:g} us" if self.sync_spin_us else ""
-        spin += f", wait spin {self.wait_spin_us:g} us" if self.wait_spin_us else ""
+        # the wait spin is CUDA's alone (results handed off by event)
+        spin += (
+            f", wait spin {self.wait_spin_us:g} us"
+            if self.wait_spin_us and self.device.startswith("cuda")
+            else ""
+        )
         handoff = ", host hand-off" if self.feature_handoff == "host" else ""
         handoff += ", results handed off on the host" if self.result_handoff == "host" else ""
         launch = ", worker launch" if self.inline_launch == "never" else ""

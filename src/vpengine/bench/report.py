@@ -66,7 +66,9 @@ def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
         label += ", not slot-bound"
     if setup.get("sync_spin_us"):
         label += f", sync spin {setup['sync_spin_us']:g} us"
-    if setup.get("wait_spin_us"):
+    if setup.get("wait_spin_us") and str(setup.get("device", "")).startswith(
+        "cuda"
+    ):  # the CPU: nothing to spin for
         label += f", wait spin {setup['wait_spin_us']:g} us"
     # thread mode's features waited for on the host (runs before Note [Event hand-off] have no such key and
     # handed off on the host too)

@@ -36,6 +36,7 @@ driver. Set TINY=1 for a CPU smoke run.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 import statistics
@@ -113,35 +114,6 @@ def _poll_in_driver(event, slot, predicted_s, spin_s):  # type: ignore[no-untype
     return False
 
 
-def _poll_holding_lock(event, slot, predicted_s, spin_s):  # type: ignore[no-untyped-def]
-    """Diagnostic: the poll without giving the interpreter lock away between queries."""
-    due = slot.t_publish + predicted_s
-    now = time.monotonic()
-    if due - spin_s > now:
-        time.sleep(due - spin_s - now)
-        now = time.monotonic()
-    until = max(due, now) + spin_s
-    while not event.query():
-        if time.monotonic() >= until:
-            return False
-    return True
-
-
-def _poll_sleep0(event, slot, predicted_s, spin_s):  # type: ignore[no-untyped-def]
-    """The poll as first written: ``time.sleep(0)`` between queries (which sleeps out the timer slack)."""
-    due = slot.t_publish + predicted_s
-    now = time.monotonic()
-    if due - spin_s > now:
-        time.sleep(due - spin_s - now)
-        now = time.monotonic()
-    until = max(due, now) + spin_s
-    while not event.query():
-        if time.monotonic() >= until:
-            return False
-        time.sleep(0)
-    return True
-
-
 def _copy_out_late(self, pinned, copy=True):  # type: ignore[no-untyped-def]
     """Engine._copy_out as it was: each result borrowed only after its wait for the device."""
     out = {}
@@ -156,17 +128,17 @@ _poll = ring_mod._poll
 POLLS = {  # variant -> (how the wait spins, whether the slots' events have default flags)
     "event, wait spin 200 us": (_poll, False),
     "event, driver spin 200 us": (_poll_in_driver, True),
-    "event, poll holding the lock": (_poll_holding_lock, False),
-    "event, poll with sleep(0)": (_poll_sleep0, False),
+    # diagnostics: never offering the interpreter lock between polls; offering it as first written
+    "event, poll holding the lock": (functools.partial(_poll, offer=lambda: None), False),
+    "event, poll with sleep(0)": (functools.partial(_poll, offer=lambda: time.sleep(0)), False),
 }
 
 
 class Arm:
     """One engine under test and its heads' two sets of result events."""
 
-    def __init__(self, eng, label: str, own) -> None:  # type: ignore[no-untyped-def]
-        self.eng, self.label, self.cores = eng, label, own
-        self.head_cores = head_cores = [c for c in own if c.name != "foundation"]
+    def __init__(self, eng, label: str, head_cores) -> None:  # type: ignore[no-untyped-def]
+        self.eng, self.label, self.head_cores = eng, label, head_cores
         self.blocking = {c.name: c._handoff for c in head_cores}
         self.by_event = all(v is not None for v in self.blocking.values())
         self.spinning = (
@@ -213,7 +185,7 @@ with engines(cfgs) as started:
     arms = []
     for i, eng in enumerate(started):
         ctl = eng._res.control
-        own = [c for c in cores if c.control is ctl]
+        own = [c for c in cores if c.control is ctl and c.name != "foundation"]
         arms.append(Arm(eng, "" if i == 0 else f" [{priorities}]", own))
     names = ["event", "host"]
     report["handed_off_by_event"] = arms[0].by_event

@@ -201,27 +201,14 @@ def test_every_e5_run_gets_a_row_and_the_figure_shows_the_longest(tmp_path):
 
 
 def test_the_wait_spin_is_in_a_label_only_where_it_ran_on_cuda(tmp_path):
-    _write(
-        tmp_path,
-        "paper_cuda_floor_a",
-        "2026-01-01T00:00:00",
-        {"device": "cuda", "wait_spin_us": 200.0},
-        floor=_floor(True),
-    )
-    _write(
-        tmp_path,
-        "paper_cuda_floor_b",
-        "2026-01-02T00:00:00",
-        {"device": "cuda", "wait_spin_us": 0.0},
-        floor=_floor(True),
-    )
-    _write(
-        tmp_path,
-        "paper_cpu_floor",
-        "2026-01-03T00:00:00",
-        {"device": "cpu", "wait_spin_us": 200.0},
-        floor=_floor(True),
-    )
+    runs = [
+        ("paper_cuda_floor_a", "cuda", 200.0),
+        ("paper_cuda_floor_b", "cuda", 0.0),
+        ("paper_cpu_floor", "cpu", 200.0),
+    ]
+    for day, (name, device, spin) in enumerate(runs, 1):
+        setup = {"device": device, "wait_spin_us": spin}
+        _write(tmp_path, name, f"2026-01-0{day}T00:00:00", setup, floor=_floor(True))
     rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
     assert ["wait spin 200 us" in row for row in rows] == [True, False, False]
 

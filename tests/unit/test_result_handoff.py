@@ -252,59 +252,59 @@ def publish_due(ring: SlotRing, value: float, work_s: float) -> tuple[int, DueEv
     return i, event
 
 
-def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_polls_only_for_the_rest():
+@pytest.fixture
+def handed_off_ring():  # type: ignore[no-untyped-def]
+    """A latest-buffer output ring whose slots are handed off by (stand-in) event, and its results reader."""
     ring = latest_buffer("out", SPECS, ["results"])
+    handed_off(ring)
     try:
-        handed_off(ring)
-        r = ring.reader("results")
-        i, event = publish_due(ring, 1.0, 0.05)
-        slot = r.pin()
-        ring.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no polling, the whole wait in the driver
-        assert event.syncs == 1 and event.polls == 1  # the one query that found it not done yet
-        r.release(slot)
-
-        ring.publish_to_done_s = 0.15
-        i, event = publish_due(ring, 2.0, 0.15)
-        slot = r.pin()
-        t = ring.wait_done(slot, spin_s=0.02)
-        assert event.syncs == 0  # done while polled: never waited in the driver
-        # the first query, then a sleep through 0.15 - 0.02 s, then the polls
-        assert event.polls > 2 and event.polled_at[1] >= slot.t_publish + 0.13
-        assert t >= event.due and t - event.due < 0.01
-        assert ring.done_at[i] == (slot.seq, t)
-        r.release(slot)
-
-        i, event = publish_due(ring, 3.0, 0.05)
-        slot = r.pin()
-        ring.wait_done(slot)  # no spin window: straight to the (sleeping) wait in the driver
-        assert event.syncs == 1 and event.polls == 1
-        r.release(slot)
+        yield ring, ring.reader("results")
     finally:
         ring.close()
 
 
-def test_a_spinning_wait_polls_no_longer_than_its_window_past_the_predicted_end():
-    ring = latest_buffer("out", SPECS, ["results"])
-    try:
-        handed_off(ring)
-        r = ring.reader("results")
-        ring.publish_to_done_s = 0.05  # predicted: 0.05 s; the work takes 0.4 s
-        _, event = publish_due(ring, 1.0, 0.4)
-        slot = r.pin()
-        cpu = time.thread_time()
-        t = ring.wait_done(slot, spin_s=0.02)
-        spent = time.thread_time() - cpu
-        assert (
-            event.syncs == 1 and event.sync_called_at >= slot.t_publish + 0.05 + 0.02
-        )  # polled to the window's end
-        assert (
-            event.sync_called_at < event.due - 0.2
-        )  # then waited in the driver, long before the work was done
-        assert t >= event.due
-        assert spent < 0.2  # at most the two windows' polling, not the whole 0.4 s wait
-        r.release(slot)
-    finally:
-        ring.close()
+def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_polls_only_for_the_rest(
+    handed_off_ring,
+):
+    ring, r = handed_off_ring
+    i, event = publish_due(ring, 1.0, 0.05)
+    slot = r.pin()
+    ring.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no polling, the whole wait in the driver
+    assert event.syncs == 1 and event.polls == 1  # the one query that found it not done yet
+    r.release(slot)
+
+    ring.publish_to_done_s = 0.15
+    i, event = publish_due(ring, 2.0, 0.15)
+    slot = r.pin()
+    t = ring.wait_done(slot, spin_s=0.02)
+    assert event.syncs == 0  # done while polled: never waited in the driver
+    # the first query, then a sleep through 0.15 - 0.02 s, then the polls
+    assert event.polls > 2 and event.polled_at[1] >= slot.t_publish + 0.13
+    assert t >= event.due and t - event.due < 0.01
+    assert ring.done_at[i] == (slot.seq, t)
+    r.release(slot)
+
+    i, event = publish_due(ring, 3.0, 0.05)
+    slot = r.pin()
+    ring.wait_done(slot)  # no spin window: straight to the (sleeping) wait in the driver
+    assert event.syncs == 1 and event.polls == 1
+    r.release(slot)
+
+
+def test_a_spinning_wait_polls_no_longer_than_its_window_past_the_predicted_end(handed_off_ring):
+    ring, r = handed_off_ring
+    ring.publish_to_done_s = 0.05  # predicted: 0.05 s; the work takes 0.4 s
+    _, event = publish_due(ring, 1.0, 0.4)
+    slot = r.pin()
+    cpu = time.thread_time()
+    t = ring.wait_done(slot, spin_s=0.02)
+    spent = time.thread_time() - cpu
+    # polled to the window's end, then waited in the driver, long before the work was done
+    assert event.syncs == 1 and event.sync_called_at >= slot.t_publish + 0.05 + 0.02
+    assert event.sync_called_at < event.due - 0.2
+    assert t >= event.due
+    assert spent < 0.2  # at most the two windows' polling, not the whole 0.4 s wait
+    r.release(slot)
 
 
 @pytest.mark.parametrize(
@@ -313,32 +313,27 @@ def test_a_spinning_wait_polls_no_longer_than_its_window_past_the_predicted_end(
     ids=["no-spread", "spread-widens-the-window", "window-capped"],
 )
 def test_a_spinning_wait_widens_its_window_by_the_spread_of_recent_results_up_to_a_cap(
-    spread, work_s, polled
+    handed_off_ring, spread, work_s, polled
 ):
-    ring = latest_buffer("out", SPECS, ["results"])
-    try:
-        handed_off(ring)
-        r = ring.reader("results")
-        # predicted 0.05 s; window 0.02 s plus twice the spread, at most 0.06 s: polled until 0.07 or 0.11 s
-        ring.publish_to_done_s, ring.publish_to_done_dev_s = 0.05, spread
-        _, event = publish_due(ring, 1.0, work_s)
-        slot = r.pin()
-        t = ring.wait_done(slot, spin_s=0.02)
-        assert t >= event.due
-        assert event.syncs == (0 if polled else 1)
-        if not polled:
-            window = 0.02 + min(2 * spread, 0.04)
-            assert event.sync_called_at >= slot.t_publish + 0.05 + window
-            assert event.sync_called_at < slot.t_publish + 0.05 + window + 0.05
-        r.release(slot)
-    finally:
-        ring.close()
+    ring, r = handed_off_ring
+    # predicted 0.05 s; window 0.02 s plus twice the spread, at most 0.06 s: polled until 0.07 or 0.11 s
+    ring.publish_to_done_s, ring.publish_to_done_dev_s = 0.05, spread
+    _, event = publish_due(ring, 1.0, work_s)
+    slot = r.pin()
+    t = ring.wait_done(slot, spin_s=0.02)
+    assert t >= event.due
+    assert event.syncs == (0 if polled else 1)
+    if not polled:
+        window = 0.02 + min(2 * spread, 0.04)
+        assert event.sync_called_at >= slot.t_publish + 0.05 + window
+        assert event.sync_called_at < slot.t_publish + 0.05 + window + 0.05
+    r.release(slot)
 
 
-def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads():
+def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads(handed_off_ring):
     """A head thread woken while the caller polls must not wait for the poll to end: with a 50 ms switch interval,
     a poll that kept the lock would hold each wake-up about that long."""
-    ring = latest_buffer("out", SPECS, ["results"])
+    ring, r = handed_off_ring
     delays: list[float] = []
     stop = threading.Event()
 
@@ -350,8 +345,6 @@ def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads():
 
     interval = sys.getswitchinterval()
     try:
-        handed_off(ring)
-        r = ring.reader("results")
         ring.publish_to_done_s = 0.3
         _, event = publish_due(ring, 1.0, 0.5)
         slot = r.pin()
@@ -367,7 +360,6 @@ def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads():
     finally:
         sys.setswitchinterval(interval)
         stop.set()
-        ring.close()
 
 
 class SlowEvent(Event):

@@ -422,9 +422,11 @@ class SlotRing:
         return t_done
 
 
-def _poll(event: Any, slot: SlotInfo, predicted_s: float, window_s: float) -> bool:
+def _poll(
+    event: Any, slot: SlotInfo, predicted_s: float, window_s: float, offer: Callable[[], Any] = os.sched_yield
+) -> bool:
     """``wait_done``'s spin: sleep until ``window_s`` before ``slot``'s predicted end, then poll ``event`` until it
-    is done (True) or ``window_s`` past that end has come (False)."""
+    is done (True) or ``window_s`` past that end has come (False), calling ``offer`` between polls."""
     due = slot.t_publish + predicted_s
     now = time.monotonic()
     if due - window_s > now:
@@ -434,9 +436,10 @@ def _poll(event: Any, slot: SlotInfo, predicted_s: float, window_s: float) -> bo
     while not event.query():
         if time.monotonic() >= until:
             return False
-        # Gives the interpreter lock to a thread that wants it (a head publishing), at once; time.sleep(0) would
-        # too, but sleeps out the timer slack (about 55 us on Linux), which a result done meanwhile waits through.
-        os.sched_yield()
+        # os.sched_yield gives the interpreter lock to a thread that wants it (a head publishing), at once;
+        # time.sleep(0) would too, but sleeps out the timer slack (about 55 us on Linux), which a result done
+        # meanwhile waits through.
+        offer()
     return True
 
 

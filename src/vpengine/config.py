@@ -35,9 +35,17 @@ class InputConfig(_Strict):
     """The camera frames given to ``Engine.submit``."""
 
     height: int = Field(
-        480, ge=14, le=16384, description="Frame height in pixels (canonical; submit checks it)."
+        480,
+        ge=14,
+        le=16384,
+        description="Height in pixels the models run at (their mailboxes and graphs are this size). Frames of any "
+        "other size are scaled into it with their aspect ratio kept, and their outputs come back at their own size "
+        "(Note [Frame grid] in boundary.py); set it to your camera's to spare that resizing.",
     )
-    width: int = Field(640, ge=14, le=16384, description="Frame width in pixels.")
+    width: int = Field(640, ge=14, le=16384, description="Width in pixels the models run at (see height).")
+    max_frame_side: int = Field(
+        8192, ge=14, le=65536, description="Largest frame height or width accepted; larger frames are refused."
+    )
     color: Literal["bgr", "rgb"] = Field(
         "bgr", description="Channel order of submitted frames (OpenCV gives BGR)."
     )
@@ -164,6 +172,11 @@ class OutputConfig(_Strict):
     location: Literal["host", "device"] = Field(
         "host",
         description="host: results land in shared host memory; device: stay on the GPU for GPU consumers.",
+    )
+    grid: Literal["frame", "native"] = Field(
+        "frame",
+        description="frame: outputs in the submitted frame's pixel grid (maps at its size, boxes in its pixels); "
+        "native: as the head computed them, in the grid of input.height x width (Result.grid says which).",
     )
     leases: int = Field(
         2,

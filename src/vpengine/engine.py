@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from vpengine.boundary import Boundary, Placement
 from vpengine.config import EngineConfig, load_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.plan import Plan, make_plan
@@ -187,9 +188,27 @@ class Result:
     #: True: the host arrays are read-only views of the head's output slot, kept for as long as they are referenced
     #: (Note [Borrowed results]); False: they are copies.
     borrowed: bool = False
+    #: (height, width) of the submitted frame.
+    frame_size: tuple[int, int] = (0, 0)
+    #: "frame": maps at the frame's size, boxes in its pixels (the default); "native": in the models' input grid,
+    #: as the head's ``output.grid: native`` asks (Note [Frame grid] in boundary.py).
+    grid: str = "frame"
+    #: Where the frame lies in the models' input grid; maps native outputs to the frame's grid.
+    placement: Placement | None = None
+    #: The frame itself, for results of ``Engine.predict`` (others: None; the engine keeps no frames).
+    image: np.ndarray | None = None
+    #: The head's metadata (kind, labels, palette), for drawing.
+    info: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def __getitem__(self, key: str) -> Any:
         return self.outputs[key]
+
+    def plot(self, image: np.ndarray | None = None) -> np.ndarray:
+        """This result drawn as a BGR uint8 picture: on ``image`` (or the predicted frame, ``self.image``) when
+        given, else on its own (depth colours, class colours, boxes on grey)."""
+        from vpengine.io.visualize import render_result
+
+        return render_result(self, self.image if image is None else image)
 
 
 class _Resources:
@@ -221,15 +240,48 @@ class _Resources:
 class FrameSlot:
     """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
 
-    def __init__(self, engine: Engine, frame_id: int | None, timestamp: float | None) -> None:
+    def __init__(
+        self, engine: Engine, frame_id: int | None, timestamp: float | None, size: tuple[int, int] | None
+    ) -> None:
         self._engine = engine
         # capture time in seconds; may be set inside the block (default: when it ends)
         self.timestamp = timestamp
         self._frame_id_arg = frame_id
+        self._size = size
         self.frame_id: int | None = None  # set when the block ends and the frame is submitted
-        self.array: np.ndarray | None = None
+        self._array: np.ndarray | None = None
         self._slot: SlotInfo | None = None
         self._cancelled = False
+
+    @property
+    def array(self) -> np.ndarray | None:
+        """The writable frame: ``(height, width, 3)`` of the input dtype (None outside the block)."""
+        return self._array
+
+    @array.setter
+    def array(self, value: np.ndarray) -> None:
+        """``ok, slot.array = cap.read(image=slot.array)``: what a writer hands back must be the lent array itself.
+        A writer that allocated a new array instead (OpenCV does when the sizes differ) wrote nothing into the
+        slot: refused, naming both sizes, rather than submitting whatever the slot held before."""
+        arr = self._array
+        if arr is None:
+            raise RuntimeError("a FrameSlot's array exists only inside its with-block")
+        if not isinstance(value, np.ndarray) or value.__array_interface__["data"][0] != arr.ctypes.data:
+            got = (
+                f"{value.shape[1]}x{value.shape[0]}"
+                if isinstance(value, np.ndarray) and value.ndim >= 2
+                else (type(value).__name__)
+            )
+            raise ValueError(
+                f"the frame was written into a new {got} array, not into the {arr.shape[1]}x{arr.shape[0]} slot "
+                f"(a writer allocates one when the sizes differ): open the slot with frame_slot(size=(height, width)) "
+                "of your frames"
+            )
+        if value.shape != arr.shape or value.dtype != arr.dtype:
+            raise ValueError(
+                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: open the slot "
+                "with frame_slot(size=(height, width)) of your frames"
+            )
 
     def cancel(self) -> None:
         """Submit nothing when the block ends (e.g. the camera returned no frame)."""
@@ -248,20 +300,30 @@ class FrameSlot:
             raise
         eng._filling = threading.get_ident()
         self._slot = slot
-        self.array = eng._frame_views[slot.index]
+        # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
+        # (Note [Frame grid] in boundary.py)
+        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._size)
         return self
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        eng, slot = self._engine, self._slot
-        assert slot is not None
-        self.array, self._slot = None, None  # the slot is the engine's again: no writes after the block
+        eng, slot, arr = self._engine, self._slot, self._array
+        assert slot is not None and arr is not None
+        self._array, self._slot = None, None  # the slot is the engine's again: no writes after the block
         try:
             if exc_type is not None or self._cancelled or eng._state != "running":
                 eng._input_writer.abort(slot)
                 return
             t_submit = time.monotonic()
             t_capture = time.time() if self.timestamp is None else float(self.timestamp)
-            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit)
+            if self._size is None:
+                placement = eng.boundary.placement(arr.shape[:2])
+            else:
+                try:
+                    placement = eng.boundary.write(eng.boundary.check(arr), eng._frame_views[slot.index])
+                except BaseException:
+                    eng._input_writer.abort(slot)
+                    raise
+            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit, placement)
         finally:
             eng._filling = None
             eng._submit_lock.release()
@@ -287,6 +349,12 @@ class Engine:
         self._submitted = 0
         self._rejected = 0
         self._origins: collections.OrderedDict[int, int] = collections.OrderedDict()
+        # input seq -> where the frame lies in the input canvas (Note [Frame grid] in boundary.py)
+        self._placements: collections.OrderedDict[int, Placement] = collections.OrderedDict()
+        self.boundary = Boundary(
+            self.config, {h: (m.meta, m.output_spec) for h, m in self.plan.heads.items()}
+        )
+        self._staged: dict[tuple[int, int], np.ndarray] = {}
         self._results_active = False
         self._pool: Any = None
         self._host_outputs = _HostOutputs()
@@ -541,42 +609,19 @@ class Engine:
             raise EngineDeadError(f"the foundation model has failed for good: {ctl.last_error('foundation')}")
 
     # -------------------------------------------------------------------------------------------- input
-    def _check_frame(self, frame: Any) -> np.ndarray:
-        inp = self.config.input
-        want = f"a C-contiguous {inp.dtype} numpy array of shape ({inp.height}, {inp.width}, 3) ({inp.color.upper()})"
-        if isinstance(frame, torch.Tensor):
-            if frame.device.type != "cpu":
-                raise ValueError(f"expected {want}; got a tensor on {frame.device} (submit host frames)")
-            frame = frame.numpy()
-        if not isinstance(frame, np.ndarray):
-            raise ValueError(f"expected {want}; got {type(frame).__name__}")
-        if frame.size == 0:
-            raise ValueError(f"expected {want}; got an empty array of shape {frame.shape}")
-        if frame.ndim != 3 or frame.shape[2] != 3:
-            channels = frame.shape[2] if frame.ndim == 3 else "no channel axis"
-            raise ValueError(f"expected {want}; got shape {frame.shape} ({channels} channels)")
-        if frame.shape[:2] != (inp.height, inp.width):
-            raise ValueError(
-                f"expected {want}; got {frame.shape[0]}x{frame.shape[1]} (resize it, or set input.height/width)"
-            )
-        if frame.dtype != np.dtype(inp.dtype):
-            raise ValueError(f"expected {want}; got dtype {frame.dtype}")
-        if not frame.flags.c_contiguous:
-            raise ValueError(f"expected {want}; got a non-contiguous array (use np.ascontiguousarray)")
-        if frame.dtype.kind == "f" and not np.isfinite(frame).all():
-            raise ValueError(f"expected {want} with finite values; got NaN or inf")
-        return frame
-
     def submit(self, frame: Any, frame_id: int | None = None, timestamp: float | None = None) -> int:
         """Hand a frame to the engine. Returns its frame id (``frame_id`` or the next integer).
 
-        ``timestamp`` is the capture time in seconds (e.g. the camera's stamp); default: now. Never blocks on the
-        models: if the foundation model is busy, the newest frame wins and the overwritten one is counted as
-        skipped. Raises ValueError naming what was expected if the frame does not fit the configured input.
+        ``frame``: HxWx3 of the input dtype and colour order, of any size up to ``input.max_frame_side``; every
+        output for it comes back in its pixel grid (Note [Frame grid] in boundary.py). ``timestamp`` is the capture
+        time in seconds (e.g. the camera's stamp; default: now): rate limits run on these stamps, so a file's frames
+        stamped by their position obey them however fast they are fed. Never blocks on the models: if the
+        foundation model is busy, the newest frame wins and the overwritten one is counted as skipped. Raises
+        ValueError naming what was expected if the frame is not an image.
         """
         self._require_running()
         try:
-            arr = self._check_frame(frame)
+            arr = self.boundary.check(frame)
         except ValueError:
             self._rejected += 1
             raise
@@ -585,31 +630,54 @@ class Engine:
         self._refuse_inside_frame_slot()
         with self._submit_lock:
             slot = self._acquire_input()
-            # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then spin
-            # (one per core); a plain memcpy costs a fraction of that at 30 Hz.
-            np.copyto(self._frame_views[slot.index], arr)
-            return self._publish_input(slot, frame_id, t_capture, t_submit)
+            try:
+                placement = self.boundary.write(arr, self._frame_views[slot.index])
+            except BaseException:
+                self._input_writer.abort(slot)
+                raise
+            return self._publish_input(slot, frame_id, t_capture, t_submit, placement)
 
-    def frame_slot(self, frame_id: int | None = None, timestamp: float | None = None) -> FrameSlot:
+    def frame_slot(
+        self, frame_id: int | None = None, timestamp: float | None = None, size: tuple[int, int] | None = None
+    ) -> FrameSlot:
         """The next input slot, to write a frame into in place: ``submit`` without its copy (Note [Frame slots]).
 
         ::
 
-            with engine.frame_slot() as slot:
-                ok, _ = cap.read(image=slot.array)   # the camera decodes straight into the input mailbox
+            with engine.frame_slot(size=(h, w)) as slot:   # (h, w): the camera's frames
+                ok, slot.array = cap.read(image=slot.array)   # decoded straight into the input mailbox
                 if not ok:
                     slot.cancel()                    # nothing is submitted
             fid = slot.frame_id                      # set when the block ends: the frame is submitted then
 
-        ``slot.array`` is a writable ``(height, width, 3)`` array of the configured dtype; its content is whatever an
-        earlier frame left there until you write it. Leaving the block submits it (latency counts from there); an
-        exception inside the block or ``cancel()`` gives the slot back and submits nothing. One slot is open at a
-        time: other threads' ``submit``/``frame_slot`` calls wait for it to close, so fill it promptly (a camera
-        read, a decode); calling them from inside the block raises RuntimeError.
+        ``slot.array`` is a writable ``(height, width, 3)`` array of the configured dtype: the input mailbox slot
+        itself, or, with ``size=(height, width)`` other than the models' input size, a buffer kept for frames of that
+        size, fitted into the slot when the block ends (Note [Frame grid] in boundary.py). Its content is whatever
+        an earlier frame left there until you write it. Assign what a writer hands back to ``slot.array``
+        (``ok, slot.array = cap.read(image=slot.array)``): a writer that allocated a new array instead of writing
+        into it (OpenCV does when the sizes differ) raises ValueError naming both sizes. Leaving the block submits
+        it (latency counts from there); an exception inside the block or ``cancel()`` gives the slot back and
+        submits nothing. One slot is open at a time: other threads' ``submit``/``frame_slot`` calls wait for it to
+        close, so fill it promptly (a camera read, a decode); calling them from inside the block raises
+        RuntimeError.
         """
         self._require_running()
         self._refuse_inside_frame_slot()
-        return FrameSlot(self, frame_id, timestamp)
+        if size is not None:
+            h, w = (int(v) for v in size)
+            if not (0 < h <= self.boundary.max_side and 0 < w <= self.boundary.max_side):
+                raise ValueError(
+                    f"frame_slot size {size!r}: height and width must be 1..{self.boundary.max_side} (input.max_frame_side)"
+                )
+            size = None if (h, w) == self.boundary.canvas_hw else (h, w)
+        return FrameSlot(self, frame_id, timestamp, size)
+
+    def _staging(self, size: tuple[int, int]) -> np.ndarray:
+        """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size, kept."""
+        buf = self._staged.get(size)
+        if buf is None:
+            buf = self._staged[size] = np.zeros((*size, 3), self.boundary.dtype)
+        return buf
 
     def _refuse_inside_frame_slot(self) -> None:
         if self._filling == threading.get_ident():
@@ -621,10 +689,16 @@ class Engine:
         assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
         return slot
 
-    def _publish_input(self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float) -> int:
+    def _publish_input(
+        self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float, placement: Placement
+    ) -> int:
         """Publish a filled input slot; the caller holds ``_submit_lock``."""
         fid = self._next_id if frame_id is None else int(frame_id)
         self._next_id = fid + 1
+        # known before the frame is visible (this is the ring's one writer): its results may come back at once
+        self._placements[self._input_writer.ring.last_seq + 1] = placement
+        if len(self._placements) > _ORIGINS_KEPT:
+            self._placements.popitem(last=False)
         inline = self._input_writer.ring.inline
         if inline is not None:  # thread mode: queue the foundation's work from here (Note [Inline launch])
             seq = inline.publish(self._input_writer, slot, fid, t_capture, t_submit)
@@ -643,7 +717,17 @@ class Engine:
         numpy = self._numpy_heads.get(head)
         if numpy is None:  # a head's outputs are host arrays, or not, in every slot
             numpy = self._numpy_heads[head] = all(_numpy_output(t) for t in slot.tensors.values())
-        return self._leases.borrow(head, slot) if numpy else None
+        if not numpy or self._grid_change(head, slot) is not None:
+            return None  # outputs mapped to another grid are new arrays: nothing to lend
+        return self._leases.borrow(head, slot)
+
+    def _grid_change(self, head: str, slot: SlotInfo) -> Placement | None:
+        """The placement to map ``head``'s output in ``slot`` back to its frame's grid, or None (same grid, or the
+        head keeps the native grid)."""
+        p = self._placements.get(slot.origin)
+        if p is None:  # pragma: no cover - kept for _ORIGINS_KEPT frames, far more than any mailbox holds
+            raise RuntimeError(f"no record of the frame behind {head}'s output for frame {slot.frame_id}")
+        return None if p.identity or head in self.boundary.native else p
 
     def _to_result(self, head: str, slot: SlotInfo, borrowed: dict[str, np.ndarray] | None = None) -> Result:
         """``head``'s result from pinned ``slot`` once its device work is done: ``borrowed``, ``_borrow``'s arrays
@@ -651,8 +735,20 @@ class Engine:
         # Note [Result hand-off]
         t_ready = self._results_readers[head].ring.wait_done(slot, self.config.runtime.wait_spin_us * 1e-6)
         outputs: dict[str, Any]
+        change = self._grid_change(head, slot)
         if borrowed is not None:
             outputs = borrowed
+        elif change is not None:  # Note [Frame grid]: mapped straight out of the slot, into new arrays
+            kinds = self.boundary.kinds[head]
+            outputs = {}
+            for k, t in slot.tensors.items():
+                v = t.numpy() if _numpy_output(t) else t
+                if k in kinds:
+                    outputs[k] = change.to_frame(kinds[k], v)
+                else:
+                    outputs[k] = (
+                        self._host_outputs.copy(head, k, v) if isinstance(v, np.ndarray) else t.clone()
+                    )
         else:
             outputs = {
                 k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()
@@ -660,6 +756,7 @@ class Engine:
             }
         if all(isinstance(v, np.ndarray) for v in outputs.values()):
             outputs = self.plan.heads[head].finalize(outputs)
+        p = self._placements[slot.origin]
         return Result(
             head,
             slot.frame_id,
@@ -669,6 +766,10 @@ class Engine:
             slot.seq,
             t_ready,
             borrowed=borrowed is not None,
+            frame_size=p.frame_hw,
+            grid="native" if head in self.boundary.native else "frame",
+            placement=p,
+            info=self.plan.heads[head].meta,
         )
 
     def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:
@@ -756,8 +857,10 @@ class Engine:
     ) -> dict[str, Result]:
         """The outputs of ``heads`` (default: all) for frame ``frame_id``, waiting up to ``timeout`` s.
 
-        Heads that skipped the frame (rate limit, newer frame) or whose output for it was already overwritten
-        are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout. A result
+        Heads that give no output for the frame are left out of the dict, and the wait for them ends as soon as
+        they know it (Note [Answered frames] in runtime/worker.py): a rate limit held it back (the foundation
+        model's or the head's), it took a newer frame, it is paused or failed, its run raised, or its output was
+        already overwritten. Raises TimeoutError naming the heads still pending at the timeout. A result
         published while its device work still runs (Note [Result hand-off]) is waited for in the driver when its
         head's recent results say it will be done in time, and otherwise left for its head to report done; so a
         wait outlasts ``timeout`` only by how much a result is late on that prediction. ``copy=False``: results are
@@ -776,11 +879,16 @@ class Engine:
         deadline = time.monotonic() + timeout
         while True:
             word = ctl.output_word()
+            # Note [Answered frames]: read before looking for outputs; a frame the foundation held back reaches no head
+            f_decided = ctl.get("foundation", "decided")  # before last_run, which decide() stores first
+            f_ran = ctl.get("foundation", "last_run") >= origin
+            held_back = not f_ran and (f_decided >= origin or ctl.rate("foundation") == 0)
             with self._read_lock:
                 self._leases.drain()
                 found: list[tuple[str, SlotInfo]] = []
                 try:
                     for h in list(pending):
+                        answered = held_back or ctl.get(h, "decided") >= origin
                         reader = self._peek_readers[h]
                         slot, newest = reader.pin_origin(origin)
                         if slot is not None and reader.ring.done_after(slot, deadline):
@@ -790,7 +898,13 @@ class Engine:
                             continue
                         if slot is not None:
                             found.append((h, slot))
-                        if slot is not None or newest > origin or ctl.state(h) == "failed":
+                        if (
+                            slot is not None
+                            or answered
+                            or newest > origin
+                            or ctl.state(h) == "failed"
+                            or ctl.rate(h) == 0  # paused: answers nothing (one already running still may)
+                        ):
                             pending.remove(h)
                     done.update(self._copy_out(found, copy))
                 finally:
@@ -806,6 +920,17 @@ class Engine:
             if self._state != "running":
                 raise EngineDeadError("engine stopped while waiting")
             ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+
+    def predict(self, image: Any, timeout: float = 30.0, timestamp: float | None = None) -> dict[str, Result]:
+        """One frame through every head: ``submit`` then ``wait``; each result carries the frame (``image``) for
+        ``Result.plot()``, and its outputs are in the frame's pixel grid, whatever its size. A head whose rate
+        limit holds the frame back (on ``timestamp``, default now) is left out, as with ``wait``."""
+        fid = self.submit(image, timestamp=timestamp)
+        results = self.wait(fid, timeout=timeout)
+        frame = self.boundary.check(image)
+        for r in results.values():
+            r.image = frame
+        return results
 
     # ------------------------------------------------------------------------------------------ control
     def set_rate(self, model: str, hz: float | None) -> None:

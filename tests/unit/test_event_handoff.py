@@ -109,7 +109,7 @@ def step(core: WorkerCore) -> None:
     slot = core.reader.pin(timeout=1.0)
     assert slot is not None
     try:
-        core._step(slot, starved=False)
+        core._step(slot)
     finally:
         core.reader.release(slot)
 

@@ -2,8 +2,10 @@
 
 Pacing decides what happens when models are slower than the source:
 
-* ``lockstep`` (default for files): the next frame goes in once every running head has answered the previous one,
-  so nothing is skipped and the run is as fast as the slowest head allows;
+* ``lockstep`` (default for files): the next frame goes in once every head has answered the previous one, with an
+  output or, when its rate limit holds the frame back, with none (Note [Answered frames]), so nothing is skipped
+  by accident and the run is as fast as the heads that run on each frame allow. Rate limits run on the source's own
+  timeline: a video's frames by their position, a folder's at ``--fps`` (default 30), a bag's by their stamps;
 * ``realtime`` (default for cameras and the synthetic scene): frames go in at the source's rate like a live camera;
   models take the newest frame and every frame they skip is counted in the summary.
 
@@ -108,10 +110,8 @@ def run_pipeline(
     from vpengine.engine import Engine
     from vpengine.io.sinks import FolderSink, SinkThread
 
-    cfg = load_config(
-        config,
-        [f"input.height={source.height}", f"input.width={source.width}", f"input.color={source.color}"],
-    )
+    # frames of any size go in as they are (Note [Frame grid] in boundary.py): the CLI resizes nothing itself
+    cfg = load_config(config, [f"input.color={source.color}"])
     # a camera paces itself: the loop takes its newest frame (Note [Live capture])
     camera = getattr(source, "live", False)
     live = camera or type(source).__name__ == "SyntheticSource"
@@ -168,15 +168,17 @@ def run_pipeline(
                     while (now := time.monotonic()) < next_t:
                         handle(engine.results(timeout=next_t - now))
                 next_t = max(next_t + period, time.monotonic() - period)
-            fid = engine.submit(frame.image, timestamp=frame.timestamp)
+            stamp = frame.timestamp
+            if stamp is None and pace == "lockstep":  # a file without stamps: its own timeline, at the pace's rate
+                stamp = submitted * period
+            fid = engine.submit(frame.image, timestamp=stamp)
             recent[fid] = (frame.image, frame.name or f"{fid:06d}")
             if len(recent) > 64:
                 recent.popitem(last=False)
             submitted += 1
             if pace == "lockstep":
-                active = [h for h in heads if engine.rate(h) != 0.0]  # a paused head answers nothing
                 try:
-                    handle(list(engine.wait(fid, heads=active, timeout=60.0).values()))
+                    handle(list(engine.wait(fid, timeout=60.0).values()))
                 except TimeoutError as e:
                     log.warning("%s", e)
             else:

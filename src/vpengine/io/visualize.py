@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from functools import lru_cache
+from typing import Any
 
 import numpy as np
 
@@ -117,3 +118,23 @@ def draw_detections(
             cv2.LINE_AA,
         )
     return out
+
+
+def render_result(result: Any, image: np.ndarray | None = None) -> np.ndarray:
+    """One head's ``Result`` as a BGR picture at its frame's size: depth in colour, classes over ``image`` (or
+    alone), boxes on ``image`` (or on grey)."""
+    out, info = result.outputs, result.info
+    h, w = result.frame_size
+    if image is not None and image.shape[:2] != (h, w):
+        raise ValueError(f"image is {image.shape[1]}x{image.shape[0]}, the result's frame {w}x{h}")
+    if "depth_color" in out:
+        return np.array(out["depth_color"])
+    if "depth" in out:
+        return colorize_depth(out["depth"])
+    base = image if image is not None else np.full((h, w, 3), 128, np.uint8)
+    if "classes" in out:
+        pal = info.get("palette")
+        return overlay_segmentation(base, out["classes"], None if pal is None else np.asarray(pal, np.uint8))
+    if "boxes" in out:
+        return draw_detections(base, out["boxes"], out["scores"], out["labels"], info.get("labels"))
+    raise ValueError(f"head {result.head!r}: no picture for outputs {sorted(out)}")

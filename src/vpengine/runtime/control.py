@@ -45,6 +45,10 @@ _FIELDS = [
     ("last_frame_id", "q"),
     ("mps_active", "q"),
     ("stream_priority", "q"),  # as the device has it (config stream_priority, mapped into the device's range)
+    # Note [Answered frames]: the input-ring seq (origin) of the newest frame this model is done with, run or
+    # skipped, and of the newest it ran
+    ("decided", "q"),
+    ("last_run", "q"),
     ("target_hz", "d"),  # NaN: unlimited
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
     ("started_at", "d"),
@@ -201,6 +205,16 @@ class ControlBlock:
         self._set(i, "last_frame_id", frame_id)
         self._add(i, "runs")
         self._set(i, "lat_count", n + 1)
+
+    def decide(self, name: str, origin: int, ran: bool, wake: bool = True) -> None:
+        """Note [Answered frames]: this model is done with the frame of input seq ``origin`` (``ran``: it published
+        an output for it); ``wake`` wakes whoever waits for outputs."""
+        i = self.index[name]
+        if ran:
+            self._set(i, "last_run", origin)
+        self._set(i, "decided", origin)  # after last_run: whoever sees this sees that
+        if wake:
+            self._bump(4)
 
     def amend_last_run(self, name: str, compute_s: float, e2e_s: float) -> None:
         """Correct the times of the run recorded last (a run counted when its work was queued, timed when done)."""

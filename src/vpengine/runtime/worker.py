@@ -10,6 +10,19 @@ same object runs in-process under tests and debuggers, in a thread (thread mode)
 An executor bound to the slots (Note [Slot-bound runs], compiled models on CUDA) does the staging, the model and the
 copy into the output slot itself, from graphs captured at start.
 
+Note [Answered frames]
+~~~~~~~~~~~~~~~~~~~~~~
+``Engine.wait(frame)`` must learn that a model will give no output for a frame as soon as the model knows it, or a
+caller waiting for every head (``vpengine run``'s lockstep pacing, ``Engine.predict``) waits out a rate-limited
+head's whole period on every frame. So every worker answers each frame it is done with: after publishing its output,
+or at once when its rate gate holds the frame back, a run of it fails or finds no output slot, it records the frame's
+input seq (its origin) in the control block (``ControlBlock.decide``: ``decided``, and ``last_run`` when it
+published), and wakes the engine's waiters. A worker takes frames in order, so every frame up to ``decided`` is
+answered: ``wait`` reads ``decided`` before it looks for the output in the ring, and finding none then means none is
+coming. A frame the foundation model held back reaches no head: ``wait`` sees that as the foundation's ``decided``
+at or past the frame with its ``last_run`` before it. Frames a model missed because it was busy (newest wins) are
+answered by the newer frame it took.
+
 Note [Event hand-off]
 ~~~~~~~~~~~~~~~~~~~~~
 Note [Device sync] makes a writer wait on the host until the work that filled a slot is done, then publish it. For
@@ -85,10 +98,10 @@ the features (Note [Event hand-off]) and does the rest of its run as usual: coun
 releasing the frame. Nothing else changes hands: the worker alone decides when it is ready (rate limit, pause), a
 launch that raises is raised in the worker (restart rules), and a frame published while the worker is not armed is
 taken from the ring by the worker, as before. Arming, disarming, taking a frame from the ring and the inline launch
-all happen under the offer's lock, so each frame is taken exactly once. The worker arms with the rate its gate
-opened under and, under the lock, takes no frame if the rate has changed since; ``Engine.set_rate`` stores the rate
-and then takes the lock, so no frame submitted after it returns runs under the old rate (a pause set between the
-gate and the arming once let one through). Measured on the H100 (compiled depth + seg,
+all happen under the offer's lock, so each frame is taken exactly once. The worker arms only while it is unlimited
+(a rate limit is decided on each frame's timestamp, which needs the frame: ``rate.py``) and, under the lock, takes
+no frame if a rate has been set since; ``Engine.set_rate`` stores the rate and then takes the lock, so no frame
+submitted after it returns runs under the old rate. Measured on the H100 (compiled depth + seg,
 benchmarks/results/h100/profile_steps_inline.json): the first graph is queued 0.19 ms after the frame is published
 instead of 0.29 ms, 3.44 instead of 3.52 ms a frame. The 0.14 ms that stayed between starting a run and the first
 graph launch, in whichever thread launched, was the launch path's code running cold (Note [Launch path]). Queueing
@@ -115,7 +128,6 @@ ms with the worker launching (profile_steps_launch_path.json).
 from __future__ import annotations
 
 import logging
-import math
 import os
 import threading
 import time
@@ -255,65 +267,66 @@ class WorkerCore:
     def _loop(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
         while not should_stop():
-            now = time.monotonic()
             ctl.heartbeat(name)
             rate = ctl.rate(name)
-            self.gate.update(rate, now)
-            wait = self.gate.wait_time(now)
-            if wait > 0:
-                self._drop_spare()  # not armed while paused or rate-limited: takes no frames from submit
-                ctl.set_state(name, PAUSED if math.isinf(wait) else RUNNING)
-                ctl.wait_control(name, min(wait, self.poll_s))
+            self.gate.update(rate)
+            if self.gate.paused:
+                self._drop_spare()  # not armed while paused: takes no frames from submit
+                ctl.set_state(name, PAUSED)
+                ctl.wait_control(name, self.poll_s)
                 continue
             ctl.set_state(name, RUNNING)
-            gate_open = time.monotonic()
-            if self._inline is not None:
-                self._take_inline(gate_open, rate)
+            if self._inline is not None and rate is None:
+                self._take_inline()
             else:
-                self._take(gate_open, rate)
+                self._drop_spare()  # a rate-limited model decides on each frame first (Note [Inline launch])
+                self._take(rate)
 
-    def _take(self, gate_open: float, rate: float | None) -> None:
-        """One frame from the ring, or none within ``poll_s``; ``rate`` is the rate the gate opened under."""
+    def _take(self, rate: float | None) -> None:
+        """One frame from the ring, or none within ``poll_s``; ``rate`` is the rate read before waiting."""
         slot = self.reader.pin(timeout=self.poll_s, should_stop=self._should_stop)
         if slot is None:
             return
         try:
-            if self._gate_still_open(slot, rate):
-                self._step(slot, starved=slot.t_publish > gate_open)
+            if self._admit(slot, rate):
+                self._step(slot)
         finally:
             self.reader.release(slot)
 
-    def _gate_still_open(self, slot: SlotInfo, rate: float | None) -> bool:
-        """Whether the frame in ``slot``, which came while this worker waited, may run. A rate set while it waited
-        (a pause, say) decides again: ``Engine.set_rate`` stores the rate before it returns, and a frame published
-        after that is seen only after the store, so a pause stops every frame submitted after it. A frame the new
-        rate holds back is counted skipped, with any it overtook."""
+    def _admit(self, slot: SlotInfo, rate: float | None) -> bool:
+        """Whether the frame in ``slot`` runs, by the rate gate on the frame's own timestamp (``rate.py``); frames
+        this model never saw (it was busy) and a frame the gate holds back are counted skipped, and a held-back
+        frame is answered (Note [Answered frames]). A rate set while this worker waited for the frame (a pause,
+        say) decides: ``Engine.set_rate`` stores the rate before it returns, and a frame published after that is
+        seen only after the store, so a pause stops every frame submitted after it."""
         now_rate = self.control.rate(self.name)
-        if now_rate == rate:
-            return True
-        now = time.monotonic()
-        self.gate.update(now_rate, now)
-        if self.gate.wait_time(now) == 0:
+        if now_rate != rate:
+            self.gate.update(now_rate)
+        if self.gate.admit(slot.t_capture, slot.t_submit, slot.missed):
+            if slot.missed:
+                self.control.add(self.name, "skipped", slot.missed)
             return True
         self.control.add(self.name, "skipped", 1 + slot.missed)
+        self.control.decide(self.name, slot.origin, ran=False)
         return False
 
-    def _step(self, slot: SlotInfo, starved: bool, out: SlotInfo | None = None) -> None:
-        """One run on a pinned ``slot``, into ``out`` (an output slot already acquired) or one it acquires."""
+    def _step(self, slot: SlotInfo, out: SlotInfo | None = None) -> None:
+        """One run on a pinned, admitted ``slot``, into ``out`` (an output slot already acquired) or one it
+        acquires. A run that publishes nothing (no output slot, or the model raised) still answers the frame."""
         t_start = time.monotonic()
-        self._account(slot, t_start, starved)
-        if out is None:
-            out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
-        if out is None:
-            self.control.add(self.name, "dropped")
-            return
-        self._launch(slot, out)
-        self._finish(slot, out, t_start)
-
-    def _account(self, slot: SlotInfo, t_start: float, starved: bool) -> None:
-        self.gate.started(t_start, starved)
-        if slot.missed:
-            self.control.add(self.name, "skipped", slot.missed)
+        ran = False
+        try:
+            if out is None:
+                out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
+            if out is None:
+                self.control.add(self.name, "dropped")
+                return
+            self._launch(slot, out)
+            self._finish(slot, out, t_start)
+            ran = True
+        finally:
+            if not ran:
+                self.control.decide(self.name, slot.origin, ran=False)
 
     def _launch(self, slot: SlotInfo, out: SlotInfo) -> None:
         """Queue the model's work from ``slot`` into ``out`` (on the CPU: do it). Gives ``out`` back if that raises.
@@ -361,8 +374,7 @@ class WorkerCore:
         t_end = time.monotonic()
         ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
         self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
-        if self.spec.notify_output:
-            ctl.notify_output()
+        ctl.decide(name, slot.origin, ran=True, wake=self.spec.notify_output)
         if handoff is not None:
             # The input slot is released (by run) only after the work that read it is done; the run's times
             # are the device's, not the queueing's.
@@ -375,9 +387,10 @@ class WorkerCore:
                 ctl.notify_output()
 
     # ---------------------------------------------------------------------- Note [Inline launch], worker side
-    def _take_inline(self, gate_open: float, rate: float | None) -> None:
-        """One frame, taken from the ring or launched by the submitting thread, or none within ``poll_s``; ``rate``
-        is the rate the gate opened under. A rate changed since (``Engine.set_rate`` sets it, then takes the
+    def _take_inline(self) -> None:
+        """One frame, taken from the ring or launched by the submitting thread, or none within ``poll_s``. Only
+        while the model is unlimited: a rate-limited one decides on each frame's timestamp before any work is
+        queued for it (``_take``). A rate set since the loop read it (``Engine.set_rate`` sets it, then takes the
         offer's lock to wake us) takes nothing: the loop's gate decides again."""
         offer = self._inline
         assert offer is not None
@@ -389,11 +402,11 @@ class WorkerCore:
                 return
         done = None
         with offer.cond:  # not armed before this: no launch can be waiting here
-            if self.control.rate(self.name) != rate:
-                return  # a pause or limit set after the gate opened: no frame submitted since may run
+            if self.control.rate(self.name) is not None:
+                return  # a pause or limit set since the loop read the rate: no frame submitted since may run
             slot = self.reader.pin(timeout=0)
             if slot is None:
-                offer.arm(self, self._spare, rate)
+                offer.arm(self, self._spare, None)
                 try:
                     offer.cond.wait(self.poll_s)
                 finally:
@@ -402,20 +415,28 @@ class WorkerCore:
         if done is None:
             if slot is None:
                 return  # nothing came: the spare slot stays for the next arming
-            out, self._spare = self._spare, None
             try:  # a frame was in the ring: run it here
-                self._step(slot, starved=slot.t_publish > gate_open, out=out)
+                if self._admit(slot, None):
+                    out, self._spare = self._spare, None
+                    self._step(slot, out=out)
             finally:
                 self.reader.release(slot)
             return
         out, self._spare = self._spare, None
         slot, t_start, error = done
+        ran = False
         try:
             if error is not None:
                 raise error  # the launch failed in the submitting thread; out was given back there
-            self._account(slot, t_start, starved=slot.t_publish > gate_open)
+            # launched while unlimited: the gate only keeps its clock; frames missed meanwhile are counted
+            self.gate.admit(slot.t_capture, slot.t_submit, slot.missed)
+            if slot.missed:
+                self.control.add(self.name, "skipped", slot.missed)
             self._finish(slot, out, t_start)
+            ran = True
         finally:
+            if not ran:
+                self.control.decide(self.name, slot.origin, ran=False)
             self.reader.release(slot)
 
     def _drop_spare(self) -> None:

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from vpengine.config import EngineConfig
+from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.specs import SpecDict
 
 log = logging.getLogger("vpengine")
@@ -160,13 +161,18 @@ class Boundary:
     """Frames in (checked, fitted into the input canvas); outputs go back through ``Placement.to_frame`` with the
     kinds in ``kinds``. One per engine (one per camera, later); ``write`` runs under the engine's submit lock."""
 
-    def __init__(self, cfg: EngineConfig, heads: dict[str, tuple[dict[str, Any], SpecDict]]) -> None:
+    def __init__(
+        self,
+        cfg: EngineConfig,
+        heads: dict[str, tuple[dict[str, Any], SpecDict]],
+        normalize_mean: tuple[float, ...] = IMAGENET_MEAN,
+    ) -> None:
         inp = cfg.input
         self.canvas_hw = (inp.height, inp.width)
         self.dtype = np.dtype(inp.dtype)
         self.color = inp.color
         self.max_side = inp.max_frame_side
-        mean = np.asarray(cfg.foundation_model.preprocess.mean, np.float64)
+        mean = np.asarray(normalize_mean, np.float64)
         if inp.color == "bgr":
             mean = mean[::-1]
         # the padding is the normalisation mean: zero once normalised

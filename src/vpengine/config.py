@@ -52,13 +52,6 @@ class InputConfig(_Strict):
     dtype: Literal["uint8", "float32"] = Field(
         "uint8", description="Pixel type: uint8 0..255, or float32 0..1 (checked for NaN/inf at submit)."
     )
-    slots: int | None = Field(
-        None,
-        ge=3,
-        le=64,
-        description="Input mailbox slots (>= 3: the foundation model + 2); null: 3, plus 4 when the foundation model "
-        "reads fifo.",
-    )
 
 
 class PreprocessConfig(_Strict):
@@ -71,18 +64,6 @@ class PreprocessConfig(_Strict):
     )
     size: int = Field(
         518, ge=14, le=8192, description="Target short side (aspect) or side (square) in pixels."
-    )
-    interpolation: Literal["bilinear", "bicubic"] = Field("bilinear", description="Resize filter.")
-    mean: tuple[float, float, float] = Field(
-        (0.485, 0.456, 0.406), description="Normalisation mean (RGB, 0..1)."
-    )
-    std: tuple[float, float, float] = Field(
-        (0.229, 0.224, 0.225), description="Normalisation std (RGB, 0..1)."
-    )
-    fast_uint8_resize: bool = Field(
-        True,
-        description="CPU only: resize 8-bit frames before converting them to float (~40x faster for 1080p, under one "
-        "grey level of difference); false: the exact float path everywhere (GPUs and ONNX exports always use it).",
     )
 
 
@@ -116,14 +97,6 @@ class ModelConfig(_Strict):
         description="PyTorch intra-op threads in this model's worker process (CPU). In thread mode the models share "
         "one process and so one pool, sized by the foundation model's value; the heads' values are not used.",
     )
-    stream_priority: int = Field(
-        0,
-        ge=-8,
-        le=0,
-        description="CUDA stream priority (0 normal, negative = higher): when models' work is on the GPU at once, "
-        "the higher one's blocks are scheduled first. A value beyond the device's range becomes its highest; "
-        "stats() gives what the device gave.",
-    )
     mps_priority: Literal["normal", "below_normal"] = Field(
         "normal", description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY)."
     )
@@ -132,9 +105,8 @@ class ModelConfig(_Strict):
         "latest",
         description="How the model reads its input (frames for the foundation model, features for a head). latest: after "
         "falling behind it takes the newest and skips the ones in between (counted) -- the lowest latency, for control "
-        "loops. fifo: it takes every one in order and catches up, absorbing a lag of up to 4 frames with the default "
-        "mailbox sizes (input.slots - 2, foundation_model.feature_slots - heads - 1) before the oldest are skipped "
-        "(counted) -- for recording and bridges where every frame should come out. A rate limit still applies: a fifo "
+        "loops. fifo: it takes every one in order and catches up, absorbing a lag of up to 4 frames (its mailbox is "
+        "sized for that) before the oldest are skipped (counted) -- for recording and bridges where every frame should come out. A rate limit still applies: a fifo "
         "model then runs on ever older frames until they are overwritten.",
     )
 
@@ -151,19 +123,18 @@ class FoundationModelConfig(ModelConfig):
 
     model: str = Field("dinov2_vits14", description="Backbone recipe name.")
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)  # type: ignore[arg-type]
-    feature_slots: int | None = Field(
-        None,
-        ge=3,
-        le=64,
-        description="Feature mailbox slots; null: number of heads + 2 (the minimum), plus 4 when a head reads "
-        "fifo (so it can fall 4 frames behind and catch up).",
-    )
 
 
 class OutputConfig(_Strict):
     """A head's output mailbox, read by ``Engine.latest/results/wait`` and the sinks."""
 
-    slots: int = Field(4, ge=4, le=256, description="Output slots (>= 4: two engine readers + 2).")
+    slots: int = Field(
+        4,
+        ge=4,
+        le=256,
+        description="Results of this head kept for Engine.results (>= 4): how far a reader may fall behind before the "
+        "oldest unread are overwritten (counted).",
+    )
     overflow: Literal["drop_oldest", "drop_newest", "block"] = Field(
         "drop_oldest",
         description="When results() falls behind: overwrite the oldest unread (counted), drop the newest "
@@ -177,13 +148,6 @@ class OutputConfig(_Strict):
         "frame",
         description="frame: outputs in the submitted frame's pixel grid (maps at its size, boxes in its pixels); "
         "native: as the head computed them, in the grid of input.height x width (Result.grid says which).",
-    )
-    leases: int = Field(
-        2,
-        ge=0,
-        le=64,
-        description="Results of this head a caller may hold without a copy (wait/results/latest with copy=False), "
-        "each keeping one output slot; the mailbox gets this many extra slots. Past that, results are copies.",
     )
 
 
@@ -217,61 +181,8 @@ class RuntimeConfig(_Strict):
         5, ge=0, description="Restarts of one crashed worker before it is marked failed."
     )
     restart_backoff_s: float = Field(0.5, ge=0, description="First restart delay; doubles each time.")
-    restart_backoff_max_s: float = Field(10.0, ge=0, description="Largest restart delay.")
     hang_timeout_s: float | None = Field(
         60.0, gt=0, description="A running worker silent this long is killed and restarted; null: never."
-    )
-    poll_s: float = Field(
-        0.5, gt=0, le=5, description="Longest sleep of any wait (stop and heartbeat latency)."
-    )
-    sync_spin_us: float = Field(
-        0.0,
-        ge=0,
-        le=5000,
-        description="How a CUDA worker waits for its device work (Note [Device sync]). 0: it sleeps in the driver "
-        "until the work is done (no CPU while waiting; waking up takes 0.1-0.2 ms). > 0: it sleeps through the "
-        "part of the work its recent runs predict, then spins in the driver for the rest: a faster hand-over for "
-        "about this much CPU time per run (a run slower than predicted is spun through once, and the next one "
-        "sleeps and learns). Never spins while idle. Measure first: on an H100 it took 0.1 ms off two heads' "
-        "frame and added 0.5 ms to eight heads' in thread mode.",
-    )
-    feature_handoff: Literal["event", "host"] = Field(
-        "event",
-        description="How the foundation model hands its features to the heads in thread mode on CUDA (Note "
-        "[Event hand-off]). event: it publishes them as soon as their device work is queued, with a CUDA event "
-        "that each head's stream waits on, so the heads wake and queue their work while the features are still "
-        "being computed. host: it waits for the work to finish on the host first. Process mode and the CPU always "
-        "hand off on the host.",
-    )
-    result_handoff: Literal["event", "host"] = Field(
-        "event",
-        description="How each head hands its results to the engine in thread mode on CUDA (Note [Result hand-off]). "
-        "event: it publishes them as soon as their device work (with the copy to the host) is queued, with a CUDA "
-        "event; Engine.wait takes them at once and sleeps in the driver until they are there, so a result reaches "
-        "the caller without a head thread's wake-up on the way; Engine.results and Engine.latest take only "
-        "results that are there. host: the head waits for its work on the host first and then publishes. "
-        "Process mode and the CPU always hand off on the host.",
-    )
-    wait_spin_us: float = Field(
-        200.0,
-        ge=0,
-        le=5000,
-        description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). > 0: it sleeps "
-        "through the part of the head's work that its recent results predict, less a window, then polls for the "
-        "result (offering the interpreter lock between polls) until at most that window past the predicted end, "
-        "then sleeps in the driver. The window is this plus twice the spread of the head's recent results, at most "
-        "three times this: at most about six times this much CPU time per result waited for, however late the "
-        "result; only while a result is pending, never idle. 0: it sleeps in the driver until the result is there, "
-        "and waking up takes about 0.1 ms.",
-    )
-    inline_launch: Literal["auto", "always", "never"] = Field(
-        "auto",
-        description="Who queues the foundation model's device work for a new frame in thread mode (Note [Inline "
-        "launch]). auto: the thread that submits the frame, when the foundation model waits for one and runs from "
-        "CUDA graphs bound to the slots (compiled, on CUDA): submit then takes longer (about 0.2 ms on an H100) and the "
-        "frame skips the foundation thread's wake-up; otherwise the foundation thread. always: the "
-        "submitting thread whenever the foundation model waits, whatever it runs (on the CPU, submit then runs the "
-        "model itself: for tests). never: always the foundation thread. Process mode: always the foundation process.",
     )
 
 
@@ -305,11 +216,6 @@ class EngineConfig(_Strict):
     mps: Literal["auto", "required", "off"] = Field(
         "auto",
         description="CUDA MPS: use when a daemon is reachable (auto), insist (required), or not (off).",
-    )
-    mps_pipe_directory: str | None = Field(
-        None,
-        description="Where to look for the MPS control daemon; null: $CUDA_MPS_PIPE_DIRECTORY, then the directory "
-        "`vpengine mps start` uses, then /tmp/nvidia-mps.",
     )
     input: InputConfig = Field(default_factory=InputConfig)  # type: ignore[arg-type]
     foundation_model: FoundationModelConfig = Field(default_factory=FoundationModelConfig)  # type: ignore[arg-type]

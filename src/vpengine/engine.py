@@ -52,11 +52,13 @@ import torch
 
 from vpengine.boundary import Boundary, Placement
 from vpengine.config import EngineConfig, load_config
-from vpengine.runtime.control import ControlBlock
+from vpengine.models.preprocess import IMAGENET_MEAN
+from vpengine.runtime.control import POLL_S, ControlBlock
+from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.plan import Plan, make_plan
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
 from vpengine.runtime.worker import WorkerSpec
-from vpengine.transport.ring import ReaderDecl, RingReader, SlotInfo, SlotRing
+from vpengine.transport.ring import Accept, ReaderDecl, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
 
@@ -64,6 +66,7 @@ __all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result
 
 _ORIGINS_KEPT = 8192
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
+LEASES = 2  # results of each head a caller may hold without a copy (Note [Borrowed results])
 
 
 def _refcounts(pool: list[np.ndarray]) -> list[int]:
@@ -352,7 +355,9 @@ class Engine:
         # input seq -> where the frame lies in the input canvas (Note [Frame grid] in boundary.py)
         self._placements: collections.OrderedDict[int, Placement] = collections.OrderedDict()
         self.boundary = Boundary(
-            self.config, {h: (m.meta, m.output_spec) for h, m in self.plan.heads.items()}
+            self.config,
+            {h: (m.meta, m.output_spec) for h, m in self.plan.heads.items()},
+            self.plan.foundation.meta.get("normalize_mean", IMAGENET_MEAN),
         )
         self._staged: dict[tuple[int, int], np.ndarray] = {}
         self._results_active = False
@@ -364,6 +369,7 @@ class Engine:
         self._mps_dir: str | None = None
         self._nomps_dir = ""
         self._finalizer_dirs = self._res.dirs
+        self._handoffs = Handoffs()  # thread mode: replaced at start (runtime/handoff.py)
 
     # ------------------------------------------------------------------------------------------ lifecycle
     def start(self) -> Engine:
@@ -381,14 +387,14 @@ class Engine:
             res.rings["input"] = SlotRing.create(
                 "input",
                 plan.frame_spec,
-                cfg.input.slots or (7 if cfg.foundation_model.input_mode == "fifo" else 3),
+                7 if cfg.foundation_model.input_mode == "fifo" else 3,
                 [ReaderDecl("foundation", cfg.foundation_model.input_mode)],
                 "cpu",
                 shared,
                 pinned=gpu,
             )
             fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
-            n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2 + fifo_margin)
+            n_feat = max(3, len(heads) + 2 + fifo_margin)
             res.rings["features"] = SlotRing.create(
                 "features",
                 plan.features,
@@ -398,11 +404,11 @@ class Engine:
                 shared,
             )
             for h in cfg.heads:
-                leases = [ReaderDecl(f"lease{i}", active=False) for i in range(h.output.leases)]
+                leases = [ReaderDecl(f"lease{i}", active=False) for i in range(LEASES)]
                 res.rings[f"out.{h.name}"] = SlotRing.create(
                     f"out.{h.name}",
                     plan.heads[h.name].output_spec,
-                    h.output.slots + h.output.leases,
+                    h.output.slots + LEASES,
                     [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
                     device if h.output.location == "device" else "cpu",
                     shared,
@@ -419,9 +425,11 @@ class Engine:
 
                 res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=self._worker_env)
             else:
+                from vpengine.runtime.handoff import make_handoffs
                 from vpengine.runtime.threads import ThreadRunner
 
-                res.runner = ThreadRunner(specs, res.rings, res.control, cfg)
+                self._handoffs = make_handoffs(res.rings, heads, device.type == "cuda")
+                res.runner = ThreadRunner(specs, res.rings, res.control, cfg, handoffs=self._handoffs)
             res.runner.start()
         except BaseException:
             self._state = "stopped"
@@ -433,7 +441,7 @@ class Engine:
         self._peek_readers = {h: res.rings[f"out.{h}"].reader("peek") for h in heads}
         self._leases = _Leases(
             {
-                h.name: [res.rings[f"out.{h.name}"].reader(f"lease{i}") for i in range(h.output.leases)]
+                h.name: [res.rings[f"out.{h.name}"].reader(f"lease{i}") for i in range(LEASES)]
                 for h in cfg.heads
             }
         )
@@ -467,10 +475,10 @@ class Engine:
             raise EngineStartError(
                 f"device {cfg.device!r}: only {torch.cuda.device_count()} CUDA device(s) visible"
             )
-        self._mps_dir = mps.find_daemon(cfg.mps_pipe_directory) if cfg.mps != "off" else None
+        self._mps_dir = mps.find_daemon() if cfg.mps != "off" else None
         if cfg.mps == "required" and self._mps_dir is None:
             raise EngineStartError(
-                f"mps: required, but no MPS control daemon answers in {mps.candidate_dirs(cfg.mps_pipe_directory)}; "
+                f"mps: required, but no MPS control daemon answers in {mps.candidate_dirs()}; "
                 "start one with `vpengine mps start` or set mps: auto"
             )
         if not torch.cuda.is_initialized():
@@ -515,28 +523,28 @@ class Engine:
         dump = cfg.model_dump(mode="json")
         specs = [
             WorkerSpec(
-                "foundation",
-                "foundation",
-                dump,
-                plan.frame_spec,
-                {},
-                rings["input"].desc,
-                "foundation",
-                rings["features"].desc,
+                name="foundation",
+                role="foundation",
+                config=dump,
+                upstream=plan.frame_spec,
+                upstream_meta={},
+                in_ring=rings["input"].desc,
+                in_reader="foundation",
+                out_ring=rings["features"].desc,
                 notify_output=False,
             )
         ]
-        for name, _model in plan.heads.items():
+        for name in plan.heads:
             specs.append(
                 WorkerSpec(
-                    name,
-                    "head",
-                    dump,
-                    plan.features,
-                    plan.feature_meta,
-                    rings["features"].desc,
-                    name,
-                    rings[f"out.{name}"].desc,
+                    name=name,
+                    role="head",
+                    config=dump,
+                    upstream=plan.features,
+                    upstream_meta=plan.feature_meta,
+                    in_ring=rings["features"].desc,
+                    in_reader=name,
+                    out_ring=rings[f"out.{name}"].desc,
                     notify_output=True,
                 )
             )
@@ -699,7 +707,7 @@ class Engine:
         self._placements[self._input_writer.ring.last_seq + 1] = placement
         if len(self._placements) > _ORIGINS_KEPT:
             self._placements.popitem(last=False)
-        inline = self._input_writer.ring.inline
+        inline = self._handoffs.inline
         if inline is not None:  # thread mode: queue the foundation's work from here (Note [Inline launch])
             seq = inline.publish(self._input_writer, slot, fid, t_capture, t_submit)
         else:
@@ -729,11 +737,17 @@ class Engine:
             raise RuntimeError(f"no record of the frame behind {head}'s output for frame {slot.frame_id}")
         return None if p.identity or head in self.boundary.native else p
 
+    def _done_filter(self, head: str) -> Accept | None:
+        """Note [Result hand-off]: the pin filter that takes only ``head``'s results whose device work is done."""
+        events = self._handoffs.results.get(head)
+        return None if events is None else events.done
+
     def _to_result(self, head: str, slot: SlotInfo, borrowed: dict[str, np.ndarray] | None = None) -> Result:
         """``head``'s result from pinned ``slot`` once its device work is done: ``borrowed``, ``_borrow``'s arrays
         (taken before the wait), or else copied."""
         # Note [Result hand-off]
-        t_ready = self._results_readers[head].ring.wait_done(slot, self.config.runtime.wait_spin_us * 1e-6)
+        events = self._handoffs.results.get(head)
+        t_ready = slot.t_publish if events is None else events.wait_done(slot)
         outputs: dict[str, Any]
         change = self._grid_change(head, slot)
         if borrowed is not None:
@@ -802,7 +816,7 @@ class Engine:
         reader = self._peek_readers[self._head(head)]
         with self._read_lock:
             self._leases.drain()
-            slot = reader.pin(peek=True, done=True)
+            slot = reader.pin(peek=True, accept=self._done_filter(head))
             if slot is None:
                 return None
             try:
@@ -839,7 +853,7 @@ class Engine:
                     pinned: list[tuple[str, SlotInfo]] = []
                     try:
                         for h in more:
-                            slot = self._results_readers[h].pin(done=True)
+                            slot = self._results_readers[h].pin(accept=self._done_filter(h))
                             if slot is not None:
                                 pinned.append((h, slot))
                         out.extend(self._copy_out(pinned, copy).values())
@@ -850,7 +864,7 @@ class Engine:
                 remaining = deadline - time.monotonic()
                 if out or remaining <= 0 or self._state != "running":
                     return sorted(out, key=lambda r: r.t_publish)
-                ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+                ctl.wait_output(word, min(remaining, POLL_S))
 
     def wait(
         self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0, copy: bool = True
@@ -891,7 +905,8 @@ class Engine:
                         answered = held_back or ctl.get(h, "decided") >= origin
                         reader = self._peek_readers[h]
                         slot, newest = reader.pin_origin(origin)
-                        if slot is not None and reader.ring.done_after(slot, deadline):
+                        events = self._handoffs.results.get(h)
+                        if slot is not None and events is not None and events.done_after(slot, deadline):
                             # Note [Result hand-off]: its queued work is not expected to be done in time; leave
                             # it until its head says it is done (or the timeout), rather than wait past it
                             reader.release(slot)
@@ -919,7 +934,7 @@ class Engine:
                 )
             if self._state != "running":
                 raise EngineDeadError("engine stopped while waiting")
-            ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+            ctl.wait_output(word, min(remaining, POLL_S))
 
     def predict(self, image: Any, timeout: float = 30.0, timestamp: float | None = None) -> dict[str, Result]:
         """One frame through every head: ``submit`` then ``wait``; each result carries the frame (``image``) for
@@ -939,7 +954,7 @@ class Engine:
         if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
             raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
         ctl.set_rate(model, None if hz is None else float(hz))
-        inline = self._input_writer.ring.inline
+        inline = self._handoffs.inline
         if inline is not None and model == "foundation":
             inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
@@ -994,6 +1009,8 @@ class Engine:
                 "uptime_s": time.monotonic() - self._t_start,
                 "submitted": self._submitted,
                 "rejected": self._rejected,
+                # Note [Inline launch]: frames whose foundation work the submitting thread queued
+                "launched_by_submit": self._handoffs.inline.launches if self._handoffs.inline else 0,
                 "mps": {
                     "setting": self.config.mps,
                     "daemon": self._mps_dir,

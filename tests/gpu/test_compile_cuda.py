@@ -349,9 +349,8 @@ def test_engine_with_compiled_models_on_cuda_matches_eager(mode):
     """Every model compiled and graph-captured, concurrently in worker threads or processes, on their own streams."""
     compiled = [f"heads.{h}.backend=compile" for h in ("depth", "seg", "det")]
     runs = {}
-    # compiled models run from graphs bound to the slots (Note [Slot-bound runs]); their workers poll the end of
-    # their device work (runtime.sync_spin_us, Note [Device sync])
-    slot_bound = ["foundation_model.backend=compile", *compiled, "runtime.sync_spin_us=200"]
+    # compiled models run from graphs bound to the slots (Note [Slot-bound runs])
+    slot_bound = ["foundation_model.backend=compile", *compiled]
     for label, extra in (("eager", []), ("compile", slot_bound)):
         cfg = tiny(mode, "device=cuda", *extra)
         out = {}

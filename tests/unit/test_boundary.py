@@ -92,7 +92,7 @@ def test_a_wide_frame_is_written_scaled_with_its_aspect_between_bands_of_the_mea
     p = b.write(wide, dst)
     assert (p.x0, p.y0, p.w, p.h) == (0, 30, 160, 60)
     np.testing.assert_array_equal(dst[30:90], cv2.resize(wide, (160, 60), interpolation=cv2.INTER_AREA))
-    mean_bgr = np.round(np.array([0.406, 0.456, 0.485]) * 255)  # zero once normalised
+    mean_bgr = np.round(np.array([0.406, 0.456, 0.485]) * 255)  # ImageNet's, the backbones': zero once normalised
     assert (dst[:30] == mean_bgr).all() and (dst[90:] == mean_bgr).all()
     same = np.random.default_rng(1).integers(0, 256, (120, 160, 3), np.uint8)
     assert b.write(same, dst).identity and (dst == same).all()

@@ -85,7 +85,7 @@ def test_results_stream_in_order_and_counts_what_was_not_collected():
         assert sorted((r.head, r.frame_id) for r in res) == [("depth", 0), ("det", 0), ("seg", 0)]
         for i in range(
             20
-        ):  # nobody calls results(): only the last output.slots + output.leases (4 + 2) survive
+        ):  # nobody calls results(): only the last output.slots + the leases (4 + 2) survive
             e.wait(e.submit(frame(i)), timeout=5)
         res = e.results(timeout=1)
         per_head = {h: [r.frame_id for r in res if r.head == h] for h in ("depth", "seg", "det")}
@@ -127,7 +127,7 @@ def test_stats_report_counters_and_memory(engine):
     for where, key in (("host", "mailbox_host_bytes"), ("device", "mailbox_device_bytes")):
         at = [v["bytes"] for v in boxes.values() if (v["location"] == "cpu") == (where == "host")]
         assert mem[key] == sum(at), (where, boxes)
-    # the input stays on the host; the output mailboxes keep output.slots + output.leases slots each
+    # the input stays on the host; the output mailboxes keep output.slots + 2 lease slots each
     assert boxes["input"]["location"] == "cpu"
     assert all(boxes[f"out.{h}"]["slots"] == 4 + 2 for h in ("depth", "seg", "det"))
 

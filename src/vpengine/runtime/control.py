@@ -29,6 +29,8 @@ from vpengine.transport import _linux
 from vpengine.transport.memory import HostRegion, RegionHandle
 
 LAT_N = 512
+#: Longest sleep of any wait in a worker or the engine: how soon a sleeper notices a stop and beats its heartbeat.
+POLL_S = 0.5
 ERR_BYTES = 2048
 _HEADER = 64
 _FIELDS = [
@@ -44,7 +46,6 @@ _FIELDS = [
     ("lat_count", "q"),
     ("last_frame_id", "q"),
     ("mps_active", "q"),
-    ("stream_priority", "q"),  # as the device has it (config stream_priority, mapped into the device's range)
     # Note [Answered frames]: the input-ring seq (origin) of the newest frame this model is done with, run or
     # skipped, and of the newest it ran
     ("decided", "q"),
@@ -275,7 +276,6 @@ class ControlBlock:
             "latency_ms": pct(lat),
             "e2e_latency_ms": pct(e2e),
             "mps": bool(self._get(i, "mps_active")),
-            "stream_priority": self._get(i, "stream_priority"),
             "device_mem_bytes": self._get(i, "device_mem_bytes"),
             "last_error": self.last_error(name) or None,
         }

@@ -36,7 +36,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
-from vpengine.runtime.control import STOPPED
+from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.supervisor import EngineStartError, Runner
 
 log = logging.getLogger("vpengine.process")
@@ -211,9 +211,8 @@ class ProcessRunner(Runner):
 
     # ----------------------------------------------------------------------------------------- monitor
     def _watch(self) -> None:
-        cfg = self.cfg.runtime
         while not self._stopping:
-            timeout = min(self._run_due_restarts(), cfg.poll_s)
+            timeout = min(self._run_due_restarts(), POLL_S)
             by_obj: dict[Any, str] = {self._wake_r: ""}
             with self._lock:
                 for name, ch in self._children.items():

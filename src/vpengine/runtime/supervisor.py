@@ -22,6 +22,9 @@ from vpengine.transport.ring import SlotRing
 
 log = logging.getLogger("vpengine.supervisor")
 
+#: The longest wait before a restart: the delay doubles from runtime.restart_backoff_s up to this.
+RESTART_BACKOFF_MAX_S = 10.0
+
 
 class EngineStartError(RuntimeError):
     """A worker failed to load or warm up; the message carries the worker's own traceback."""
@@ -93,7 +96,7 @@ class Runner(ABC):
                 self.control.set_state(name, FAILED)
                 log.error("%s failed for good after %d restarts: %s", name, n, reason)
                 return
-            delay = min(self.cfg.runtime.restart_backoff_s * (2**n), self.cfg.runtime.restart_backoff_max_s)
+            delay = min(self.cfg.runtime.restart_backoff_s * (2**n), RESTART_BACKOFF_MAX_S)
             self._pending[name] = _Restart(time.monotonic() + delay, n + 1)
             self.control.set_state(name, RESTARTING)
             log.warning("%s stopped (%s); restart %d/%d in %.1f s", name, reason, n + 1, limit, delay)

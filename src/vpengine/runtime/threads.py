@@ -7,7 +7,8 @@ import queue
 import threading
 import time
 
-from vpengine.runtime.control import STOPPED
+from vpengine.runtime.control import POLL_S, STOPPED
+from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.supervisor import EngineStartError, Runner
 from vpengine.runtime.worker import describe_exception, prepare_worker
 
@@ -15,8 +16,12 @@ log = logging.getLogger("vpengine.threads")
 
 
 class ThreadRunner(Runner):
-    def __init__(self, *args, **kw) -> None:  # type: ignore[no-untyped-def]
+    def __init__(  # type: ignore[no-untyped-def]
+        self, *args, handoffs: Handoffs | None = None, **kw
+    ) -> None:
         super().__init__(*args, **kw)
+        # what the workers hand each other on the device and the submitting thread (handoff.py)
+        self.handoffs = handoffs or Handoffs()
         self._threads: dict[str, threading.Thread] = {}
         self._events: queue.Queue[tuple[str, str, str]] = (
             queue.Queue()
@@ -36,6 +41,7 @@ class ThreadRunner(Runner):
                 self.rings[spec.out_ring.name],
                 self.control,
                 own_process=False,
+                handoff=self.handoffs.for_worker(name),
             )
         except BaseException as e:
             self._events.put((name, "error", describe_exception(name, e)))
@@ -89,7 +95,7 @@ class ThreadRunner(Runner):
 
     def _watch(self) -> None:
         while not self._stopping:
-            timeout = min(self._run_due_restarts(), self.cfg.runtime.poll_s)
+            timeout = min(self._run_due_restarts(), POLL_S)
             try:
                 name, kind, text = self._events.get(timeout=max(0.01, timeout))
             except queue.Empty:
@@ -106,6 +112,8 @@ class ThreadRunner(Runner):
         self.control.request_stop()
         for ring in self.rings.values():
             ring.wake_all()
+        if self.handoffs.inline is not None:
+            self.handoffs.inline.wake()  # an armed foundation worker disarms and sees the stop
         deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
         abandoned = []
         for name, t in self._threads.items():

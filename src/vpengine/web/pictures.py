@@ -45,7 +45,8 @@ class Picture:
     latency: float
     #: True: drawn on the result's own input frame; False: the outputs alone (the frame was not there)
     on_frame: bool
-    width: int
+    width: int  # of the picture, in pixels
+    asked: int  # the width asked for (the picture is narrower when the frame is)
     made_at: float  # time.monotonic()
 
 
@@ -155,7 +156,7 @@ class Pictures:
             result = engine.latest(head, copy=False)  # borrowed: nothing copied (Note [Borrowed results])
             if result is None:
                 return None
-            if cached is not None and cached.seq == result.seq and cached.width == width:
+            if cached is not None and cached.seq == result.seq and cached.asked == width:
                 return cached
             frame = self._frame(result.frame_id)
             if frame is not None and frame.shape[:2] != tuple(info["frame_size"]):
@@ -174,6 +175,7 @@ class Pictures:
                 result.capture_time,
                 result.latency,
                 frame is not None,
+                image.shape[1],
                 width,
                 time.monotonic(),
             )

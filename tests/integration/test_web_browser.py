@@ -172,7 +172,7 @@ def test_the_page_shows_every_model_and_head_live_and_its_controls_change_the_en
     time.sleep(2.5)  # achieved Hz is counted over the last 2 s
     assert 3.5 <= engine.stats()["models"]["seg"]["achieved_hz"] <= 6.5
     eventually(lambda: 3.5 <= float(cell(browser, "seg", "achieved")) <= 6.5, 2, "seg's achieved Hz near 5")
-    assert float(cell(browser, "depth", "achieved")) > 10  # the others keep their pace
+    assert float(cell(browser, "depth", "achieved")) > 8  # the others keep their pace
     if os.environ.get("VPENGINE_SCREENSHOT"):
         save_screenshot(browser.get_screenshot_as_png(), Path(os.environ["VPENGINE_SCREENSHOT"]))
 

@@ -145,3 +145,25 @@ def test_ros2_serves_the_view_with_pictures_on_the_messages_frames(monkeypatch):
         proc.send_signal(signal.SIGINT)
         _out, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err
+
+
+def test_bench_web_measures_the_stream_with_and_without_a_viewer(tmp_path):
+    proc = start(
+        "bench", "web", "--seconds", "2", "--rounds", "1", "--mode", "thread", "--name", "smoke",
+        "--out", str(tmp_path),
+    )  # fmt: skip
+    out, err = proc.communicate(timeout=240)
+    assert proc.returncode == 0, err[-3000:]
+    res = json.loads((tmp_path / "smoke.json").read_text())
+    assert res["mode"] == "thread" and res["heads"] == ["depth", "seg", "det"] and res["fps"] == 30.0
+    off, on = res["phases"]
+    assert (off["viewer"], on["viewer"]) == (False, True)
+    for phase in (off, on):
+        assert phase["frames"] == 60 and phase["frame_latency_ms"]["n"] >= 50
+        assert 0 < phase["frame_latency_ms"]["p50"] <= phase["frame_latency_ms"]["p99"]
+    assert off["pictures_made"] == 0 and "viewer_requests" not in off  # nobody looking: nothing drawn
+    asked = on["viewer_requests"]
+    assert asked["errors"] == 0 and asked["stats"]["n"] >= 3 and asked["picture"]["n"] >= 6
+    assert 0 < on["pictures_made"] <= asked["picture"]["n"]
+    assert set(res["summary"]["overhead"]) >= {"frame_p50_ms", "frame_p99_ms", "engine_cpu_pct_of_one_core"}
+    assert "viewer on vs off" in out

@@ -132,7 +132,7 @@ class WebServer:
         self.httpd = server((host.strip("[]"), port), handler)
         self.host, self.port = host, self.httpd.server_address[1]
         self._thread = threading.Thread(
-            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.2}, name="vpengine-web", daemon=True
+            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.5}, name="vpengine-web", daemon=True
         )
         self._thread.start()
         log.info("live view at %s", self.url)

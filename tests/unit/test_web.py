@@ -353,3 +353,12 @@ def test_metrics_are_prometheus_text_with_vpengine_names_and_a_model_label(view)
     assert value("vpengine_results_missed", "_total", model="seg") == 7
     assert value("vpengine_frames_submitted", "_total") == 120
     assert value("vpengine_up") == 1
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.int64])
+def test_class_maps_of_any_integer_type_shrink_to_class_ids_they_had(dtype):
+    classes = (np.arange(H * W).reshape(H, W) % 5).astype(dtype)
+    pic = render(INFOS["seg"], {"classes": classes}, None, 40)
+    assert pic.shape == (30, 40, 3)
+    colours = {tuple(c) for c in render(INFOS["seg"], {"classes": classes}, None, W).reshape(-1, 3)}
+    assert {tuple(c) for c in pic.reshape(-1, 3)} <= colours

@@ -119,7 +119,6 @@ class WebServer:
             )
         self._get_engine: Callable[[], Any] = engine if callable(engine) else (lambda: engine)
         self.token = token
-        self.loopback = is_loopback(host)
         self.pictures = Pictures(frames, frame_color)
         self._page: bytes | None = None
         self._metrics: Any = None

@@ -195,3 +195,28 @@ def test_the_page_shows_every_model_and_head_live_and_its_controls_change_the_en
     assert ">= 0 Hz, got -3" in status
     assert browser.find_element(By.ID, "status").get_attribute("class") == "error"
     assert engine.rate("depth") is None
+
+
+def test_with_a_token_the_page_works_from_its_address_and_says_so_without_it(browser, live):
+    from selenium.webdriver.common.by import By
+
+    from vpengine.web import WebServer
+
+    engine, view = live
+    with WebServer(engine, "127.0.0.1", 0, token="tok-9", frames=view.pictures.frames) as guarded:
+        browser.get(guarded.url)
+        eventually(
+            lambda: "token is required" in browser.find_element(By.ID, "engine").text, 10, "the refusal shown"
+        )
+        assert not browser.find_elements(By.CSS_SELECTOR, "tr[data-model]")
+        browser.get(guarded.url + "?token=tok-9")
+        eventually(lambda: int(cell(browser, "det", "runs")) > 0, 30, "runs shown with the token")
+        eventually(
+            lambda: browser.execute_script(
+                "return document.querySelector('img[data-head=\"det\"]').naturalWidth"
+            ),
+            20,
+            "a picture fetched with the token",
+        )
+        click(browser, "det", "pause")
+        eventually(lambda: engine.rate("det") == 0.0, 1.0, "det paused with the token")

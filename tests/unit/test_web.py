@@ -295,7 +295,8 @@ def test_with_a_token_every_request_carries_it(engine):
         status, headers, _ = request(v.url + "api/stats")
         assert status == 401 and headers["WWW-Authenticate"] == "Bearer"
         assert request(v.url + "api/rate/depth", "PUT", b'{"hz": 1}')[0] == 401
-        assert request(v.url, headers={"Authorization": "Bearer wrong"})[0] == 401
+        assert request(v.url + "metrics", headers={"Authorization": "Bearer wrong"})[0] == 401
+        assert request(v.url)[0] == 200  # the page holds no data: it says what is missing
         assert engine.rates["depth"] is None
         assert request(v.url + "api/stats", headers={"Authorization": "Bearer s3cret"})[0] == 200
         assert request(v.url + "metrics?token=s3cret")[0] == 200
@@ -362,3 +363,24 @@ def test_class_maps_of_any_integer_type_shrink_to_class_ids_they_had(dtype):
     assert pic.shape == (30, 40, 3)
     colours = {tuple(c) for c in render(INFOS["seg"], {"classes": classes}, None, W).reshape(-1, 3)}
     assert {tuple(c) for c in pic.reshape(-1, 3)} <= colours
+
+
+def test_serve_options_from_the_command_line(monkeypatch):
+    import argparse
+
+    from vpengine.cli.serve import ServeOptions, add_serve_arguments, serve_options
+
+    p = argparse.ArgumentParser()
+    add_serve_arguments(p)
+    monkeypatch.delenv("VPENGINE_SERVE_TOKEN", raising=False)
+    assert serve_options(p.parse_args([])) is None
+    assert serve_options(p.parse_args(["--serve", "8080"])) == ServeOptions(("127.0.0.1", 8080))
+    assert serve_options(p.parse_args(["--foxglove", "8765"])) == ServeOptions(None, None, ("127.0.0.1", 8765))
+    with pytest.raises(ValueError, match="--serve-token TOKEN or set \\$VPENGINE_SERVE_TOKEN"):
+        serve_options(p.parse_args(["--serve", "0.0.0.0:8080"]))
+    with pytest.raises(ValueError, match="--foxglove 0.0.0.0:1: Foxglove's WebSocket protocol has no authentication"):
+        serve_options(p.parse_args(["--serve", "1", "--foxglove", "0.0.0.0:1"]))
+    given = serve_options(p.parse_args(["--serve", "0.0.0.0:1", "--serve-token", "t"]))
+    assert given == ServeOptions(("0.0.0.0", 1), "t")
+    monkeypatch.setenv("VPENGINE_SERVE_TOKEN", "from-env")
+    assert serve_options(p.parse_args(["--serve", "[::]:9"])) == ServeOptions(("::", 9), "from-env")

@@ -18,9 +18,9 @@ Note [Who may talk to the view]
 Bound to loopback without a token, only this machine reaches the server, and a request must also *name* a
 loopback host (``Host:`` header): a web page elsewhere that makes the browser resolve its own domain to 127.0.0.1
 (DNS rebinding) gets 403, and a cross-site page cannot send ``PUT`` at all (it needs a CORS pre-flight this server
-never grants). Bound to any other address, a token is required at start, and every request must carry it:
-``Authorization: Bearer <token>``, or ``?token=<token>`` in the URL (the page passes it on to its own requests).
-The token is compared in constant time.
+never grants). Bound to any other address, a token is required at start, and every request but the page itself
+(which holds no data, and says what is missing) must carry it: ``Authorization: Bearer <token>``, or
+``?token=<token>`` in the URL (the page passes it on to its own requests). The token is compared in constant time.
 """
 
 from __future__ import annotations
@@ -245,8 +245,8 @@ class _Handler(BaseHTTPRequestHandler):
         query = parse_qs(url.query)
         try:
             body = self._body()
-            self._check_access(query)
             path = url.path
+            self._check_access(query, page=path in ("/", "/index.html"))
             if path == "/" or path == "/index.html":
                 self._only(method, "GET")
                 self._send(HTTPStatus.OK, self.view.page(), "text/html; charset=utf-8")
@@ -285,7 +285,7 @@ class _Handler(BaseHTTPRequestHandler):
         if method != allowed:
             raise _HttpError(HTTPStatus.METHOD_NOT_ALLOWED, f"{method} is not allowed here; use {allowed}")
 
-    def _check_access(self, query: dict[str, list[str]]) -> None:
+    def _check_access(self, query: dict[str, list[str]], page: bool) -> None:
         """Note [Who may talk to the view]."""
         view = self.view
         if view.token is None:
@@ -294,6 +294,8 @@ class _Handler(BaseHTTPRequestHandler):
             if host and not is_loopback(name):
                 raise _HttpError(HTTPStatus.FORBIDDEN, f"this view answers to loopback names only, not {host!r}")
             return
+        if page:
+            return  # the page holds no data; what it asks for needs the token
         given = ""
         auth = self.headers.get("Authorization", "")
         if auth.lower().startswith("bearer "):

@@ -55,7 +55,7 @@ def _viewer(url: str, heads: list[str], periods: tuple[float, float], stop: Any,
     errors: list[str] = []
 
     def loop(path: str, kind: str, period: float, after_answer: bool) -> None:
-        conn = http.client.HTTPConnection(u.hostname, u.port, timeout=30)
+        conn = http.client.HTTPConnection(u.hostname or "127.0.0.1", u.port, timeout=30)
         next_t = time.monotonic()
         while not stop.is_set():
             t0 = time.monotonic()
@@ -129,7 +129,9 @@ def _phase(engine: Any, view: Any, imgs: list[np.ndarray], recent: dict[int, np.
     from vpengine.web import PICTURE_PERIOD_S, STATS_PERIOD_S
 
     ctx = mp.get_context("spawn")
-    proc = stop = report = None
+    proc: Any = None
+    stop: Any = None
+    report: Any = None
     if viewer:
         stop, report = ctx.Event(), ctx.Queue()
         periods = (STATS_PERIOD_S, PICTURE_PERIOD_S)

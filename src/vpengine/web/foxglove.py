@@ -34,7 +34,7 @@ def _stamp(t: float) -> Any:
     return Timestamp(sec=sec, nsec=nsec)
 
 
-def annotations(outputs: dict[str, Any], labels: list[str] | None, scale: float, t: float) -> Any:
+def image_annotations(outputs: dict[str, Any], labels: list[str] | None, scale: float, t: float) -> Any:
     """foxglove.ImageAnnotations of one detection result: a closed box and a 'name score' caption each."""
     from foxglove.messages import (
         Color,
@@ -177,7 +177,7 @@ class FoxgloveView:
                 if result is not None and result.seq == pic.seq:  # the boxes of the picture's own result
                     scale = pic.width / engine.config.input.width
                     labels = engine.head_info(head).get("labels")
-                    boxes.log(annotations(result.outputs, labels, scale, pic.capture_time), log_time=t_ns)
+                    boxes.log(image_annotations(result.outputs, labels, scale, pic.capture_time), log_time=t_ns)
                     self.sent += 1
 
     def stop(self) -> None:

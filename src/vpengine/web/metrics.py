@@ -43,7 +43,7 @@ class EngineCollector:
 
     def collect(self) -> Iterator[Metric]:
         eng = self._engine()
-        stats = eng.stats() if eng is not None else {"engine": {"state": "none"}}
+        stats: dict[str, Any] = eng.stats() if eng is not None else {"engine": {"state": "none"}}
         up = GaugeMetricFamily("vpengine_up", "1 while the engine runs, else 0.")
         up.add_metric([], 1.0 if stats["engine"]["state"] == "running" else 0.0)
         yield up

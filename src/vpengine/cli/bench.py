@@ -14,6 +14,7 @@ BENCHES = {
     ),
     "resources": ("vpengine.bench.resources", "GPU: device memory per extra head, CPU idle and at 30 Hz"),
     "paper": ("vpengine.bench.paper", "the VPEngine paper's experiments E1-E6 and the device-time floor"),
+    "web": ("vpengine.bench.web", "the live view's cost: E5's 30 Hz stream with and without a viewer"),
     "report": ("vpengine.bench.report", "summary figure and table from a folder of results files"),
 }
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import functools
 import json
 import logging
@@ -30,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from vpengine.cli import add_overrides_argument
+from vpengine.cli.serve import ServeOptions, add_serve_arguments, serve_options, serving
 
 log = logging.getLogger("vpengine.run")
 
@@ -78,6 +80,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--offline", action="store_true", help="never download checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_serve_arguments(p)
 
 
 def _percentiles(values: list[float]) -> dict[str, float | None]:
@@ -98,12 +101,14 @@ def run_pipeline(
     viz: bool = False,
     progress: bool = True,
     sink_factories: Sequence[Callable[[dict[str, dict[str, Any]]], Any]] = (),
+    serve: ServeOptions | None = None,
 ) -> dict[str, Any]:
     """Run ``config`` over ``source``; returns the summary (also written to ``out_dir/summary.json``).
 
     ``sink_factories`` make extra sinks (e.g. a rosbag2 BagSink) from the heads' ``head_info``; each gets every
     result with its input frame and name, like the folder sink. Every sink is made, written and closed on one
-    writer thread, not the caller's (Note [Sink thread] in ``vpengine.io.sinks``)."""
+    writer thread, not the caller's (Note [Sink thread] in ``vpengine.io.sinks``). ``serve``: the live view
+    (``vpengine.web``) while it runs, drawing on the recent frames the loop keeps."""
     from tqdm import tqdm
 
     from vpengine.config import load_config
@@ -155,7 +160,9 @@ def run_pipeline(
     submitted = 0
     t_start = time.monotonic()
     next_t = t_start
+    view = contextlib.ExitStack()
     try:
+        view.enter_context(serving(serve, engine, lambda fid: recent.get(fid, (None,))[0], cfg.input.color))
         if pace == "realtime":
             engine.results(0)  # start the result stream before the first frame
         for frame in source:
@@ -200,6 +207,7 @@ def run_pipeline(
         stats = engine.stats()
     finally:
         bar.close()
+        view.close()
         engine.stop()
         writer.close()  # writes what is queued; raises a sink's error
 
@@ -278,6 +286,7 @@ def main(args: argparse.Namespace) -> int:
     from vpengine.config import load_config
     from vpengine.io.sources import open_source
 
+    serve = serve_options(args)
     overrides = list(args.overrides)
     if args.mode:
         overrides.append(f"mode={args.mode}")
@@ -318,6 +327,7 @@ def main(args: argparse.Namespace) -> int:
             args.viz,
             progress=not args.no_progress,
             sink_factories=factories,
+            serve=serve,
         )
     print(format_summary(summary))
     if args.out:

@@ -182,7 +182,7 @@ def _mps_processes() -> list[psutil.Process]:
     return out
 
 
-def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path):
+def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path, monkeypatch):
     from vpengine.runtime import mps
 
     if not __import__("shutil").which(mps.CONTROL):
@@ -190,13 +190,13 @@ def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path):
     pipe = str(tmp_path / "mps")
     before = {p.pid for p in _mps_processes()}
     mps.start(pipe)
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", pipe)  # where the engine looks first
     try:
         # clients of a dead MPS server may hang inside CUDA rather than fail: the hang timeout catches those
         cfg = tiny(
             "process",
             "device=cuda",
             "mps=required",
-            f"mps_pipe_directory={pipe}",
             "runtime.restart_backoff_s=0.2",
             "runtime.hang_timeout_s=5",
         )

@@ -85,6 +85,19 @@ def main(args: argparse.Namespace) -> int:
     ns = _counts(args.heads)
     kinds = floor.check_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
     b = Bench.load(args.config, args.overrides, args.frames, args.results == "copy")
+    # what each experiment needs, checked before anything starts: a late refusal would waste the runs before it
+    needs = {
+        "E1": ("depth",),
+        "E2": ("det",),
+        "E3": ("det", "depth"),
+        "E4": ("depth",),
+        "E5": e5_stream.HEADS,
+    }
+    for key in want:
+        for kind in kinds if key == "floor" else needs[key]:
+            b.head(kind, kind)
+    if "E3" in want:
+        e3_mps.check(b)
     runs: dict[str, Any] = {
         "E1": lambda imgs: e1_shared_backbone.run(b, imgs, ns),
         "E2": lambda imgs: e2_parallel_heads.run(b, imgs, ns),
@@ -104,8 +117,7 @@ def main(args: argparse.Namespace) -> int:
             t = time.monotonic()
             res[key] = runs[key](imgs)
             res[key]["seconds"] = time.monotonic() - t
-            path = write_results(
-                args.out, name, res
-            )  # after every experiment: a crash keeps what was measured
+            # after every experiment: a crash keeps what was measured
+            path = write_results(args.out, name, res)
     log(f"-> {path}; figures and tables: vpengine bench report --results {path.parent}")
     return 0

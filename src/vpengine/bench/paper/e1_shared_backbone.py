@@ -32,8 +32,8 @@ def run(b: Bench, imgs: list[np.ndarray], ns: list[int]) -> dict[str, Any]:
         shared, sequential, dt = engine_and_sequential(
             b, [b.head("depth", f"depth{i}") for i in range(n)], imgs
         )
-        single = b.config([b.head("depth", "depth")], mode="process")
-        with engines([single] * n) as es:
+        singles = [b.config([b.head("depth", "depth")], mode="process") for _ in range(n)]
+        with engines(singles) as es:
             indep = independent_latency(es, imgs, b)
         row = {
             "heads": n,

@@ -10,11 +10,15 @@ import numpy as np
 from vpengine.bench.paper.harness import Bench, engines, lockstep, log, mps_daemon
 
 
-def run(b: Bench, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> dict[str, Any]:
+def check(b: Bench) -> None:
     if not b.on_cuda:
         raise ValueError(
             f"E3 compares CUDA MPS off and on: it needs device cuda, and the config has {b.device!r}"
         )
+
+
+def run(b: Bench, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> dict[str, Any]:
+    check(b)
     rows = []
     with mps_daemon() as daemon:
         for kind in ("det", "depth"):

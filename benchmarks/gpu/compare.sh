@@ -5,16 +5,19 @@
 #   bash benchmarks/gpu/compare.sh BEFORE [EXPERIMENT...]
 #
 # BEFORE: a folder holding the older tree's src/ (and configs/), or a commit of this repository, checked out with
-# git worktree under /tmp. Where the machine has no .git, make the folder here, name it in .gitignore's carry list and
-# carry it: mkdir .before && git archive COMMIT src configs | tar -x -C .before
+# git worktree under /tmp. Where the machine has no .git, make the folder where the repository is and carry it along
+# (git ignores .before/): mkdir .before && git archive COMMIT src configs | tar -x -C .before
 # AFTER: the newer tree (default: this one). EXPERIMENT: E1, floor, E5 (default: all three; E1 is the engine against
 # independent models at HEADS=8 heads, the floor of FLOOR_HEADS=depth,seg, E5 a stream of E5_FRAMES=3000 frames).
 # Also FRAMES (100 lockstep frames), RESULTS (borrow: the caller borrows results, so the numbers are the engine's
 # rather than its copies), MODE (the config's, process), ROUNDS (1: before, after; 2: before, after, before, after),
 # T (each run's time limit, 290 s), CONFIG (configs/bench.yaml; configs/tiny.yaml runs tiny models on the CPU).
-# Writes $OUT/paper_<device>_{before,after}_<experiment>[_<round>].json, summary.md and summary.png; "change" in
-# summary.md is each after-run's number against the before-run's (+: slower).
+# Writes paper_<device>_{before,after}_<experiment>[_<round>].json, summary.md and summary.png into $OUT, by default
+# benchmarks/results/<GPU kind>/before_after/; "change" in summary.md is each after-run's number against the
+# before-run's (+: slower).
+given=${OUT:-}
 source benchmarks/gpu/setup.sh
+[ -n "$given" ] || { OUT=$OUT/before_after; mkdir -p "$OUT"; }
 set -o pipefail
 [ $# -ge 1 ] || { echo "usage: bash benchmarks/gpu/compare.sh BEFORE [EXPERIMENT...]"; exit 2; }
 BEFORE=$1; shift
@@ -45,7 +48,7 @@ run() {
   local path="$SITE$tree/src"
   local args=(--experiments "$exp" --heads "${HEADS:-8}" --frames "${FRAMES:-100}" --e5-frames "${E5_FRAMES:-3000}"
     --floor-heads "${FLOOR_HEADS:-depth,seg}" --results "${RESULTS:-borrow}" --tag "$tag" --out "$OUT")
-  if PYTHONPATH=$path "$PYTHON" -m vpengine.cli.main bench paper --help | grep -q -- "--set"; then
+  if PYTHONPATH=$path "$PYTHON" -m vpengine.cli.main bench paper --help | grep -q -- "--set KEY=VALUE"; then
     args+=(--config "$tree/$CONFIG")  # this release's CLI: the engine is the config's
     [ -z "${MODE:-}" ] || args+=(--set "mode=$MODE")
   else  # the CLI before it: the same models by flags

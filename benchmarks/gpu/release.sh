@@ -14,9 +14,10 @@
 #   floor        the floor of depth + seg and of depth + seg + det   paper_cuda_floor_depth_seg{,_det}.json
 #   resources    device memory per extra head, CPU idle and at 30 Hz resources_gpu.json
 #   report       vpengine bench report on $OUT                       summary.md, summary.png
-# ARGS go to every `vpengine bench paper` (e.g. -- --set mode=thread); CONFIG is its config (configs/bench.yaml).
+# ARGS go to every `vpengine bench paper` after the stage's own, so they win (e.g. -- --set mode=thread, or
+# -- --heads 8 for a shorter E2); CONFIG is its config (configs/bench.yaml).
 # Each stage ends within its time limit (T_<STAGE> seconds, defaults below), so stages can be grouped into calls of
-# at most 10 minutes: tests; integration; e1 floor; e2; e3 e4; e5. The output of every benchmark is in release.log.
+# at most 10 minutes: tests; integration; e1; floor; e2; e3 e4; e5. Every benchmark's output is in release.log.
 source benchmarks/gpu/setup.sh
 set -o pipefail
 CONFIG=${CONFIG:-configs/bench.yaml}

@@ -3,7 +3,7 @@
 #
 #   bash benchmarks/gpu/release.sh [STAGE...] [-- ARGS...]
 #
-# STAGE, in this order by default: tests integration e1 e2 e3 e4 e5 floor report (resources on request).
+# STAGE, in this order by default: tests integration e1 e2 e3 e4 e5 floor report (resources and hop on request).
 #   tests        every gpu-marked test                               env.txt, gpu_tests.log
 #   integration  the core integration tests on CUDA                  integration_tests_on_cuda.log
 #   e1           E1 at 8 heads                                       paper_cuda_e1.json
@@ -13,6 +13,7 @@
 #   e5           E5, 10,000 frames at 30 Hz (E5_FRAMES)              paper_cuda_e5.json
 #   floor        the floor of depth + seg and of depth + seg + det   paper_cuda_floor_depth_seg{,_det}.json
 #   resources    device memory per extra head, CPU idle and at 30 Hz resources_gpu.json
+#   hop          one mailbox hop of ViT-S features in device memory   hop_cuda_vits-1080p.json
 #   report       vpengine bench report on $OUT                       summary.md, summary.png
 # ARGS go to every `vpengine bench paper` after the stage's own, so they win (e.g. -- --set mode=thread, or
 # -- --heads 8 for a shorter E2); CONFIG is its config (configs/bench.yaml).
@@ -67,7 +68,10 @@ for stage in "${stages[@]}"; do
     resources)
       timeout "${T_RESOURCES:-400}" "$PYTHON" -m vpengine.cli.main bench resources --config "$CONFIG" --heads 1,2,4 \
         --out "$OUT" 2>&1 | tee -a "$OUT/release.log" | tail -4 ;;
+    hop)
+      timeout "${T_HOP:-120}" "$PYTHON" -m vpengine.cli.main bench hop --device cuda --layout vits-1080p --out "$OUT" \
+        2>&1 | tee -a "$OUT/release.log" | tail -2 ;;
     report) vpengine bench report --results "$OUT" ;;
-    *) echo "unknown stage $stage; accepted: tests integration e1 e2 e3 e4 e5 floor resources report"; exit 2 ;;
+    *) echo "unknown stage $stage; accepted: tests integration e1 e2 e3 e4 e5 floor resources hop report"; exit 2 ;;
   esac
 done

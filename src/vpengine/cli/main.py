@@ -11,7 +11,7 @@ import sys
 COMMANDS = {
     "run": ("vpengine.cli.run", "run a pipeline on a video, an image folder, a camera or a synthetic scene"),
     "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
-    "bench": ("vpengine.cli.bench", "benchmarks: mailbox hop, pipeline throughput"),
+    "bench": ("vpengine.cli.bench", "benchmarks: the paper's experiments and their report, hop, pipeline, resources"),
     "export": ("vpengine.cli.export", "export a model of a config to ONNX"),
     "weights": ("vpengine.cli.weights", "checkpoint catalog: list, fetch, verify, path"),
     "train": (

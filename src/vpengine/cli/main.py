@@ -74,11 +74,12 @@ def main(argv: list[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except ModuleNotFoundError as e:
-        extra = EXTRAS.get((e.name or "").partition(".")[0])
+        top = (e.name or "").partition(".")[0]
+        extra = EXTRAS.get(top)
         if extra is None or args.verbose >= 2:
             raise
         print(
-            f"vpengine {args.command}: error: this needs the optional extra '{extra}' ({e.name} is not "
+            f"vpengine {args.command}: error: this needs the optional extra '{extra}' ({top} is not "
             f"installed): pip install 'vpengine[{extra}]'",
             file=sys.stderr,
         )

@@ -6,6 +6,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -198,7 +199,7 @@ def test_predict_writes_annotated_pictures_to_a_new_folder_each_time_from_any_di
     ]
 
 
-def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path):
+def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path, monkeypatch, capsys):
     p = vpengine("config", "list", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     listed = dict(line.split(None, 1) for line in p.stdout.splitlines())
@@ -206,14 +207,22 @@ def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path)
     assert listed["tiny"].startswith("Tiny random-weight models")
     p = vpengine("config", "show", "tiny", cwd=tmp_path)
     assert p.returncode == 0 and "name: tiny" in p.stdout and "model: tiny_vit" in p.stdout
-    p = vpengine("run", "-c", "tiny.yaml", "-s", "synthetic:64x64@30:3", "--no-progress", cwd=tmp_path)
-    assert p.returncode == 0, p.stderr
-    p = vpengine("run", "-c", "nope", "-s", "synthetic:64x64@30:3", cwd=tmp_path)
-    assert p.returncode == 1 and "Traceback" not in p.stderr
+    monkeypatch.chdir(tmp_path)  # the rest in this process: nothing here starts an engine
+    from vpengine import configs
+    from vpengine.cli.main import main
+
+    shipped = ROOT / "src" / "vpengine" / "configs"
+    assert configs.resolve("tiny") == configs.resolve("tiny.yaml") == shipped / "tiny.yaml"
+    (tmp_path / "tiny.yaml").write_text("name: mine\n")
+    assert configs.resolve("tiny.yaml") == Path("tiny.yaml")  # a file that exists is always taken as it is
+    assert main(["run", "-c", "nope", "-s", "synthetic:64x64@30:3"]) == 1
+    err = capsys.readouterr().err
+    assert "config 'nope' is neither a file nor a shipped config; shipped (by name, e.g. -c tiny): " in err
+    assert "dinov2s_depth_seg_det" in err and "Traceback" not in err
     assert (
-        "config 'nope' is neither a file nor a shipped config; shipped (by name, e.g. -c tiny): " in p.stderr
-    )
-    assert "dinov2s_depth_seg_det" in p.stderr
+        main(["run", "-c", "configs/tiny.yaml", "-s", "synthetic:64x64@30:3"]) == 1
+    )  # a path is never a name
+    assert "config 'configs/tiny.yaml' is neither a file nor a shipped config" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -17,10 +17,14 @@ def names() -> list[str]:
 
 
 def describe(name: str) -> str:
-    """The first line of a shipped config's leading comment (what it is for), or ''."""
+    """What a shipped config is for, in one line: its leading comment's first line, cut before a colon when the
+    sentence goes on to the next line. '' when it has no leading comment."""
     for line in resolve(name).read_text().splitlines():
         if line.startswith("#"):
-            return line.lstrip("#").strip()
+            text = line.lstrip("#").strip()
+            if not text.endswith(".") and ": " in text:
+                text = text.split(": ", 1)[0]
+            return text.rstrip(":")
         if line.strip():
             break
     return ""

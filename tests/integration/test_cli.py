@@ -225,7 +225,6 @@ def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path,
     assert "config 'configs/tiny.yaml' is neither a file nor a shipped config" in capsys.readouterr().err
 
 
-@pytest.mark.slow
 def test_the_package_installs_its_configs_and_samples(tmp_path):
     """Package data must name files that exist: a wheel built from the tree carries every config and sample."""
     import zipfile

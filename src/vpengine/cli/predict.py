@@ -71,8 +71,9 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(
         cfg, ["foundation_model.rate_hz=null", *(f"heads.{h.name}.rate_hz=null" for h in cfg.heads)]
     )
+    out = prepare_out_dir(args.out, args.exist_ok) if args.out else None  # checked before a camera opens
     with open_source(args.source) as source:
-        out = prepare_out_dir(args.out, args.exist_ok) if args.out else next_run_dir()
+        out = out or next_run_dir()  # made once the source opened: a bad one leaves no empty run folder
         print(
             "rate limits off: every head runs on every frame"
             + (f" (the config limits {limited})" if limited else ""),

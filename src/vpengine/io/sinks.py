@@ -7,7 +7,7 @@ Folder layout (``vpengine run --out DIR``)::
                                 input images skipped as unreadable or decoded partially
     DIR/<head>/<frame>.png      depth as 16-bit PNG (``depth_format="png16"``, the default; Note [Depth PNG]), with
     DIR/<head>/depth_scale.jsonl  one line per PNG: the offset and scale that give the depth back
-    DIR/<head>/<frame>.npy      depth as float32 (``depth_format="npy"``: exact, 4.4x larger)
+    DIR/<head>/<frame>.npy      depth as float32 (``depth_format="npy"``: exact, about 12x the PNG's size)
     DIR/<head>/<frame>.png      segmentation class ids (uint8, uint16 beyond 256 classes)
     DIR/<head>/detections.jsonl one line per frame: every detection with box, score, label and name
     DIR/<head>/<frame>.npz      any other head: all its output arrays
@@ -158,10 +158,11 @@ def encode_depth_png(depth: np.ndarray) -> tuple[np.ndarray, float, float]:
 
     The finite values' range is spread over 1..65535 (``value = offset + (pixel - 1) * scale``) and 0 marks a pixel
     that was NaN or infinite, so the error is at most half a step: 1/131070 of the frame's range, far below what
-    any depth model resolves, for a quarter of float32's size before compression. Written with PNG's Sub filter
-    alone (each pixel less its left neighbour; :func:`_png16_params`), where libpng's default tries five filters
-    per row: on the street video's depth maps 2.5x smaller and twice as fast (144 KB and 6 ms against 368 KB and
-    14 ms a 768x576 frame). Returns (uint16 map, offset, scale); :func:`decode_depth_png` inverts it."""
+    any depth model resolves, for half of float32's size before compression. Written with PNG's Sub filter alone
+    (each pixel less its left neighbour; :func:`_png16_params`), where libpng's default tries five filters per
+    row: on the tiny models' depth of the street video 2.5x smaller and twice as fast (144 KB and 6 ms against
+    368 KB and 14 ms a 768x576 frame; smooth maps suit it, as depth maps are). Returns (uint16 map, offset,
+    scale); :func:`decode_depth_png` inverts it."""
     d = np.asarray(depth, dtype=np.float32)
     finite = np.isfinite(d)
     all_finite = bool(finite.all())

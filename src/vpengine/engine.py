@@ -207,11 +207,14 @@ class Result:
         return self.outputs[key]
 
     def plot(self, image: np.ndarray | None = None) -> np.ndarray:
-        """This result drawn as a BGR uint8 picture: on ``image`` (or the predicted frame, ``self.image``) when
-        given, else on its own (depth colours, class colours, boxes on grey)."""
-        from vpengine.io.visualize import render_result
+        """This result drawn as a BGR uint8 picture at its frame's size: on ``image`` (or the predicted frame,
+        ``self.image``) when given, else on its own (depth colours with a bar, class colours, boxes on black)."""
+        from vpengine.io.visualize import draw_result
 
-        return render_result(self, self.image if image is None else image)
+        frame = self.image if image is None else image
+        if frame is None and self.info.get("kind") == "detection":
+            frame = np.zeros((*self.frame_size, 3), np.uint8)
+        return draw_result(frame, self, self.info, self.head)
 
 
 class _Resources:

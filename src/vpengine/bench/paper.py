@@ -395,8 +395,8 @@ class InProcess:
         import torch
 
         from vpengine.backends import make_executor
+        from vpengine.models.build import build_model
         from vpengine.runtime.plan import make_plan
-        from vpengine.runtime.worker import build_model
 
         self.cfg = cfg = setup.config(heads, mode="thread")
         self.device = torch.device(setup.device)

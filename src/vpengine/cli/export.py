@@ -62,8 +62,8 @@ def export_model(
     from vpengine.backends.onnx_export import check_onnx_precision, export_onnx, resolve_exporter
     from vpengine.backends.options import parse_options
     from vpengine.config import load_config
+    from vpengine.models.build import build_model, model_config
     from vpengine.runtime.plan import make_plan
-    from vpengine.runtime.worker import build_model, model_config
 
     cfg = load_config(config)
     names = cfg.model_names()

@@ -37,7 +37,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
     )
-    p.add_argument("--offline", action="store_true", help="never download checkpoints")
     p.add_argument(
         "--no-verify", action="store_true", help="skip running the export on ONNX Runtime against PyTorch"
     )
@@ -112,8 +111,6 @@ def main(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     if args.random_weights:
         overrides.append("weights.random_weights=true")
-    if args.offline:
-        overrides.append("weights.offline=true")
     cfg = load_config(args.config, overrides)
     m = export_model(cfg, args.model, args.out, args.precision, args.opset, args.exporter, not args.no_verify)
     path = Path(args.out) / m["file"]

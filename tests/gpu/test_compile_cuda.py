@@ -18,8 +18,8 @@ from tests_paths import tiny
 from vpengine.backends import BackendError, make_executor
 from vpengine.engine import Engine
 from vpengine.models.base import Model
+from vpengine.models.build import build_model
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 
 pytestmark = [
     pytest.mark.gpu,

@@ -22,10 +22,10 @@ from vpengine.backends.onnx_export import cache_key
 from vpengine.cli.main import main as cli
 from vpengine.config import ConfigError, load_config
 from vpengine.models.base import Model
+from vpengine.models.build import build_model
 from vpengine.models.preprocess import ImagePreprocess, exact_preprocessing
 from vpengine.models.registry import recipes
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 from vpengine.specs import TensorSpec
 
 pytestmark = pytest.mark.timeout(600)

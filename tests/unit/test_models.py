@@ -9,9 +9,9 @@ import torch
 from tests_paths import tiny
 from vpengine.config import PreprocessConfig, load_config
 from vpengine.models.base import ModelBuildError, Pipeline
+from vpengine.models.build import build_model
 from vpengine.models.preprocess import IMAGENET_MEAN, IMAGENET_STD, ImagePreprocess, target_size
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 from vpengine.specs import TensorSpec
 
 

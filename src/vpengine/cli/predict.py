@@ -39,7 +39,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
     )
-    p.add_argument("--offline", action="store_true", help="never download checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -108,7 +108,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
     )
-    p.add_argument("--offline", action="store_true", help="never download checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_serve_arguments(p)
 
@@ -368,8 +367,6 @@ def engine_overrides(args: argparse.Namespace) -> list[str]:
         overrides.append(f"device={args.device}")
     if args.random_weights:
         overrides.append("weights.random_weights=true")
-    if args.offline:
-        overrides.append("weights.offline=true")
     return overrides
 
 

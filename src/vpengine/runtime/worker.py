@@ -41,8 +41,8 @@ from typing import Any
 import torch
 
 from vpengine.config import EngineConfig, load_config
-from vpengine.models.base import BuildContext, Model, Role, check_outputs
-from vpengine.models.registry import resolve
+from vpengine.models.base import Role, check_outputs
+from vpengine.models.build import build_lock, build_model, model_config
 from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
@@ -71,37 +71,6 @@ class WorkerSpec:
 
     def engine_config(self) -> EngineConfig:
         return load_config(self.config)
-
-
-_build_lock = threading.Lock()
-
-
-def model_config(cfg: EngineConfig, name: str) -> Any:
-    return cfg.foundation_model if name == "foundation" else cfg.head(name)
-
-
-def build_model(
-    cfg: EngineConfig,
-    name: str,
-    role: Role,
-    upstream: SpecDict,
-    upstream_meta: dict[str, Any],
-    device: torch.device,
-    plan_only: bool,
-) -> Model:
-    """Build one recipe. With ``plan_only`` it lands on the meta device with no weights (for planning)."""
-    mcfg = model_config(cfg, name)
-    cls, defaults = resolve(mcfg.model, role)
-    ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
-    # One model at a time per process: construction draws from PyTorch's process-global RNG (default layer init,
-    # seeded random weights), so thread-mode workers building at once would interleave their draws and get weights
-    # that differ from run to run (and from process mode).
-    with _build_lock, torch.device("meta" if plan_only else device):
-        model = cls.from_config(ctx)
-    if not plan_only:
-        model.load_checkpoint(ctx)
-        model.eval().requires_grad_(False)
-    return model
 
 
 class WorkerCore:
@@ -420,7 +389,7 @@ def prepare_worker(
         )
         # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
         # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
-        with _build_lock:
+        with build_lock:
             executor = make_executor(
                 model,
                 mcfg.backend,

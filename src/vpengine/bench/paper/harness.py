@@ -227,8 +227,8 @@ class InProcess:
         import torch
 
         from vpengine.backends import make_executor
+        from vpengine.models.build import build_model
         from vpengine.runtime.plan import make_plan
-        from vpengine.runtime.worker import build_model
 
         self.cfg = cfg = b.config(heads, mode="thread")
         self.device = torch.device(cfg.device)

@@ -35,26 +35,31 @@ order, from one writer at a time.
 from __future__ import annotations
 
 import collections
+import functools
 import logging
-import math
 import shutil
 import sys
 import tempfile
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
 
+from vpengine import checks
 from vpengine.config import EngineConfig, load_config
-from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.control import NOT_SERVING, ControlBlock
+from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.plan import Plan, make_plan
-from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
+from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
+from vpengine.transport.layout import SlotLayout
+from vpengine.transport.memory import free_bytes
 from vpengine.transport.ring import ReaderDecl, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
@@ -63,6 +68,21 @@ __all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result
 
 _ORIGINS_KEPT = 8192
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _fenced(method: _F) -> _F:
+    """An API method that runs inside the engine's fence: what it touches stays mapped until it returns, and once
+    ``stop()`` has begun it raises EngineDeadError (Note [Unmapping at stop] in runtime/fence.py)."""
+
+    @functools.wraps(method)
+    def call(self: Engine, *args: Any, **kw: Any) -> Any:
+        with self._res.fence:
+            return method(self, *args, **kw)
+
+    return cast(_F, call)
 
 
 def _refcounts(pool: list[np.ndarray]) -> list[int]:
@@ -193,29 +213,57 @@ class Result:
 
 
 class _Resources:
-    """What must be released even if the user forgets stop(): workers, mailboxes, control block."""
+    """What must be released even if the user forgets stop(): workers, mailboxes, control block. Refers to nothing
+    that refers to the Engine, so that an Engine nobody refers to is collected and this is closed by its finalizer."""
 
     def __init__(self) -> None:
         self.runner: Runner | None = None
         self.rings: dict[str, SlotRing] = {}
         self.control: ControlBlock | None = None
         self.dirs: list[str] = []  # private temporary directories (e.g. the no-MPS pipe directory)
+        self.fence = MappingFence()  # Note [Unmapping at stop]
+        self.log_file: logging.Handler | None = None
 
     def close(self) -> list[str]:
         forced: list[str] = []
         if self.runner is not None:
             forced = self.runner.stop()
+            for thread in self.runner.threads_alive():  # abandoned workers: unmap once they are gone
+                self.fence.hold_until_gone(thread)
             self.runner = None
+        if self.log_file is not None:
+            logging.getLogger("vpengine").removeHandler(self.log_file)
+            self.log_file.close()
+            self.log_file = None
+        for d in self.dirs:
+            shutil.rmtree(d, ignore_errors=True)
+        self.dirs = []
+        self.fence.close(self._unmap)  # Note [Unmapping at stop]: now, or once the last user is gone
+        return forced
+
+    def _unmap(self) -> None:
         for ring in self.rings.values():
             ring.close()
         self.rings = {}
         if self.control is not None:
             self.control.close()
             self.control = None
-        for d in self.dirs:
-            shutil.rmtree(d, ignore_errors=True)
-        self.dirs = []
-        return forced
+
+
+def _worker_env(cfg: EngineConfig, mps_dir: str | None, nomps_dir: str, name: str) -> dict[str, str]:
+    """Environment overrides for a worker process, decided at each (re)start."""
+    if torch.device(cfg.device).type != "cuda":
+        return {}
+    from vpengine.runtime import mps
+
+    use = mps_dir if mps_dir and mps.status(mps_dir)["reachable"] else None
+    env = {"CUDA_MPS_PIPE_DIRECTORY": use or nomps_dir}
+    if use:
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
+    elif mps_dir:
+        log.warning("MPS daemon at %s no longer answers: %s starts without MPS", mps_dir, name)
+    return env
 
 
 class FrameSlot:
@@ -239,12 +287,15 @@ class FrameSlot:
         eng = self._engine
         if self._slot is not None or self.frame_id is not None or self._cancelled:
             raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
+        fence = eng._res.fence
+        fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
         eng._submit_lock.acquire()
         try:
             eng._require_running()
             slot = eng._acquire_input()
         except BaseException:
             eng._submit_lock.release()
+            fence.leave()
             raise
         eng._filling = threading.get_ident()
         self._slot = slot
@@ -260,11 +311,17 @@ class FrameSlot:
                 eng._input_writer.abort(slot)
                 return
             t_submit = time.monotonic()
-            t_capture = time.time() if self.timestamp is None else float(self.timestamp)
+            try:
+                stamp = checks.timestamp(self.timestamp)  # may have been set inside the block
+            except ValueError:
+                eng._input_writer.abort(slot)
+                raise
+            t_capture = time.time() if stamp is None else stamp
             self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit)
         finally:
             eng._filling = None
             eng._submit_lock.release()
+            eng._res.fence.leave()
 
 
 class Engine:
@@ -309,38 +366,12 @@ class Engine:
         try:
             if device.type == "cuda":
                 self._prepare_cuda(device, shared)
-            gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
-            res.rings["input"] = SlotRing.create(
-                "input",
-                plan.frame_spec,
-                cfg.input.slots or (7 if cfg.foundation_model.input_mode == "fifo" else 3),
-                [ReaderDecl("foundation", cfg.foundation_model.input_mode)],
-                "cpu",
-                shared,
-                pinned=gpu,
-            )
-            fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
-            n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2 + fifo_margin)
-            res.rings["features"] = SlotRing.create(
-                "features",
-                plan.features,
-                n_feat,
-                [ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
-                device,
-                shared,
-            )
-            for h in cfg.heads:
-                leases = [ReaderDecl(f"lease{i}", active=False) for i in range(h.output.leases)]
-                res.rings[f"out.{h.name}"] = SlotRing.create(
-                    f"out.{h.name}",
-                    plan.heads[h.name].output_spec,
-                    h.output.slots + h.output.leases,
-                    [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
-                    device if h.output.location == "device" else "cpu",
-                    shared,
-                    h.output.overflow,
-                    pinned=gpu,
-                )
+            mailboxes = self._mailboxes(device, shared)
+            self._check_preallocation(mailboxes)  # before any of it is allocated
+            for m in mailboxes:
+                res.rings[m["name"]] = SlotRing.create(**m)
+            if cfg.logging.file:
+                res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "%(name)s")
             res.control = ControlBlock.create(cfg.model_names())
             res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
             for h in cfg.heads:
@@ -349,7 +380,9 @@ class Engine:
             if shared:
                 from vpengine.runtime.process import ProcessRunner
 
-                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=self._worker_env)
+                # not a bound method: the runner must not refer to the Engine (see _Resources)
+                env_for = functools.partial(_worker_env, cfg, self._mps_dir, self._nomps_dir)
+                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=env_for)
             else:
                 from vpengine.runtime.threads import ThreadRunner
 
@@ -427,20 +460,64 @@ class Engine:
         if self._mps_dir:
             log.info("CUDA MPS daemon found at %s: model workers will be MPS clients", self._mps_dir)
 
-    def _worker_env(self, name: str) -> dict[str, str]:
-        """Environment overrides for a worker process, decided at each (re)start."""
-        if torch.device(self.config.device).type != "cuda":
-            return {}
-        from vpengine.runtime import mps
+    def _mailboxes(self, device: torch.device, shared: bool) -> list[dict[str, Any]]:
+        """``SlotRing.create``'s arguments for every mailbox: the input, the features, one output per head."""
+        cfg, plan = self.config, self.plan
+        gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
+        fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
+        mailboxes: list[dict[str, Any]] = [
+            dict(
+                name="input",
+                specs=plan.frame_spec,
+                n_slots=cfg.input.slots or (7 if cfg.foundation_model.input_mode == "fifo" else 3),
+                readers=[ReaderDecl("foundation", cfg.foundation_model.input_mode)],
+                device="cpu",
+                shared=shared,
+                pinned=gpu,
+            ),
+            dict(
+                name="features",
+                specs=plan.features,
+                n_slots=cfg.foundation_model.feature_slots or max(3, len(cfg.heads) + 2 + fifo_margin),
+                readers=[ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
+                device=device,
+                shared=shared,
+            ),
+        ]
+        for h in cfg.heads:
+            leases = [ReaderDecl(f"lease{i}", active=False) for i in range(h.output.leases)]
+            mailboxes.append(
+                dict(
+                    name=f"out.{h.name}",
+                    specs=plan.heads[h.name].output_spec,
+                    n_slots=h.output.slots + h.output.leases,
+                    readers=[ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
+                    device=device if h.output.location == "device" else "cpu",
+                    shared=shared,
+                    overflow=h.output.overflow,
+                    pinned=gpu,
+                )
+            )
+        return mailboxes
 
-        use = self._mps_dir if self._mps_dir and mps.status(self._mps_dir)["reachable"] else None
-        env = {"CUDA_MPS_PIPE_DIRECTORY": use or self._nomps_dir}
-        if use:
-            mcfg = self.config.foundation_model if name == "foundation" else self.config.head(name)
-            env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
-        elif self._mps_dir:
-            log.warning("MPS daemon at %s no longer answers: %s starts without MPS", self._mps_dir, name)
-        return env
+    def _check_preallocation(self, mailboxes: list[dict[str, Any]]) -> None:
+        """Refuse mailboxes that do not fit the memory free now, naming their size (rather than failing in the
+        middle of allocating them, or leaving the machine swapping)."""
+        need: dict[str, dict[str, int]] = {}  # device -> mailbox -> bytes
+        for m in mailboxes:
+            nbytes = SlotLayout.from_specs(m["specs"], m["n_slots"]).total_bytes
+            need.setdefault(str(torch.device(m["device"])), {})[m["name"]] = nbytes
+        for dev, sizes in need.items():
+            total, free = sum(sizes.values()), free_bytes(torch.device(dev))
+            if free is not None and total > free:
+                biggest = ", ".join(
+                    f"{n} {b / 1e9:.2f} GB" for n, b in sorted(sizes.items(), key=lambda x: -x[1])[:3]
+                )
+                raise EngineStartError(
+                    f"the mailboxes need {total / 1e9:.2f} GB of {'host' if dev == 'cpu' else dev} memory "
+                    f"({biggest}), but only {free / 1e9:.2f} GB is free; lower input.height/width or "
+                    "input.slots, output.slots or the heads' output sizes"
+                )
 
     def _worker_specs(self) -> list[WorkerSpec]:
         cfg, plan, rings = self.config, self.plan, self._res.rings
@@ -547,6 +624,8 @@ class Engine:
         if isinstance(frame, torch.Tensor):
             if frame.device.type != "cpu":
                 raise ValueError(f"expected {want}; got a tensor on {frame.device} (submit host frames)")
+            if frame.requires_grad:
+                raise ValueError(f"expected {want}; got a tensor that requires grad (submit frame.detach())")
             frame = frame.numpy()
         if not isinstance(frame, np.ndarray):
             raise ValueError(f"expected {want}; got {type(frame).__name__}")
@@ -567,6 +646,7 @@ class Engine:
             raise ValueError(f"expected {want} with finite values; got NaN or inf")
         return frame
 
+    @_fenced
     def submit(self, frame: Any, frame_id: int | None = None, timestamp: float | None = None) -> int:
         """Hand a frame to the engine. Returns its frame id (``frame_id`` or the next integer).
 
@@ -577,6 +657,7 @@ class Engine:
         self._require_running()
         try:
             arr = self._check_frame(frame)
+            frame_id, timestamp = checks.frame_id(frame_id), checks.timestamp(timestamp)
         except ValueError:
             self._rejected += 1
             raise
@@ -585,11 +666,16 @@ class Engine:
         self._refuse_inside_frame_slot()
         with self._submit_lock:
             slot = self._acquire_input()
-            # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then spin
-            # (one per core); a plain memcpy costs a fraction of that at 30 Hz.
-            np.copyto(self._frame_views[slot.index], arr)
-            return self._publish_input(slot, frame_id, t_capture, t_submit)
+            try:  # an error gives the slot back: a leaked slot is a frame the ring never gets again
+                # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then
+                # spin (one per core); a plain memcpy costs a fraction of that at 30 Hz.
+                np.copyto(self._frame_views[slot.index], arr)
+                return self._publish_input(slot, frame_id, t_capture, t_submit)
+            except BaseException:
+                self._input_writer.abort(slot)
+                raise
 
+    @_fenced
     def frame_slot(self, frame_id: int | None = None, timestamp: float | None = None) -> FrameSlot:
         """The next input slot, to write a frame into in place: ``submit`` without its copy (Note [Frame slots]).
 
@@ -609,7 +695,7 @@ class Engine:
         """
         self._require_running()
         self._refuse_inside_frame_slot()
-        return FrameSlot(self, frame_id, timestamp)
+        return FrameSlot(self, checks.frame_id(frame_id), checks.timestamp(timestamp))
 
     def _refuse_inside_frame_slot(self) -> None:
         if self._filling == threading.get_ident():
@@ -694,6 +780,7 @@ class Engine:
             raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
         return head
 
+    @_fenced
     def latest(self, head: str, copy: bool = True) -> Result | None:
         """The newest output of ``head``, or None if it has produced nothing yet. ``copy=False``: borrowed, not
         copied, while a lease is free (Note [Borrowed results])."""
@@ -709,6 +796,7 @@ class Engine:
             finally:
                 reader.release(slot)
 
+    @_fenced
     def results(
         self, timeout: float = 0.0, heads: list[str] | None = None, copy: bool = True
     ) -> list[Result]:
@@ -720,6 +808,7 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
+        timeout = checks.timeout(timeout)
         ctl = self._res.control
         assert ctl is not None
         names = [self._head(h) for h in heads] if heads else list(self._results_readers)
@@ -751,6 +840,7 @@ class Engine:
                     return sorted(out, key=lambda r: r.t_publish)
                 ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
 
+    @_fenced
     def wait(
         self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0, copy: bool = True
     ) -> dict[str, Result]:
@@ -764,6 +854,7 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
+        timeout = checks.timeout(timeout)
         ctl = self._res.control
         assert ctl is not None
         origin = self._origins.get(int(frame_id))
@@ -790,7 +881,7 @@ class Engine:
                             continue
                         if slot is not None:
                             found.append((h, slot))
-                        if slot is not None or newest > origin or ctl.state(h) == "failed":
+                        if slot is not None or newest > origin or ctl.state(h) in NOT_SERVING:
                             pending.remove(h)
                     done.update(self._copy_out(found, copy))
                 finally:
@@ -808,16 +899,16 @@ class Engine:
             ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
 
     # ------------------------------------------------------------------------------------------ control
+    @_fenced
     def set_rate(self, model: str, hz: float | None) -> None:
         """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause."""
         ctl = self._model_control(model)
-        if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
-            raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
-        ctl.set_rate(model, None if hz is None else float(hz))
+        ctl.set_rate(model, checks.rate(model, hz))
         inline = self._input_writer.ring.inline
         if inline is not None and model == "foundation":
             inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
+    @_fenced
     def rate(self, model: str) -> float | None:
         """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
         read of shared memory), unlike ``stats()``; for a loop that checks it every frame."""
@@ -835,8 +926,14 @@ class Engine:
 
     def stats(self) -> dict[str, Any]:
         """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""
-        if self._state != "running":
+        if self._state != "running" or not self._res.fence.enter():
             return {"engine": {"state": self._state}}
+        try:  # Note [Unmapping at stop]
+            return self._stats()
+        finally:
+            self._res.fence.leave()
+
+    def _stats(self) -> dict[str, Any]:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None

@@ -371,7 +371,7 @@ class Engine:
             for m in mailboxes:
                 res.rings[m["name"]] = SlotRing.create(**m)
             if cfg.logging.file:
-                res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "%(name)s")
+                res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
             res.control = ControlBlock.create(cfg.model_names())
             res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
             for h in cfg.heads:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ctypes
+import logging
 import os
 import signal
 import time
@@ -24,6 +25,7 @@ class FaultOptions(Options):
     stall_every: int | None = None  # every Nth run also sleeps stall_ms (a transient lag)
     stall_ms: float = 0.0
     fail_build: bool = False
+    log_at_build: str | None = None  # log this (WARNING, logger vpengine.faulty) when built
 
 
 class FaultyHead(TinyDepthHead):
@@ -41,6 +43,8 @@ class FaultyHead(TinyDepthHead):
         fault = ctx.options(FaultOptions)
         if fault.fail_build and not ctx.plan_only:
             raise RuntimeError("injected build failure")
+        if fault.log_at_build and not ctx.plan_only:
+            logging.getLogger("vpengine.faulty").warning("%s", fault.log_at_build)
         return cls(ctx, fault)
 
     def forward(self, inputs):
@@ -64,7 +68,9 @@ class FaultyHead(TinyDepthHead):
             os._exit(0)
         if f.gil_hang_at_run is not None and run == f.gil_hang_at_run:
             ctypes.PyDLL(None).sleep(100000)  # a PyDLL call keeps the GIL: no other thread of ours runs
-        if f.hang_at_run is not None and run >= f.hang_at_run:
+        if f.hang_at_run is not None and run >= f.hang_at_run and first_time:
+            if f.once_marker is not None:
+                Path(f.once_marker).touch()
             if f.hang_s is not None:
                 time.sleep(f.hang_s)
             else:

@@ -57,10 +57,10 @@ def test_nan_inf_and_non_number_timestamps_are_refused(engine, bad):
         engine.submit(frame(0), timestamp=bad)
     with pytest.raises(ValueError, match="timestamp must be None or a finite number"):
         engine.frame_slot(timestamp=bad)
-    with pytest.raises(ValueError, match="timestamp must be None or a finite number"):
-        with engine.frame_slot() as slot:  # set inside the block: checked when it ends, the slot given back
-            slot.array[:] = frame(0)
-            slot.timestamp = bad
+    # set inside the block: checked when it ends, and the slot given back
+    with pytest.raises(ValueError, match="timestamp must be None or a finite number"), engine.frame_slot() as slot:
+        slot.array[:] = frame(0)
+        slot.timestamp = bad
     assert input_slots_free(engine) == slots
     fid = engine.submit(frame(4), timestamp=np.float32(12.5))
     assert engine.wait(fid, timeout=10)["depth"].capture_time == 12.5

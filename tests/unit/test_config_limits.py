@@ -69,7 +69,9 @@ def test_deep_nesting_and_binary_files_name_the_file(tmp_path):
     with pytest.raises(ConfigError, match="nests too deeply"):
         load_config(deep_json)
     nested = tmp_path / "nested.yaml"  # parses, but nests past the bound
-    nested.write_text("heads:\n  - {name: d, model: tiny_depth, options: " + "[" * MAX_DEPTH + "]" * MAX_DEPTH + "}\n")
+    nested.write_text(
+        "heads:\n  - {name: d, model: tiny_depth, options: " + "[" * MAX_DEPTH + "]" * MAX_DEPTH + "}\n"
+    )
     with pytest.raises(ConfigError, match=f"nests deeper than {MAX_DEPTH} levels"):
         load_config(nested)
     for suffix in (".yaml", ".json"):
@@ -82,7 +84,9 @@ def test_deep_nesting_and_binary_files_name_the_file(tmp_path):
 
 def test_huge_values_are_clipped_in_error_messages():
     with pytest.raises(ConfigError) as e:
-        load_config({"input": {"height": "9" * 1_000_000}, "heads": [{"name": "x" * 1_000_000, "model": "m"}]})
+        load_config(
+            {"input": {"height": "9" * 1_000_000}, "heads": [{"name": "x" * 1_000_000, "model": "m"}]}
+        )
     msg = str(e.value)
     assert len(msg) < 5000
     assert "(1000002 characters)" in msg and "input.height" in msg

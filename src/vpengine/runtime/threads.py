@@ -157,6 +157,7 @@ class ThreadRunner(Runner):
         self.control.request_stop()
         for ring in self.rings.values():
             ring.wake_all()
+        self._events.put(("", "stop", ""))  # the monitor leaves now, not at its next poll
         deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
         abandoned = []
         for name, t in self._threads.items():

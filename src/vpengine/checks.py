@@ -49,11 +49,12 @@ def timestamp(value: Any) -> float | None:
 
 
 def timeout(value: Any, what: str = "timeout") -> float:
-    """A timeout in seconds: a finite real number >= 0."""
+    """A timeout in seconds: a finite real number; one below 0 (a deadline already past, ``deadline - now``) is 0,
+    do not wait."""
     t = _real(value)
-    if t is None or not math.isfinite(t) or t < 0:
-        raise ValueError(f"{what} must be a finite number of seconds >= 0, got {value!r}")
-    return t
+    if t is None or not math.isfinite(t):
+        raise ValueError(f"{what} must be a finite number of seconds, got {value!r}")
+    return max(t, 0.0)
 
 
 def rate(model: str, value: Any) -> float | None:

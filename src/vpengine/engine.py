@@ -507,16 +507,17 @@ class Engine:
         for m in mailboxes:
             nbytes = SlotLayout.from_specs(m["specs"], m["n_slots"]).total_bytes
             need.setdefault(str(torch.device(m["device"])), {})[m["name"]] = nbytes
+        def size(b: float) -> str:
+            return f"{b / 1e9:.2f} GB" if b >= 1e9 else f"{b / 1e6:.1f} MB"
+
         for dev, sizes in need.items():
             total, free = sum(sizes.values()), free_bytes(torch.device(dev))
             if free is not None and total > free:
-                biggest = ", ".join(
-                    f"{n} {b / 1e9:.2f} GB" for n, b in sorted(sizes.items(), key=lambda x: -x[1])[:3]
-                )
+                biggest = ", ".join(f"{n} {size(b)}" for n, b in sorted(sizes.items(), key=lambda x: -x[1])[:3])
                 raise EngineStartError(
-                    f"the mailboxes need {total / 1e9:.2f} GB of {'host' if dev == 'cpu' else dev} memory "
-                    f"({biggest}), but only {free / 1e9:.2f} GB is free; lower input.height/width or "
-                    "input.slots, output.slots or the heads' output sizes"
+                    f"the mailboxes need {size(total)} of {'host' if dev == 'cpu' else dev} memory ({biggest}), "
+                    f"but only {size(free)} is free; lower input.height/width, input.slots, output.slots or "
+                    "the number of heads"
                 )
 
     def _worker_specs(self) -> list[WorkerSpec]:

@@ -7,8 +7,13 @@ import json
 import time
 
 import pytest
+import torch
 
+from tests_paths import tiny
 from vpengine.config import MAX_DEPTH, ConfigError, load_config
+from vpengine.engine import Engine, EngineStartError
+from vpengine.specs import TensorSpec
+from vpengine.transport import memory, ring
 
 # 1 KB of YAML that stands for 9**9 (387 million) strings once its aliases are expanded
 ALIAS_BOMB = "lol: &a0 [lol, lol, lol, lol, lol, lol, lol, lol, lol]\n" + "".join(
@@ -112,3 +117,31 @@ def test_values_that_ruin_outputs_or_make_stop_unbounded_are_refused(tmp_path, r
     path.write_text(json.dumps(raw).replace('".nan"', ".nan").replace('".inf"', ".inf"))
     with pytest.raises(ConfigError, match=why):
         load_config(path)
+
+
+def test_mailboxes_that_do_not_fit_free_memory_are_refused_up_front_naming_their_size(monkeypatch):
+    assert memory.free_bytes(torch.device("cpu")) > 0  # this machine's MemAvailable (or its cgroup's limit)
+    monkeypatch.setattr("vpengine.engine.free_bytes", lambda device: 100_000)
+    cfg = tiny("thread", "input.height=1080", "input.width=1920", "input.slots=10")
+    allocated = []
+    monkeypatch.setattr(ring, "allocate", lambda *a, **k: allocated.append(a) or memory.allocate(*a, **k))
+    with pytest.raises(EngineStartError) as e:
+        Engine(cfg).start()
+    msg = str(e.value)
+    assert (
+        "the mailboxes need" in msg
+        and "of host memory (input 62.2 MB" in msg
+        and "only 0.1 MB is free" in msg
+    )
+    assert not allocated  # refused before anything was allocated
+
+
+def test_an_allocation_the_system_refuses_names_the_ring_and_its_size(monkeypatch):
+    def enomem(*a, **k):
+        raise OSError(12, "Cannot allocate memory")
+
+    monkeypatch.setattr(ring, "allocate", enomem)
+    with pytest.raises(
+        MemoryError, match=r"ring 'big': cannot allocate 0.52 GB \(8 slots of 64800000 bytes\)"
+    ):
+        ring.SlotRing.create("big", {"x": TensorSpec((16200000,), "float32")}, 8, [ring.ReaderDecl("r")])

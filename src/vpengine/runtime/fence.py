@@ -62,9 +62,12 @@ class MappingFence:
         """Count ``thread`` as a user until it ends (it may still touch the mappings), even past ``close``."""
         with self._lock:
             self._users += 1
-        threading.Thread(
-            target=self._leave_after, args=(thread,), name="vpengine-unmap-after", daemon=True
-        ).start()
+        try:
+            threading.Thread(
+                target=self._leave_after, args=(thread,), name="vpengine-unmap-after", daemon=True
+            ).start()
+        except RuntimeError:  # the interpreter is exiting: the process's end unmaps everything
+            pass
 
     def _leave_after(self, thread: threading.Thread) -> None:
         thread.join()

@@ -123,8 +123,8 @@ def _drop_parent_ends() -> None:
         return
     null = os.open(os.devnull, os.O_RDWR)
     for fd in list(_PARENT_ENDS):
-        with contextlib.suppress(OSError):
-            os.dup2(null, fd, inheritable=False)  # the number stays valid: whatever closes it later closes /dev/null
+        with contextlib.suppress(OSError):  # the number stays valid: what closes it later closes /dev/null
+            os.dup2(null, fd, inheritable=False)
     os.close(null)
     _PARENT_ENDS.clear()
 
@@ -139,6 +139,7 @@ class _Spawner:
 
     def __init__(self) -> None:
         self._calls: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]] | None] = queue.SimpleQueue()
+        self._closed = False
         self._thread = threading.Thread(target=self._serve, name="vpengine-spawner", daemon=True)
         self._thread.start()
 
@@ -151,12 +152,15 @@ class _Spawner:
                 fut.set_exception(e)
 
     def call(self, fn: Callable[[], Any]) -> Any:
+        if self._closed:
+            raise RuntimeError("the engine is stopping: no worker is started any more")
         fut: Future[Any] = Future()
         self._calls.put((fn, fut))
         return fut.result()
 
     def close(self) -> None:
         """Let the thread end; call once every process it started is gone."""
+        self._closed = True
         self._calls.put(None)
 
 

@@ -131,7 +131,11 @@ class Runner(ABC):
             if n >= limit:
                 self.control.set_state(name, FAILED)
                 log.error(
-                    "%s failed for good after %d restarts within %.0f s: %s", name, n, rt.restart_window_s, reason
+                    "%s failed for good after %d restarts within %.0f s: %s",
+                    name,
+                    n,
+                    rt.restart_window_s,
+                    reason,
                 )
                 return
             delay = min(rt.restart_backoff_s * 2 ** min(n, 32), rt.restart_backoff_max_s)

@@ -50,13 +50,21 @@ class MappingFence:
         if unmap is not None:
             unmap()
 
-    def __enter__(self) -> MappingFence:
-        if not self.enter():
-            raise EngineDeadError("engine is stopped")
+    def __enter__(self) -> MappingFence:  # enter(), raising; inlined: every API call goes through here
+        with self._lock:
+            if self._closing:
+                raise EngineDeadError("engine is stopped")
+            self._users += 1
         return self
 
     def __exit__(self, *exc: object) -> None:
-        self.leave()
+        with self._lock:
+            self._users -= 1
+            if not self._closing:
+                return
+            unmap = self._take_unmap()
+        if unmap is not None:
+            unmap()
 
     def hold_until_gone(self, thread: threading.Thread) -> None:
         """Count ``thread`` as a user until it ends (it may still touch the mappings), even past ``close``."""

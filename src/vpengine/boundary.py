@@ -197,7 +197,9 @@ class Boundary:
         if isinstance(frame, torch.Tensor):
             if frame.device.type != "cpu":
                 raise ValueError(f"expected {want}; got a tensor on {frame.device} (submit host frames)")
-            frame = frame.detach().numpy()
+            if frame.requires_grad:
+                raise ValueError(f"expected {want}; got a tensor that requires grad (submit frame.detach())")
+            frame = frame.numpy()
         if not isinstance(frame, np.ndarray):
             raise ValueError(f"expected {want}; got {type(frame).__name__}")
         if frame.size == 0:

@@ -28,7 +28,11 @@ class ConfigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, protected_namespaces=())
+    # NaN and infinity are refused in every number field: a NaN normalisation ruins every output, an infinite
+    # timeout makes stop() unbounded.
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, protected_namespaces=(), allow_inf_nan=False
+    )
 
 
 class InputConfig(_Strict):
@@ -175,14 +179,34 @@ class HeadConfig(ModelConfig):
 class RuntimeConfig(_Strict):
     """Supervision and timing."""
 
-    ready_timeout_s: float = Field(300.0, gt=0, description="How long a worker may take to load and warm up.")
-    stop_timeout_s: float = Field(3.0, gt=0, description="Grace time at stop before workers are terminated.")
-    max_restarts: int = Field(
-        5, ge=0, description="Restarts of one crashed worker before it is marked failed."
+    ready_timeout_s: float = Field(
+        300.0, gt=0, le=86400, description="How long a worker may take to load and warm up."
     )
-    restart_backoff_s: float = Field(0.5, ge=0, description="First restart delay; doubles each time.")
+    stop_timeout_s: float = Field(
+        3.0, gt=0, le=600, description="Grace time at stop before workers are terminated."
+    )
+    max_restarts: int = Field(
+        5,
+        ge=0,
+        description="Restarts of one crashed worker within restart_window_s before it is marked failed for good.",
+    )
+    restart_window_s: float = Field(
+        60.0,
+        gt=0,
+        le=86400,
+        description="How long a restart counts against max_restarts (and doubles the next backoff): a worker that "
+        "fails now and then is restarted every time, one in a crash loop is marked failed.",
+    )
+    restart_backoff_s: float = Field(
+        0.5, ge=0, le=3600, description="First restart delay; doubles with each restart in the window."
+    )
     hang_timeout_s: float | None = Field(
-        60.0, gt=0, description="A running worker silent this long is killed and restarted; null: never."
+        60.0,
+        gt=0,
+        le=86400,
+        description="A running worker silent this long is hung. Process mode: it is killed and restarted. Thread "
+        "mode: it is reported (state 'hung', counted as a crash) and no longer waited for, and restarted once its "
+        "thread returns (a Python thread cannot be killed); null: never.",
     )
 
 
@@ -252,19 +276,91 @@ class EngineConfig(_Strict):
 
 
 # ------------------------------------------------------------------------------------------------- loading
+#: Bounds on a config, checked before anything expands it. A 1 KB YAML file of nested aliases (or merge keys) can
+#: stand for billions of values; validation, error messages and the copy each worker gets would expand them all.
+MAX_VALUES = 100_000
+MAX_DEPTH = 64
+_SHOWN_CHARS = 200  # at most this much of any value (or error text) is quoted in an error
+
+
+def _clip(text: str, limit: int = _SHOWN_CHARS) -> str:
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
 def _format_validation_error(err: ValidationError, source: str) -> str:
     lines = [f"invalid configuration{f' in {source}' if source else ''}:"]
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        loc = _clip(".".join(str(p) for p in e["loc"]) or "(top level)")
         if e["type"] == "extra_forbidden":
             parent = _model_at(EngineConfig, e["loc"][:-1])
             accepted = sorted(parent.model_fields) if parent else []
             lines.append(f"  {loc}: unknown key (accepted here: {', '.join(accepted)})")
         else:
             given = e.get("input")
-            shown = json.dumps(given, default=str) if not isinstance(given, dict) else "{...}"
-            lines.append(f"  {loc}: {e['msg']} (got {shown})")
+            shown = _clip(json.dumps(given, default=str)) if not isinstance(given, dict) else "{...}"
+            lines.append(f"  {loc}: {_clip(e['msg'], 4 * _SHOWN_CHARS)} (got {shown})")
     return "\n".join(lines)
+
+
+def _check_size(root: Any, children: Any, where: str) -> None:
+    """Refuse a config that nests deeper than ``MAX_DEPTH`` or expands to more than ``MAX_VALUES`` values, without
+    expanding it: a container that appears many times (a YAML alias) is measured once, and one that contains
+    itself is refused. ``children(x)``: x's items, or None for a scalar (works on YAML nodes and on Python data)."""
+    where = f" in {where}" if where else ""
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[Any, int, bool]] = [(root, 1, False)]
+    while stack:
+        obj, depth, done = stack.pop()
+        items = children(obj)
+        if items is None:
+            continue
+        key = id(obj)
+        if done:
+            on_path.discard(key)
+            n = 1 + sum(sizes.get(id(c), 1) if children(c) is not None else 1 for c in items)
+            if n > MAX_VALUES:
+                raise ConfigError(
+                    f"configuration{where} expands to more than {MAX_VALUES} values (YAML aliases that "
+                    "refer to aliases multiply); refused"
+                )
+            sizes[key] = n
+            continue
+        if key in sizes:
+            continue
+        if key in on_path:
+            raise ConfigError(f"configuration{where} contains itself (a YAML alias inside its own anchor)")
+        if depth > MAX_DEPTH:
+            raise ConfigError(f"configuration{where} nests deeper than {MAX_DEPTH} levels")
+        on_path.add(key)
+        stack.append((obj, depth, True))
+        stack.extend((c, depth + 1, False) for c in items)
+
+
+def _data_items(x: Any) -> Any:
+    if isinstance(x, dict):
+        return list(x.values())
+    return list(x) if isinstance(x, (list, tuple)) else None
+
+
+def _node_items(node: Any) -> Any:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    return list(node.value) if isinstance(node, yaml.SequenceNode) else None
+
+
+def _load_yaml(text: str, where: str) -> Any:
+    """``yaml.safe_load``, refusing documents that would expand past the bounds (checked on the parsed nodes,
+    where aliases are still shared, before any Python object is built)."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_size(node, _node_items, where)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
 
 
 def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
@@ -287,9 +383,11 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] |
 def parse_value(text: str) -> Any:
     """A command-line value: YAML scalars and lists (``5``, ``null``, ``true``, ``[1, 2]``), else the string."""
     try:
-        return yaml.safe_load(text)
+        return _load_yaml(text, "a command-line override")
     except yaml.YAMLError:
         return text
+    except RecursionError:
+        raise ConfigError(f"override value {_clip(text)!r} nests too deeply") from None
 
 
 def apply_override(data: dict[str, Any], dotted: str) -> None:
@@ -332,12 +430,19 @@ def load_raw(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {str(path)!r} does not exist")
-    text = path.read_text()
+    kind = "JSON" if path.suffix == ".json" else "YAML"
     try:
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"config file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start}); expected {kind}"
+        ) from None
+    try:
+        data = json.loads(text) if kind == "JSON" else _load_yaml(text, repr(str(path)))
     except (json.JSONDecodeError, yaml.YAMLError) as e:
-        kind = "JSON" if path.suffix == ".json" else "YAML"
-        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {e}") from None
+        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_clip(str(e), 1000)}") from None
+    except RecursionError:
+        raise ConfigError(f"config file {str(path)!r} nests too deeply to parse") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -357,6 +462,7 @@ def load_config(
         data = source.model_dump()
         where = ""
     elif isinstance(source, dict):
+        _check_size(source, _data_items, "")
         data, where = json.loads(json.dumps(source)), ""
     elif source is None:
         data, where = {}, ""
@@ -364,6 +470,7 @@ def load_config(
         data, where = load_raw(source), str(source)
     for o in overrides or []:
         apply_override(data, o)
+    _check_size(data, _data_items, repr(where) if where else "")
     try:
         return EngineConfig.model_validate(data)
     except ValidationError as e:

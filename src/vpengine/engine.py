@@ -16,7 +16,7 @@ Note [Borrowed results]
 By default a result's host arrays are the caller's own copies. With ``copy=False`` (``wait``, ``results``,
 ``latest``) they are read-only views of the head's output slot instead: eight 1080p float32 depth maps are 66 MB a
 frame, and copying them costs more than the heads' GPU time on a fast GPU. A borrowed slot is pinned by one of the
-head's ``output.leases`` lease readers, so the head never writes into it while anything refers to the arrays (no
+head's ``LEASES`` (2) lease readers, so the head never writes into it while anything refers to the arrays (no
 torn reads); once the last array, view of one, or tensor made from one is gone, the lease goes back at the next
 ``wait``/``results``/``latest`` call. With every lease of a head out, further results of that head are copies
 (``Result.borrowed`` says which). The mapping outlives ``stop()`` as long as a view of it does.
@@ -35,29 +35,34 @@ order, from one writer at a time.
 from __future__ import annotations
 
 import collections
+import functools
 import logging
-import math
 import shutil
 import sys
 import tempfile
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
 
+from vpengine import checks
 from vpengine.boundary import Boundary, Placement
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.preprocess import IMAGENET_MEAN
-from vpengine.runtime.control import POLL_S, ControlBlock
+from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock
+from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.plan import Plan, make_plan
-from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
+from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
+from vpengine.transport.layout import SlotLayout
+from vpengine.transport.memory import free_bytes
 from vpengine.transport.ring import Accept, ReaderDecl, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
@@ -67,6 +72,21 @@ __all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result
 _ORIGINS_KEPT = 8192
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
 LEASES = 2  # results of each head a caller may hold without a copy (Note [Borrowed results])
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _fenced(method: _F) -> _F:
+    """An API method that runs inside the engine's fence: what it touches stays mapped until it returns, and once
+    ``stop()`` has begun it raises EngineDeadError (Note [Unmapping at stop] in runtime/fence.py)."""
+
+    @functools.wraps(method)
+    def call(self: Engine, *args: Any, **kw: Any) -> Any:
+        with self._res.fence:
+            return method(self, *args, **kw)
+
+    return cast(_F, call)
 
 
 def _refcounts(pool: list[np.ndarray]) -> list[int]:
@@ -218,29 +238,57 @@ class Result:
 
 
 class _Resources:
-    """What must be released even if the user forgets stop(): workers, mailboxes, control block."""
+    """What must be released even if the user forgets stop(): workers, mailboxes, control block. Refers to nothing
+    that refers to the Engine, so that an Engine nobody refers to is collected and this is closed by its finalizer."""
 
     def __init__(self) -> None:
         self.runner: Runner | None = None
         self.rings: dict[str, SlotRing] = {}
         self.control: ControlBlock | None = None
         self.dirs: list[str] = []  # private temporary directories (e.g. the no-MPS pipe directory)
+        self.fence = MappingFence()  # Note [Unmapping at stop]
+        self.log_file: logging.Handler | None = None
 
     def close(self) -> list[str]:
         forced: list[str] = []
         if self.runner is not None:
             forced = self.runner.stop()
+            for thread in self.runner.threads_alive():  # abandoned workers: unmap once they are gone
+                self.fence.hold_until_gone(thread)
             self.runner = None
+        if self.log_file is not None:
+            logging.getLogger("vpengine").removeHandler(self.log_file)
+            self.log_file.close()
+            self.log_file = None
+        for d in self.dirs:
+            shutil.rmtree(d, ignore_errors=True)
+        self.dirs = []
+        self.fence.close(self._unmap)  # Note [Unmapping at stop]: now, or once the last user is gone
+        return forced
+
+    def _unmap(self) -> None:
         for ring in self.rings.values():
             ring.close()
         self.rings = {}
         if self.control is not None:
             self.control.close()
             self.control = None
-        for d in self.dirs:
-            shutil.rmtree(d, ignore_errors=True)
-        self.dirs = []
-        return forced
+
+
+def _worker_env(cfg: EngineConfig, mps_dir: str | None, nomps_dir: str, name: str) -> dict[str, str]:
+    """Environment overrides for a worker process, decided at each (re)start."""
+    if torch.device(cfg.device).type != "cuda":
+        return {}
+    from vpengine.runtime import mps
+
+    use = mps_dir if mps_dir and mps.status(mps_dir)["reachable"] else None
+    env = {"CUDA_MPS_PIPE_DIRECTORY": use or nomps_dir}
+    if use:
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
+    elif mps_dir:
+        log.warning("MPS daemon at %s no longer answers: %s starts without MPS", mps_dir, name)
+    return env
 
 
 class FrameSlot:
@@ -297,12 +345,15 @@ class FrameSlot:
         eng = self._engine
         if self._slot is not None or self.frame_id is not None or self._cancelled:
             raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
+        fence = eng._res.fence
+        fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
         eng._submit_lock.acquire()
         try:
             eng._require_running()
             slot = eng._acquire_input()
         except BaseException:
             eng._submit_lock.release()
+            fence.leave()
             raise
         eng._filling = threading.get_ident()
         self._slot = slot
@@ -320,7 +371,12 @@ class FrameSlot:
                 eng._input_writer.abort(slot)
                 return
             t_submit = time.monotonic()
-            t_capture = time.time() if self.timestamp is None else float(self.timestamp)
+            try:
+                stamp = checks.timestamp(self.timestamp)  # may have been set inside the block
+            except ValueError:
+                eng._input_writer.abort(slot)
+                raise
+            t_capture = time.time() if stamp is None else stamp
             if self._size is None:
                 placement = eng.boundary.placement(arr.shape[:2])
             else:
@@ -333,6 +389,7 @@ class FrameSlot:
         finally:
             eng._filling = None
             eng._submit_lock.release()
+            eng._res.fence.leave()
 
 
 class Engine:
@@ -386,38 +443,12 @@ class Engine:
         try:
             if device.type == "cuda":
                 self._prepare_cuda(device, shared)
-            gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
-            res.rings["input"] = SlotRing.create(
-                "input",
-                plan.frame_spec,
-                7 if cfg.foundation_model.input_mode == "fifo" else 3,
-                [ReaderDecl("foundation", cfg.foundation_model.input_mode)],
-                "cpu",
-                shared,
-                pinned=gpu,
-            )
-            fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
-            n_feat = max(3, len(heads) + 2 + fifo_margin)
-            res.rings["features"] = SlotRing.create(
-                "features",
-                plan.features,
-                n_feat,
-                [ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
-                device,
-                shared,
-            )
-            for h in cfg.heads:
-                leases = [ReaderDecl(f"lease{i}", active=False) for i in range(LEASES)]
-                res.rings[f"out.{h.name}"] = SlotRing.create(
-                    f"out.{h.name}",
-                    plan.heads[h.name].output_spec,
-                    h.output.slots + LEASES,
-                    [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
-                    device if h.output.location == "device" else "cpu",
-                    shared,
-                    h.output.overflow,
-                    pinned=gpu,
-                )
+            mailboxes = self._mailboxes(device, shared)
+            self._check_preallocation(mailboxes)  # before any of it is allocated
+            for m in mailboxes:
+                res.rings[m["name"]] = SlotRing.create(**m)
+            if cfg.logging.file:
+                res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
             res.control = ControlBlock.create(cfg.model_names())
             res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
             for h in cfg.heads:
@@ -426,7 +457,9 @@ class Engine:
             if shared:
                 from vpengine.runtime.process import ProcessRunner
 
-                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=self._worker_env)
+                # not a bound method: the runner must not refer to the Engine (see _Resources)
+                env_for = functools.partial(_worker_env, cfg, self._mps_dir, self._nomps_dir)
+                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=env_for)
             else:
                 from vpengine.runtime.handoff import make_handoffs
                 from vpengine.runtime.threads import ThreadRunner
@@ -506,20 +539,65 @@ class Engine:
         if self._mps_dir:
             log.info("CUDA MPS daemon found at %s: model workers will be MPS clients", self._mps_dir)
 
-    def _worker_env(self, name: str) -> dict[str, str]:
-        """Environment overrides for a worker process, decided at each (re)start."""
-        if torch.device(self.config.device).type != "cuda":
-            return {}
-        from vpengine.runtime import mps
+    def _mailboxes(self, device: torch.device, shared: bool) -> list[dict[str, Any]]:
+        """``SlotRing.create``'s arguments for every mailbox: the input, the features, one output per head."""
+        cfg, plan = self.config, self.plan
+        gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
+        fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
+        mailboxes: list[dict[str, Any]] = [
+            dict(
+                name="input",
+                specs=plan.frame_spec,
+                n_slots=7 if cfg.foundation_model.input_mode == "fifo" else 3,
+                readers=[ReaderDecl("foundation", cfg.foundation_model.input_mode)],
+                device="cpu",
+                shared=shared,
+                pinned=gpu,
+            ),
+            dict(
+                name="features",
+                specs=plan.features,
+                n_slots=max(3, len(cfg.heads) + 2 + fifo_margin),
+                readers=[ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
+                device=device,
+                shared=shared,
+            ),
+        ]
+        for h in cfg.heads:
+            leases = [ReaderDecl(f"lease{i}", active=False) for i in range(LEASES)]
+            mailboxes.append(
+                dict(
+                    name=f"out.{h.name}",
+                    specs=plan.heads[h.name].output_spec,
+                    n_slots=h.output.slots + LEASES,
+                    readers=[ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
+                    device=device if h.output.location == "device" else "cpu",
+                    shared=shared,
+                    overflow=h.output.overflow,
+                    pinned=gpu,
+                )
+            )
+        return mailboxes
 
-        use = self._mps_dir if self._mps_dir and mps.status(self._mps_dir)["reachable"] else None
-        env = {"CUDA_MPS_PIPE_DIRECTORY": use or self._nomps_dir}
-        if use:
-            mcfg = self.config.foundation_model if name == "foundation" else self.config.head(name)
-            env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
-        elif self._mps_dir:
-            log.warning("MPS daemon at %s no longer answers: %s starts without MPS", self._mps_dir, name)
-        return env
+    def _check_preallocation(self, mailboxes: list[dict[str, Any]]) -> None:
+        """Refuse mailboxes that do not fit the memory free now, naming their size (rather than failing in the
+        middle of allocating them, or leaving the machine swapping)."""
+        need: dict[str, dict[str, int]] = {}  # device -> mailbox -> bytes
+        for m in mailboxes:
+            nbytes = SlotLayout.from_specs(m["specs"], m["n_slots"]).total_bytes
+            need.setdefault(str(torch.device(m["device"])), {})[m["name"]] = nbytes
+        def size(b: float) -> str:
+            return f"{b / 1e9:.2f} GB" if b >= 1e9 else f"{b / 1e6:.1f} MB"
+
+        for dev, sizes in need.items():
+            total, free = sum(sizes.values()), free_bytes(torch.device(dev))
+            if free is not None and total > free:
+                biggest = ", ".join(f"{n} {size(b)}" for n, b in sorted(sizes.items(), key=lambda x: -x[1])[:3])
+                raise EngineStartError(
+                    f"the mailboxes need {size(total)} of {'host' if dev == 'cpu' else dev} memory ({biggest}), "
+                    f"but only {size(free)} is free; lower input.height/width, output.slots or "
+                    "the number of heads"
+                )
 
     def _worker_specs(self) -> list[WorkerSpec]:
         cfg, plan, rings = self.config, self.plan, self._res.rings
@@ -620,6 +698,7 @@ class Engine:
             raise EngineDeadError(f"the foundation model has failed for good: {ctl.last_error('foundation')}")
 
     # -------------------------------------------------------------------------------------------- input
+    @_fenced
     def submit(self, frame: Any, frame_id: int | None = None, timestamp: float | None = None) -> int:
         """Hand a frame to the engine. Returns its frame id (``frame_id`` or the next integer).
 
@@ -633,6 +712,7 @@ class Engine:
         self._require_running()
         try:
             arr = self.boundary.check(frame)
+            frame_id, timestamp = checks.frame_id(frame_id), checks.timestamp(timestamp)
         except ValueError:
             self._rejected += 1
             raise
@@ -641,13 +721,14 @@ class Engine:
         self._refuse_inside_frame_slot()
         with self._submit_lock:
             slot = self._acquire_input()
-            try:
+            try:  # an error gives the slot back: a leaked slot is a frame the ring never gets again
                 placement = self.boundary.write(arr, self._frame_views[slot.index])
+                return self._publish_input(slot, frame_id, t_capture, t_submit, placement)
             except BaseException:
                 self._input_writer.abort(slot)
                 raise
-            return self._publish_input(slot, frame_id, t_capture, t_submit, placement)
 
+    @_fenced
     def frame_slot(
         self, frame_id: int | None = None, timestamp: float | None = None, size: tuple[int, int] | None = None
     ) -> FrameSlot:
@@ -681,7 +762,7 @@ class Engine:
                     f"frame_slot size {size!r}: height and width must be 1..{self.boundary.max_side} (input.max_frame_side)"
                 )
             size = None if (h, w) == self.boundary.canvas_hw else (h, w)
-        return FrameSlot(self, frame_id, timestamp, size)
+        return FrameSlot(self, checks.frame_id(frame_id), checks.timestamp(timestamp), size)
 
     def _staging(self, size: tuple[int, int]) -> np.ndarray:
         """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size, kept."""
@@ -812,6 +893,7 @@ class Engine:
             raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
         return head
 
+    @_fenced
     def latest(self, head: str, copy: bool = True) -> Result | None:
         """The newest output of ``head``, or None if it has produced nothing yet. ``copy=False``: borrowed, not
         copied, while a lease is free (Note [Borrowed results])."""
@@ -827,6 +909,7 @@ class Engine:
             finally:
                 reader.release(slot)
 
+    @_fenced
     def results(
         self, timeout: float = 0.0, heads: list[str] | None = None, copy: bool = True
     ) -> list[Result]:
@@ -838,6 +921,7 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
+        timeout = checks.timeout(timeout)
         ctl = self._res.control
         assert ctl is not None
         names = [self._head(h) for h in heads] if heads else list(self._results_readers)
@@ -869,6 +953,7 @@ class Engine:
                     return sorted(out, key=lambda r: r.t_publish)
                 ctl.wait_output(word, min(remaining, POLL_S))
 
+    @_fenced
     def wait(
         self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0, copy: bool = True
     ) -> dict[str, Result]:
@@ -884,6 +969,7 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
+        timeout = checks.timeout(timeout)
         ctl = self._res.control
         assert ctl is not None
         origin = self._origins.get(int(frame_id))
@@ -920,7 +1006,7 @@ class Engine:
                             slot is not None
                             or answered
                             or newest > origin
-                            or ctl.state(h) == "failed"
+                            or ctl.state(h) in NOT_SERVING
                             or ctl.rate(h) == 0  # paused: answers nothing (one already running still may)
                         ):
                             pending.remove(h)
@@ -951,16 +1037,16 @@ class Engine:
         return results
 
     # ------------------------------------------------------------------------------------------ control
+    @_fenced
     def set_rate(self, model: str, hz: float | None) -> None:
         """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause."""
         ctl = self._model_control(model)
-        if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
-            raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
-        ctl.set_rate(model, None if hz is None else float(hz))
+        ctl.set_rate(model, checks.rate(model, hz))
         inline = self._handoffs.inline
         if inline is not None and model == "foundation":
             inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
+    @_fenced
     def rate(self, model: str) -> float | None:
         """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
         read of shared memory), unlike ``stats()``; for a loop that checks it every frame."""
@@ -978,8 +1064,14 @@ class Engine:
 
     def stats(self) -> dict[str, Any]:
         """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""
-        if self._state != "running":
+        if self._state != "running" or not self._res.fence.enter():
             return {"engine": {"state": self._state}}
+        try:  # Note [Unmapping at stop]
+            return self._stats()
+        finally:
+            self._res.fence.leave()
+
+    def _stats(self) -> dict[str, Any]:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None

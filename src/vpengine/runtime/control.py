@@ -62,8 +62,11 @@ _LAT0 = 1 + len(_FIELDS)
 ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
 ENTRY_BYTES = ENTRY_WORDS * 8
 
-STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped"]
-STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED = range(len(STATES))
+STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped", "hung"]
+STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED, HUNG = range(len(STATES))
+#: States of a model that serves no frames now: waiting for its output is pointless (``Engine.wait``). "hung": a
+#: thread-mode worker silent past runtime.hang_timeout_s, which cannot be killed (runtime/threads.py).
+NOT_SERVING = ("failed", "hung")
 
 
 @dataclass(frozen=True)

@@ -183,6 +183,12 @@ class SlotRing:
         meta = HostRegion(f"{name}.meta", _meta_bytes(n_slots, len(readers)))
         try:
             data = allocate(f"{name}.data", layout.total_bytes, device, shared, pinned)
+        except (OSError, RuntimeError) as e:  # ENOMEM from mmap, a CUDA out-of-memory error
+            meta.close()
+            raise MemoryError(
+                f"ring {name!r}: cannot allocate {layout.total_bytes / 1e9:.2f} GB ({n_slots} slots of "
+                f"{layout.slot_bytes} bytes) on {device}: {e}"
+            ) from e
         except BaseException:
             meta.close()
             raise

@@ -427,9 +427,13 @@ def _list_index(items: list[Any], key: str, where: str) -> int:
 
 
 def load_raw(path: str | Path) -> dict[str, Any]:
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file {str(path)!r} does not exist")
+    """A config file's mapping: ``path`` is a file, or the name of a config shipped with the package (``tiny``)."""
+    from vpengine import configs
+
+    try:
+        path = configs.resolve(path)
+    except FileNotFoundError as e:
+        raise ConfigError(str(e)) from None
     kind = "JSON" if path.suffix == ".json" else "YAML"
     try:
         text = path.read_bytes().decode("utf-8")

@@ -85,7 +85,7 @@ def test_bad_overrides_are_clear():
 
 
 def test_missing_and_malformed_files(tmp_path):
-    with pytest.raises(ConfigError, match="does not exist"):
+    with pytest.raises(ConfigError, match="is neither a file nor a shipped config"):
         load_config(tmp_path / "nope.yaml")
     (tmp_path / "bad.yaml").write_text("mode: [unclosed\n")
     with pytest.raises(ConfigError, match="is not valid YAML"):

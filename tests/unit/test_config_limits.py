@@ -118,7 +118,7 @@ def test_values_that_ruin_outputs_or_make_stop_unbounded_are_refused(tmp_path, r
 
 def test_mailboxes_that_do_not_fit_free_memory_are_refused_up_front_naming_their_size(monkeypatch):
     assert memory.free_bytes(torch.device("cpu")) > 0  # this machine's MemAvailable (or its cgroup's limit)
-    monkeypatch.setattr("vpengine.engine.free_bytes", lambda device: 100_000)
+    monkeypatch.setattr("vpengine.runtime.plan.free_bytes", lambda device: 100_000)
     cfg = tiny("thread", "input.height=1080", "input.width=1920", "foundation_model.input_mode=fifo")
     allocated = []
     monkeypatch.setattr(ring, "allocate", lambda *a, **k: allocated.append(a) or memory.allocate(*a, **k))

@@ -376,7 +376,7 @@ class SlowEvent(Event):
 def queued_results(engine, head: str, work_s: float, predicted_s: float) -> list[SlowEvent]:  # type: ignore[no-untyped-def]
     """Make ``head``'s results look published with their device work still queued (stand-in events, as a head
     hands off on CUDA), its recent results predicting ``predicted_s`` from publish to done."""
-    n = engine._peek_readers[head].ring.n_slots
+    n = engine._res.rings[f"out.{head}"].n_slots
     ev = SlotEvents(n, blocking=True, make_event=lambda blocking: SlowEvent(work_s))
     ev.publish_to_done_s = predicted_s
     engine._handoffs.results[head] = ev
@@ -420,13 +420,13 @@ def test_wait_borrows_every_result_before_it_waits_for_any_device_work(monkeypat
         e.wait(fid, timeout=30)
         queued_results(e, "depth", work_s=0.2, predicted_s=0.01)  # waited for first: heads in config order
         borrowed_at: dict[str, float] = {}
-        plain = e._leases.borrow
+        plain = e._outbox.leases.borrow
 
         def borrow(head, slot):  # type: ignore[no-untyped-def]
             borrowed_at[head] = time.monotonic()
             return plain(head, slot)
 
-        monkeypatch.setattr(e._leases, "borrow", borrow)
+        monkeypatch.setattr(e._outbox.leases, "borrow", borrow)
         t0 = time.monotonic()
         res = e.wait(fid, timeout=5, copy=False)
         assert time.monotonic() - t0 >= 0.2 and all(r.borrowed for r in res.values())

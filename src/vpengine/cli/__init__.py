@@ -23,7 +23,7 @@ def add_overrides_argument(
 
 
 def add_config_argument(p: argparse.ArgumentParser, default: str | None = None) -> None:
-    """``--config/-c``: a shipped config's name or a file (resolved in ``vpengine.cli.main``)."""
+    """``--config/-c``: a shipped config's name or a file (``load_config`` resolves both)."""
     p.add_argument(
         "--config",
         "-c",

@@ -65,10 +65,6 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        if isinstance(getattr(args, "config", None), str):  # a shipped config's name or a path, from anywhere
-            from vpengine import configs
-
-            args.config = str(configs.resolve(args.config))
         return int(importlib.import_module(args._module).main(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -23,9 +23,9 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.engine import Result
 from vpengine.io.sinks import Sink
 from vpengine.io.sources import Frame, Source
+from vpengine.results import Result
 from vpengine.ros2.core import (
     COMPRESSED_TYPE,
     IMAGE_TYPE,

@@ -27,9 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.engine import Result
 from vpengine.io import visualize
 from vpengine.io.visualize import head_kind
+from vpengine.results import Result
 
 DEPTH_FORMATS = ("png16", "npy")
 #: Pictures are JPEGs of this quality: a third of quality 95's size (OpenCV's default), no difference to the eye.

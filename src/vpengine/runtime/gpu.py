@@ -1,4 +1,5 @@
-"""Device memory as the driver reports it (NVML), per process and per device.
+"""The GPU as the engine sees it: device memory as the driver reports it (NVML), and the CUDA set-up at start
+(the device checked, the MPS daemon found, the parent's context made off MPS).
 
 PyTorch's own counters miss the CUDA context and anything allocated outside its caching allocator (our VMM
 mailboxes), so constant-memory checks and reports use NVML when it is there (package nvidia-ml-py).
@@ -6,7 +7,14 @@ mailboxes), so constant-memory checks and reports use NVML when it is there (pac
 
 from __future__ import annotations
 
-from typing import Any
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from vpengine.config import EngineConfig
+
+log = logging.getLogger("vpengine")
 
 
 def _nvml() -> Any:
@@ -51,3 +59,74 @@ def device_memory_used(index: int = 0) -> int | None:
         return None
     free, total = torch.cuda.mem_get_info(index)
     return int(total - free)
+
+
+# ---------------------------------------------------------------------------------------------- set-up
+@dataclass(frozen=True)
+class CudaSetup:
+    """What the engine decided about CUDA at start: the MPS daemon its workers use (None: none), and a private,
+    empty pipe directory that keeps a worker off MPS."""
+
+    mps_dir: str | None
+    nomps_dir: str
+
+
+def prepare_cuda(cfg: EngineConfig) -> CudaSetup:
+    """Check the device, find the MPS daemon, and initialise CUDA here (in the parent) off MPS; raises
+    EngineStartError naming what is missing. See Note [MPS and ownership of device memory] in runtime/mps.py.
+    The caller removes ``nomps_dir`` at stop."""
+    import tempfile
+
+    import torch
+
+    from vpengine.runtime import mps
+    from vpengine.runtime.supervisor import EngineStartError
+
+    device = torch.device(cfg.device)
+    if not torch.cuda.is_available():
+        raise EngineStartError(f"device {cfg.device!r} was asked for but PyTorch sees no CUDA device")
+    index = device.index or 0
+    if index >= torch.cuda.device_count():
+        raise EngineStartError(f"device {cfg.device!r}: only {torch.cuda.device_count()} CUDA device(s) visible")
+    mps_dir = mps.find_daemon() if cfg.mps != "off" else None
+    if cfg.mps == "required" and mps_dir is None:
+        raise EngineStartError(
+            f"mps: required, but no MPS control daemon answers in {mps.candidate_dirs()}; "
+            "start one with `vpengine mps start` or set mps: auto"
+        )
+    if not torch.cuda.is_initialized():
+        with mps.off_mps():
+            torch.cuda.init()
+            torch.cuda.set_device(index)
+            torch.empty(1, device=device)  # create the context now, while MPS is out of reach
+    if cfg.mode == "process":
+        from vpengine.transport.cuda_vmm import CudaVmmError, vmm_support
+
+        try:
+            support = vmm_support(index)
+        except CudaVmmError as e:
+            raise EngineStartError(str(e)) from None
+        if not all(support.values()):
+            raise EngineStartError(
+                f"{cfg.device} cannot share device memory between processes through the CUDA VMM API "
+                f"({support}); use mode: thread"
+            )
+    if mps_dir:
+        log.info("CUDA MPS daemon found at %s: model workers will be MPS clients", mps_dir)
+    return CudaSetup(mps_dir, tempfile.mkdtemp(prefix="vpengine-nomps-"))
+
+
+def worker_env(cfg: EngineConfig, setup: CudaSetup | None, name: str) -> dict[str, str]:
+    """Environment overrides for a worker process, decided at each (re)start: on MPS while its daemon answers."""
+    if setup is None:
+        return {}
+    from vpengine.runtime import mps
+
+    use = setup.mps_dir if setup.mps_dir and mps.status(setup.mps_dir)["reachable"] else None
+    env = {"CUDA_MPS_PIPE_DIRECTORY": use or setup.nomps_dir}
+    if use:
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
+    elif setup.mps_dir:
+        log.warning("MPS daemon at %s no longer answers: %s starts without MPS", setup.mps_dir, name)
+    return env

@@ -12,7 +12,11 @@ import torch
 from vpengine.config import EngineConfig
 from vpengine.models.base import Model, ModelBuildError
 from vpengine.models.build import build_model
+from vpengine.runtime.supervisor import EngineStartError
 from vpengine.specs import SpecDict, TensorSpec, format_specs, specs_nbytes
+from vpengine.transport.layout import SlotLayout
+from vpengine.transport.memory import free_bytes
+from vpengine.transport.ring import ReaderDecl
 
 log = logging.getLogger("vpengine.plan")
 
@@ -77,3 +81,76 @@ def make_plan(cfg: EngineConfig) -> Plan:
             log.warning(msg)
         heads[h.name] = model
     return Plan(cfg, frame_spec, fm, heads, warnings)
+
+
+# ------------------------------------------------------------------------------------------------ mailboxes
+#: Results of each head a caller may hold without a copy, each keeping one output slot (Note [Borrowed results]).
+LEASES = 2
+#: Frames a fifo reader may fall behind and still catch up: its mailbox gets this many slots more.
+FIFO_MARGIN = 4
+
+
+def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
+    """``SlotRing.create``'s arguments for every mailbox: the input, the features, one output per head. Each is as
+    small as its readers allow (readers + 2: Note [Slot lifetime] in transport/ring.py), plus the margin a fifo
+    reader needs to catch up, plus the leases of each head's output."""
+    cfg = plan.cfg
+    device = torch.device(cfg.device)
+    gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
+    fifo_fm = FIFO_MARGIN if cfg.foundation_model.input_mode == "fifo" else 0
+    fifo_heads = FIFO_MARGIN if any(h.input_mode == "fifo" for h in cfg.heads) else 0
+    boxes: list[dict[str, Any]] = [
+        dict(
+            name="input",
+            specs=plan.frame_spec,
+            n_slots=3 + fifo_fm,
+            readers=[ReaderDecl("foundation", cfg.foundation_model.input_mode)],
+            device="cpu",
+            shared=shared,
+            pinned=gpu,
+        ),
+        dict(
+            name="features",
+            specs=plan.features,
+            n_slots=max(3, len(cfg.heads) + 2 + fifo_heads),
+            readers=[ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
+            device=device,
+            shared=shared,
+        ),
+    ]
+    for h in cfg.heads:
+        leases = [ReaderDecl(f"lease{i}", active=False) for i in range(LEASES)]
+        boxes.append(
+            dict(
+                name=f"out.{h.name}",
+                specs=plan.heads[h.name].output_spec,
+                n_slots=h.output.slots + LEASES,
+                readers=[ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
+                device=device if h.output.location == "device" else "cpu",
+                shared=shared,
+                overflow=h.output.overflow,
+                pinned=gpu,
+            )
+        )
+    return boxes
+
+
+def check_preallocation(boxes: list[dict[str, Any]]) -> None:
+    """Refuse mailboxes that do not fit the memory free now, naming their size (rather than failing in the middle
+    of allocating them, or leaving the machine swapping)."""
+    need: dict[str, dict[str, int]] = {}  # device -> mailbox -> bytes
+    for m in boxes:
+        nbytes = SlotLayout.from_specs(m["specs"], m["n_slots"]).total_bytes
+        need.setdefault(str(torch.device(m["device"])), {})[m["name"]] = nbytes
+
+    def size(b: float) -> str:
+        return f"{b / 1e9:.2f} GB" if b >= 1e9 else f"{b / 1e6:.1f} MB"
+
+    for dev, sizes in need.items():
+        total, free = sum(sizes.values()), free_bytes(torch.device(dev))
+        if free is not None and total > free:
+            biggest = ", ".join(f"{n} {size(b)}" for n, b in sorted(sizes.items(), key=lambda x: -x[1])[:3])
+            raise EngineStartError(
+                f"the mailboxes need {size(total)} of {'host' if dev == 'cpu' else dev} memory ({biggest}), "
+                f"but only {size(free)} is free; lower input.height/width, output.slots or the number of heads"
+            )

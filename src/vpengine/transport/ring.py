@@ -310,6 +310,24 @@ class SlotRing:
         _linux.futex_wake(self._publish_addr)
         _linux.futex_wake(self._release_addr)
 
+    def wait_any(
+        self, readers: list[RingReader], timeout: float, should_stop: Callable[[], bool] | None = None
+    ) -> bool:
+        """Sleep until one of ``readers`` (readers of this ring, e.g. one per camera: Note [Tagged slots]) has a slot
+        to pin, or ``timeout`` passes; pins nothing. Whether one has."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._mutex:
+                if any(r._find(False) is not None for r in readers):
+                    return True
+                word = self._u[_PUBLISH_WORD_OFF // 4]
+            if should_stop is not None and should_stop():
+                return False
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            _linux.futex_wait(self._publish_addr, word, min(remaining, _MAX_SLEEP))
+
     def notify_readers(self) -> None:
         """Wake readers waiting to pin, without a publish: what they may take has changed (a pin filter that
         accepts more now, see ``RingReader.pin``)."""

@@ -69,7 +69,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--loopback",
         action="store_true",
-        help="keep DDS on 127.0.0.1 with large-message settings (instead of $CYCLONEDDS_URI)",
+        help="keep DDS on 127.0.0.1 with large-message settings (applied after $CYCLONEDDS_URI)",
     )
     add_overrides_argument(p, "heads.depth.rate_hz=5")
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
@@ -133,13 +133,13 @@ def main(args: argparse.Namespace) -> int:
         bridge.stop()
         for s, h in previous.items():
             signal.signal(s, h)
-    if bridge.error is not None:
-        print(f"vpengine ros2: stopped on an error: {bridge.error}", file=sys.stderr)
-        return 1
     c = core.counters
     print(
         f"vpengine ros2: stopped; {c['received']} messages in, {c['submitted']} submitted, "
-        f"{sum(core.published.values())} published",
+        f"{c['superseded']} superseded, {c['rejected']} rejected, {sum(core.published.values())} published",
         flush=True,
     )
+    if bridge.error is not None:
+        print(f"vpengine ros2: stopped on an error: {bridge.error}", file=sys.stderr)
+        return 1
     return 0

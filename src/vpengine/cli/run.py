@@ -43,6 +43,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--topic", help="image topic of a bag source (sensor_msgs/Image or CompressedImage)")
     p.add_argument(
+        "--strict",
+        action="store_true",
+        help="stop at a bag's first bad message (default: skip it, log one line naming it, count it)",
+    )
+    p.add_argument(
         "--out-bag", help="also record every head's outputs to this new rosbag2 bag (ROS 2 message types)"
     )
     p.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap", help="--out-bag storage")
@@ -224,6 +229,7 @@ def run_pipeline(
         "pace": pace,
         "frames_submitted": submitted,
         "source_missed": getattr(source, "missed", 0),
+        "source_bad": getattr(source, "bad", 0),
         "wall_s": wall,
         "input_hz": submitted / wall if wall > 0 else 0.0,
         "mode": cfg.mode,
@@ -245,6 +251,8 @@ def _json_default(o: Any) -> Any:
 
 def format_summary(s: dict[str, Any]) -> str:
     missed = f"; camera frames a newer one replaced: {s['source_missed']}" if s.get("source_missed") else ""
+    if s.get("source_bad"):
+        missed += f"; bad messages skipped: {s['source_bad']} (see the log)"
     lines = [
         f"{s['frames_submitted']} frames in {s['wall_s']:.1f} s ({s['input_hz']:.1f} Hz in, {s['pace']}, "
         f"{s['mode']} mode on {s['device']}{missed})",
@@ -288,7 +296,7 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config, overrides)
     if args.out_bag and Path(args.out_bag).exists():
         raise ValueError(f"output bag {args.out_bag!r} exists already; bags are never overwritten")
-    with open_source(args.source, topic=args.topic) as source:
+    with open_source(args.source, topic=args.topic, strict=args.strict) as source:
         factories = []
         if args.out_bag:
             from vpengine.io.bag import BagSink

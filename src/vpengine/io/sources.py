@@ -240,9 +240,10 @@ class VideoSource(Source):
         self._cap.release()
 
 
-def open_source(spec: str, topic: str | None = None) -> Source:
+def open_source(spec: str, topic: str | None = None, strict: bool = False) -> Source:
     """A source from a command-line spec: ``synthetic[...]``, a folder, a video file, ``camera:N``, or a rosbag2 bag
-    (a folder with metadata.yaml, or a .mcap / .db3 file; ``topic`` names its image topic)."""
+    (a folder with metadata.yaml, or a .mcap / .db3 file; ``topic`` names its image topic; ``strict`` stops at its
+    first bad message instead of skipping it, see vpengine.io.bag)."""
     if spec.startswith("synthetic"):
         source: Source = SyntheticSource.parse(spec)
     elif spec.startswith("camera:"):
@@ -258,7 +259,7 @@ def open_source(spec: str, topic: str | None = None) -> Source:
         ):
             from vpengine.io.bag import BagSource  # rosbags is an optional dependency
 
-            return BagSource(path, topic)
+            return BagSource(path, topic, strict=strict)
         if path.is_dir():
             source = ImageFolderSource(path)
         elif path.suffix.lower() in VIDEO_EXTS:

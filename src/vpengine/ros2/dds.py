@@ -13,6 +13,7 @@ ROS 2 conventions matched (rmw_cyclonedds_cpp):
 
 from __future__ import annotations
 
+import os
 import re
 from typing import Any, Literal
 
@@ -25,6 +26,31 @@ from cyclonedds.util import duration
 
 QosName = Literal["default", "sensor", "latched"]
 QOS_NAMES = ("default", "sensor", "latched")
+
+#: The cyclonedds major release this module is tested with (its private _clayer calls, see _private_api).
+TESTED_MAJOR = 11
+#: The socket receive buffer the bridge asks for (Note [Input link] in vpengine.ros2.core); the kernel grants at
+#: most net.core.rmem_max of it.
+RECEIVE_BUFFER_BYTES = 64 << 20
+
+
+def _private_api() -> tuple[Any, Any]:
+    """cyclonedds' C calls behind DataWriter.write and DataReader.take, which the hot path calls with CDR bytes.
+
+    They are private (``cyclonedds._clayer``), so an untested cyclonedds may lack or change them: fail with one line
+    that says which release to install, not with a traceback from deep in a write."""
+    try:
+        from cyclonedds._clayer import ddspy_take, ddspy_write
+    except ImportError:
+        from importlib.metadata import version
+
+        raise ImportError(
+            f"vpengine.ros2 needs cyclonedds {TESTED_MAJOR}.x (it writes and takes raw CDR through cyclonedds' "
+            f"private _clayer module, which cyclonedds {version('cyclonedds')} does not have as expected): "
+            f"pip install 'cyclonedds>={TESTED_MAJOR},<{TESTED_MAJOR + 1}'"
+        ) from None
+    return ddspy_write, ddspy_take
+
 
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
 _ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
@@ -93,6 +119,29 @@ def loopback_config(large_messages: bool = True) -> str:
     )
 
 
+def bridge_config(extra: str | None = None, user: str | None = None) -> str:
+    """The bridge's CycloneDDS configuration: its own needs first, then the user's ``$CYCLONEDDS_URI`` (``user``
+    defaults to it), then ``extra`` (e.g. :func:`loopback_config`, asked for on the command line).
+
+    CycloneDDS reads a comma-separated list of files and XML fragments in order, and a later setting replaces an
+    earlier one, so whatever the user configured wins and nothing of theirs is dropped. Of its own the bridge asks
+    for a large socket receive buffer (:data:`RECEIVE_BUFFER_BYTES`, granted up to net.core.rmem_max): cyclonedds'
+    default of 1 MB loses most 1080p frames sent best effort (Note [Input link] in :mod:`vpengine.ros2.core`).
+    """
+    user = os.environ.get("CYCLONEDDS_URI") if user is None else user
+    own = (
+        '<CycloneDDS><Domain id="any"><Internal>'
+        f'<SocketReceiveBufferSize min="default" max="{RECEIVE_BUFFER_BYTES}B"/>'
+        "</Internal></Domain></CycloneDDS>"
+    )
+    return ",".join(part for part in (own, (user or "").strip(), extra) if part)
+
+
+def receive_buffer_granted(limit: int | None) -> int | None:
+    """What the bridge's sockets get of :data:`RECEIVE_BUFFER_BYTES` where the kernel caps it at ``limit``."""
+    return None if limit is None else min(limit, RECEIVE_BUFFER_BYTES)
+
+
 class DdsContext:
     """One domain participant. ``config``: a CycloneDDS XML configuration; None uses $CYCLONEDDS_URI / defaults."""
 
@@ -134,10 +183,8 @@ class Writer:
     """A DataWriter that also writes pre-serialized CDR (``write_raw``) for the hot path."""
 
     def __init__(self, writer: DataWriter) -> None:
-        from cyclonedds._clayer import ddspy_write  # the C call DataWriter.write ends in
-
         self.dds = writer
-        self._write = ddspy_write
+        self._write = _private_api()[0]  # the C call DataWriter.write ends in
 
     def write(self, sample: Any) -> None:
         self.dds.write(sample)
@@ -159,10 +206,8 @@ class Reader:
     """A DataReader that can hand out the raw CDR of each sample (``take_raw``) and wait for data."""
 
     def __init__(self, reader: DataReader) -> None:
-        from cyclonedds._clayer import ddspy_take
-
         self.dds = reader
-        self._take = ddspy_take
+        self._take = _private_api()[1]
         self._waitset = WaitSet(reader.participant)
         self._cond = ReadCondition(reader, _ANY)
         self._waitset.attach(self._cond)
@@ -179,6 +224,10 @@ class Reader:
 
             raise DDSException(ret, f"taking samples from {self.dds.topic.name}")
         return [data for data, info in ret if info.valid_data]
+
+    def matched(self) -> int:
+        """How many writers this reader is matched with."""
+        return len(self.dds.get_matched_publications())
 
     def take(self, n: int = 16) -> list[Any]:
         """Up to ``n`` deserialized samples (valid ones only)."""

@@ -209,12 +209,14 @@ def test_the_bridge_asks_for_a_frame_sized_receive_buffer_and_the_users_settings
         "</General></Domain></CycloneDDS>"
     )
     # a user's URI that pins the interface only (what a ROS user sets first) keeps its interface and gets the
-    # buffer; one that sets the buffer keeps its own; an explicit extra (--loopback) comes after both
+    # buffer; one that sets the buffer keeps its own; an explicit extra (--loopback) comes instead of the URI
     assert _effective_receive_buffer(tmp_path, "lo_only", lo_only) == "64 MiB"
     own = lo_only.replace("</General>", '</General><Internal><SocketReceiveBufferSize max="1MB"/></Internal>')
     assert _effective_receive_buffer(tmp_path, "own", own) == "1 MiB"
+    config = bridge_config(user="file:///etc/my.xml")
+    assert config.index("64") < config.index("file:///etc/my.xml")
     config = bridge_config(loopback_config(), user="file:///etc/my.xml")
-    assert config.index("64") < config.index("file:///etc/my.xml") < config.index("<Peer address")
+    assert config.index("64") < config.index("<Peer address") and "my.xml" not in config
     assert bridge_config(user="") == bridge_config(user="  ")  # an empty $CYCLONEDDS_URI adds nothing
 
 

@@ -3,7 +3,7 @@
 ::
 
     vpengine ros2 --config configs/tiny.yaml --input-topic /camera/image_raw [--namespace /vpengine]
-                  [--input-qos sensor|default] [--compressed] [--depth-color] [--seg-overlay] [--domain-id N]
+                  [--input-qos sensor|default] [--output-qos latest|default] [--compressed] [--depth-color] [--seg-overlay] [--domain-id N]
 
 Topics, types and QoS: see ``docs/ros2.md`` (and :mod:`vpengine.ros2.bridge`). Prints one ``ready`` line when the
 engine runs and every topic is up; Ctrl-C (SIGINT) or SIGTERM stops it cleanly (engine stopped, DDS entities
@@ -38,6 +38,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="input QoS: sensor (best effort, keep last 5; default) or default (reliable, keep last 10)",
     )
     p.add_argument(
+        "--output-qos",
+        choices=["latest", "default"],
+        default="latest",
+        help="output QoS: latest (reliable, keep last 1; default: a slow subscriber gets the newest output, not a "
+        "queue of old ones) or default (ROS 2's: reliable, keep last 10)",
+    )
+    p.add_argument(
         "--compressed",
         action="store_true",
         help="read sensor_msgs/CompressedImage (jpeg/png) from <input-topic>/compressed",
@@ -69,7 +76,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--loopback",
         action="store_true",
-        help="keep DDS on 127.0.0.1 with large-message settings (applied after $CYCLONEDDS_URI)",
+        help="keep DDS on 127.0.0.1 with large-message settings (instead of $CYCLONEDDS_URI)",
     )
     add_overrides_argument(p, "heads.depth.rate_hz=5")
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
@@ -108,6 +115,7 @@ def main(args: argparse.Namespace) -> int:
         input_topic=args.input_topic,
         compressed=args.compressed,
         input_qos=args.input_qos,
+        output_qos=args.output_qos,
         domain_id=_domain_id(args.domain_id),
         dds_config=loopback_config() if args.loopback else None,
     )

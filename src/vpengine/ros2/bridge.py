@@ -42,6 +42,7 @@ from vpengine.ros2 import cdr
 from vpengine.ros2 import dds_types as T
 from vpengine.ros2.core import (
     DETECTIONS_TYPE,
+    OUTPUT_QOS,
     ControlLoop,
     DetectionsOut,
     DiagnosticsOut,
@@ -69,8 +70,11 @@ class BridgeOptions:
     #: QoS of the input subscription: "sensor" (best effort, keep last 5: what camera drivers publish) or "default"
     #: (reliable, keep last 10; matches only reliable publishers).
     input_qos: Literal["sensor", "default"] = "sensor"
+    #: QoS of the output topics: "latest" (reliable, keep last 1) or "default" (ROS 2's, reliable, keep last 10);
+    #: see Note [Output QoS] in vpengine.ros2.core.
+    output_qos: Literal["latest", "default"] = "latest"
     domain_id: int = 0
-    #: CycloneDDS XML configuration applied after $CYCLONEDDS_URI (e.g. ``loopback_config()``); see
+    #: CycloneDDS XML configuration used instead of $CYCLONEDDS_URI (e.g. ``loopback_config()``); see
     #: :func:`vpengine.ros2.dds.bridge_config` for what the bridge sets itself.
     dds_config: str | None = None
     diagnostics_topic: str = "/diagnostics"
@@ -137,6 +141,10 @@ class Ros2Bridge:
             raise ValueError(f"DDS domain id must be 0..232 (the RTPS port mapping), got {options.domain_id}")
         if options.input_qos not in ("sensor", "default"):
             raise ValueError(f"input QoS {options.input_qos!r} is not known; accepted: sensor, default")
+        if options.output_qos not in OUTPUT_QOS:
+            raise ValueError(
+                f"output QoS {options.output_qos!r} is not known; accepted: {', '.join(OUTPUT_QOS)}"
+            )
         self.core = core
         self.opts = options
         self.dds: DdsContext | None = None
@@ -163,7 +171,7 @@ class Ros2Bridge:
         self.dds = ctx = DdsContext(o.domain_id, bridge_config(o.dds_config))
         for t in self.core.topics:
             dtype = T.Detection2DArray_ if t.msgtype == DETECTIONS_TYPE else T.Image_
-            self._writers[t.topic] = ctx.writer(t.topic, dtype, "default")
+            self._writers[t.topic] = ctx.writer(t.topic, dtype, o.output_qos)
         self._diag = ctx.writer(o.diagnostics_topic, T.DiagnosticArray_, "default")
         self._names = ctx.writer(f"{self.ns}/model_names", T.String_, "latched")
         self._names.write(T.String_(model_names_text(self.core.model_names)))
@@ -172,6 +180,7 @@ class Ros2Bridge:
         self._input: Reader = ctx.reader(o.subscribed_topic, in_type, o.input_qos)
         if not o.compressed:  # a compressed frame is a fraction of the raw one: no buffer advice for it
             self.core.note_receive_buffer(receive_buffer_granted(receive_buffer_limit()))
+            self.core.link_warnings()  # logged now, before the "ready" line, not in the middle of it
         control = ControlLoop(
             self.core,
             self._publish_diagnostics,

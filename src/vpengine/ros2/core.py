@@ -53,6 +53,9 @@ STRING_TYPE = "std_msgs/msg/String"
 # diagnostic_msgs/DiagnosticStatus levels
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
+#: QoS profiles of the output topics (Note [Output QoS]); the first is the default.
+OUTPUT_QOS = ("latest", "default")
+
 #: Rate values (case-insensitive) that mean "no limit", in rate commands.
 UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
 
@@ -929,29 +932,32 @@ class Ros2Core:
         self._buffer_limit = limit
 
     def link_warnings(self) -> list[str]:
-        """Note [Input link]: what is wrong with the way in, each logged once when first seen."""
-        out = []
+        """Note [Input link]: what is wrong with the way in; each kind is logged once, when first seen."""
+        found: dict[str, str] = {}
         want = self._largest_input or 3 * self.config.input.height * self.config.input.width
         advice = receive_buffer_advice(self._buffer_limit, want)
-        silent = (
-            self._matched_since is not None
+        since = self._matched_since
+        if (
+            since is not None
             and self.counters["received"] == self._received_at_match
-            and time.monotonic() - self._matched_since >= SILENT_AFTER_S
-        )
-        if silent:
-            out.append(
-                f"a publisher has been matched for {time.monotonic() - self._matched_since:.0f} s "  # type: ignore[operator]
-                f"and no input message arrived: large samples are probably lost on the way in"
-                + ("" if advice else " (check the transport's receive buffer and fragment settings)")
+            and time.monotonic() - since >= SILENT_AFTER_S
+        ):
+            found["silent"] = (
+                f"a publisher has been matched for {time.monotonic() - since:.0f} s and no input message "
+                "arrived: large samples are probably lost on the way in"
+                + (
+                    ""
+                    if advice
+                    else " (check the transport's receive buffer, fragment and sample size settings)"
+                )
             )
         if advice:
-            out.append(advice)
-        for w in out:
-            key = w.split(":", 1)[0]
-            if key not in self._link_logged:
-                self._link_logged.add(key)
-                log.warning("input link: %s", w)
-        return out
+            found["buffer"] = advice
+        for kind, text in found.items():
+            if kind not in self._link_logged:
+                self._link_logged.add(kind)
+                log.warning("input link: %s", text)
+        return list(found.values())
 
     def count_superseded(self, n: int) -> None:
         """``n`` input messages were received but not submitted because a newer one was already waiting."""

@@ -8,7 +8,8 @@ ROS 2 conventions matched (rmw_cyclonedds_cpp):
 * data representation XCDR1 (encapsulation ``CDR_LE``), which is what ROS 2 writes and reads;
 * QoS: the default profile is reliable, volatile, keep last 10; the sensor-data profile best effort, volatile, keep
   last 5; "latched" (what ``ros2 topic echo --qos-durability transient_local`` receives) is reliable,
-  transient-local, keep last 1.
+  transient-local, keep last 1; "latest" (the bridge's outputs, Note [Output QoS] in :mod:`vpengine.ros2.core`) is
+  reliable, volatile, keep last 1.
 """
 
 from __future__ import annotations
@@ -24,8 +25,8 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-QosName = Literal["default", "sensor", "latched"]
-QOS_NAMES = ("default", "sensor", "latched")
+QosName = Literal["default", "sensor", "latched", "latest"]
+QOS_NAMES = ("default", "sensor", "latched", "latest")
 
 #: The cyclonedds major release this module is tested with (its private _clayer calls, see _private_api).
 TESTED_MAJOR = 11
@@ -89,6 +90,13 @@ def qos(name: QosName) -> Qos:
             Policy.History.KeepLast(1),
             xcdr1,
         )
+    if name == "latest":
+        return Qos(
+            Policy.Reliability.Reliable(duration(seconds=1)),
+            Policy.Durability.Volatile,
+            Policy.History.KeepLast(1),
+            xcdr1,
+        )
     raise ValueError(f"QoS profile {name!r} is not known; accepted: {', '.join(QOS_NAMES)}")
 
 
@@ -120,13 +128,15 @@ def loopback_config(large_messages: bool = True) -> str:
 
 
 def bridge_config(extra: str | None = None, user: str | None = None) -> str:
-    """The bridge's CycloneDDS configuration: its own needs first, then the user's ``$CYCLONEDDS_URI`` (``user``
-    defaults to it), then ``extra`` (e.g. :func:`loopback_config`, asked for on the command line).
+    """The bridge's CycloneDDS configuration: its own needs first, then the user's: ``extra`` when given (e.g.
+    :func:`loopback_config`, asked for on the command line), else ``$CYCLONEDDS_URI`` (``user`` defaults to it).
 
     CycloneDDS reads a comma-separated list of files and XML fragments in order, and a later setting replaces an
-    earlier one, so whatever the user configured wins and nothing of theirs is dropped. Of its own the bridge asks
-    for a large socket receive buffer (:data:`RECEIVE_BUFFER_BYTES`, granted up to net.core.rmem_max): cyclonedds'
-    default of 1 MB loses most 1080p frames sent best effort (Note [Input link] in :mod:`vpengine.ros2.core`).
+    earlier one, so whatever the user configured wins and nothing of theirs is dropped. (Lists such as network
+    interfaces and peers add up instead, which is why ``extra`` replaces $CYCLONEDDS_URI rather than joining it.)
+    Of its own the bridge asks for a large socket receive buffer (:data:`RECEIVE_BUFFER_BYTES`, granted up to
+    net.core.rmem_max): cyclonedds' default of 1 MB loses most 1080p frames sent best effort (Note [Input link] in
+    :mod:`vpengine.ros2.core`).
     """
     user = os.environ.get("CYCLONEDDS_URI") if user is None else user
     own = (
@@ -134,7 +144,7 @@ def bridge_config(extra: str | None = None, user: str | None = None) -> str:
         f'<SocketReceiveBufferSize min="default" max="{RECEIVE_BUFFER_BYTES}B"/>'
         "</Internal></Domain></CycloneDDS>"
     )
-    return ",".join(part for part in (own, (user or "").strip(), extra) if part)
+    return ",".join(part for part in (own, (extra or user or "").strip()) if part)
 
 
 def receive_buffer_granted(limit: int | None) -> int | None:

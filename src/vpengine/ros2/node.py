@@ -28,7 +28,7 @@ limit), set with ``ros2 param set /vpengine rate.depth 5``. The ``<ns>/set_rate`
 and the latched ``<ns>/model_names`` topic work in both cases.
 
 Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``compressed`` (false), ``input_qos``
-(sensor | default), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
+(sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in the core), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
 (config | first), ``on_size_mismatch`` (resize | reject), ``overrides`` (string array of KEY=VALUE).
 """
 
@@ -45,6 +45,7 @@ from typing import Any
 
 from vpengine.ros2.core import (
     DETECTIONS_TYPE,
+    OUTPUT_QOS,
     ControlLoop,
     DetectionsOut,
     DiagnosticsOut,
@@ -182,6 +183,9 @@ def build_node(argv: list[str] | None = None) -> Any:
             input_qos = p("input_qos", "sensor").value
             if input_qos not in ("sensor", "default"):
                 raise ValueError(f"parameter input_qos={input_qos!r}; accepted: sensor, default")
+            output_qos = p("output_qos", OUTPUT_QOS[0]).value
+            if output_qos not in OUTPUT_QOS:
+                raise ValueError(f"parameter output_qos={output_qos!r}; accepted: {', '.join(OUTPUT_QOS)}")
             self.core = Ros2Core(
                 config,
                 namespace=p("output_namespace", "/vpengine").value,
@@ -195,12 +199,13 @@ def build_node(argv: list[str] | None = None) -> Any:
             core = self.core
             core.start()
             default_qos = QoSProfile(depth=10)
+            out_qos = QoSProfile(depth=1 if output_qos == "latest" else 10)  # reliable, volatile
             latched = QoSProfile(
                 depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
             )
             self._pubs = {
                 t.topic: self.create_publisher(
-                    _detection_type() if t.msgtype == DETECTIONS_TYPE else Image, t.topic, default_qos
+                    _detection_type() if t.msgtype == DETECTIONS_TYPE else Image, t.topic, out_qos
                 )
                 for t in core.topics
             }

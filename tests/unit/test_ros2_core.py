@@ -328,6 +328,30 @@ def test_core_outputs_carry_the_exact_input_header_on_every_topic():
     assert core.counters["header_fallbacks"] == 0
 
 
+@pytest.mark.parametrize("every_frame", [False, True])
+def test_outputs_that_waited_are_superseded_by_the_newest_unless_every_frame_is_taken(every_frame):
+    """Note [Output QoS]: three results of each head wait (the output thread was busy); with newest-wins input only
+    the newest goes out and the two older ones are counted, with input_mode: fifo all three go out in order."""
+    from tests_paths import ROOT
+
+    config = ROOT / "configs" / ("tiny_every_frame.yaml" if every_frame else "tiny.yaml")
+    core = Ros2Core(config, overrides=["mode=thread", f"device={tiny().device}"])
+    core.start()
+    try:
+        core.poll_outputs(0)
+        for i in range(3):
+            core.handle_image(image_msg(frame(i), "bgr8", stamp=SimpleNamespace(sec=100 + i, nanosec=0)))
+            time.sleep(0.5)  # each head answers each frame before the next
+        out = core.poll_outputs(1.0)
+        values = dict({s.name: s for s in core.diagnostics().status}["vpengine: interface"].values)
+    finally:
+        core.stop()
+    for head, topic in (("depth", "/vpengine/depth/depth"), ("det", "/vpengine/det/detections")):
+        secs = [p.header.sec for t, p in out if t.topic == topic]
+        assert secs == ([100, 101, 102] if every_frame else [102]), (head, secs)
+        assert values[f"outputs_superseded.{head}"] == ("0" if every_frame else "2")
+
+
 def test_core_resizes_or_rejects_frames_of_another_size_and_counts_them():
     big = np.tile(frame(1)[:60, :80], (4, 4, 1))
     for policy in ("resize", "reject"):
@@ -423,6 +447,10 @@ def test_the_bridge_benchmark_waits_until_diagnostics_account_for_every_run():
     }
     assert not drained(status, topics)  # seg: 60 outputs still on their way out of the bridge
     status["interface"]["published:/vpengine/seg/image"] = "248"
+    assert drained(status, topics)
+    status["interface"]["published:/vpengine/seg/image"] = "238"
+    assert not drained(status, topics)
+    status["interface"]["outputs_superseded.seg"] = "10"  # a newer result went out instead
     assert drained(status, topics)
     assert not drained({}, topics)  # no diagnostics yet
     assert not drained({"depth": {"runs": "3"}, "interface": {}}, topics[:1])  # topic not yet published

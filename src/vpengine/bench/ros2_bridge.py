@@ -51,12 +51,18 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--output-qos",
-        choices=["latest", "default"],
         default="latest",
-        help="the bridge's output QoS (vpengine ros2 --output-qos; default latest)",
+        help="the bridge's output QoS (vpengine ros2 --output-qos): latest, default, or both comma-separated to "
+        "compare them, each size run with each (default: latest)",
     )
     p.add_argument(
         "--load", type=int, default=0, help="extra processes keeping the CPU busy during the run (default 0)"
+    )
+    p.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="run every size and QoS this many times, interleaved (default 1)",
     )
     p.add_argument("--name", default="ros2_bridge_throughput", help="results file name (without .json)")
     p.add_argument("--mode", choices=["process", "thread"], default="process", help="engine mode")
@@ -136,7 +142,8 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
     while any(not r.dds.get_matched_publications() for r in readers.values()):
         time.sleep(0.05)
     conn.send("matched")
-    received: dict[str, list[tuple[int, int, float]]] = {t: [] for t in topics}
+    # (stamp sec, stamp nanosec, time taken here, time the bridge wrote it)
+    received: dict[str, list[tuple[int, int, float, float]]] = {t: [] for t in topics}
     last: Any = None
 
     def parsed() -> dict[str, dict[str, str]]:
@@ -153,16 +160,16 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
             conn.send(parsed())  # "status": the newest diagnostics so far; keep counting
         got = False
         for t, r in readers.items():
-            for raw in r.take_raw(64):
+            for raw, written in r.take_raw_stamped(64):
                 got = True
                 now = time.time()
                 if t.endswith("/detections"):
                     m = T.Detection2DArray_.deserialize(raw)
-                    received[t].append((m.header.stamp.sec, m.header.stamp.nanosec, now))
+                    received[t].append((m.header.stamp.sec, m.header.stamp.nanosec, now, written))
                 else:
                     view = cdr.decode_image(raw)
                     view.data.copy()
-                    received[t].append((view.header.sec, view.header.nanosec, now))
+                    received[t].append((view.header.sec, view.header.nanosec, now, written))
         for d in diag.take(16):
             last = d
         if not got:
@@ -172,8 +179,9 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
 
 
 def drained(status: dict[str, dict[str, str]], topics: list[str]) -> bool:
-    """True when the bridge's diagnostics account for every head run: each output topic published it or the
-    result stream counted it missed (nothing still on its way out of the bridge)."""
+    """True when the bridge's diagnostics account for every head run: each output topic published it, or the
+    result stream counted it missed, or a newer result of the head superseded it (nothing still on its way out of
+    the bridge)."""
     iface = status.get("interface", {})
     for t in topics:
         head = t.split("/")[2]
@@ -181,7 +189,10 @@ def drained(status: dict[str, dict[str, str]], topics: list[str]) -> bool:
         published = iface.get(f"published:{t}")
         if runs is None or published is None:
             return False
-        if int(float(runs)) != int(published) + int(iface.get(f"results_missed.{head}", "0")):
+        gone = int(iface.get(f"results_missed.{head}", "0")) + int(
+            iface.get(f"outputs_superseded.{head}", "0")
+        )
+        if int(float(runs)) != int(published) + gone:
             return False
     return True
 
@@ -204,7 +215,7 @@ def _wait_drained(conn: Any, topics: list[str], least_s: float = 3.0, most_s: fl
     return time.monotonic() - t0
 
 
-def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]:
+def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) -> dict[str, Any]:
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
     from vpengine.ros2.core import Header, image_out
@@ -228,7 +239,7 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
         "--input-qos",
         args.input_qos,
         "--output-qos",
-        args.output_qos,
+        output_qos,
         "--mode",
         args.mode,
         "--set",
@@ -318,16 +329,23 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
     per_topic = {}
     for t in topics:
         stamps = received.get(t, [])
-        lat = [rx_t - sent_at[(s, ns)] for s, ns, rx_t in stamps if (s, ns) in sent_at]
+        lat = [rx_t - sent_at[(s, ns)] for s, ns, rx_t, _ in stamps if (s, ns) in sent_at]
+        out = [rx_t - wr_t for _, _, rx_t, wr_t in stamps]
         per_topic[t] = {
             "received": len(stamps),
             "published_by_bridge": int(iface.get(f"published:{t}", -1)),
-            "unknown_stamps": sum((s, ns) not in sent_at for s, ns, _ in stamps),
+            "unknown_stamps": sum((s, ns) not in sent_at for s, ns, _, _ in stamps),
             "fraction_of_frames": len(stamps) / n if n else 0.0,
             "latency_ms": {
                 "p50": float(np.percentile(lat, 50) * 1e3) if lat else None,
                 "p99": float(np.percentile(lat, 99) * 1e3) if lat else None,
                 "max": float(np.max(lat) * 1e3) if lat else None,
+            },
+            # the last hop alone: the bridge's write -> taken by the subscriber (where outputs queue, if they do)
+            "write_to_take_ms": {
+                "p50": float(np.percentile(out, 50) * 1e3) if out else None,
+                "p99": float(np.percentile(out, 99) * 1e3) if out else None,
+                "max": float(np.max(out) * 1e3) if out else None,
             },
         }
     interface = status.get("interface", {})
@@ -339,7 +357,11 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
             },
             # outputs the engine produced that the bridge did not collect in time (counted by the engine)
             **(
-                {"results_missed": interface.get(f"results_missed.{name}", "0")}
+                {
+                    "results_missed": interface.get(f"results_missed.{name}", "0"),
+                    # results the bridge did not publish because a newer one of the head was already there
+                    "outputs_superseded": interface.get(f"outputs_superseded.{name}", "0"),
+                }
                 if name != "foundation"
                 else {}
             ),
@@ -365,7 +387,7 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
         "seconds": args.seconds,
         "mode": args.mode,
         "input_qos": args.input_qos,
-        "output_qos": args.output_qos,
+        "output_qos": output_qos,
         "subscriber": "another process; ROS 2 default QoS (reliable, keep last 10); decodes and copies each image",
         "load_processes": args.load,
         "extras": args.extras,
@@ -410,8 +432,16 @@ def _size(text: str) -> tuple[int, int]:
 
 def main(args: argparse.Namespace) -> int:
     from vpengine.bench.common import write_results
+    from vpengine.ros2.core import OUTPUT_QOS
 
-    runs = [measure(args, *_size(sz)) for sz in args.sizes.split(",") if sz.strip()]
+    profiles = [q.strip() for q in args.output_qos.split(",") if q.strip()]
+    for q in profiles:
+        if q not in OUTPUT_QOS:
+            raise ValueError(f"output QoS {q!r} is not known; accepted: {', '.join(OUTPUT_QOS)}")
+    if args.repeat < 1:
+        raise ValueError(f"--repeat must be >= 1, got {args.repeat}")
+    sizes = [_size(sz) for sz in args.sizes.split(",") if sz.strip()]
+    runs = [measure(args, w, h, q) for _ in range(args.repeat) for w, h in sizes for q in profiles]
     path = write_results(args.out, args.name, {"runs": runs})
     for res in runs:
         print(
@@ -436,7 +466,9 @@ def main(args: argparse.Namespace) -> int:
             print(
                 f"  {t:32s} received {v['received']:4d}/{res['frames_published']} (bridge published "
                 f"{v['published_by_bridge']}), latency p50 / p99 / max {_ms(v['latency_ms']['p50'])} / "
-                f"{_ms(v['latency_ms']['p99'])} / {_ms(v['latency_ms']['max'])} ms"
+                f"{_ms(v['latency_ms']['p99'])} / {_ms(v['latency_ms']['max'])} ms (write -> take "
+                f"{_ms(v['write_to_take_ms']['p50'])} / {_ms(v['write_to_take_ms']['p99'])} / "
+                f"{_ms(v['write_to_take_ms']['max'])} ms)"
             )
         print(f"  lossless end to end: {res['lossless']}")
         print("  decode ms per frame: " + ", ".join(f"{k} {v:.2f}" for k, v in res["decode_ms"].items()))

@@ -739,6 +739,7 @@ class Ros2Core:
         #: Note [Rejection log]: input messages and outputs that could not be used, per reason
         self.rejected = Rejections("input message rejected")
         self.output_errors = Rejections("output not published")
+        self.outputs_superseded: collections.Counter[str] = collections.Counter()
         # Note [Input link]: when a publisher of the input topic was matched (None: none is), the transport's
         # receive-buffer advice, and the largest input message seen (bytes)
         self._matched_since: float | None = None
@@ -876,7 +877,12 @@ class Ros2Core:
 
     # -------------------------------------------------------------------------------------------- output
     def poll_outputs(self, timeout: float = 0.1) -> list[tuple[OutputTopic, Payload]]:
-        """Every head output since the last call as (topic, message), oldest first; waits up to ``timeout``."""
+        """The head outputs since the last call as (topic, message), oldest first; waits up to ``timeout``.
+
+        Note [Output QoS]: when the engine takes the newest frame (``input_mode: latest``), only each head's newest
+        result is converted and published; older ones that waited for the output thread (it was writing) are
+        counted in ``outputs_superseded.<head>``. Publishing them would only put stale images in front of the
+        fresh one. With ``input_mode: fifo`` every result goes out, in order."""
         eng = self.engine
         if eng is None:
             self._engine_ready.wait(timeout)
@@ -885,6 +891,12 @@ class Ros2Core:
         t0 = time.thread_time()
         results = eng.results(timeout=timeout)
         self.busy["results"] += time.thread_time() - t0  # the engine API's copies out of its mailboxes
+        if self.config.foundation_model.input_mode != "fifo":
+            newest = {r.head: r for r in results}  # results are oldest first
+            for r in results:
+                if newest[r.head] is not r:
+                    self.outputs_superseded[r.head] += 1
+            results = [r for r in results if newest[r.head] is r]
         for r in results:
             topics = self._by_head.get(r.head)
             if not topics:
@@ -1025,6 +1037,7 @@ class Ros2Core:
         values += [(f"rejected.{r}", str(n)) for r, n in sorted(self.rejected.counts.items())]
         values += [(f"output_errors.{r}", str(n)) for r, n in sorted(self.output_errors.counts.items())]
         values += [(f"results_missed.{h}", str(r.get("missed", 0))) for h, r in results.items()]
+        values += [(f"outputs_superseded.{h}", str(self.outputs_superseded[h])) for h in results]
         values += [(f"published:{t.topic}", str(self.published[t.topic])) for t in self.topics]
         values += [(f"busy_s.{k}", f"{v:.3f}") for k, v in sorted(self.busy.items())]
         if self._buffer_limit is not None:

@@ -105,15 +105,15 @@ def loopback_config(large_messages: bool = True) -> str:
 
     Loopback has no multicast, so participants find each other by unicast to 127.0.0.1 on the well-known ports of
     participant indices 0..(MaxAutoParticipantIndex). ``large_messages`` sizes the transport for camera images:
-    64 kB messages (loopback's MTU allows it; cyclonedds' default of 14 kB makes a 1080p frame ~450 packets), a 4 MB
-    receive buffer (the common net.core.rmem_max), and a writer history high-water mark of 64 MB so reliable writers
-    of multi-megabyte images do not stall on acknowledgements.
+    64 kB messages (loopback's MTU allows it; cyclonedds' default of 14 kB makes a 1080p frame ~450 packets), the
+    bridge's receive buffer (:data:`RECEIVE_BUFFER_BYTES`, as much as net.core.rmem_max allows), and a writer
+    history high-water mark of 64 MB so reliable writers of multi-megabyte images do not stall on acknowledgements.
     """
     big = (
         "<MaxMessageSize>65500B</MaxMessageSize><FragmentSize>60000B</FragmentSize>" if large_messages else ""
     )
     internal = (
-        '<Internal><SocketReceiveBufferSize min="default" max="4MB"/>'
+        f'<Internal><SocketReceiveBufferSize min="default" max="{RECEIVE_BUFFER_BYTES}B"/>'
         "<Watermarks><WhcHigh>64MB</WhcHigh></Watermarks></Internal>"
         if large_messages
         else ""
@@ -228,12 +228,16 @@ class Reader:
 
     def take_raw(self, n: int = 16) -> list[bytes]:
         """Up to ``n`` samples as CDR bytes (encapsulation header included); invalid samples (disposals) skipped."""
+        return [data for data, _ in self.take_raw_stamped(n)]
+
+    def take_raw_stamped(self, n: int = 16) -> list[tuple[bytes, float]]:
+        """Like :meth:`take_raw`, each with the time its writer wrote it (DDS source timestamp, s since the epoch)."""
         ret = self._take(self.dds._ref, _ANY, n)
         if isinstance(ret, int):
             from cyclonedds.core import DDSException
 
             raise DDSException(ret, f"taking samples from {self.dds.topic.name}")
-        return [data for data, info in ret if info.valid_data]
+        return [(data, info.source_timestamp * 1e-9) for data, info in ret if info.valid_data]
 
     def matched(self) -> int:
         """How many writers this reader is matched with."""

@@ -56,6 +56,16 @@ OK, WARN, ERROR, STALE = 0, 1, 2, 3
 #: QoS profiles of the output topics (Note [Output QoS]); the first is the default.
 OUTPUT_QOS = ("latest", "default")
 
+# Note [Output QoS]: outputs must stay fresh when a subscriber or the machine cannot keep up. Measured with 1080p
+# frames at 30 Hz, a subscriber that copies each image and a busy CPU (benchmarks/results/
+# ros2_bridge_throughput.json), two queues made outputs seconds old: (1) a reliable keep-last-10 writer keeps up to
+# ten unacknowledged 8 MB images per topic and a write blocks while a slow reader catches up, so (2) results waited
+# for the output thread in the engine's result stream and went out in order, each older than the last. So: outputs
+# are reliable (a best-effort writer matches no reliable subscriber, ROS 2's default) but keep last 1 ("latest"),
+# so a writer holds one image and never more; and with newest-wins input (input_mode: latest) the output thread
+# publishes only each head's newest result (poll_outputs), counting the ones it skips. ROS 2's default profile
+# stays available ("default", for recording every output).
+
 #: Rate values (case-insensitive) that mean "no limit", in rate commands.
 UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
 
@@ -163,8 +173,8 @@ def image_to_frame(msg: Any, color: str = "bgr") -> np.ndarray:
     width x channels). ``is_bigendian`` only orders the bytes of multi-byte pixels; every accepted encoding has one
     byte per channel, so both values decode the same. The result is a view of the message data when no conversion
     is needed (bgr8 in, bgr wanted, unpadded rows), else one copy. Channel swaps and grey-to-colour go through
-    ``cv2.cvtColor`` (vectorised, threaded): at 1080p it takes about 0.2 ms where a numpy ``[..., ::-1]`` copy took
-    7-26 ms on the input thread (``decode_ms`` in benchmarks/results/ros2_bridge_throughput.json).
+    ``cv2.cvtColor`` (vectorised, threaded): at 1080p it takes about 0.2 ms where the numpy ``[..., ::-1]`` copy it
+    replaced took 7 ms on the input thread (``decode_ms`` in benchmarks/results/ros2_bridge_throughput.json).
     """
     import cv2
 

@@ -170,9 +170,14 @@ def test_qos_profiles_are_ros2s():
     assert sensor[Policy.History] == Policy.History.KeepLast(5)
     assert latched[Policy.Durability] == Policy.Durability.TransientLocal
     assert latched[Policy.History] == Policy.History.KeepLast(1)
-    for q in (default, sensor, latched):  # XCDR1, what ROS 2 writes
+    # the outputs': reliable (every ROS 2 subscriber matches), only the newest sample kept
+    latest = qos("latest")
+    assert isinstance(latest[Policy.Reliability], Policy.Reliability.Reliable)
+    assert latest[Policy.Durability] == Policy.Durability.Volatile
+    assert latest[Policy.History] == Policy.History.KeepLast(1)
+    for q in (default, sensor, latched, latest):  # XCDR1, what ROS 2 writes
         assert q[Policy.DataRepresentation] == Policy.DataRepresentation(use_cdrv0_representation=True)
-    with pytest.raises(ValueError, match="accepted: default, sensor, latched"):
+    with pytest.raises(ValueError, match="accepted: default, sensor, latched, latest"):
         qos("fast")  # type: ignore[arg-type]
 
 

@@ -10,21 +10,22 @@ input topic (``--input-topic``)     sensor_msgs/Image                  sensor da
                                     (CompressedImage with              default (reliable, keep last 10)
                                     ``--compressed``, on
                                     ``<input>/compressed``)
-``<ns>/<head>/depth``               sensor_msgs/Image 32FC1            default
-``<ns>/<head>/depth_color``         sensor_msgs/Image bgr8             default (``--depth-color``)
-``<ns>/<head>/classes``             sensor_msgs/Image mono8            default
-``<ns>/<head>/overlay``             sensor_msgs/Image bgr8             default (``--seg-overlay``)
-``<ns>/<head>/detections``          vision_msgs/Detection2DArray       default
+``<ns>/<head>/depth``               sensor_msgs/Image 32FC1            latest (reliable, keep last 1; or
+                                                                       ``--output-qos default``)
+``<ns>/<head>/depth_color``         sensor_msgs/Image bgr8             latest (``--depth-color``)
+``<ns>/<head>/classes``             sensor_msgs/Image mono8            latest
+``<ns>/<head>/overlay``             sensor_msgs/Image bgr8             latest (``--seg-overlay``)
+``<ns>/<head>/detections``          vision_msgs/Detection2DArray       latest
 ``<ns>/set_rate``                   diagnostic_msgs/KeyValue (in)      default
 ``<ns>/model_names``                std_msgs/String (JSON list)        latched (transient local, keep last 1)
-``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, ~1 Hz
+``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, 1 Hz
 ==================================  =================================  =========================================
 
 Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
 "{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit).
 
 Three threads: one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
-every result (``Engine.results``), and one applies rate commands and publishes diagnostics (Note [Control path] in
+the results (``Engine.results``; each head's newest, Note [Output QoS] in :mod:`vpengine.ros2.core`), and one applies rate commands and publishes diagnostics (Note [Control path] in
 :mod:`vpengine.ros2.core`), so neither waits behind the writes of big images. All decisions about content live in
 :class:`vpengine.ros2.core.Ros2Core`.
 """

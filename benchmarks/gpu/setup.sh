@@ -1,21 +1,25 @@
-# Sourced at the start of every GPU-machine command (see /work/.library/device/README.md):
-# installs the carried cp312 wheels (pydantic) and puts the source tree on the path.
+# Sourced by the other scripts, from the repository root. Installs the carried cp312 wheels of .whl/ where there are
+# any and the machine lacks pydantic (the GPU machine), puts this tree's src/ on the path and sets OUT, the results
+# folder: $OUT if set, else benchmarks/results/<GPU kind> (h100, h200, ...). PYTHON: the interpreter (python3).
 set -u
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-  || { echo "wheel install failed"; exit 1; }
-export PYTHONPATH=/tmp/site:$PWD/src:$PWD/tests
+PYTHON=${PYTHON:-python3}
+SITE=
+if compgen -G ".whl/*.whl" >/dev/null && ! "$PYTHON" -c "import pydantic" 2>/dev/null; then
+  "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    || { echo "wheel install failed"; exit 1; }
+  SITE=/tmp/site:
+fi
+export PYTHONPATH="$SITE$PWD/src:$PWD/tests"
 export PYTHONUNBUFFERED=1
-mkdir -p "${OUT:-/tmp/out}"
-# floor SECONDS HEADS TAG ARGS...: the floor experiment (compiled, borrowed results, 200 frames) into $OUT, printing its
-# result line
-floor() {
-  local t=$1 heads=$2 tag=$3; shift 3
-  timeout "$t" python3 -m vpengine.cli.main bench paper --experiments floor --floor-heads "$heads" --backend compile \
-    --frames 200 --results borrow --tag "$tag" --out "$OUT" "$@" 2>&1 | grep "floor:\|Error" | tail -2
-}
-# paper SECONDS ARGS...: `vpengine bench paper` into $OUT under a time limit, printing only its result lines
-paper() {
-  local t=$1; shift
-  timeout "$t" python3 -m vpengine.cli.main bench paper --out "$OUT" "$@" 2>&1 | grep -v "RANDOM\|WARNING" \
-    | grep "E1 N=\|E2 N=\|MPS daemon\|Error\|error" | tail -4
-}
+if [ -z "${OUT:-}" ]; then
+  kind=$("$PYTHON" -c "import re, torch
+n = torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'cpu'
+m = re.search(r'\b([A-Z]+[0-9]+)\b', n)
+print((m.group(1) if m else re.sub(r'\W+', '_', n)).lower())") || { echo "no GPU kind: set OUT"; exit 1; }
+  OUT=benchmarks/results/$kind
+fi
+export OUT
+mkdir -p "$OUT"
+
+# vpengine ARGS...: the CLI of the tree on PYTHONPATH
+vpengine() { "$PYTHON" -m vpengine.cli.main "$@"; }

@@ -28,28 +28,33 @@ class ConfigError(ValueError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, protected_namespaces=())
+    # NaN and infinity are refused in every number field: a NaN normalisation ruins every output, an infinite
+    # timeout makes stop() unbounded.
+    model_config = ConfigDict(
+        extra="forbid", validate_assignment=True, protected_namespaces=(), allow_inf_nan=False
+    )
 
 
 class InputConfig(_Strict):
     """The camera frames given to ``Engine.submit``."""
 
     height: int = Field(
-        480, ge=14, le=16384, description="Frame height in pixels (canonical; submit checks it)."
+        480,
+        ge=14,
+        le=16384,
+        description="Height in pixels the models run at (their mailboxes and graphs are this size). Frames of any "
+        "other size are scaled into it with their aspect ratio kept, and their outputs come back at their own size "
+        "(Note [Frame grid] in boundary.py); set it to your camera's to spare that resizing.",
     )
-    width: int = Field(640, ge=14, le=16384, description="Frame width in pixels.")
+    width: int = Field(640, ge=14, le=16384, description="Width in pixels the models run at (see height).")
+    max_frame_side: int = Field(
+        8192, ge=14, le=65536, description="Largest frame height or width accepted; larger frames are refused."
+    )
     color: Literal["bgr", "rgb"] = Field(
         "bgr", description="Channel order of submitted frames (OpenCV gives BGR)."
     )
     dtype: Literal["uint8", "float32"] = Field(
         "uint8", description="Pixel type: uint8 0..255, or float32 0..1 (checked for NaN/inf at submit)."
-    )
-    slots: int | None = Field(
-        None,
-        ge=3,
-        le=64,
-        description="Input mailbox slots (>= 3: the foundation model + 2); null: 3, plus 4 when the foundation model "
-        "reads fifo.",
     )
 
 
@@ -63,18 +68,6 @@ class PreprocessConfig(_Strict):
     )
     size: int = Field(
         518, ge=14, le=8192, description="Target short side (aspect) or side (square) in pixels."
-    )
-    interpolation: Literal["bilinear", "bicubic"] = Field("bilinear", description="Resize filter.")
-    mean: tuple[float, float, float] = Field(
-        (0.485, 0.456, 0.406), description="Normalisation mean (RGB, 0..1)."
-    )
-    std: tuple[float, float, float] = Field(
-        (0.229, 0.224, 0.225), description="Normalisation std (RGB, 0..1)."
-    )
-    fast_uint8_resize: bool = Field(
-        True,
-        description="CPU only: resize 8-bit frames before converting them to float (~40x faster for 1080p, under one "
-        "grey level of difference); false: the exact float path everywhere (GPUs and ONNX exports always use it).",
     )
 
 
@@ -108,14 +101,6 @@ class ModelConfig(_Strict):
         description="PyTorch intra-op threads in this model's worker process (CPU). In thread mode the models share "
         "one process and so one pool, sized by the foundation model's value; the heads' values are not used.",
     )
-    stream_priority: int = Field(
-        0,
-        ge=-8,
-        le=0,
-        description="CUDA stream priority (0 normal, negative = higher): when models' work is on the GPU at once, "
-        "the higher one's blocks are scheduled first. A value beyond the device's range becomes its highest; "
-        "stats() gives what the device gave.",
-    )
     mps_priority: Literal["normal", "below_normal"] = Field(
         "normal", description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY)."
     )
@@ -124,9 +109,8 @@ class ModelConfig(_Strict):
         "latest",
         description="How the model reads its input (frames for the foundation model, features for a head). latest: after "
         "falling behind it takes the newest and skips the ones in between (counted) -- the lowest latency, for control "
-        "loops. fifo: it takes every one in order and catches up, absorbing a lag of up to 4 frames with the default "
-        "mailbox sizes (input.slots - 2, foundation_model.feature_slots - heads - 1) before the oldest are skipped "
-        "(counted) -- for recording and bridges where every frame should come out. A rate limit still applies: a fifo "
+        "loops. fifo: it takes every one in order and catches up, absorbing a lag of up to 4 frames (its mailbox is "
+        "sized for that) before the oldest are skipped (counted) -- for recording and bridges where every frame should come out. A rate limit still applies: a fifo "
         "model then runs on ever older frames until they are overwritten.",
     )
 
@@ -143,19 +127,18 @@ class FoundationModelConfig(ModelConfig):
 
     model: str = Field("dinov2_vits14", description="Backbone recipe name.")
     preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)  # type: ignore[arg-type]
-    feature_slots: int | None = Field(
-        None,
-        ge=3,
-        le=64,
-        description="Feature mailbox slots; null: number of heads + 2 (the minimum), plus 4 when a head reads "
-        "fifo (so it can fall 4 frames behind and catch up).",
-    )
 
 
 class OutputConfig(_Strict):
     """A head's output mailbox, read by ``Engine.latest/results/wait`` and the sinks."""
 
-    slots: int = Field(4, ge=4, le=256, description="Output slots (>= 4: two engine readers + 2).")
+    slots: int = Field(
+        4,
+        ge=4,
+        le=256,
+        description="Results of this head kept for Engine.results (>= 4): how far a reader may fall behind before the "
+        "oldest unread are overwritten (counted).",
+    )
     overflow: Literal["drop_oldest", "drop_newest", "block"] = Field(
         "drop_oldest",
         description="When results() falls behind: overwrite the oldest unread (counted), drop the newest "
@@ -165,12 +148,10 @@ class OutputConfig(_Strict):
         "host",
         description="host: results land in shared host memory; device: stay on the GPU for GPU consumers.",
     )
-    leases: int = Field(
-        2,
-        ge=0,
-        le=64,
-        description="Results of this head a caller may hold without a copy (wait/results/latest with copy=False), "
-        "each keeping one output slot; the mailbox gets this many extra slots. Past that, results are copies.",
+    grid: Literal["frame", "native"] = Field(
+        "frame",
+        description="frame: outputs in the submitted frame's pixel grid (maps at its size, boxes in its pixels); "
+        "native: as the head computed them, in the grid of input.height x width (Result.grid says which).",
     )
 
 
@@ -198,67 +179,34 @@ class HeadConfig(ModelConfig):
 class RuntimeConfig(_Strict):
     """Supervision and timing."""
 
-    ready_timeout_s: float = Field(300.0, gt=0, description="How long a worker may take to load and warm up.")
-    stop_timeout_s: float = Field(3.0, gt=0, description="Grace time at stop before workers are terminated.")
+    ready_timeout_s: float = Field(
+        300.0, gt=0, le=86400, description="How long a worker may take to load and warm up."
+    )
+    stop_timeout_s: float = Field(
+        3.0, gt=0, le=600, description="Grace time at stop before workers are terminated."
+    )
     max_restarts: int = Field(
-        5, ge=0, description="Restarts of one crashed worker before it is marked failed."
+        5,
+        ge=0,
+        description="Restarts of one crashed worker within restart_window_s before it is marked failed for good.",
     )
-    restart_backoff_s: float = Field(0.5, ge=0, description="First restart delay; doubles each time.")
-    restart_backoff_max_s: float = Field(10.0, ge=0, description="Largest restart delay.")
+    restart_window_s: float = Field(
+        60.0,
+        gt=0,
+        le=86400,
+        description="How long a restart counts against max_restarts (and doubles the next backoff): a worker that "
+        "fails now and then is restarted every time, one in a crash loop is marked failed.",
+    )
+    restart_backoff_s: float = Field(
+        0.5, ge=0, le=3600, description="First restart delay; doubles with each restart in the window."
+    )
     hang_timeout_s: float | None = Field(
-        60.0, gt=0, description="A running worker silent this long is killed and restarted; null: never."
-    )
-    poll_s: float = Field(
-        0.5, gt=0, le=5, description="Longest sleep of any wait (stop and heartbeat latency)."
-    )
-    sync_spin_us: float = Field(
-        0.0,
-        ge=0,
-        le=5000,
-        description="How a CUDA worker waits for its device work (Note [Device sync]). 0: it sleeps in the driver "
-        "until the work is done (no CPU while waiting; waking up takes 0.1-0.2 ms). > 0: it sleeps through the "
-        "part of the work its recent runs predict, then spins in the driver for the rest: a faster hand-over for "
-        "about this much CPU time per run (a run slower than predicted is spun through once, and the next one "
-        "sleeps and learns). Never spins while idle. Measure first: on an H100 it took 0.1 ms off two heads' "
-        "frame and added 0.5 ms to eight heads' in thread mode.",
-    )
-    feature_handoff: Literal["event", "host"] = Field(
-        "event",
-        description="How the foundation model hands its features to the heads in thread mode on CUDA (Note "
-        "[Event hand-off]). event: it publishes them as soon as their device work is queued, with a CUDA event "
-        "that each head's stream waits on, so the heads wake and queue their work while the features are still "
-        "being computed. host: it waits for the work to finish on the host first. Process mode and the CPU always "
-        "hand off on the host.",
-    )
-    result_handoff: Literal["event", "host"] = Field(
-        "event",
-        description="How each head hands its results to the engine in thread mode on CUDA (Note [Result hand-off]). "
-        "event: it publishes them as soon as their device work (with the copy to the host) is queued, with a CUDA "
-        "event; Engine.wait takes them at once and sleeps in the driver until they are there, so a result reaches "
-        "the caller without a head thread's wake-up on the way; Engine.results and Engine.latest take only "
-        "results that are there. host: the head waits for its work on the host first and then publishes. "
-        "Process mode and the CPU always hand off on the host.",
-    )
-    wait_spin_us: float = Field(
-        200.0,
-        ge=0,
-        le=5000,
-        description="How Engine.wait waits for a result handed off by event (Note [Result hand-off]). > 0: it sleeps "
-        "through the part of the head's work that its recent results predict, less a window, then polls for the "
-        "result (offering the interpreter lock between polls) until at most that window past the predicted end, "
-        "then sleeps in the driver. The window is this plus twice the spread of the head's recent results, at most "
-        "three times this: at most about six times this much CPU time per result waited for, however late the "
-        "result; only while a result is pending, never idle. 0: it sleeps in the driver until the result is there, "
-        "and waking up takes about 0.1 ms.",
-    )
-    inline_launch: Literal["auto", "always", "never"] = Field(
-        "auto",
-        description="Who queues the foundation model's device work for a new frame in thread mode (Note [Inline "
-        "launch]). auto: the thread that submits the frame, when the foundation model waits for one and runs from "
-        "CUDA graphs bound to the slots (compiled, on CUDA): submit then takes longer (about 0.2 ms on an H100) and the "
-        "frame skips the foundation thread's wake-up; otherwise the foundation thread. always: the "
-        "submitting thread whenever the foundation model waits, whatever it runs (on the CPU, submit then runs the "
-        "model itself: for tests). never: always the foundation thread. Process mode: always the foundation process.",
+        60.0,
+        gt=0,
+        le=86400,
+        description="A running worker silent this long is hung. Process mode: it is killed and restarted. Thread "
+        "mode: it is reported (state 'hung', counted as a crash) and no longer waited for, and restarted once its "
+        "thread returns (a Python thread cannot be killed); null: never.",
     )
 
 
@@ -292,11 +240,6 @@ class EngineConfig(_Strict):
     mps: Literal["auto", "required", "off"] = Field(
         "auto",
         description="CUDA MPS: use when a daemon is reachable (auto), insist (required), or not (off).",
-    )
-    mps_pipe_directory: str | None = Field(
-        None,
-        description="Where to look for the MPS control daemon; null: $CUDA_MPS_PIPE_DIRECTORY, then the directory "
-        "`vpengine mps start` uses, then /tmp/nvidia-mps.",
     )
     input: InputConfig = Field(default_factory=InputConfig)  # type: ignore[arg-type]
     foundation_model: FoundationModelConfig = Field(default_factory=FoundationModelConfig)  # type: ignore[arg-type]
@@ -333,19 +276,91 @@ class EngineConfig(_Strict):
 
 
 # ------------------------------------------------------------------------------------------------- loading
+#: Bounds on a config, checked before anything expands it. A 1 KB YAML file of nested aliases (or merge keys) can
+#: stand for billions of values; validation, error messages and the copy each worker gets would expand them all.
+MAX_VALUES = 100_000
+MAX_DEPTH = 64
+_SHOWN_CHARS = 200  # at most this much of any value (or error text) is quoted in an error
+
+
+def _clip(text: str, limit: int = _SHOWN_CHARS) -> str:
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
 def _format_validation_error(err: ValidationError, source: str) -> str:
     lines = [f"invalid configuration{f' in {source}' if source else ''}:"]
     for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "(top level)"
+        loc = _clip(".".join(str(p) for p in e["loc"]) or "(top level)")
         if e["type"] == "extra_forbidden":
             parent = _model_at(EngineConfig, e["loc"][:-1])
             accepted = sorted(parent.model_fields) if parent else []
             lines.append(f"  {loc}: unknown key (accepted here: {', '.join(accepted)})")
         else:
             given = e.get("input")
-            shown = json.dumps(given, default=str) if not isinstance(given, dict) else "{...}"
-            lines.append(f"  {loc}: {e['msg']} (got {shown})")
+            shown = _clip(json.dumps(given, default=str)) if not isinstance(given, dict) else "{...}"
+            lines.append(f"  {loc}: {_clip(e['msg'], 4 * _SHOWN_CHARS)} (got {shown})")
     return "\n".join(lines)
+
+
+def _check_size(root: Any, children: Any, where: str) -> None:
+    """Refuse a config that nests deeper than ``MAX_DEPTH`` or expands to more than ``MAX_VALUES`` values, without
+    expanding it: a container that appears many times (a YAML alias) is measured once, and one that contains
+    itself is refused. ``children(x)``: x's items, or None for a scalar (works on YAML nodes and on Python data)."""
+    where = f" in {where}" if where else ""
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[Any, int, bool]] = [(root, 1, False)]
+    while stack:
+        obj, depth, done = stack.pop()
+        items = children(obj)
+        if items is None:
+            continue
+        key = id(obj)
+        if done:
+            on_path.discard(key)
+            n = 1 + sum(sizes.get(id(c), 1) if children(c) is not None else 1 for c in items)
+            if n > MAX_VALUES:
+                raise ConfigError(
+                    f"configuration{where} expands to more than {MAX_VALUES} values (YAML aliases that "
+                    "refer to aliases multiply); refused"
+                )
+            sizes[key] = n
+            continue
+        if key in sizes:
+            continue
+        if key in on_path:
+            raise ConfigError(f"configuration{where} contains itself (a YAML alias inside its own anchor)")
+        if depth > MAX_DEPTH:
+            raise ConfigError(f"configuration{where} nests deeper than {MAX_DEPTH} levels")
+        on_path.add(key)
+        stack.append((obj, depth, True))
+        stack.extend((c, depth + 1, False) for c in items)
+
+
+def _data_items(x: Any) -> Any:
+    if isinstance(x, dict):
+        return list(x.values())
+    return list(x) if isinstance(x, (list, tuple)) else None
+
+
+def _node_items(node: Any) -> Any:
+    if isinstance(node, yaml.MappingNode):
+        return [n for pair in node.value for n in pair]
+    return list(node.value) if isinstance(node, yaml.SequenceNode) else None
+
+
+def _load_yaml(text: str, where: str) -> Any:
+    """``yaml.safe_load``, refusing documents that would expand past the bounds (checked on the parsed nodes,
+    where aliases are still shared, before any Python object is built)."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        _check_size(node, _node_items, where)
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
 
 
 def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
@@ -368,9 +383,11 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] |
 def parse_value(text: str) -> Any:
     """A command-line value: YAML scalars and lists (``5``, ``null``, ``true``, ``[1, 2]``), else the string."""
     try:
-        return yaml.safe_load(text)
+        return _load_yaml(text, "a command-line override")
     except yaml.YAMLError:
         return text
+    except RecursionError:
+        raise ConfigError(f"override value {_clip(text)!r} nests too deeply") from None
 
 
 def apply_override(data: dict[str, Any], dotted: str) -> None:
@@ -413,12 +430,19 @@ def load_raw(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"config file {str(path)!r} does not exist")
-    text = path.read_text()
+    kind = "JSON" if path.suffix == ".json" else "YAML"
     try:
-        data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text)
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"config file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start}); expected {kind}"
+        ) from None
+    try:
+        data = json.loads(text) if kind == "JSON" else _load_yaml(text, repr(str(path)))
     except (json.JSONDecodeError, yaml.YAMLError) as e:
-        kind = "JSON" if path.suffix == ".json" else "YAML"
-        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {e}") from None
+        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_clip(str(e), 1000)}") from None
+    except RecursionError:
+        raise ConfigError(f"config file {str(path)!r} nests too deeply to parse") from None
     if data is None:
         data = {}
     if not isinstance(data, dict):
@@ -438,6 +462,7 @@ def load_config(
         data = source.model_dump()
         where = ""
     elif isinstance(source, dict):
+        _check_size(source, _data_items, "")
         data, where = json.loads(json.dumps(source)), ""
     elif source is None:
         data, where = {}, ""
@@ -445,6 +470,7 @@ def load_config(
         data, where = load_raw(source), str(source)
     for o in overrides or []:
         apply_override(data, o)
+    _check_size(data, _data_items, repr(where) if where else "")
     try:
         return EngineConfig.model_validate(data)
     except ValidationError as e:

@@ -16,7 +16,7 @@ Note [Borrowed results]
 By default a result's host arrays are the caller's own copies. With ``copy=False`` (``wait``, ``results``,
 ``latest``) they are read-only views of the head's output slot instead: eight 1080p float32 depth maps are 66 MB a
 frame, and copying them costs more than the heads' GPU time on a fast GPU. A borrowed slot is pinned by one of the
-head's ``output.leases`` lease readers, so the head never writes into it while anything refers to the arrays (no
+head's ``LEASES`` (2) lease readers, so the head never writes into it while anything refers to the arrays (no
 torn reads); once the last array, view of one, or tensor made from one is gone, the lease goes back at the next
 ``wait``/``results``/``latest`` call. With every lease of a head out, further results of that head are copies
 (``Result.borrowed`` says which). The mapping outlives ``stop()`` as long as a view of it does.
@@ -35,27 +35,35 @@ order, from one writer at a time.
 from __future__ import annotations
 
 import collections
+import functools
 import logging
-import math
 import shutil
 import sys
 import tempfile
 import threading
 import time
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import numpy as np
 import torch
 
+from vpengine import checks
+from vpengine.boundary import Boundary, Placement
 from vpengine.config import EngineConfig, load_config
-from vpengine.runtime.control import ControlBlock
+from vpengine.models.preprocess import IMAGENET_MEAN
+from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock
+from vpengine.runtime.fence import MappingFence
+from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.plan import Plan, make_plan
-from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner
+from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
-from vpengine.transport.ring import ReaderDecl, RingReader, SlotInfo, SlotRing
+from vpengine.transport.layout import SlotLayout
+from vpengine.transport.memory import free_bytes
+from vpengine.transport.ring import Accept, ReaderDecl, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
 
@@ -63,6 +71,22 @@ __all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result
 
 _ORIGINS_KEPT = 8192
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
+LEASES = 2  # results of each head a caller may hold without a copy (Note [Borrowed results])
+
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def _fenced(method: _F) -> _F:
+    """An API method that runs inside the engine's fence: what it touches stays mapped until it returns, and once
+    ``stop()`` has begun it raises EngineDeadError (Note [Unmapping at stop] in runtime/fence.py)."""
+
+    @functools.wraps(method)
+    def call(self: Engine, *args: Any, **kw: Any) -> Any:
+        with self._res.fence:
+            return method(self, *args, **kw)
+
+    return cast(_F, call)
 
 
 def _refcounts(pool: list[np.ndarray]) -> list[int]:
@@ -187,49 +211,131 @@ class Result:
     #: True: the host arrays are read-only views of the head's output slot, kept for as long as they are referenced
     #: (Note [Borrowed results]); False: they are copies.
     borrowed: bool = False
+    #: (height, width) of the submitted frame.
+    frame_size: tuple[int, int] = (0, 0)
+    #: "frame": maps at the frame's size, boxes in its pixels (the default); "native": in the models' input grid,
+    #: as the head's ``output.grid: native`` asks (Note [Frame grid] in boundary.py).
+    grid: str = "frame"
+    #: Where the frame lies in the models' input grid; maps native outputs to the frame's grid.
+    placement: Placement | None = None
+    #: The frame itself, for results of ``Engine.predict`` (others: None; the engine keeps no frames).
+    image: np.ndarray | None = None
+    #: The head's metadata (kind, labels, palette), for drawing.
+    info: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def __getitem__(self, key: str) -> Any:
         return self.outputs[key]
 
+    def plot(self, image: np.ndarray | None = None) -> np.ndarray:
+        """This result drawn as a BGR uint8 picture at its frame's size: on ``image`` (or the predicted frame,
+        ``self.image``) when given, else on its own (depth colours with a bar, class colours, boxes on black)."""
+        from vpengine.io.visualize import draw_result
+
+        frame = self.image if image is None else image
+        if frame is None and self.info.get("kind") == "detection":
+            frame = np.zeros((*self.frame_size, 3), np.uint8)
+        return draw_result(frame, self, self.info, self.head)
+
 
 class _Resources:
-    """What must be released even if the user forgets stop(): workers, mailboxes, control block."""
+    """What must be released even if the user forgets stop(): workers, mailboxes, control block. Refers to nothing
+    that refers to the Engine, so that an Engine nobody refers to is collected and this is closed by its finalizer."""
 
     def __init__(self) -> None:
         self.runner: Runner | None = None
         self.rings: dict[str, SlotRing] = {}
         self.control: ControlBlock | None = None
         self.dirs: list[str] = []  # private temporary directories (e.g. the no-MPS pipe directory)
+        self.fence = MappingFence()  # Note [Unmapping at stop]
+        self.log_file: logging.Handler | None = None
 
     def close(self) -> list[str]:
         forced: list[str] = []
         if self.runner is not None:
             forced = self.runner.stop()
+            for thread in self.runner.threads_alive():  # abandoned workers: unmap once they are gone
+                self.fence.hold_until_gone(thread)
             self.runner = None
+        if self.log_file is not None:
+            logging.getLogger("vpengine").removeHandler(self.log_file)
+            self.log_file.close()
+            self.log_file = None
+        for d in self.dirs:
+            shutil.rmtree(d, ignore_errors=True)
+        self.dirs = []
+        self.fence.close(self._unmap)  # Note [Unmapping at stop]: now, or once the last user is gone
+        return forced
+
+    def _unmap(self) -> None:
         for ring in self.rings.values():
             ring.close()
         self.rings = {}
         if self.control is not None:
             self.control.close()
             self.control = None
-        for d in self.dirs:
-            shutil.rmtree(d, ignore_errors=True)
-        self.dirs = []
-        return forced
+
+
+def _worker_env(cfg: EngineConfig, mps_dir: str | None, nomps_dir: str, name: str) -> dict[str, str]:
+    """Environment overrides for a worker process, decided at each (re)start."""
+    if torch.device(cfg.device).type != "cuda":
+        return {}
+    from vpengine.runtime import mps
+
+    use = mps_dir if mps_dir and mps.status(mps_dir)["reachable"] else None
+    env = {"CUDA_MPS_PIPE_DIRECTORY": use or nomps_dir}
+    if use:
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
+    elif mps_dir:
+        log.warning("MPS daemon at %s no longer answers: %s starts without MPS", mps_dir, name)
+    return env
 
 
 class FrameSlot:
     """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
 
-    def __init__(self, engine: Engine, frame_id: int | None, timestamp: float | None) -> None:
+    def __init__(
+        self, engine: Engine, frame_id: int | None, timestamp: float | None, size: tuple[int, int] | None
+    ) -> None:
         self._engine = engine
         # capture time in seconds; may be set inside the block (default: when it ends)
         self.timestamp = timestamp
         self._frame_id_arg = frame_id
+        self._size = size
         self.frame_id: int | None = None  # set when the block ends and the frame is submitted
-        self.array: np.ndarray | None = None
+        self._array: np.ndarray | None = None
         self._slot: SlotInfo | None = None
         self._cancelled = False
+
+    @property
+    def array(self) -> np.ndarray | None:
+        """The writable frame: ``(height, width, 3)`` of the input dtype (None outside the block)."""
+        return self._array
+
+    @array.setter
+    def array(self, value: np.ndarray) -> None:
+        """``ok, slot.array = cap.read(image=slot.array)``: what a writer hands back must be the lent array itself.
+        A writer that allocated a new array instead (OpenCV does when the sizes differ) wrote nothing into the
+        slot: refused, naming both sizes, rather than submitting whatever the slot held before."""
+        arr = self._array
+        if arr is None:
+            raise RuntimeError("a FrameSlot's array exists only inside its with-block")
+        if not isinstance(value, np.ndarray) or value.__array_interface__["data"][0] != arr.ctypes.data:
+            got = (
+                f"{value.shape[1]}x{value.shape[0]}"
+                if isinstance(value, np.ndarray) and value.ndim >= 2
+                else (type(value).__name__)
+            )
+            raise ValueError(
+                f"the frame was written into a new {got} array, not into the {arr.shape[1]}x{arr.shape[0]} slot "
+                f"(a writer allocates one when the sizes differ): open the slot with frame_slot(size=(height, width)) "
+                "of your frames"
+            )
+        if value.shape != arr.shape or value.dtype != arr.dtype:
+            raise ValueError(
+                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: open the slot "
+                "with frame_slot(size=(height, width)) of your frames"
+            )
 
     def cancel(self) -> None:
         """Submit nothing when the block ends (e.g. the camera returned no frame)."""
@@ -239,32 +345,51 @@ class FrameSlot:
         eng = self._engine
         if self._slot is not None or self.frame_id is not None or self._cancelled:
             raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
+        fence = eng._res.fence
+        fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
         eng._submit_lock.acquire()
         try:
             eng._require_running()
             slot = eng._acquire_input()
         except BaseException:
             eng._submit_lock.release()
+            fence.leave()
             raise
         eng._filling = threading.get_ident()
         self._slot = slot
-        self.array = eng._frame_views[slot.index]
+        # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
+        # (Note [Frame grid] in boundary.py)
+        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._size)
         return self
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        eng, slot = self._engine, self._slot
-        assert slot is not None
-        self.array, self._slot = None, None  # the slot is the engine's again: no writes after the block
+        eng, slot, arr = self._engine, self._slot, self._array
+        assert slot is not None and arr is not None
+        self._array, self._slot = None, None  # the slot is the engine's again: no writes after the block
         try:
             if exc_type is not None or self._cancelled or eng._state != "running":
                 eng._input_writer.abort(slot)
                 return
             t_submit = time.monotonic()
-            t_capture = time.time() if self.timestamp is None else float(self.timestamp)
-            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit)
+            try:
+                stamp = checks.timestamp(self.timestamp)  # may have been set inside the block
+            except ValueError:
+                eng._input_writer.abort(slot)
+                raise
+            t_capture = time.time() if stamp is None else stamp
+            if self._size is None:
+                placement = eng.boundary.placement(arr.shape[:2])
+            else:
+                try:
+                    placement = eng.boundary.write(eng.boundary.check(arr), eng._frame_views[slot.index])
+                except BaseException:
+                    eng._input_writer.abort(slot)
+                    raise
+            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit, placement)
         finally:
             eng._filling = None
             eng._submit_lock.release()
+            eng._res.fence.leave()
 
 
 class Engine:
@@ -287,6 +412,14 @@ class Engine:
         self._submitted = 0
         self._rejected = 0
         self._origins: collections.OrderedDict[int, int] = collections.OrderedDict()
+        # input seq -> where the frame lies in the input canvas (Note [Frame grid] in boundary.py)
+        self._placements: collections.OrderedDict[int, Placement] = collections.OrderedDict()
+        self.boundary = Boundary(
+            self.config,
+            {h: (m.meta, m.output_spec) for h, m in self.plan.heads.items()},
+            self.plan.foundation.meta.get("normalize_mean", IMAGENET_MEAN),
+        )
+        self._staged: dict[tuple[int, int], np.ndarray] = {}
         self._results_active = False
         self._pool: Any = None
         self._host_outputs = _HostOutputs()
@@ -296,6 +429,7 @@ class Engine:
         self._mps_dir: str | None = None
         self._nomps_dir = ""
         self._finalizer_dirs = self._res.dirs
+        self._handoffs = Handoffs()  # thread mode: replaced at start (runtime/handoff.py)
 
     # ------------------------------------------------------------------------------------------ lifecycle
     def start(self) -> Engine:
@@ -309,38 +443,12 @@ class Engine:
         try:
             if device.type == "cuda":
                 self._prepare_cuda(device, shared)
-            gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
-            res.rings["input"] = SlotRing.create(
-                "input",
-                plan.frame_spec,
-                cfg.input.slots or (7 if cfg.foundation_model.input_mode == "fifo" else 3),
-                [ReaderDecl("foundation", cfg.foundation_model.input_mode)],
-                "cpu",
-                shared,
-                pinned=gpu,
-            )
-            fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
-            n_feat = cfg.foundation_model.feature_slots or max(3, len(heads) + 2 + fifo_margin)
-            res.rings["features"] = SlotRing.create(
-                "features",
-                plan.features,
-                n_feat,
-                [ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
-                device,
-                shared,
-            )
-            for h in cfg.heads:
-                leases = [ReaderDecl(f"lease{i}", active=False) for i in range(h.output.leases)]
-                res.rings[f"out.{h.name}"] = SlotRing.create(
-                    f"out.{h.name}",
-                    plan.heads[h.name].output_spec,
-                    h.output.slots + h.output.leases,
-                    [ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
-                    device if h.output.location == "device" else "cpu",
-                    shared,
-                    h.output.overflow,
-                    pinned=gpu,
-                )
+            mailboxes = self._mailboxes(device, shared)
+            self._check_preallocation(mailboxes)  # before any of it is allocated
+            for m in mailboxes:
+                res.rings[m["name"]] = SlotRing.create(**m)
+            if cfg.logging.file:
+                res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
             res.control = ControlBlock.create(cfg.model_names())
             res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
             for h in cfg.heads:
@@ -349,11 +457,15 @@ class Engine:
             if shared:
                 from vpengine.runtime.process import ProcessRunner
 
-                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=self._worker_env)
+                # not a bound method: the runner must not refer to the Engine (see _Resources)
+                env_for = functools.partial(_worker_env, cfg, self._mps_dir, self._nomps_dir)
+                res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=env_for)
             else:
+                from vpengine.runtime.handoff import make_handoffs
                 from vpengine.runtime.threads import ThreadRunner
 
-                res.runner = ThreadRunner(specs, res.rings, res.control, cfg)
+                self._handoffs = make_handoffs(res.rings, heads, device.type == "cuda")
+                res.runner = ThreadRunner(specs, res.rings, res.control, cfg, handoffs=self._handoffs)
             res.runner.start()
         except BaseException:
             self._state = "stopped"
@@ -365,7 +477,7 @@ class Engine:
         self._peek_readers = {h: res.rings[f"out.{h}"].reader("peek") for h in heads}
         self._leases = _Leases(
             {
-                h.name: [res.rings[f"out.{h.name}"].reader(f"lease{i}") for i in range(h.output.leases)]
+                h.name: [res.rings[f"out.{h.name}"].reader(f"lease{i}") for i in range(LEASES)]
                 for h in cfg.heads
             }
         )
@@ -399,10 +511,10 @@ class Engine:
             raise EngineStartError(
                 f"device {cfg.device!r}: only {torch.cuda.device_count()} CUDA device(s) visible"
             )
-        self._mps_dir = mps.find_daemon(cfg.mps_pipe_directory) if cfg.mps != "off" else None
+        self._mps_dir = mps.find_daemon() if cfg.mps != "off" else None
         if cfg.mps == "required" and self._mps_dir is None:
             raise EngineStartError(
-                f"mps: required, but no MPS control daemon answers in {mps.candidate_dirs(cfg.mps_pipe_directory)}; "
+                f"mps: required, but no MPS control daemon answers in {mps.candidate_dirs()}; "
                 "start one with `vpengine mps start` or set mps: auto"
             )
         if not torch.cuda.is_initialized():
@@ -427,48 +539,93 @@ class Engine:
         if self._mps_dir:
             log.info("CUDA MPS daemon found at %s: model workers will be MPS clients", self._mps_dir)
 
-    def _worker_env(self, name: str) -> dict[str, str]:
-        """Environment overrides for a worker process, decided at each (re)start."""
-        if torch.device(self.config.device).type != "cuda":
-            return {}
-        from vpengine.runtime import mps
+    def _mailboxes(self, device: torch.device, shared: bool) -> list[dict[str, Any]]:
+        """``SlotRing.create``'s arguments for every mailbox: the input, the features, one output per head."""
+        cfg, plan = self.config, self.plan
+        gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
+        fifo_margin = 4 if any(h.input_mode == "fifo" for h in cfg.heads) else 0
+        mailboxes: list[dict[str, Any]] = [
+            dict(
+                name="input",
+                specs=plan.frame_spec,
+                n_slots=7 if cfg.foundation_model.input_mode == "fifo" else 3,
+                readers=[ReaderDecl("foundation", cfg.foundation_model.input_mode)],
+                device="cpu",
+                shared=shared,
+                pinned=gpu,
+            ),
+            dict(
+                name="features",
+                specs=plan.features,
+                n_slots=max(3, len(cfg.heads) + 2 + fifo_margin),
+                readers=[ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
+                device=device,
+                shared=shared,
+            ),
+        ]
+        for h in cfg.heads:
+            leases = [ReaderDecl(f"lease{i}", active=False) for i in range(LEASES)]
+            mailboxes.append(
+                dict(
+                    name=f"out.{h.name}",
+                    specs=plan.heads[h.name].output_spec,
+                    n_slots=h.output.slots + LEASES,
+                    readers=[ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
+                    device=device if h.output.location == "device" else "cpu",
+                    shared=shared,
+                    overflow=h.output.overflow,
+                    pinned=gpu,
+                )
+            )
+        return mailboxes
 
-        use = self._mps_dir if self._mps_dir and mps.status(self._mps_dir)["reachable"] else None
-        env = {"CUDA_MPS_PIPE_DIRECTORY": use or self._nomps_dir}
-        if use:
-            mcfg = self.config.foundation_model if name == "foundation" else self.config.head(name)
-            env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
-        elif self._mps_dir:
-            log.warning("MPS daemon at %s no longer answers: %s starts without MPS", self._mps_dir, name)
-        return env
+    def _check_preallocation(self, mailboxes: list[dict[str, Any]]) -> None:
+        """Refuse mailboxes that do not fit the memory free now, naming their size (rather than failing in the
+        middle of allocating them, or leaving the machine swapping)."""
+        need: dict[str, dict[str, int]] = {}  # device -> mailbox -> bytes
+        for m in mailboxes:
+            nbytes = SlotLayout.from_specs(m["specs"], m["n_slots"]).total_bytes
+            need.setdefault(str(torch.device(m["device"])), {})[m["name"]] = nbytes
+        def size(b: float) -> str:
+            return f"{b / 1e9:.2f} GB" if b >= 1e9 else f"{b / 1e6:.1f} MB"
+
+        for dev, sizes in need.items():
+            total, free = sum(sizes.values()), free_bytes(torch.device(dev))
+            if free is not None and total > free:
+                biggest = ", ".join(f"{n} {size(b)}" for n, b in sorted(sizes.items(), key=lambda x: -x[1])[:3])
+                raise EngineStartError(
+                    f"the mailboxes need {size(total)} of {'host' if dev == 'cpu' else dev} memory ({biggest}), "
+                    f"but only {size(free)} is free; lower input.height/width, output.slots or "
+                    "the number of heads"
+                )
 
     def _worker_specs(self) -> list[WorkerSpec]:
         cfg, plan, rings = self.config, self.plan, self._res.rings
         dump = cfg.model_dump(mode="json")
         specs = [
             WorkerSpec(
-                "foundation",
-                "foundation",
-                dump,
-                plan.frame_spec,
-                {},
-                rings["input"].desc,
-                "foundation",
-                rings["features"].desc,
+                name="foundation",
+                role="foundation",
+                config=dump,
+                upstream=plan.frame_spec,
+                upstream_meta={},
+                in_ring=rings["input"].desc,
+                in_reader="foundation",
+                out_ring=rings["features"].desc,
                 notify_output=False,
             )
         ]
-        for name, _model in plan.heads.items():
+        for name in plan.heads:
             specs.append(
                 WorkerSpec(
-                    name,
-                    "head",
-                    dump,
-                    plan.features,
-                    plan.feature_meta,
-                    rings["features"].desc,
-                    name,
-                    rings[f"out.{name}"].desc,
+                    name=name,
+                    role="head",
+                    config=dump,
+                    upstream=plan.features,
+                    upstream_meta=plan.feature_meta,
+                    in_ring=rings["features"].desc,
+                    in_reader=name,
+                    out_ring=rings[f"out.{name}"].desc,
                     notify_output=True,
                 )
             )
@@ -541,42 +698,21 @@ class Engine:
             raise EngineDeadError(f"the foundation model has failed for good: {ctl.last_error('foundation')}")
 
     # -------------------------------------------------------------------------------------------- input
-    def _check_frame(self, frame: Any) -> np.ndarray:
-        inp = self.config.input
-        want = f"a C-contiguous {inp.dtype} numpy array of shape ({inp.height}, {inp.width}, 3) ({inp.color.upper()})"
-        if isinstance(frame, torch.Tensor):
-            if frame.device.type != "cpu":
-                raise ValueError(f"expected {want}; got a tensor on {frame.device} (submit host frames)")
-            frame = frame.numpy()
-        if not isinstance(frame, np.ndarray):
-            raise ValueError(f"expected {want}; got {type(frame).__name__}")
-        if frame.size == 0:
-            raise ValueError(f"expected {want}; got an empty array of shape {frame.shape}")
-        if frame.ndim != 3 or frame.shape[2] != 3:
-            channels = frame.shape[2] if frame.ndim == 3 else "no channel axis"
-            raise ValueError(f"expected {want}; got shape {frame.shape} ({channels} channels)")
-        if frame.shape[:2] != (inp.height, inp.width):
-            raise ValueError(
-                f"expected {want}; got {frame.shape[0]}x{frame.shape[1]} (resize it, or set input.height/width)"
-            )
-        if frame.dtype != np.dtype(inp.dtype):
-            raise ValueError(f"expected {want}; got dtype {frame.dtype}")
-        if not frame.flags.c_contiguous:
-            raise ValueError(f"expected {want}; got a non-contiguous array (use np.ascontiguousarray)")
-        if frame.dtype.kind == "f" and not np.isfinite(frame).all():
-            raise ValueError(f"expected {want} with finite values; got NaN or inf")
-        return frame
-
+    @_fenced
     def submit(self, frame: Any, frame_id: int | None = None, timestamp: float | None = None) -> int:
         """Hand a frame to the engine. Returns its frame id (``frame_id`` or the next integer).
 
-        ``timestamp`` is the capture time in seconds (e.g. the camera's stamp); default: now. Never blocks on the
-        models: if the foundation model is busy, the newest frame wins and the overwritten one is counted as
-        skipped. Raises ValueError naming what was expected if the frame does not fit the configured input.
+        ``frame``: HxWx3 of the input dtype and colour order, of any size up to ``input.max_frame_side``; every
+        output for it comes back in its pixel grid (Note [Frame grid] in boundary.py). ``timestamp`` is the capture
+        time in seconds (e.g. the camera's stamp; default: now): rate limits run on these stamps, so a file's frames
+        stamped by their position obey them however fast they are fed. Never blocks on the models: if the
+        foundation model is busy, the newest frame wins and the overwritten one is counted as skipped. Raises
+        ValueError naming what was expected if the frame is not an image.
         """
         self._require_running()
         try:
-            arr = self._check_frame(frame)
+            arr = self.boundary.check(frame)
+            frame_id, timestamp = checks.frame_id(frame_id), checks.timestamp(timestamp)
         except ValueError:
             self._rejected += 1
             raise
@@ -585,31 +721,55 @@ class Engine:
         self._refuse_inside_frame_slot()
         with self._submit_lock:
             slot = self._acquire_input()
-            # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then spin
-            # (one per core); a plain memcpy costs a fraction of that at 30 Hz.
-            np.copyto(self._frame_views[slot.index], arr)
-            return self._publish_input(slot, frame_id, t_capture, t_submit)
+            try:  # an error gives the slot back: a leaked slot is a frame the ring never gets again
+                placement = self.boundary.write(arr, self._frame_views[slot.index])
+                return self._publish_input(slot, frame_id, t_capture, t_submit, placement)
+            except BaseException:
+                self._input_writer.abort(slot)
+                raise
 
-    def frame_slot(self, frame_id: int | None = None, timestamp: float | None = None) -> FrameSlot:
+    @_fenced
+    def frame_slot(
+        self, frame_id: int | None = None, timestamp: float | None = None, size: tuple[int, int] | None = None
+    ) -> FrameSlot:
         """The next input slot, to write a frame into in place: ``submit`` without its copy (Note [Frame slots]).
 
         ::
 
-            with engine.frame_slot() as slot:
-                ok, _ = cap.read(image=slot.array)   # the camera decodes straight into the input mailbox
+            with engine.frame_slot(size=(h, w)) as slot:   # (h, w): the camera's frames
+                ok, slot.array = cap.read(image=slot.array)   # decoded straight into the input mailbox
                 if not ok:
                     slot.cancel()                    # nothing is submitted
             fid = slot.frame_id                      # set when the block ends: the frame is submitted then
 
-        ``slot.array`` is a writable ``(height, width, 3)`` array of the configured dtype; its content is whatever an
-        earlier frame left there until you write it. Leaving the block submits it (latency counts from there); an
-        exception inside the block or ``cancel()`` gives the slot back and submits nothing. One slot is open at a
-        time: other threads' ``submit``/``frame_slot`` calls wait for it to close, so fill it promptly (a camera
-        read, a decode); calling them from inside the block raises RuntimeError.
+        ``slot.array`` is a writable ``(height, width, 3)`` array of the configured dtype: the input mailbox slot
+        itself, or, with ``size=(height, width)`` other than the models' input size, a buffer kept for frames of that
+        size, fitted into the slot when the block ends (Note [Frame grid] in boundary.py). Its content is whatever
+        an earlier frame left there until you write it. Assign what a writer hands back to ``slot.array``
+        (``ok, slot.array = cap.read(image=slot.array)``): a writer that allocated a new array instead of writing
+        into it (OpenCV does when the sizes differ) raises ValueError naming both sizes. Leaving the block submits
+        it (latency counts from there); an exception inside the block or ``cancel()`` gives the slot back and
+        submits nothing. One slot is open at a time: other threads' ``submit``/``frame_slot`` calls wait for it to
+        close, so fill it promptly (a camera read, a decode); calling them from inside the block raises
+        RuntimeError.
         """
         self._require_running()
         self._refuse_inside_frame_slot()
-        return FrameSlot(self, frame_id, timestamp)
+        if size is not None:
+            h, w = (int(v) for v in size)
+            if not (0 < h <= self.boundary.max_side and 0 < w <= self.boundary.max_side):
+                raise ValueError(
+                    f"frame_slot size {size!r}: height and width must be 1..{self.boundary.max_side} (input.max_frame_side)"
+                )
+            size = None if (h, w) == self.boundary.canvas_hw else (h, w)
+        return FrameSlot(self, checks.frame_id(frame_id), checks.timestamp(timestamp), size)
+
+    def _staging(self, size: tuple[int, int]) -> np.ndarray:
+        """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size, kept."""
+        buf = self._staged.get(size)
+        if buf is None:
+            buf = self._staged[size] = np.zeros((*size, 3), self.boundary.dtype)
+        return buf
 
     def _refuse_inside_frame_slot(self) -> None:
         if self._filling == threading.get_ident():
@@ -621,11 +781,17 @@ class Engine:
         assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
         return slot
 
-    def _publish_input(self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float) -> int:
+    def _publish_input(
+        self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float, placement: Placement
+    ) -> int:
         """Publish a filled input slot; the caller holds ``_submit_lock``."""
         fid = self._next_id if frame_id is None else int(frame_id)
         self._next_id = fid + 1
-        inline = self._input_writer.ring.inline
+        # known before the frame is visible (this is the ring's one writer): its results may come back at once
+        self._placements[self._input_writer.ring.last_seq + 1] = placement
+        if len(self._placements) > _ORIGINS_KEPT:
+            self._placements.popitem(last=False)
+        inline = self._handoffs.inline
         if inline is not None:  # thread mode: queue the foundation's work from here (Note [Inline launch])
             seq = inline.publish(self._input_writer, slot, fid, t_capture, t_submit)
         else:
@@ -643,16 +809,44 @@ class Engine:
         numpy = self._numpy_heads.get(head)
         if numpy is None:  # a head's outputs are host arrays, or not, in every slot
             numpy = self._numpy_heads[head] = all(_numpy_output(t) for t in slot.tensors.values())
-        return self._leases.borrow(head, slot) if numpy else None
+        if not numpy or self._grid_change(head, slot) is not None:
+            return None  # outputs mapped to another grid are new arrays: nothing to lend
+        return self._leases.borrow(head, slot)
+
+    def _grid_change(self, head: str, slot: SlotInfo) -> Placement | None:
+        """The placement to map ``head``'s output in ``slot`` back to its frame's grid, or None (same grid, or the
+        head keeps the native grid)."""
+        p = self._placements.get(slot.origin)
+        if p is None:  # pragma: no cover - kept for _ORIGINS_KEPT frames, far more than any mailbox holds
+            raise RuntimeError(f"no record of the frame behind {head}'s output for frame {slot.frame_id}")
+        return None if p.identity or head in self.boundary.native else p
+
+    def _done_filter(self, head: str) -> Accept | None:
+        """Note [Result hand-off]: the pin filter that takes only ``head``'s results whose device work is done."""
+        events = self._handoffs.results.get(head)
+        return None if events is None else events.done
 
     def _to_result(self, head: str, slot: SlotInfo, borrowed: dict[str, np.ndarray] | None = None) -> Result:
         """``head``'s result from pinned ``slot`` once its device work is done: ``borrowed``, ``_borrow``'s arrays
         (taken before the wait), or else copied."""
         # Note [Result hand-off]
-        t_ready = self._results_readers[head].ring.wait_done(slot, self.config.runtime.wait_spin_us * 1e-6)
+        events = self._handoffs.results.get(head)
+        t_ready = slot.t_publish if events is None else events.wait_done(slot)
         outputs: dict[str, Any]
+        change = self._grid_change(head, slot)
         if borrowed is not None:
             outputs = borrowed
+        elif change is not None:  # Note [Frame grid]: mapped straight out of the slot, into new arrays
+            kinds = self.boundary.kinds[head]
+            outputs = {}
+            for k, t in slot.tensors.items():
+                v = t.numpy() if _numpy_output(t) else t
+                if k in kinds:
+                    outputs[k] = change.to_frame(kinds[k], v)
+                else:
+                    outputs[k] = (
+                        self._host_outputs.copy(head, k, v) if isinstance(v, np.ndarray) else t.clone()
+                    )
         else:
             outputs = {
                 k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()
@@ -660,6 +854,7 @@ class Engine:
             }
         if all(isinstance(v, np.ndarray) for v in outputs.values()):
             outputs = self.plan.heads[head].finalize(outputs)
+        p = self._placements[slot.origin]
         return Result(
             head,
             slot.frame_id,
@@ -669,6 +864,10 @@ class Engine:
             slot.seq,
             t_ready,
             borrowed=borrowed is not None,
+            frame_size=p.frame_hw,
+            grid="native" if head in self.boundary.native else "frame",
+            placement=p,
+            info=self.plan.heads[head].meta,
         )
 
     def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:
@@ -694,6 +893,7 @@ class Engine:
             raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
         return head
 
+    @_fenced
     def latest(self, head: str, copy: bool = True) -> Result | None:
         """The newest output of ``head``, or None if it has produced nothing yet. ``copy=False``: borrowed, not
         copied, while a lease is free (Note [Borrowed results])."""
@@ -701,7 +901,7 @@ class Engine:
         reader = self._peek_readers[self._head(head)]
         with self._read_lock:
             self._leases.drain()
-            slot = reader.pin(peek=True, done=True)
+            slot = reader.pin(peek=True, accept=self._done_filter(head))
             if slot is None:
                 return None
             try:
@@ -709,6 +909,7 @@ class Engine:
             finally:
                 reader.release(slot)
 
+    @_fenced
     def results(
         self, timeout: float = 0.0, heads: list[str] | None = None, copy: bool = True
     ) -> list[Result]:
@@ -720,6 +921,7 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
+        timeout = checks.timeout(timeout)
         ctl = self._res.control
         assert ctl is not None
         names = [self._head(h) for h in heads] if heads else list(self._results_readers)
@@ -738,7 +940,7 @@ class Engine:
                     pinned: list[tuple[str, SlotInfo]] = []
                     try:
                         for h in more:
-                            slot = self._results_readers[h].pin(done=True)
+                            slot = self._results_readers[h].pin(accept=self._done_filter(h))
                             if slot is not None:
                                 pinned.append((h, slot))
                         out.extend(self._copy_out(pinned, copy).values())
@@ -749,21 +951,25 @@ class Engine:
                 remaining = deadline - time.monotonic()
                 if out or remaining <= 0 or self._state != "running":
                     return sorted(out, key=lambda r: r.t_publish)
-                ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+                ctl.wait_output(word, min(remaining, POLL_S))
 
+    @_fenced
     def wait(
         self, frame_id: int, heads: list[str] | None = None, timeout: float = 5.0, copy: bool = True
     ) -> dict[str, Result]:
         """The outputs of ``heads`` (default: all) for frame ``frame_id``, waiting up to ``timeout`` s.
 
-        Heads that skipped the frame (rate limit, newer frame) or whose output for it was already overwritten
-        are left out of the dict. Raises TimeoutError naming the heads still pending at the timeout. A result
+        Heads that give no output for the frame are left out of the dict, and the wait for them ends as soon as
+        they know it (Note [Answered frames] in runtime/worker.py): a rate limit held it back (the foundation
+        model's or the head's), it took a newer frame, it is paused or failed, its run raised, or its output was
+        already overwritten. Raises TimeoutError naming the heads still pending at the timeout. A result
         published while its device work still runs (Note [Result hand-off]) is waited for in the driver when its
         head's recent results say it will be done in time, and otherwise left for its head to report done; so a
         wait outlasts ``timeout`` only by how much a result is late on that prediction. ``copy=False``: results are
         borrowed, not copied, while a lease is free (Note [Borrowed results]).
         """
         self._require_running()
+        timeout = checks.timeout(timeout)
         ctl = self._res.control
         assert ctl is not None
         origin = self._origins.get(int(frame_id))
@@ -776,21 +982,33 @@ class Engine:
         deadline = time.monotonic() + timeout
         while True:
             word = ctl.output_word()
+            # Note [Answered frames]: read before looking for outputs; a frame the foundation held back reaches no head
+            f_decided = ctl.get("foundation", "decided")  # before last_run, which decide() stores first
+            f_ran = ctl.get("foundation", "last_run") >= origin
+            held_back = not f_ran and (f_decided >= origin or ctl.rate("foundation") == 0)
             with self._read_lock:
                 self._leases.drain()
                 found: list[tuple[str, SlotInfo]] = []
                 try:
                     for h in list(pending):
+                        answered = held_back or ctl.get(h, "decided") >= origin
                         reader = self._peek_readers[h]
                         slot, newest = reader.pin_origin(origin)
-                        if slot is not None and reader.ring.done_after(slot, deadline):
+                        events = self._handoffs.results.get(h)
+                        if slot is not None and events is not None and events.done_after(slot, deadline):
                             # Note [Result hand-off]: its queued work is not expected to be done in time; leave
                             # it until its head says it is done (or the timeout), rather than wait past it
                             reader.release(slot)
                             continue
                         if slot is not None:
                             found.append((h, slot))
-                        if slot is not None or newest > origin or ctl.state(h) == "failed":
+                        if (
+                            slot is not None
+                            or answered
+                            or newest > origin
+                            or ctl.state(h) in NOT_SERVING
+                            or ctl.rate(h) == 0  # paused: answers nothing (one already running still may)
+                        ):
                             pending.remove(h)
                     done.update(self._copy_out(found, copy))
                 finally:
@@ -805,19 +1023,30 @@ class Engine:
                 )
             if self._state != "running":
                 raise EngineDeadError("engine stopped while waiting")
-            ctl.wait_output(word, min(remaining, self.config.runtime.poll_s))
+            ctl.wait_output(word, min(remaining, POLL_S))
+
+    def predict(self, image: Any, timeout: float = 30.0, timestamp: float | None = None) -> dict[str, Result]:
+        """One frame through every head: ``submit`` then ``wait``; each result carries the frame (``image``) for
+        ``Result.plot()``, and its outputs are in the frame's pixel grid, whatever its size. A head whose rate
+        limit holds the frame back (on ``timestamp``, default now) is left out, as with ``wait``."""
+        fid = self.submit(image, timestamp=timestamp)
+        results = self.wait(fid, timeout=timeout)
+        frame = self.boundary.check(image)
+        for r in results.values():
+            r.image = frame
+        return results
 
     # ------------------------------------------------------------------------------------------ control
+    @_fenced
     def set_rate(self, model: str, hz: float | None) -> None:
         """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause."""
         ctl = self._model_control(model)
-        if hz is not None and (not isinstance(hz, (int, float)) or not math.isfinite(hz) or hz < 0):
-            raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
-        ctl.set_rate(model, None if hz is None else float(hz))
-        inline = self._input_writer.ring.inline
+        ctl.set_rate(model, checks.rate(model, hz))
+        inline = self._handoffs.inline
         if inline is not None and model == "foundation":
             inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
+    @_fenced
     def rate(self, model: str) -> float | None:
         """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
         read of shared memory), unlike ``stats()``; for a loop that checks it every frame."""
@@ -835,8 +1064,14 @@ class Engine:
 
     def stats(self) -> dict[str, Any]:
         """Counters, rates, latencies and mailbox states, read from shared memory (no logs parsed)."""
-        if self._state != "running":
+        if self._state != "running" or not self._res.fence.enter():
             return {"engine": {"state": self._state}}
+        try:  # Note [Unmapping at stop]
+            return self._stats()
+        finally:
+            self._res.fence.leave()
+
+    def _stats(self) -> dict[str, Any]:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None
@@ -869,6 +1104,8 @@ class Engine:
                 "uptime_s": time.monotonic() - self._t_start,
                 "submitted": self._submitted,
                 "rejected": self._rejected,
+                # Note [Inline launch]: frames whose foundation work the submitting thread queued
+                "launched_by_submit": self._handoffs.inline.launches if self._handoffs.inline else 0,
                 "mps": {
                     "setting": self.config.mps,
                     "daemon": self._mps_dir,

@@ -18,8 +18,8 @@ from tests_paths import tiny
 from vpengine.backends import BackendError, make_executor
 from vpengine.engine import Engine
 from vpengine.models.base import Model
+from vpengine.models.build import build_model
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 
 pytestmark = [
     pytest.mark.gpu,
@@ -349,9 +349,8 @@ def test_engine_with_compiled_models_on_cuda_matches_eager(mode):
     """Every model compiled and graph-captured, concurrently in worker threads or processes, on their own streams."""
     compiled = [f"heads.{h}.backend=compile" for h in ("depth", "seg", "det")]
     runs = {}
-    # compiled models run from graphs bound to the slots (Note [Slot-bound runs]); their workers poll the end of
-    # their device work (runtime.sync_spin_us, Note [Device sync])
-    slot_bound = ["foundation_model.backend=compile", *compiled, "runtime.sync_spin_us=200"]
+    # compiled models run from graphs bound to the slots (Note [Slot-bound runs])
+    slot_bound = ["foundation_model.backend=compile", *compiled]
     for label, extra in (("eager", []), ("compile", slot_bound)):
         cfg = tiny(mode, "device=cuda", *extra)
         out = {}

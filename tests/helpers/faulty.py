@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ctypes
+import logging
 import os
 import signal
 import time
@@ -14,12 +16,16 @@ from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyVi
 class FaultOptions(Options):
     raise_at_run: int | None = None  # raise on this run (1-based) of this process
     once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
-    hang_at_run: int | None = None  # sleep forever on this run
+    hang_at_run: int | None = None  # sleep forever (or hang_s) on this run and every later one
+    hang_s: float | None = None  # how long a hang lasts; None: for ever
+    exit_at_run: int | None = None  # os._exit(0) on this run (once, with once_marker)
+    gil_hang_at_run: int | None = None  # on this run, sleep for ever in C code that holds the GIL
     ignore_sigterm: bool = False
     sleep_ms: float = 0.0  # every run takes at least this long
     stall_every: int | None = None  # every Nth run also sleeps stall_ms (a transient lag)
     stall_ms: float = 0.0
     fail_build: bool = False
+    log_at_build: str | None = None  # log this (WARNING, logger vpengine.faulty) when built
 
 
 class FaultyHead(TinyDepthHead):
@@ -37,6 +43,8 @@ class FaultyHead(TinyDepthHead):
         fault = ctx.options(FaultOptions)
         if fault.fail_build and not ctx.plan_only:
             raise RuntimeError("injected build failure")
+        if fault.log_at_build and not ctx.plan_only:
+            logging.getLogger("vpengine.faulty").warning("%s", fault.log_at_build)
         return cls(ctx, fault)
 
     def forward(self, inputs):
@@ -54,9 +62,20 @@ class FaultyHead(TinyDepthHead):
             if f.once_marker is not None:
                 Path(f.once_marker).touch()
             raise RuntimeError(f"injected failure at run {run} (pid {os.getpid()})")
-        if f.hang_at_run is not None and run >= f.hang_at_run:
-            while True:
-                time.sleep(3600)
+        if f.exit_at_run is not None and run == f.exit_at_run and first_time:
+            if f.once_marker is not None:
+                Path(f.once_marker).touch()
+            os._exit(0)
+        if f.gil_hang_at_run is not None and run == f.gil_hang_at_run:
+            ctypes.PyDLL(None).sleep(100000)  # a PyDLL call keeps the GIL: no other thread of ours runs
+        if f.hang_at_run is not None and run >= f.hang_at_run and first_time:
+            if f.once_marker is not None:
+                Path(f.once_marker).touch()
+            if f.hang_s is not None:
+                time.sleep(f.hang_s)
+            else:
+                while True:
+                    time.sleep(3600)
         return super().forward(inputs)
 
 

@@ -10,8 +10,8 @@ import torch
 
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.base import Model
+from vpengine.models.build import build_model
 from vpengine.models.tiny import feature_specs
-from vpengine.runtime.worker import build_model
 
 
 def head_config(

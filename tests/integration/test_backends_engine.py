@@ -41,9 +41,8 @@ def confident(det: dict, margin: float = 1e-3) -> list[tuple]:
 
 @pytest.mark.parametrize("mode", ["thread", "process"])
 def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, tmp_path):
-    exact = (
-        "foundation_model.preprocess.fast_uint8_resize=false"  # what an ONNX export computes, in both engines
-    )
+    # cropped, not resized: the CPU's fast 8-bit resize and an ONNX export's float resize differ by a grey level
+    exact = "foundation_model.preprocess.resize=none"
     want = run_lockstep(tiny(mode, exact), N_FRAMES)
     cfg = tiny(
         mode,

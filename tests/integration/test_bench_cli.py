@@ -1,73 +1,125 @@
-"""`vpengine bench` end to end on the CPU with the tiny models: the harness that produced the GPU results runs, writes
-results a report can read, and refuses bad arguments by name."""
+"""`vpengine bench paper` end to end on the CPU with the tiny models (configs/tiny.yaml), the harness that produces the
+GPU results: every experiment that runs off CUDA writes its results, `--set` reaches the engine, `vpengine bench
+report` reads what it wrote, and the GPU scripts run their CPU equivalents (release.sh's stages, compare.sh's
+before/after with its report)."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 
 import pytest
 from test_cli import vpengine
+
+from tests_paths import ROOT
 
 pytestmark = pytest.mark.timeout(420)
 
 PNG = b"\x89PNG\r\n\x1a\n"
 
 
-def test_paper_harness_e1_and_floor_then_report(tmp_path):
+def test_paper_runs_every_cpu_experiment_and_the_report_reads_them(tmp_path):
     p = vpengine(
-        "bench", "paper", "--tiny", "--device", "cpu", "--experiments", "E1,floor", "--heads", "1,2",
-        "--frames", "5", "--floor-heads", "depth,seg", "--tag", "smoke", "--out", str(tmp_path), timeout=400,
+        "bench", "paper", "--config", "configs/tiny.yaml", "--experiments", "E1,E2,E4,E5,floor", "--heads", "1,2",
+        "--frames", "5", "--e5-frames", "60", "--floor-heads", "depth,seg", "--tag", "smoke", "--out", str(tmp_path),
+        timeout=400,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    assert [f.name for f in tmp_path.iterdir()] == ["paper_cpu_smoke.json"]  # figures are the report's
     res = json.loads((tmp_path / "paper_cpu_smoke.json").read_text())
+    assert res["machine"]["cores"] >= 1 and res["setup"]["config"] == "configs/tiny.yaml"
     assert res["setup"]["backbone"] == "tiny_vit" and res["setup"]["device"] == "cpu"
-    rows = res["E1"]["rows"]
-    assert [r["heads"] for r in rows] == [1, 2]
-    for r in rows:
-        for kind in ("engine", "independent", "sequential"):
-            assert r[kind]["n"] == 5 and 0 < r[kind]["p50"] <= r[kind]["p99"], (kind, r[kind])
-        assert math.isclose(r["speedup_vs_independent"], r["independent"]["mean"] / r["engine"]["mean"])
+    for key in ("E1", "E2"):
+        rows = res[key]["rows"]
+        assert [r["heads"] for r in rows] == [1, 2]
+        for r in rows:
+            kinds = ("engine", "sequential", "independent") if key == "E1" else ("engine", "sequential")
+            for kind in kinds:
+                assert r[kind]["n"] == 5 and 0 < r[kind]["p50"] <= r[kind]["p99"], (kind, r[kind])
+            assert r["device_ms"] == {}  # no CUDA events on the CPU
+    r = res["E1"]["rows"][1]
+    assert math.isclose(r["speedup_vs_independent"], r["independent"]["mean"] / r["engine"]["mean"])
+    e4 = res["E4"]
+    assert [x["rate_hz"] for x in e4["rows"]] == [5, 10, 15, 20, 25, 30] and e4["input_seconds"] == 10
+    # never above the limit; below it only if this machine (shared, 2 cores) was too busy to keep up
+    assert all(0 < x["runs"] <= x["ideal"] + 1 for x in e4["rows"]), e4["rows"]
+    e5 = res["E5"]
+    assert e5["frames"] == 60 and set(e5["per_head_latency_ms"]) == {"depth", "seg", "det"}
+    assert e5["all_three_latency_ms"]["n"] > 0 and e5["memory_flat"] is None  # no device memory on the CPU
     floor = res["floor"]
-    assert floor["device_ms"] == {}  # no CUDA events on the CPU: no floor is claimed
-    assert "floor_sum_ms" not in floor and floor["chained_ms"] == {}
-    assert floor["thread"]["n"] == 5 and floor["process"]["n"] == 5
-    assert (tmp_path / "paper_cpu_smoke.png").read_bytes().startswith(PNG)
+    assert floor["heads"] == ["depth", "seg"] and floor["device_ms"] == {} and "floor_sum_ms" not in floor
+    for key in ("thread", "process", "thread_frame_slot", "process_frame_slot"):
+        assert floor[key]["n"] == 5, key
 
     r = vpengine("bench", "report", "--results", str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
     md = (tmp_path / "summary.md").read_text()
-    e1 = [line for line in md.splitlines() if line.startswith("| E1")]
-    assert len(e1) == 1 and "2 depth heads (tiny_vit, eager)" in e1[0] and "paper_cpu_smoke.json" in e1[0], md
-    assert "floor" not in md  # the CPU run has no device-time floor to report
+    assert "Machine: " in md and "-core" in md
+    label = "(tiny_vit, eager, 120x160"
+    for start in ("| E1 shared backbone + 2 depth heads ", "| E2 2 detection heads ", "| E4 rate limits, 10 s ",
+                  "| E5 60 frames at 30 Hz, depth+seg+det ", "| engine vs device-time floor "):  # fmt: skip
+        (line,) = [x for x in md.splitlines() if x.startswith(start)]
+        assert label in line and line.endswith("| paper_cpu_smoke.json |"), line
     assert (tmp_path / "summary.png").read_bytes().startswith(PNG)
 
 
-def test_paper_harness_names_a_bad_floor_head(tmp_path):
+def test_set_reaches_the_engine_and_the_report_labels_it(tmp_path):
     p = vpengine(
-        "bench", "paper", "--tiny", "--device", "cpu", "--experiments", "floor", "--floor-heads", "depth,sky",
-        "--out", str(tmp_path),
-    )  # fmt: skip
-    assert p.returncode != 0
-    assert "sky" in p.stderr and "accepted are depth, seg, det" in p.stderr, p.stderr[-2000:]
-
-
-def test_paper_harness_thread_mode_is_recorded_and_reported(tmp_path):
-    p = vpengine(
-        "bench", "paper", "--tiny", "--device", "cpu", "--experiments", "E1,E2", "--heads", "2", "--frames", "3",
-        "--mode", "thread", "--results", "borrow", "--tag", "thread", "--out", str(tmp_path), timeout=300,
+        "bench", "paper", "--config", "configs/tiny.yaml", "--set", "mode=thread", "--experiments", "E2",
+        "--heads", "2", "--frames", "3", "--results", "borrow", "--tag", "thread", "--out", str(tmp_path),
+        timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
-    assert "E1 N=2: engine (thread mode, MPS off, results borrow)" in p.stdout
-    assert "E2 N=2: engine (thread mode, MPS off, results borrow)" in p.stdout
+    assert "E2 N=2: engine (thread mode, MPS auto, results borrow)" in p.stdout
     res = json.loads((tmp_path / "paper_cpu_thread.json").read_text())
-    assert res["setup"]["mode"] == "thread" and res["setup"]["mps"] == "off"
-    assert res["setup"]["results"] == "borrow"
-    for key in ("E1", "E2"):
-        (row,) = res[key]["rows"]
-        assert row["heads"] == 2 and row["engine"]["n"] == 3 and row["sequential"]["n"] == 3
+    assert res["setup"]["mode"] == "thread" and res["setup"]["overrides"] == ["mode=thread"]
     r = vpengine("bench", "report", "--results", str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
     md = (tmp_path / "summary.md").read_text()
-    assert "| E1 shared backbone + 2 depth heads (tiny_vit, eager, thread mode, borrowed results) |" in md, md
-    assert "| E2 2 detection heads (tiny_vit, eager, thread mode, borrowed results) |" in md, md
+    assert "| E2 2 detection heads (tiny_vit, eager, 120x160, thread mode, borrowed results) |" in md, md
+
+
+def test_a_bad_override_is_named(tmp_path):
+    p = vpengine(
+        "bench", "paper", "--config", "configs/tiny.yaml", "--set", "mode=sideways", "--experiments", "E1",
+        "--out", str(tmp_path),
+    )  # fmt: skip
+    assert p.returncode != 0
+    assert "mode" in p.stderr and "sideways" in p.stderr, p.stderr[-2000:]
+
+
+def _script(name: str, *args: str, **env: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PYTHON": sys.executable, "CONFIG": "configs/tiny.yaml", **env}
+    cmd = ["bash", f"benchmarks/gpu/{name}", *args]
+    return subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=400)
+
+
+def test_release_script_stages_run_the_paper_and_the_report(tmp_path):
+    p = _script("release.sh", "e1", "report", "--", "--heads", "1", "--frames", "3", OUT=str(tmp_path))
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    assert "E1 N=1: engine" in p.stdout
+    assert sorted(f.name for f in tmp_path.iterdir()) == [
+        "paper_cpu_e1.json",
+        "release.log",
+        "summary.md",
+        "summary.png",
+    ]
+    assert "paper_cpu_e1.json |" in (tmp_path / "summary.md").read_text()
+    bad = _script("release.sh", "e9", OUT=str(tmp_path))
+    assert bad.returncode == 2 and "unknown stage e9; accepted: tests integration e1" in bad.stdout
+
+
+def test_compare_script_runs_both_trees_and_reports_after_against_before(tmp_path):
+    p = _script("compare.sh", ".", "E1", OUT=str(tmp_path), HEADS="1", FRAMES="3")
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    assert p.stdout.count("E1 N=1: engine") == 2
+    files = sorted(f.name for f in tmp_path.iterdir())
+    assert files == ["paper_cpu_after_e1.json", "paper_cpu_before_e1.json", "summary.md", "summary.png"]
+    md = (tmp_path / "summary.md").read_text()
+    (line,) = [x for x in md.splitlines() if x.startswith("| E1 | engine, 1 heads, mean |")]
+    assert line.endswith("| paper_cpu_after_e1.json |")
+    bad = _script("compare.sh", "no-such-tree", OUT=str(tmp_path))
+    assert bad.returncode != 0 and "neither a folder with src/vpengine nor a commit" in bad.stderr

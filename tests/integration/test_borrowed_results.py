@@ -16,7 +16,7 @@ from vpengine.engine import Engine
 
 pytestmark = pytest.mark.timeout(300)
 MODES = ["thread", "process"]
-SLOTS = 4 + 2  # output.slots + output.leases (defaults): frames after which an unpinned slot is overwritten
+SLOTS = 4 + 2  # output.slots (default) + the leases: frames after which an unpinned slot is overwritten
 
 
 def snapshot(results):
@@ -74,7 +74,7 @@ def test_a_view_or_tensor_keeps_its_slot_and_dropping_it_returns_the_lease(mode)
 
 @pytest.mark.parametrize("mode", MODES)
 def test_with_every_lease_out_results_are_copies_until_one_comes_back(mode):
-    with Engine(tiny(mode, "heads.depth.output.leases=2")) as e:
+    with Engine(tiny(mode)) as e:  # two leases a head
         held = []
         for i in range(3):
             held.append(e.wait(e.submit(frame(i)), heads=["depth"], timeout=30, copy=False)["depth"])
@@ -91,13 +91,6 @@ def test_with_every_lease_out_results_are_copies_until_one_comes_back(mode):
         run_frames(e, 4, 2)
         streamed = e.results(timeout=5, heads=["depth"], copy=False)
         assert [r.frame_id for r in streamed] == [4, 5] and all(r.borrowed for r in streamed)
-
-
-def test_no_leases_means_copies():
-    with Engine(tiny("thread", "heads.depth.output.leases=0")) as e:
-        res = e.wait(e.submit(frame(0)), timeout=30, copy=False)
-        assert not res["depth"].borrowed and res["seg"].borrowed
-        res["depth"]["depth"][0, 0] = 1.0  # the caller's own copy: writable
 
 
 def test_a_borrowed_result_outlives_the_engine():

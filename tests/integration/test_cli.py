@@ -6,6 +6,7 @@ import json
 import shutil
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,10 +17,13 @@ from tests_paths import MEDIA, ROOT, tiny
 pytestmark = pytest.mark.timeout(300)
 
 
-def vpengine(*args: str, timeout: float = 240) -> subprocess.CompletedProcess:
+def command(*args: str) -> list[str]:
     exe = shutil.which("vpengine", path=str(ROOT / ".venv" / "bin")) or shutil.which("vpengine")
-    cmd = [exe, *args] if exe else [sys.executable, "-m", "vpengine.cli.main", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=ROOT)
+    return [exe, *args] if exe else [sys.executable, "-m", "vpengine.cli.main", *args]
+
+
+def vpengine(*args: str, timeout: float = 240, cwd=ROOT) -> subprocess.CompletedProcess:
+    return subprocess.run(command(*args), capture_output=True, text=True, timeout=timeout, cwd=cwd)
 
 
 def test_run_on_the_street_video_writes_every_heads_outputs_and_a_summary(tmp_path):
@@ -49,11 +53,14 @@ def test_run_on_the_street_video_writes_every_heads_outputs_and_a_summary(tmp_pa
     for head in ("depth", "seg", "det"):
         e2e = s["models"][head]["e2e_latency_ms"]
         assert 0 < e2e["p50"] <= e2e["p99"]
-    depth = np.load(out / "depth" / "000200.npy")
-    assert depth.shape == (576, 768) and depth.dtype == np.float32  # full resolution, never quantised
-    assert sorted(p.name for p in (out / "depth").glob("*.npy")) == [
-        f"{i:06d}.npy" for i in (0, 200, 400, 600)
+    from vpengine.io.sinks import load_depth
+
+    depth = load_depth(out / "depth", "000200")  # a 16-bit PNG and its scale (Note [Depth PNG])
+    assert depth.shape == (576, 768) and depth.dtype == np.float32 and np.isfinite(depth).all()
+    assert sorted(p.name for p in (out / "depth").glob("*.png")) == [
+        f"{i:06d}.png" for i in (0, 200, 400, 600)
     ]
+    assert not s["interrupted"] and s["inputs_skipped"] == []
     import cv2
 
     seg = cv2.imread(str(out / "seg" / "000400.png"), cv2.IMREAD_UNCHANGED)
@@ -62,7 +69,7 @@ def test_run_on_the_street_video_writes_every_heads_outputs_and_a_summary(tmp_pa
     assert [json.loads(x)["frame_id"] for x in lines] == list(range(795))  # one line per frame, in order
     first = json.loads(lines[0])
     assert len(first["boxes"]) == len(first["scores"]) == len(first["names"])
-    assert (out / "depth" / "viz" / "000000.png").exists() and (out / "det" / "viz" / "000000.jpg").exists()
+    assert (out / "depth" / "viz" / "000000.jpg").exists() and (out / "det" / "viz" / "000000.jpg").exists()
 
 
 def test_run_with_the_synthetic_source_needs_no_files(tmp_path):
@@ -89,7 +96,7 @@ def test_run_with_the_synthetic_source_needs_no_files(tmp_path):
     assert fm["runs"] + fm["skipped"] == 60
     # a live source never waits for the writer (Note [Sink thread]); a result it could not write is counted
     depth = s["models"]["depth"]
-    written = len(list((tmp_path / "depth").glob("*.npy")))
+    written = len(list((tmp_path / "depth").glob("*.png")))
     assert written > 0 and written + depth["results_unwritten"] == depth["results_received"]
 
 
@@ -108,7 +115,7 @@ def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_i
     s = run_pipeline(tiny("thread"), source, tmp_path / "o", pace="lockstep", progress=False)
     assert s["frames_submitted"] + s["source_missed"] == 150 and s["source_missed"] > 0
     assert f"camera frames a newer one replaced: {s['source_missed']}" in format_summary(s)
-    names = [int(p.stem) for p in sorted((tmp_path / "o" / "depth").glob("*.npy"))]
+    names = [int(p.stem) for p in sorted((tmp_path / "o" / "depth").glob("*.png"))]
     assert len(names) == s["frames_submitted"] and names[-1] == 149  # gaps where frames were replaced
 
 
@@ -134,7 +141,7 @@ def test_image_folder_source(tmp_path):
         "heads.seg.rate_hz=0",
     )
     assert p.returncode == 0, p.stderr
-    assert sorted(x.name for x in (out / "depth").glob("*.npy")) == [f"im{i}.npy" for i in range(5)]
+    assert sorted(x.name for x in (out / "depth").glob("*.png")) == [f"im{i}.png" for i in range(5)]
     s = json.loads((out / "summary.json").read_text())
     assert s["models"]["seg"]["runs"] == 0 and s["models"]["depth"]["results_received"] == 5
     assert "no output from" not in p.stderr  # never waited for the paused head
@@ -157,3 +164,238 @@ def test_info_reports_versions_devices_and_mps():
     assert info["versions"]["vpengine"] and info["versions"]["torch"]
     assert info["devices"][0]["device"] == "cpu"
     assert "reachable" in info["mps"] and "pipe_directory" in info["mps"]
+
+
+# ------------------------------------------------------------------------------------------------ predict, configs
+def test_predict_writes_annotated_pictures_to_a_new_folder_each_time_from_any_directory(tmp_path):
+    """No config file, no media: the default config and the sample ship with the package."""
+    import cv2
+
+    p = vpengine("predict", "sample:cheetah", "--no-progress", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    assert "rate limits off: every head runs on every frame" in p.stdout
+    assert "annotated pictures and summary.json in runs/predict\n" in p.stdout
+    picture = cv2.imread(str(tmp_path / "runs" / "predict" / "cheetah.jpg"))
+    assert picture.shape == (1080, 1920, 3)  # input, depth, seg, det: 2 x 2 pictures of 540 x 960
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(frames / f"im{i}.jpg"), np.full((120, 160, 3), 60 * i, np.uint8))
+    # a second run never writes into the first one's folder; the config's rate limits are off, and it says so
+    p = vpengine(
+        "predict", str(frames / "*.jpg"), "-c", "tiny", "--set", "heads.seg.rate_hz=1", "--mode", "thread",
+        "--no-progress", cwd=tmp_path,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert "(the config limits seg to 1 Hz)" in p.stdout and "in runs/predict2\n" in p.stdout
+    assert sorted(x.name for x in (tmp_path / "runs" / "predict2").iterdir()) == [
+        "im0.jpg", "im1.jpg", "im2.jpg", "summary.json",
+    ]  # fmt: skip
+    s = json.loads((tmp_path / "runs" / "predict2" / "summary.json").read_text())
+    assert all(s["models"][h]["runs"] == 3 for h in ("depth", "seg", "det"))
+    assert sorted(x.name for x in (tmp_path / "runs" / "predict").iterdir()) == [
+        "cheetah.jpg",
+        "summary.json",
+    ]
+
+
+def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path, monkeypatch, capsys):
+    p = vpengine("config", "list", cwd=tmp_path)
+    assert p.returncode == 0, p.stderr
+    listed = dict(line.split(None, 1) for line in p.stdout.splitlines())
+    assert set(listed) >= {"tiny", "dinov2s_depth_seg_det", "tiny_every_frame"}
+    assert listed["tiny"].startswith("Tiny random-weight models")
+    p = vpengine("config", "show", "tiny", cwd=tmp_path)
+    assert p.returncode == 0 and "name: tiny" in p.stdout and "model: tiny_vit" in p.stdout
+    monkeypatch.chdir(tmp_path)  # the rest in this process: nothing here starts an engine
+    from vpengine import configs
+    from vpengine.cli.main import main
+
+    shipped = ROOT / "src" / "vpengine" / "configs"
+    assert configs.resolve("tiny") == configs.resolve("tiny.yaml") == shipped / "tiny.yaml"
+    (tmp_path / "tiny.yaml").write_text("name: mine\n")
+    assert configs.resolve("tiny.yaml") == Path("tiny.yaml")  # a file that exists is always taken as it is
+    assert main(["run", "-c", "nope", "-s", "synthetic:64x64@30:3"]) == 1
+    err = capsys.readouterr().err
+    assert "config 'nope' is neither a file nor a shipped config; shipped (by name, e.g. -c tiny): " in err
+    assert "dinov2s_depth_seg_det" in err and "Traceback" not in err
+    assert (
+        main(["run", "-c", "configs/tiny.yaml", "-s", "synthetic:64x64@30:3"]) == 1
+    )  # a path is never a name
+    assert "config 'configs/tiny.yaml' is neither a file nor a shipped config" in capsys.readouterr().err
+
+
+def test_the_package_installs_its_configs_and_samples(tmp_path):
+    """Package data must name files that exist: a wheel built from the tree carries every config and sample."""
+    import zipfile
+
+    tree = tmp_path / "tree"
+    tree.mkdir()
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, tree / name)
+    shutil.copytree(ROOT / "src", tree / "src", ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    p = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w", str(tmp_path), str(tree)],
+        capture_output=True, text=True, timeout=240,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    (wheel,) = tmp_path.glob("vpengine-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    configs = {f"vpengine/configs/{p.name}" for p in (ROOT / "src" / "vpengine" / "configs").glob("*.yaml")}
+    assert "vpengine/configs/tiny.yaml" in configs and configs <= names
+    assert {
+        "vpengine/samples/street.mp4",
+        "vpengine/samples/cheetah.jpg",
+        "vpengine/samples/README.md",
+    } <= names
+
+
+# ------------------------------------------------------------------------------------------------ runs to live with
+def test_run_writes_an_annotated_video_of_the_shipped_street_sample(tmp_path):
+    import cv2
+
+    p = vpengine(
+        "run", "-c", "tiny", "-s", "sample:street", "--max-frames", "12", "--video", str(tmp_path / "v.mp4"),
+        "--mode", "thread", "--no-progress",
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert f"annotated video in {tmp_path / 'v.mp4'}" in p.stdout
+    cap = cv2.VideoCapture(str(tmp_path / "v.mp4"))
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == 12 and cap.get(cv2.CAP_PROP_FPS) == 10  # the video's rate
+    assert (cap.get(cv2.CAP_PROP_FRAME_WIDTH), cap.get(cv2.CAP_PROP_FRAME_HEIGHT)) == (1536, 1152)  # 2 x 2
+    cap.release()
+
+
+@pytest.mark.parametrize("cmd", ["run", "predict"])
+def test_ctrl_c_ends_the_run_with_its_summary(tmp_path, cmd):
+    import signal
+    import time
+
+    out = tmp_path / "out"
+    source = "synthetic:160x120@30:100000"
+    args = ["run", "-c", "tiny", "-s", source] if cmd == "run" else ["predict", source]
+    proc = subprocess.Popen(
+        command(*args, "-o", str(out), "--no-progress"), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+        text=True,
+    )  # fmt: skip
+    try:
+        first = out / "depth" if cmd == "run" else out
+        deadline = time.monotonic() + 120
+        while not (first.is_dir() and any(first.glob("0*"))):  # frames are going through
+            assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 130, stderr
+    assert "Traceback" not in stderr and "stopping after this frame" in stderr
+    assert "interrupted after " in stdout and "foundation" in stdout  # the summary table
+    s = json.loads((out / "summary.json").read_text())
+    assert s["interrupted"] and 0 < s["frames_submitted"] < 100000
+
+
+def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, capsys, monkeypatch):
+    """In the CLI's own process, with an engine that must not be made: every check comes first."""
+    from vpengine.cli.main import main
+
+    def no_engine(*args, **kwargs):
+        raise AssertionError("the engine was made before the outputs were checked")
+
+    monkeypatch.setattr("vpengine.engine.Engine.__init__", no_engine)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "old.png").write_bytes(b"")
+    (tmp_path / "file").write_text("")
+    (tmp_path / "v.mp4").write_bytes(b"")
+    (tmp_path / "bag").mkdir()
+    run = ["run", "-c", "tiny", "-s", "synthetic:64x64@30:3", "--no-progress"]
+    for args, message in [
+        (
+            ["-o", str(tmp_path / "full")],
+            "exists already and holds files; give a new folder, or add --exist-ok",
+        ),
+        (["-o", str(tmp_path / "file" / "out")], f"cannot write --out '{tmp_path / 'file' / 'out'}': "),
+        (
+            ["--video", str(tmp_path / "v.mp4")],
+            "exists already; give a new name, or add --exist-ok to replace it",
+        ),
+        (["--out-bag", str(tmp_path / "bag")], "exists already; give a new name (never overwritten)"),
+        (["-s", "synthetic:64x64@0"], "synthetic source rate must be a number of Hz above 0, got 0.0"),
+    ]:
+        assert main([*run, *args]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("vpengine run: error: ") and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "full" / "summary.json").exists()
+    for option, value in [("--max-frames", "-1"), ("--max-frames", "0"), ("--fps", "0"), ("--fps", "-5"),
+                          ("--fps", "nan"), ("--fps", "inf"), ("--save-every", "0")]:  # fmt: skip
+        with pytest.raises(SystemExit) as e:
+            main([*run, option, value])
+        err = capsys.readouterr().err
+        assert e.value.code == 2 and f"argument {option}: expected " in err, (option, value, err)
+    monkeypatch.undo()
+    p = vpengine(*run, "-o", str(tmp_path / "full"), "--exist-ok", "--mode", "thread")
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "full" / "summary.json").exists() and (tmp_path / "full" / "old.png").exists()
+
+
+def test_a_missing_optional_extra_says_what_to_install(tmp_path):
+    bag = tmp_path / "in.mcap"
+    bag.write_bytes(b"")
+    script = (
+        "import sys; sys.modules['rosbags'] = None; sys.modules['cyclonedds'] = None\n"
+        "from vpengine.cli.main import main\n"
+        "sys.exit(main(sys.argv[1:]))"
+    )
+    for args in (["run", "-c", "tiny", "-s", str(bag)], ["ros2", "-c", "tiny", "--input-topic", "/cam"]):
+        p = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=120)
+        assert p.returncode == 1, p.stderr
+        assert (
+            p.stderr.strip()
+            .splitlines()[-1]
+            .endswith(
+                "needs the optional extra 'ros2' ("
+                + ("rosbags" if args[0] == "run" else "cyclonedds")
+                + " is not installed): pip install 'vpengine[ros2]'"
+            )
+        )
+        assert "Traceback" not in p.stderr
+
+
+def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path):
+    import cv2
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for i in range(4):
+        cv2.imwrite(str(frames / f"im{i}.png"), np.full((120, 160, 3), 50 * i, np.uint8))
+    (frames / "im2.png").write_bytes(b"not an image")
+    p = vpengine(
+        "run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress"
+    )
+    assert p.returncode == 0, p.stderr
+    assert "images skipped as unreadable: 1 (listed in summary.json)" in p.stdout
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert s["frames_submitted"] == 3 and s["inputs_skipped"] == [
+        {"file": str(frames / "im2.png"), "why": "not a readable image"}
+    ]
+
+
+def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path):
+    import cv2
+
+    from vpengine.io.sinks import load_depth
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    sizes = [(120, 160), (90, 200), (300, 140)]
+    for i, (h, w) in enumerate(sizes):
+        cv2.imwrite(str(frames / f"im{i}.png"), np.full((h, w, 3), 70 * i, np.uint8))
+    p = vpengine("predict", str(frames), "-o", str(tmp_path / "p"), "--mode", "thread", "--no-progress")
+    assert p.returncode == 0, p.stderr
+    p = vpengine(
+        "run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress"
+    )
+    assert p.returncode == 0, p.stderr
+    for i, size in enumerate(sizes):
+        assert load_depth(tmp_path / "o" / "depth", f"im{i}").shape == size
+        assert cv2.imread(str(tmp_path / "o" / "seg" / f"im{i}.png"), cv2.IMREAD_UNCHANGED).shape == size

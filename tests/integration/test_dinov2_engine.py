@@ -14,8 +14,8 @@ import torch
 from tests_paths import DEVICE, MEDIA
 from vpengine.config import load_config
 from vpengine.engine import Engine
+from vpengine.models.build import build_model
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -15,6 +15,7 @@ import psutil
 import pytest
 
 from helpers.frames import frame
+from helpers.inline import inline_launch
 from tests_paths import ROOT, tiny
 from vpengine.engine import Engine, EngineStartError
 
@@ -67,23 +68,22 @@ def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, 
         assert e.wait(fid, heads=["seg"], timeout=10)["seg"].frame_id == fid  # serving again
 
 
-@pytest.mark.parametrize("mode,inline", [("process", "auto"), ("thread", "auto"), ("thread", "always")])
+@pytest.mark.parametrize("mode,inline", [("process", False), ("thread", False), ("thread", True)])
 def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_features_as_before(
     tmp_path, mode, inline
 ):
     """On CUDA in thread mode the restarted foundation hands features off by event again (Note [Event hand-off]).
-    With ``inline_launch: always`` the failing run is launched by ``submit``, which must not raise: the worker
-    does, and is restarted (Note [Inline launch])."""
+    With the inline launch on (``helpers.inline``) the failing run is launched by ``submit``, which must not
+    raise: the worker does, and is restarted (Note [Inline launch])."""
     opts = json.dumps({"raise_at_run": 6, "once_marker": str(tmp_path / "raised")})
     cfg = tiny(
         mode,
         "foundation_model.model=helpers.faulty:FaultyViT",
         f"foundation_model.options={opts}",
         "runtime.restart_backoff_s=0.2",
-        f"runtime.inline_launch={inline}",
     )
     heads = ["depth", "seg", "det"]
-    with Engine(cfg) as e:
+    with inline_launch(inline), Engine(cfg) as e:
         before = e.wait(e.submit(frame(99)), timeout=10)  # run 1
         assert set(before) == set(heads)
         pump(e, 4, heads=heads)  # runs 2-5

@@ -1,17 +1,20 @@
 """Note [Inline launch]: in thread mode, the thread that publishes a frame queues the foundation model's work itself
-when the foundation worker is armed for one. On the CPU (``runtime.inline_launch: always``; ``auto`` uses it only for
-CUDA graphs) the submitting thread then runs the model, which these tests can see; the CUDA path is in
-tests/gpu/test_inline_launch_cuda.py."""
+when the foundation worker is armed for one. On the CPU (turned on for every worker by ``helpers.inline``; an engine
+uses it only for CUDA graphs) the submitting thread then runs the model, which these tests can see; the CUDA path is
+in tests/gpu/test_inline_launch_cuda.py."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
 
 from helpers.frames import frame
+from helpers.inline import inline_launch
 from helpers.models import ThreadNotingViT
 from tests_paths import tiny
 from vpengine.engine import Engine
@@ -20,19 +23,21 @@ pytestmark = pytest.mark.timeout(120)
 NOTING = "foundation_model.model=helpers.models:ThreadNotingViT"
 
 
-def engine(inline: str, *overrides: str) -> Engine:
-    return Engine(tiny("thread", NOTING, f"runtime.inline_launch={inline}", *overrides))
+@contextlib.contextmanager
+def engine(inline: bool, *overrides: str) -> Iterator[Engine]:
+    with inline_launch(inline), Engine(tiny("thread", NOTING, *overrides)) as e:
+        yield e
 
 
 def lockstep(e: Engine, n: int, armed: bool = False) -> dict[int, dict[str, dict[str, np.ndarray]]]:
     """Submit ``n`` frames one at a time, each after the last one's results; with ``armed``, each once the
     foundation worker is armed for it (a busy machine can keep its thread from re-arming for a while)."""
     out = {}
-    offer = e._res.rings["input"].inline
+    offer = e._handoffs.inline
     for i in range(n):
         if armed:
             deadline = time.monotonic() + 5.0
-            while offer._core is None and time.monotonic() < deadline:
+            while offer._launch is None and time.monotonic() < deadline:
                 time.sleep(0.001)
         res = e.wait(e.submit(frame(i), frame_id=i), timeout=10)
         assert set(res) == {"depth", "seg", "det"} and all(r.frame_id == i for r in res.values())
@@ -43,18 +48,18 @@ def lockstep(e: Engine, n: int, armed: bool = False) -> dict[int, dict[str, dict
 def test_the_submitting_thread_runs_the_armed_foundation_and_every_output_is_the_same():
     me = threading.current_thread().name
     inference = []  # whether each run had inference mode on
-    with engine("never") as e:
+    with engine(False) as e:
         ThreadNotingViT.threads.clear()
         ThreadNotingViT.inference.clear()
         plain = lockstep(e, 12)
         assert ThreadNotingViT.threads == ["vpengine-foundation"] * 12
         inference += ThreadNotingViT.inference
-    with engine("always") as e:
+    with engine(True) as e:
         ThreadNotingViT.threads.clear()
         ThreadNotingViT.inference.clear()
         inline = lockstep(e, 12, armed=True)
         st = e.stats()["models"]["foundation"]
-        launches = e._res.rings["input"].inline.launches
+        launches = e.stats()["engine"]["launched_by_submit"]
         inference += ThreadNotingViT.inference
     # the worker's loop runs in inference mode (entered once, Note [Launch path]), and so does a launch from submit
     assert inference == [True] * 24
@@ -70,18 +75,18 @@ def test_the_submitting_thread_runs_the_armed_foundation_and_every_output_is_the
 
 def test_frames_submitted_faster_than_the_foundation_runs_are_all_run_or_counted_skipped():
     opts = '{"sleep_ms": 5}'  # a head slower than the frames come: the foundation's slots turn over
-    with engine("always", "heads.depth.model=helpers.faulty:FaultyHead", f"heads.depth.options={opts}") as e:
+    with engine(True, "heads.depth.model=helpers.faulty:FaultyHead", f"heads.depth.options={opts}") as e:
         last = 0
         for i in range(150):
             last = e.submit(frame(i % 8))
         assert "depth" in e.wait(last, timeout=10)  # the newest frame is always run
         fm = e.stats()["models"]["foundation"]
         assert fm["runs"] + fm["skipped"] == 150 and fm["errors"] == 0, fm
-        assert e._res.rings["input"].inline.launches > 0
+        assert e.stats()["engine"]["launched_by_submit"] > 0
 
 
 def test_a_paused_foundation_takes_no_frame_from_submit_and_resumes():
-    with engine("always") as e:
+    with engine(True) as e:
         for _ in range(8):  # the pause lands wherever the worker is: armed, at its gate, or between the two
             lockstep(e, 2)
             e.set_rate("foundation", 0)
@@ -97,19 +102,19 @@ def test_a_paused_foundation_takes_no_frame_from_submit_and_resumes():
 
 
 def test_stop_wakes_an_armed_foundation_at_once():
-    e = engine("always").start()
-    lockstep(e, 2)
-    time.sleep(0.1)  # armed, waiting for a frame
-    t0 = time.monotonic()
-    e.stop()
-    assert time.monotonic() - t0 < 0.4  # not the worker's 0.5 s poll
+    with engine(True) as e:
+        lockstep(e, 2)
+        time.sleep(0.1)  # armed, waiting for a frame
+        t0 = time.monotonic()
+        e.stop()
+        assert time.monotonic() - t0 < 0.4  # not the worker's 0.5 s poll
 
 
 def test_rate_changes_while_frames_stream_in_leave_every_frame_run_or_counted():
     """Pauses, limits and unlimited, changed every few ms from another thread while frames come as fast as submit
     takes them: no error, no hang, and every frame is run or counted skipped."""
     imgs = [frame(i) for i in range(4)]
-    with engine("always") as e:
+    with engine(True) as e:
         done = threading.Event()
 
         def change_rates() -> None:
@@ -135,4 +140,4 @@ def test_rate_changes_while_frames_stream_in_leave_every_frame_run_or_counted():
         assert set(e.wait(last, timeout=10)) == {"depth", "seg", "det"}
         fm = e.stats()["models"]["foundation"]
         assert fm["errors"] == 0 and fm["runs"] + fm["skipped"] == n + 1, (n, fm)
-        assert e._res.rings["input"].inline.launches > 0
+        assert e.stats()["engine"]["launched_by_submit"] > 0

@@ -11,8 +11,8 @@ import torch
 from helpers.frames import frame
 from tests_paths import DEVICE, tiny
 from vpengine.engine import Engine
+from vpengine.models.build import build_model
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 
 pytestmark = pytest.mark.timeout(180)
 

@@ -309,7 +309,8 @@ def test_rate_change_over_dds_changes_the_achieved_rate_and_diagnostics_show_it(
         i = 0
         t0 = time.monotonic()
         while not stop:
-            writer.write_raw(image_bytes(i % 8, "bgr8", 1_800_000_000 + i, 5))
+            # stamped as a 20 Hz camera would: rate limits run on the stamps
+            writer.write_raw(image_bytes(i % 8, "bgr8", 1_800_000_000 + i // 20, (i % 20) * 50_000_000))
             i += 1
             time.sleep(max(0.0, t0 + i / 20.0 - time.monotonic()))  # 20 Hz
 

@@ -1,4 +1,5 @@
-"""`vpengine train detector` end to end: synthetic shapes + COCO JSON -> trained head -> engine detections."""
+"""`vpengine train detector` end to end: synthetic shapes + COCO JSON -> trained head -> engine detections; and the
+training library (`vpengine.models.training`) behind it."""
 
 from __future__ import annotations
 
@@ -180,7 +181,7 @@ def test_train_detector_cli_loss_falls_and_engine_detects_with_the_checkpoint(tm
 
 
 def test_coco_loader_maps_category_ids_to_labels_and_skips_crowd(tmp_path):
-    from vpengine.cli.train import load_coco
+    from vpengine.models.training import load_coco
 
     img_dir, ann, truth = make_dataset(tmp_path, n=3)
     data = json.loads(ann.read_text())
@@ -222,7 +223,7 @@ def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, messa
 
 
 def test_train_refuses_a_head_whose_classes_differ_from_the_annotations(tmp_path):
-    from vpengine.cli.train import train_detector
+    from vpengine.models.training import train_detector
 
     img_dir, ann, _ = make_dataset(tmp_path, n=2)
     cfg = write_config(tmp_path / "c.yaml")
@@ -232,3 +233,27 @@ def test_train_refuses_a_head_whose_classes_differ_from_the_annotations(tmp_path
         train_detector(
             cfg, img_dir, ann, tmp_path / "h.pth", overrides=["heads.det.options.class_names=[cat, dog]"]
         )
+
+
+def test_the_training_api_reports_each_epoch_to_its_caller_and_prints_nothing(tmp_path, capsys):
+    from vpengine.models.training import train_detector
+
+    img_dir, ann, _ = make_dataset(tmp_path, n=2)
+    cfg = write_config(tmp_path / "c.yaml")
+    seen: list[tuple[int, int, float, dict[str, float]]] = []
+    summary = train_detector(
+        cfg,
+        img_dir,
+        ann,
+        tmp_path / "h.pth",
+        epochs=2,
+        batch_size=2,
+        progress=False,
+        threads=1,
+        on_epoch=lambda *a: seen.append(a),
+    )
+    assert [(e, n) for e, n, _, _ in seen] == [(1, 2), (2, 2)]
+    assert [loss for _, _, loss, _ in seen] == summary["epoch_loss"]
+    assert [terms for _, _, _, terms in seen] == summary["epoch_losses"]
+    assert capsys.readouterr().out == ""  # printing is the command's job
+    assert (tmp_path / "h.pth").is_file() and (tmp_path / "h.train.json").is_file()

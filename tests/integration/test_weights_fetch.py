@@ -1,6 +1,8 @@
-"""Checkpoint downloads end to end against a real HTTP server on 127.0.0.1 (with Range support).
+"""Checkpoint downloads end to end against real HTTP servers on 127.0.0.1: a plain one (with Range support) for
+ordinary URLs, and one that answers as the Hugging Face Hub does for Hub files (huggingface_hub pointed at it with
+$HF_ENDPOINT).
 
-The catalog is swapped for one whose entries point at the local server, so nothing here touches the internet.
+The catalog is swapped for one whose entries point at the local servers, so nothing here touches the internet.
 """
 
 from __future__ import annotations
@@ -18,10 +20,11 @@ import pytest
 
 from vpengine.cli.main import main as cli
 from vpengine.config import load_config
-from vpengine.models import catalog
+from vpengine.models import catalog, download
 from vpengine.models.base import BuildContext
 from vpengine.models.catalog import Catalog, Entry
-from vpengine.models.weights import CheckpointError, offline, resolve_checkpoint
+from vpengine.models.download import offline
+from vpengine.models.weights import CheckpointError, cached_checkpoint, resolve_checkpoint
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -189,21 +192,26 @@ def test_offline_fails_naming_the_path_to_place_the_file_at(server, env, monkeyp
     entry = make_entry(server)
     dest = entry.path(env)
     with pytest.raises(CheckpointError) as e:
-        catalog.ensure(entry, env, offline=True, for_model="foundation")
+        cached_checkpoint(entry, env, for_model="foundation")
     msg = str(e.value)
     assert msg.startswith("foundation: ") and str(dest) in msg and entry.url in msg and DIGEST in msg
+    assert f"vpengine weights fetch {entry.name}" in msg
 
     monkeypatch.setenv("VPENGINE_OFFLINE", "1")
     assert offline() is True
     with catalog.use(Catalog([entry])):
         assert cli(["weights", "fetch", entry.name]) == 1
-    assert str(dest) in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert str(dest) in err and "offline mode" in err
     assert server.requests == []  # offline means not even one request
 
-    # A file placed there by hand is used offline once it hashes right.
+    # A file placed there by hand is used once it hashes right.
     dest.parent.mkdir(parents=True)
     dest.write_bytes(PAYLOAD)
-    assert catalog.ensure(entry, env, offline=True) == dest
+    assert cached_checkpoint(entry, env) == dest
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "fetch", entry.name]) == 0  # offline, but nothing to download
+    assert "already cached" in capsys.readouterr().out and server.requests == []
 
 
 def test_verify_detects_a_corrupted_cached_file(server, env, capsys):
@@ -226,7 +234,7 @@ def test_verify_detects_a_corrupted_cached_file(server, env, capsys):
 
         # The engine refuses the corrupted file too, instead of loading it.
         with pytest.raises(CheckpointError, match=f"expected sha256 {DIGEST}, got {bad}"):
-            catalog.ensure(entry, env, offline=True)
+            cached_checkpoint(entry, env)
 
         assert cli(["weights", "verify", "never_fetched"]) == 1
         assert f"MISSING      never_fetched: not in the cache ({other.path(env)})" in capsys.readouterr().out
@@ -236,23 +244,30 @@ def test_verify_detects_a_corrupted_cached_file(server, env, capsys):
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 0
 
 
-def test_resolve_checkpoint_returns_the_cached_path_of_a_catalog_name(server, env, caplog):
+def test_loading_never_downloads_and_finds_the_fetched_file_by_catalog_name(server, env, capsys):
     entry = make_entry(server)
+    configured = env / "configured"
     cfg = load_config(
-        "configs/tiny.yaml",
-        [f"foundation_model.checkpoint={entry.name}", f"weights.cache_dir={env / 'configured'}"],
+        "configs/tiny.yaml", [f"foundation_model.checkpoint={entry.name}", f"weights.cache_dir={configured}"]
     )
     ctx = BuildContext("foundation", "foundation", cfg.foundation_model, cfg, {})
     with catalog.use(Catalog([entry])):
-        with caplog.at_level("WARNING", logger="vpengine.weights"):
-            path = resolve_checkpoint(ctx, None)
-        assert path == entry.path(env / "configured") and path.read_bytes() == PAYLOAD
-        # The run-time download says what, from where, to where, and how to prevent it.
-        msg = caplog.text
-        assert f"downloading checkpoint {entry.name}" in msg and entry.url in msg and str(path) in msg
-        assert "weights.offline: true" in msg
+        # Not cached: the error says where to put the file and what fetches it, and nothing is requested.
+        with pytest.raises(CheckpointError) as e:
+            resolve_checkpoint(ctx, None)
+        msg = str(e.value)
+        assert msg.startswith("foundation: ") and str(entry.path(configured)) in msg and entry.url in msg
+        assert f"vpengine weights fetch {entry.name}" in msg and "--config" in msg
+        assert server.requests == []
 
-        assert resolve_checkpoint(ctx, None) == path  # cached: no second request
+        # `weights fetch --config` gets what the config loads, into the config's cache.
+        cfg_file = env.parent / "engine.json"
+        cfg_file.write_text(cfg.model_dump_json())
+        assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 0
+        assert f"{entry.name}: downloaded" in capsys.readouterr().out
+        path = resolve_checkpoint(ctx, None)
+        assert path == entry.path(configured) and path.read_bytes() == PAYLOAD
+        assert resolve_checkpoint(ctx, None) == path
         assert len(server.requests) == 1
 
         offline_cfg = load_config(cfg, ["weights.offline=true"])
@@ -274,7 +289,13 @@ def test_an_entry_without_a_digest_needs_sha256_or_trust_on_first_use(server, en
         assert "--sha256 HEX" in err and "--trust-on-first-use" in err
         assert server.requests == []
         with pytest.raises(CheckpointError, match="no known sha256"):
-            catalog.ensure(entry, env, offline=False)
+            download.fetch(entry, env)
+        entry.path(env).parent.mkdir(parents=True)
+        entry.path(env).write_bytes(PAYLOAD)  # placed by hand: still not used without a digest
+        with pytest.raises(CheckpointError, match="no known sha256"):
+            cached_checkpoint(entry, env)
+        entry.path(env).unlink()
+        entry.path(env).parent.rmdir()
 
         wrong = hashlib.sha256(b"nope").hexdigest()
         assert cli(["weights", "fetch", entry.name, "--sha256", wrong, "--no-progress"]) == 1
@@ -286,7 +307,7 @@ def test_an_entry_without_a_digest_needs_sha256_or_trust_on_first_use(server, en
         assert f"trusted on first use: sha256 {DIGEST}" in out
         # The accepted digest is recorded and from now on every use is checked against it.
         assert catalog.effective(entry, env).sha256 == DIGEST
-        assert catalog.ensure(entry, env, offline=True) == entry.path(env)
+        assert cached_checkpoint(entry, env) == entry.path(env)
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 0
         entry.path(env).write_bytes(
             PAYLOAD[:-1] + bytes([PAYLOAD[-1] ^ 0xFF])
@@ -328,15 +349,14 @@ def test_path_of_an_uncached_entry_prints_it_and_fails(server, env, capsys):
     assert out.out.strip() == str(entry.path(env)) and "not cached yet" in out.err
 
 
-def test_two_workers_needing_the_same_file_download_it_once(server, env):
-    # In process mode the DA-V2 encoder and its depth head resolve the same file at the same time.
+def test_two_fetches_of_the_same_file_at_once_download_it_once(server, env):
     entry = make_entry(server)
     server.delay = 0.05
     results: list[object] = []
 
     def worker() -> None:
         try:
-            results.append(catalog.ensure(entry, env, offline=False, for_model="w"))
+            results.append(download.fetch(entry, env, progress=False).path)
         except Exception as e:  # pragma: no cover - reported below
             results.append(e)
 
@@ -350,7 +370,7 @@ def test_two_workers_needing_the_same_file_download_it_once(server, env):
     assert entry.path(env).read_bytes() == PAYLOAD
 
 
-def test_prefetch_resolves_every_catalog_checkpoint_of_a_config_in_the_parent(server, env):
+def test_prefetch_fetches_every_catalog_checkpoint_of_a_config(server, env):
     default = make_entry(server, name="tiny_vit_default", default_for=("tiny_vit",))
     explicit = make_entry(
         server,
@@ -362,8 +382,154 @@ def test_prefetch_resolves_every_catalog_checkpoint_of_a_config_in_the_parent(se
     )
     cfg = load_config("configs/tiny.yaml", ["heads.depth.checkpoint=depth_ckpt"])
     with catalog.use(Catalog([default, explicit])):
-        assert catalog.prefetch(load_config(cfg, ["weights.random_weights=true"])) == []
+        assert download.prefetch(load_config(cfg, ["weights.random_weights=true"])) == []
+        with pytest.raises(CheckpointError, match="foundation: checkpoint 'tiny_vit_default'.*offline mode"):
+            download.prefetch(load_config(cfg, ["weights.offline=true"]))
         assert server.requests == []
-        paths = catalog.prefetch(cfg)
-    assert paths == [default.path(env), explicit.path(env)]
-    assert sorted(r["path"] for r in server.requests) == ["/ckpt/model.pth", "/ckpt/other.pth"]
+        paths = download.prefetch(cfg, progress=False)
+        assert paths == [default.path(env), explicit.path(env)]
+        assert sorted(r["path"] for r in server.requests) == ["/ckpt/model.pth", "/ckpt/other.pth"]
+        assert download.prefetch(load_config(cfg, ["weights.offline=true"])) == paths  # cached: no request
+    assert len(server.requests) == 2
+
+
+# ----------------------------------------------------------------------------------- files on the Hugging Face Hub
+HUB_URL = "https://huggingface.co/test-org/test-model/resolve/main/model.pth"
+HUB_PATH = "/test-org/test-model/resolve/main/model.pth"  # what huggingface_hub asks its endpoint for
+COMMIT = "0123456789abcdef0123456789abcdef01234567"
+
+
+@dataclass
+class Hub:
+    """A stand-in for the Hub's file endpoint: what it serves and what it was asked."""
+
+    endpoint: str
+    files: dict[str, tuple[bytes, str]] = field(default_factory=dict)  # path -> (body, etag)
+    requests: list[tuple[str, str]] = field(default_factory=list)
+
+    def serve(self, path: str, body: bytes, etag: str | None = None) -> None:
+        self.files[path] = (body, etag or hashlib.sha256(body).hexdigest())  # a Hub LFS etag is the sha256
+
+
+@pytest.fixture
+def hub(monkeypatch) -> Iterator[Hub]:
+    state = Hub("")
+
+    class Handler(http.server.BaseHTTPRequestHandler):
+        protocol_version = "HTTP/1.1"
+
+        def answer(self, with_body: bool) -> None:
+            state.requests.append((self.command, self.path))
+            if self.path not in state.files:
+                self.send_response(404)
+                self.send_header("X-Error-Code", "EntryNotFound")
+                self.send_header("Content-Length", "0")
+                self.end_headers()
+                return
+            body, etag = state.files[self.path]
+            self.send_response(200)
+            self.send_header("X-Repo-Commit", COMMIT)
+            self.send_header("ETag", f'"{etag}"')
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            if with_body:
+                self.wfile.write(body)
+
+        def do_HEAD(self) -> None:
+            self.answer(False)
+
+        def do_GET(self) -> None:
+            self.answer(True)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+    state.endpoint = f"http://127.0.0.1:{httpd.server_address[1]}"
+    monkeypatch.setenv("HF_ENDPOINT", state.endpoint)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield state
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+        thread.join(5)
+
+
+def hub_entry() -> Entry:
+    return Entry(
+        name="hub_model",
+        url=HUB_URL,
+        file="model.pth",
+        sha256=DIGEST,
+        size=len(PAYLOAD),
+        licence="Apache-2.0",
+        recipes=("tiny_vit",),
+        source="generated by the test",
+    )
+
+
+def test_a_hub_file_comes_through_huggingface_hub_into_the_cache_once(hub, env, capsys):
+    hub.serve(HUB_PATH, PAYLOAD)
+    entry = hub_entry()
+    dest = entry.path(env)
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 0
+        assert f"downloaded, sha256 {DIGEST} verified: {dest}" in capsys.readouterr().out
+        assert dest.read_bytes() == PAYLOAD
+        # From the Hub's endpoint ($HF_ENDPOINT), not from the URL's host.
+        assert ("GET", HUB_PATH) in hub.requests
+
+        asked = len(hub.requests)
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 0
+        assert "already cached" in capsys.readouterr().out
+        assert len(hub.requests) == asked  # the cached, verified copy: no request at all
+        assert cached_checkpoint(entry, env) == dest
+        assert cli(["weights", "verify", entry.name, "--no-progress"]) == 0
+
+        assert cli(["weights", "fetch", entry.name, "--force", "--no-progress"]) == 0
+        assert hub.requests.count(("GET", HUB_PATH)) == 2
+        assert dest.read_bytes() == PAYLOAD
+
+
+def test_a_corrupt_hub_file_is_refused_and_nothing_is_cached(hub, env, capsys):
+    bad = bytearray(PAYLOAD)
+    bad[len(bad) // 3] ^= 0xFF
+    hub.serve(HUB_PATH, bytes(bad), etag=DIGEST)  # the right etag and size, the wrong bytes
+    entry = hub_entry()
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert f"sha256 mismatch for hub_model from {HUB_URL}: expected {DIGEST}, got " in err
+    assert hashlib.sha256(bytes(bad)).hexdigest() in err
+    assert ("GET", HUB_PATH) in hub.requests
+    assert files_under(env) == []  # no checkpoint, no stamp, no huggingface_hub record
+    with pytest.raises(CheckpointError, match="is not in the cache"):
+        cached_checkpoint(entry, env)
+
+
+def test_a_hub_file_that_is_not_there_fails_naming_the_repository(hub, env, capsys):
+    entry = hub_entry()
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "from the Hugging Face Hub (test-org/test-model, model.pth at revision main) failed" in err
+    assert files_under(env) == []
+
+
+def test_offline_a_hub_file_is_not_requested_and_the_error_names_its_place(hub, env, monkeypatch, capsys):
+    hub.serve(HUB_PATH, PAYLOAD)
+    entry = hub_entry()
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "fetch", entry.name]) == 1
+        err = capsys.readouterr().err
+        assert str(entry.path(env)) in err and HUB_URL in err and "offline mode" in err
+        assert hub.requests == []
+
+        # A file placed there by hand is used offline once it hashes right.
+        entry.path(env).parent.mkdir(parents=True)
+        entry.path(env).write_bytes(PAYLOAD)
+        assert cli(["weights", "fetch", entry.name]) == 0
+    assert cached_checkpoint(entry, env) == entry.path(env) and hub.requests == []

@@ -11,7 +11,7 @@ from tests_paths import TINY
 from vpengine.cli.main import main as cli
 from vpengine.config import load_config
 from vpengine.models.accounting import parameter_report, sharing_saving
-from vpengine.runtime.worker import build_model
+from vpengine.models.build import build_model
 from vpengine.specs import TensorSpec
 
 

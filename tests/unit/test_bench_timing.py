@@ -9,7 +9,7 @@ import time
 import torch
 
 from vpengine.bench.common import event_ms
-from vpengine.bench.paper import timed
+from vpengine.bench.paper.harness import timed
 
 
 def test_event_ms_is_the_median_of_one_sample_per_call(monkeypatch):

@@ -103,6 +103,7 @@ def _entry(**kw) -> dict:
         ({"url": "file:///etc/passwd"}, "http(s) URL"),
         ({"file": "../x.pth"}, "plain file name"),
         ({"file": "x.pth.part"}, "plain file name"),
+        ({"file": ".cache"}, "plain file name"),
         ({"size": -1}, "positive number of bytes"),
         ({"licence": ""}, "licence"),
         ({"recipes": "r"}, "list of recipe names"),
@@ -146,3 +147,20 @@ def test_extra_catalog_files_from_the_environment_are_merged(tmp_path, monkeypat
 def test_cache_paths_keep_the_upstream_file_name_and_flatten_slashes(tmp_path):
     e = catalog.shipped().find("facebook/dinov2-small")
     assert e.path(tmp_path) == tmp_path / "weights" / "facebook--dinov2-small" / "model.safetensors"
+
+
+def test_hub_files_are_recognised_by_their_resolve_url_and_nothing_else():
+    e = catalog.shipped().find("depth_anything_v2_vits")
+    assert e.hub == catalog.HubFile("depth-anything/Depth-Anything-V2-Small", "main", "depth_anything_v2_vits.pth")
+    assert catalog.shipped().find("dinov2_vits14_pretrain").hub is None  # dl.fbaipublicfiles.com
+    hub = "https://huggingface.co/org/repo/resolve"
+    assert Entry.from_dict(_entry(url=f"{hub}/refs%2Fpr%2F3/x.pth")).hub == catalog.HubFile(
+        "org/repo", "refs/pr/3", "x.pth"
+    )
+    for url in (
+        "http://huggingface.co/org/repo/resolve/main/x.pth",  # not https
+        f"{hub}/main/sub/x.pth",  # in a subfolder: plain HTTP
+        "https://huggingface.co/org/repo/blob/main/x.pth",  # the web page, not the file
+        "https://example.org/org/repo/resolve/main/x.pth",
+    ):
+        assert Entry.from_dict(_entry(url=url)).hub is None, url

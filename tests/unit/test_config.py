@@ -67,12 +67,12 @@ def test_overrides_by_head_name_and_index_with_yaml_values():
             "heads.0.rate_hz=null",
             "mode=thread",
             "input.width=320",
-            "foundation_model.preprocess.mean=[0.5, 0.5, 0.5]",
+            "foundation_model.preprocess.size=224",
         ],
     )
     assert cfg.head("seg").rate_hz == 5 and cfg.head("depth").rate_hz is None
     assert cfg.mode == "thread" and cfg.input.width == 320
-    assert cfg.foundation_model.preprocess.mean == (0.5, 0.5, 0.5)
+    assert cfg.foundation_model.preprocess.size == 224
 
 
 def test_bad_overrides_are_clear():

@@ -8,11 +8,11 @@ import torch
 
 from vpengine.config import load_config
 from vpengine.models.base import BuildContext, ModelBuildError
+from vpengine.models.build import build_model
 from vpengine.models.detection import FasterRCNNHead
 from vpengine.models.preprocess import ImagePreprocess
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 from vpengine.specs import TensorSpec
 
 # Small enough to build and run in milliseconds; the layout is the full recipe's.

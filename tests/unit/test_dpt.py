@@ -15,10 +15,10 @@ from helpers.heads import upstream
 from vpengine.config import load_config
 from vpengine.io.visualize import colorize_depth, colormap_lut
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
+from vpengine.models.build import build_model
 from vpengine.models.dpt import SIZES, DepthColormap, DPTDepthHead, spectral_lut
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 
 TINY_WIDTHS = {"features": 16, "out_channels": [8, 16, 32, 32]}
 

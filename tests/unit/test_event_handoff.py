@@ -11,6 +11,7 @@ from collections.abc import Iterator
 import torch
 
 from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.handoff import SlotEvents, WorkerHandoff
 from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import SlotRing, latest_buffer
@@ -23,6 +24,15 @@ D = {"d": TensorSpec((4,), "float32")}
 class Event:
     def __init__(self, slot: int) -> None:
         self.slot = slot
+
+    def query(self) -> bool:
+        return False
+
+
+def events(n: int) -> SlotEvents:
+    """What the engine makes for a ring handed off on the device (runtime/handoff.py), with stand-in events."""
+    made = iter(range(n))
+    return SlotEvents(n, blocking=False, make_event=lambda blocking: Event(next(made)))
 
 
 class Dev:
@@ -60,7 +70,17 @@ class Dev:
 def spec(
     name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream, notify: bool = False
 ) -> WorkerSpec:  # type: ignore[no-untyped-def]
-    return WorkerSpec(name, role, {}, upstream, {}, in_ring.desc, name, out_ring.desc, notify)  # type: ignore[arg-type]
+    return WorkerSpec(
+        name=name,
+        role=role,  # type: ignore[arg-type]
+        config={},
+        upstream=upstream,
+        upstream_meta={},
+        in_ring=in_ring.desc,
+        in_reader=name,
+        out_ring=out_ring.desc,
+        notify_output=notify,
+    )
 
 
 def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type: ignore[no-untyped-def]
@@ -69,10 +89,9 @@ def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type
         "features": latest_buffer("features", F, ["depth"]),
         "out": latest_buffer("out", D, ["results"]),
     }
-    if handoff:  # what prepare_worker does for a thread-mode foundation on CUDA
-        rings["features"].device_events = [Event(i) for i in range(rings["features"].n_slots)]
-    if results:  # and for a head's results (Note [Result hand-off])
-        rings["out"].device_events = [Event(i) for i in range(rings["out"].n_slots)]
+    # what make_handoffs gives a thread-mode engine on CUDA: the features' events, a head's results' events
+    features = events(rings["features"].n_slots) if handoff else None
+    out = events(rings["out"].n_slots) if results else None
     control = ControlBlock.create(["foundation", "depth"])
     log: list[tuple] = []
 
@@ -92,6 +111,7 @@ def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type
         rings["features"],
         control,
         Dev("foundation", log, rings, work_s),  # type: ignore[arg-type]
+        handoff=WorkerHandoff(None, features),
     )
     head = WorkerCore(
         spec("depth", "head", rings["features"], rings["out"], F, notify=True),
@@ -101,15 +121,16 @@ def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type
         rings["out"],
         control,
         Dev("depth", log, rings),  # type: ignore[arg-type]
+        handoff=WorkerHandoff(features, out),
     )
-    return rings, control, log, fm, head
+    return rings, control, log, fm, head, {"features": features, "out": out}
 
 
 def step(core: WorkerCore) -> None:
     slot = core.reader.pin(timeout=1.0)
     assert slot is not None
     try:
-        core._step(slot, starved=False)
+        core._step(slot)
     finally:
         core.reader.release(slot)
 
@@ -122,7 +143,7 @@ def submit(rings, i: int) -> None:  # type: ignore[no-untyped-def]
 
 
 def test_with_event_hand_off_features_are_published_before_the_foundation_waits_and_heads_wait_on_the_device():
-    rings, control, log, fm, head = pipeline(handoff=True)
+    rings, control, log, fm, head, _ev = pipeline(handoff=True)
     for i in range(5):  # the rings rotate through their slots
         log.clear()
         submit(rings, i)
@@ -151,7 +172,7 @@ def test_with_event_hand_off_features_are_published_before_the_foundation_waits_
 
 
 def test_with_host_hand_off_the_foundation_publishes_only_completed_work_and_heads_do_not_wait_on_events():
-    rings, _control, log, fm, head = pipeline(handoff=False)
+    rings, _control, log, fm, head, _ev = pipeline(handoff=False)
     submit(rings, 0)
     step(fm)
     step(head)
@@ -161,7 +182,7 @@ def test_with_host_hand_off_the_foundation_publishes_only_completed_work_and_hea
 
 
 def test_a_handed_off_run_is_timed_by_its_device_work_not_by_its_queueing():
-    rings, control, _log, fm, _head = pipeline(handoff=True, work_s=0.03)
+    rings, control, _log, fm, _head, _ev = pipeline(handoff=True, work_s=0.03)
     submit(rings, 0)
     step(fm)
     lat, e2e = control.recent_latencies("foundation")
@@ -169,7 +190,7 @@ def test_a_handed_off_run_is_timed_by_its_device_work_not_by_its_queueing():
 
 
 def test_with_result_hand_off_a_head_publishes_before_its_work_is_done_and_marks_when_it_was():
-    rings, control, log, fm, head = pipeline(handoff=True, results=True)
+    rings, control, log, fm, head, ev = pipeline(handoff=True, results=True)
     for i in range(4):
         log.clear()
         submit(rings, i)
@@ -185,16 +206,16 @@ def test_with_result_hand_off_a_head_publishes_before_its_work_is_done_and_marks
         assert head_log[-1][4] == i + 1 and head_log[-1][5] >= 0, head_log
         # the engine was woken twice, at publish and once the work was done, and knows when that was
         assert control.output_word() == (word + 2) & 0xFFFFFFFF
-        slot = rings["out"].reader("results").pin(done=True)
+        slot = rings["out"].reader("results").pin(accept=ev["out"].done)
         assert slot is not None and slot.seq == i + 1
-        seq, t_done = rings["out"].done_at[slot.index]
-        assert seq == slot.seq and t0 <= t_done <= t1 and rings["out"].wait_done(slot) == t_done
+        seq, t_done = ev["out"].done_at[slot.index]
+        assert seq == slot.seq and t0 <= t_done <= t1 and ev["out"].wait_done(slot) == t_done
         rings["out"].reader("results").release(slot)
     assert control.snapshot("depth")["runs"] == 4
 
 
 def test_with_results_handed_off_on_the_host_a_head_publishes_only_completed_work():
-    rings, control, log, fm, head = pipeline(handoff=True, results=False)
+    rings, control, log, fm, head, ev = pipeline(handoff=True, results=False)
     submit(rings, 0)
     step(fm)
     word = control.output_word()
@@ -202,4 +223,4 @@ def test_with_results_handed_off_on_the_host_a_head_publishes_only_completed_wor
     done = [e for e in log if e[0] == "depth" and e[1] == "complete"]
     assert done[0][4] == 0, "published before its work was complete"
     assert control.output_word() == (word + 1) & 0xFFFFFFFF
-    assert rings["out"].done_at == [(0, 0.0)] * rings["out"].n_slots
+    assert ev["out"] is None  # nothing handed off: the head published completed work

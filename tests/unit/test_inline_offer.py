@@ -11,7 +11,8 @@ import torch
 
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
-from vpengine.runtime.worker import InlineLaunch, WorkerCore, WorkerSpec
+from vpengine.runtime.handoff import InlineLaunch, WorkerHandoff
+from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import latest_buffer
 
@@ -69,6 +70,11 @@ def offer_worker(fail: bool = False) -> tuple[InlineLaunch, Worker, Writer, list
     return InlineLaunch(), Worker(log, fail), Writer(log), log
 
 
+def arm(offer: InlineLaunch, worker: Worker, out: object = "out") -> None:
+    """What an unlimited foundation worker offers: its launch into ``out``, its reader, and its rate check."""
+    offer.arm(lambda slot: worker._launch(slot, out), worker.reader, lambda: worker.control.hz is None)  # type: ignore[arg-type]
+
+
 def publish(offer: InlineLaunch, writer: Writer, slot: Slot | None = None) -> int:
     return offer.publish(writer, slot or Slot(), 1, 0.0, 0.0)  # type: ignore[arg-type]
 
@@ -76,15 +82,15 @@ def publish(offer: InlineLaunch, writer: Writer, slot: Slot | None = None) -> in
 def test_nothing_is_launched_unless_a_worker_is_armed():
     offer, worker, writer, log = offer_worker()
     assert publish(offer, writer) == 1
-    offer.arm(worker, "out", None)  # type: ignore[arg-type]
-    offer.disarm(worker)  # type: ignore[arg-type]
+    arm(offer, worker)
+    offer.disarm()
     assert publish(offer, writer) == 2
     assert log == ["publish", "publish"] and offer.take_done() is None and offer.launches == 0
 
 
 def test_an_armed_worker_gets_its_work_queued_before_the_frame_is_published_pinned_for_it_and_handed_over_once():
     offer, worker, writer, log = offer_worker()
-    offer.arm(worker, "out", None)  # type: ignore[arg-type]
+    arm(offer, worker)
     slot = Slot()
     assert publish(offer, writer, slot) == 1
     assert log == ["launch", "publish pinned for foundation"]  # queued first: nobody can see the slot yet
@@ -99,7 +105,7 @@ def test_an_armed_worker_gets_its_work_queued_before_the_frame_is_published_pinn
 
 def test_a_rate_changed_since_arming_leaves_the_frame_to_the_worker():
     offer, worker, writer, log = offer_worker()
-    offer.arm(worker, "out", None)  # type: ignore[arg-type]
+    arm(offer, worker)
     worker.control.hz = 0.0  # paused after it armed, before it woke to disarm
     publish(offer, writer)
     assert log == ["publish"] and worker.launched == []
@@ -108,17 +114,17 @@ def test_a_rate_changed_since_arming_leaves_the_frame_to_the_worker():
     assert log[1:] == ["launch", "publish pinned for foundation"]
 
 
-def test_the_rate_compared_is_the_one_the_gate_opened_under_not_the_one_at_arming():
+def test_the_rate_is_checked_when_the_frame_comes_not_when_the_worker_armed():
     offer, worker, writer, log = offer_worker()
-    worker.control.hz = 0.0  # paused after the worker's gate opened unlimited, before it armed
-    offer.arm(worker, "out", None)  # type: ignore[arg-type]
+    worker.control.hz = 0.0  # paused after the worker's loop read it unlimited, before it armed
+    arm(offer, worker)
     publish(offer, writer)
     assert log == ["publish"] and worker.launched == []
 
 
 def test_a_launch_that_raises_is_handed_to_the_worker_not_raised_in_submit():
     offer, worker, writer, log = offer_worker(fail=True)
-    offer.arm(worker, "out", None)  # type: ignore[arg-type]
+    arm(offer, worker)
     assert publish(offer, writer) == 1  # no exception here, and the frame is published all the same
     pinned, _, error = offer.take_done()  # type: ignore[misc]
     assert log == ["launch", "publish pinned for foundation"]
@@ -131,8 +137,16 @@ def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, Con
     in_ring, out_ring = latest_buffer("input", x, ["foundation"]), latest_buffer("features", f, ["depth"])
     control = ControlBlock.create(["foundation"])
     spec = WorkerSpec(
-        "foundation", "foundation", {}, {}, {}, in_ring.desc, "foundation", out_ring.desc, False
-    )  # type: ignore[arg-type]
+        name="foundation",
+        role="foundation",
+        config={},
+        upstream={},
+        upstream_meta={},
+        in_ring=in_ring.desc,
+        in_reader="foundation",
+        out_ring=out_ring.desc,
+        notify_output=False,
+    )
     core = WorkerCore(
         spec,
         lambda inputs: {"f": inputs["x"] * 2},
@@ -142,9 +156,8 @@ def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, Con
         control,
         DeviceContext("cpu"),
         poll_s,
+        handoff=WorkerHandoff(inline=InlineLaunch() if inline else None),
     )
-    if inline:
-        core._inline = in_ring.inline = InlineLaunch()
     w = in_ring.writer()
     slot = w.acquire(timeout=1.0)
     assert slot is not None
@@ -158,12 +171,12 @@ def test_a_worker_whose_rate_changed_after_its_gate_opened_takes_no_frame():
     core, control = foundation_core(poll_s=5.0)
     control.set_rate("foundation", 0.0)
     t0 = time.monotonic()
-    core._take_inline(t0, None)
+    core._take_inline()
     assert time.monotonic() - t0 < 1.0  # back to its gate at once, not armed for poll_s
     assert control.snapshot("foundation")["runs"] == 0 and core._inline.launches == 0  # type: ignore[union-attr]
     # the same call under the rate the gate saw finds the frame still there, and runs it
     control.set_rate("foundation", None)
-    core._take_inline(time.monotonic(), None)
+    core._take_inline()
     assert control.snapshot("foundation")["runs"] == 1
     out = core.writer.ring.reader("depth").pin(timeout=0)
     assert out is not None and out.frame_id == 7 and torch.equal(out.tensors["f"], torch.full((4,), 2.0))
@@ -174,15 +187,15 @@ def test_a_pause_set_while_a_worker_waited_for_a_frame_holds_the_frame_back_and_
     stops the frame that then comes."""
     core, control = foundation_core(poll_s=5.0, inline=False)
     control.set_rate("foundation", 0.0)
-    core._take(time.monotonic(), None)
+    core._take(None)
     st = control.snapshot("foundation")
     assert st["runs"] == 0 and st["skipped"] == 1
 
 
 def test_a_rate_raised_while_a_worker_waited_for_a_frame_runs_it():
     core, control = foundation_core(poll_s=5.0, inline=False)
-    core.gate.update(10.0, time.monotonic())  # its gate opened at 10 Hz
+    core.gate.update(10.0)  # its gate opened at 10 Hz
     control.set_rate("foundation", None)
-    core._take(time.monotonic(), 10.0)
+    core._take(10.0)
     st = control.snapshot("foundation")
     assert st["runs"] == 1 and st["skipped"] == 0

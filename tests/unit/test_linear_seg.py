@@ -17,10 +17,10 @@ from vpengine.config import load_config
 from vpengine.io.visualize import overlay_segmentation
 from vpengine.models import palettes
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
+from vpengine.models.build import build_model
 from vpengine.models.linear_seg import SIZES, LinearSegHead, checkpoint_name
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 
 EMBED = {"s": 384, "b": 768, "l": 1024, "g": 1536}
 N_CLASSES = {"ade20k": 150, "voc2012": 21}

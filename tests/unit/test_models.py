@@ -9,9 +9,9 @@ import torch
 from tests_paths import tiny
 from vpengine.config import PreprocessConfig, load_config
 from vpengine.models.base import ModelBuildError, Pipeline
-from vpengine.models.preprocess import ImagePreprocess, target_size
+from vpengine.models.build import build_model
+from vpengine.models.preprocess import IMAGENET_MEAN, IMAGENET_STD, ImagePreprocess, target_size
 from vpengine.runtime.plan import make_plan
-from vpengine.runtime.worker import build_model
 from vpengine.specs import TensorSpec
 
 
@@ -37,7 +37,7 @@ def test_preprocess_matches_a_hand_computation():
     pre = ImagePreprocess(28, 42, cfg, 14, color="bgr")
     out = pre({"frame": torch.from_numpy(frame)})["image"]
     rgb = frame[..., ::-1].astype(np.float32) / 255
-    ref = (rgb - np.array(cfg.mean)) / np.array(cfg.std)
+    ref = (rgb - np.array(IMAGENET_MEAN)) / np.array(IMAGENET_STD)
     assert out.shape == (1, 3, 28, 42)
     np.testing.assert_allclose(out[0].permute(1, 2, 0).numpy(), ref, rtol=1e-5, atol=1e-5)
     rgb_pre = ImagePreprocess(28, 42, cfg, 14, color="rgb")
@@ -175,6 +175,6 @@ def test_cpu_uint8_fast_resize_stays_within_one_grey_level_of_the_float_path():
     pre_f = ImagePreprocess(270, 480, cfg, 14, in_dtype="float32")  # float frames take the float path
     slow = pre_f({"frame": frame.float() / 255})["image"]
     assert fast.shape == slow.shape == (1, 3, 112, 196)
-    one_level = (1 / 255) / min(cfg.std)  # one grey level in normalised units
+    one_level = (1 / 255) / min(IMAGENET_STD)  # one grey level in normalised units
     assert (fast - slow).abs().max().item() <= one_level
     assert (fast - slow).abs().mean().item() < 0.5 * one_level

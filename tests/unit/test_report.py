@@ -1,25 +1,70 @@
-"""`vpengine bench report` on hand-made results files: every run of E2, E3, E5 and the floor gets its own row,
-labelled with what ran (with a compiled backbone, detection heads still run eager, and the label says so), and nothing
-is read from elsewhere."""
+"""`vpengine bench report` on hand-made results files: every run of an experiment gets its own row, labelled with what
+ran (the config's backbone and backend, what differs from the usual, and any other override as given) and naming its
+file; the summary names the machine; the figure has a panel for each experiment the folder holds; a baseline compares
+each run with the baseline's run of the same experiment; nothing is read from elsewhere."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import pytest
 
-from vpengine.bench.report import FLOOR_RUNS_DRAWN, build_figure, collect, floor_panel_rows, table
+from vpengine.bench import report
+from vpengine.bench.report import (
+    FLOOR_RUNS_DRAWN,
+    build_figure,
+    collect,
+    floor_panel_rows,
+    setup_label,
+    table,
+)
+
+H100 = {"gpu": "NVIDIA H100 80GB HBM3", "cpu": "Intel Xeon", "cores": 16, "torch": "2.11.0", "cuda": "13.0"}
 
 
-def _lat(ms: float) -> dict[str, float]:
-    return {"p50": ms, "p90": ms, "p99": ms, "mean": ms, "n": 10, "hz": 1e3 / ms}
+def _lat(ms: float, p50: float | None = None) -> dict[str, float]:
+    p50 = ms if p50 is None else p50
+    return {"p50": p50, "p90": ms, "p99": ms, "mean": ms, "n": 10, "hz": 1e3 / ms}
 
 
-def _write(folder: Path, name: str, date: str, setup: dict, **experiments: dict) -> None:
-    base = {"backbone": "dinov2_vits14_dav2", "backend": "eager", "mode": "process", "mps": "off"}
-    data = {"benchmark": name, "date": date, "machine": {}, "setup": {**base, **setup}, **experiments}
+def _setup(**changes: object) -> dict:
+    base = {
+        "backbone": "dinov2_vits14_dav2",
+        "backend": "compile",
+        "mode": "process",
+        "mps": "off",
+        "height": 1080,
+        "width": 1920,
+        "results": "copy",
+        "overrides": [],
+        "heads": {
+            "depth": {"backend": "compile"},
+            "seg": {"backend": "compile"},
+            "det": {"backend": "eager"},
+        },
+    }
+    return {**base, **changes}
+
+
+def _write(folder: Path, name: str, date: str, setup: dict | None = None, **experiments: dict) -> None:
+    data = {"benchmark": name, "date": date, "machine": H100, "setup": setup or _setup(), **experiments}
     (folder / f"{name}.json").write_text(json.dumps(data))
+
+
+def _e1(n: int, engine: float, independent: float) -> dict:
+    row = {
+        "heads": n,
+        "engine": _lat(engine),
+        "independent": _lat(independent),
+        "sequential": _lat(4 * engine),
+        "device_ms": {"foundation": 1.0, "depth0": 0.5},
+        "speedup_vs_independent": independent / engine,
+        "speedup_vs_sequential": 4.0,
+        "ideal_vs_independent": 2.2,
+    }
+    return {"rows": [row]}
 
 
 def _e2(engine: float, sequential: float) -> dict:
@@ -41,23 +86,35 @@ def _e3(det8: float, depth8: float) -> dict:
     return {"rows": rows}
 
 
-def test_every_e2_and_e3_run_has_a_row_labelled_with_what_ran(tmp_path):
-    _write(tmp_path, "paper_cuda_e2", "2026-01-01T00:00:00", {}, E2=_e2(40.0, 60.0))
-    _write(
-        tmp_path,
-        "paper_cuda_e2_c",
-        "2026-01-02T00:00:00",
-        {"backend": "compile", "mps": "required"},
-        E2=_e2(20.0, 70.0),
+def test_labels_say_what_differs_from_the_usual_and_any_other_override():
+    assert setup_label(_setup()) == "dinov2_vits14_dav2, compile"
+    assert setup_label(_setup(), det=True) == "dinov2_vits14_dav2, compile, detection heads eager"
+    odd = _setup(
+        mode="thread",
+        mps="required",
+        results="borrow",
+        height=518,
+        width=518,
+        overrides=["mode=thread", "mps=required", "input.height=518", "heads.seg.options.upsample=torch"],
     )
-    _write(tmp_path, "paper_cuda_e3", "2026-01-01T00:00:00", {}, E3=_e3(0.96, 0.25))
-    _write(tmp_path, "paper_cuda_e3_rerun", "2026-01-03T00:00:00", {}, E3=_e3(0.73, 0.30))
+    assert setup_label(odd) == (
+        "dinov2_vits14_dav2, compile, 518x518, thread mode, MPS, borrowed results, heads.seg.options.upsample=torch"
+    )
+
+
+def test_every_e2_and_e3_run_has_a_row_labelled_with_what_ran(tmp_path):
+    _write(tmp_path, "paper_cuda_e2", "2026-01-01T00:00:00", _setup(backend="eager"), E2=_e2(40.0, 60.0))
+    _write(tmp_path, "paper_cuda_e2_c", "2026-01-02T00:00:00", _setup(mps="required"), E2=_e2(20.0, 70.0))
+    _write(tmp_path, "paper_cuda_e3", "2026-01-01T00:00:00", E3=_e3(0.96, 0.25))
+    _write(tmp_path, "paper_cuda_e3_rerun", "2026-01-03T00:00:00", E3=_e3(0.73, 0.30))
     r = collect(tmp_path)
     md = table(r).splitlines()
 
     e2 = [line for line in md if line.startswith("| E2")]
     assert len(e2) == 2, md
-    assert "(dinov2_vits14_dav2, eager) | 1.50x vs sequential (engine 40.0 ms, sequential 60.0 ms" in e2[0]
+    assert (
+        "(dinov2_vits14_dav2, eager) | 1.50x vs sequential (engine 40.0 ms" in e2[0]
+    )  # det eager too: unsaid
     assert "(dinov2_vits14_dav2, compile, detection heads eager, MPS) | 3.50x" in e2[1]
     assert e2[1].endswith("| paper_cuda_e2_c.json |")
 
@@ -73,163 +130,86 @@ def test_an_empty_folder_gives_a_table_with_no_rows(tmp_path):
     assert md == ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]
 
 
-def _floor(transfers: bool, slots: bool = False, chained: bool = False) -> dict:
-    out = {
+def _floor(thread_mean: float = 2.25, thread_p50: float | None = None) -> dict:
+    return {
+        "heads": ["depth", "seg"],
         "device_ms": {"foundation": 1.0, "depth": 0.5, "seg": 0.5},
+        "transfer_ms": {"upload": 0.2, "download": 0.3},
+        "chained_ms": {"compute": 1.8, "with_transfers": 2.3},
         "floor_sum_ms": 2.0,
+        "floor_with_transfers_ms": 2.5,
         "thread": _lat(3.0),
         "process": _lat(2.5),
+        "thread_frame_slot": _lat(thread_mean, thread_p50),
+        "process_frame_slot": _lat(2.0),
         "thread_overhead_vs_floor": 0.5,
         "process_overhead_vs_floor": 0.25,
+        "thread_frame_slot_overhead_vs_floor": thread_mean / 2.0 - 1,
+        "process_frame_slot_overhead_vs_floor": 0.0,
     }
-    if transfers:
-        out.update(
-            transfer_ms={"upload": 0.2, "download": 0.3},
-            floor_with_transfers_ms=2.5,
-            thread_overhead_vs_floor_with_transfers=0.2,
-            process_overhead_vs_floor_with_transfers=0.0,
-        )
-    if slots:
-        out.update(
-            thread_frame_slot=_lat(2.25),
-            process_frame_slot=_lat(2.0),
-            thread_frame_slot_overhead_vs_floor=0.125,
-            process_frame_slot_overhead_vs_floor=0.0,
-            thread_frame_slot_overhead_vs_floor_with_transfers=-0.1,
-            process_frame_slot_overhead_vs_floor_with_transfers=-0.2,
-        )
-    if chained:
-        out["chained_ms"] = {"compute": 1.8, "with_transfers": 2.3}
-    return out
 
 
-def test_floor_rows_add_the_transfers_where_they_were_measured(tmp_path):
-    _write(
-        tmp_path, "paper_cuda_floor_old", "2026-01-01T00:00:00", {"backend": "compile"}, floor=_floor(False)
-    )
-    _write(
-        tmp_path, "paper_cuda_floor_new", "2026-01-02T00:00:00", {"backend": "compile"}, floor=_floor(True)
-    )
-    _write(
-        tmp_path,
-        "paper_cuda_floor_slot",
-        "2026-01-03T00:00:00",
-        {"backend": "compile"},
-        floor=_floor(True, True),
-    )
-    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 3, rows
-    assert "frame_slot" not in rows[0] + rows[1]
+def test_a_floor_row_gives_the_three_floors_and_each_mode_over_the_summed_one(tmp_path):
+    _write(tmp_path, "paper_cuda_floor", "2026-01-01T00:00:00", floor=_floor())
+    (row,) = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
+    assert row.startswith("| engine vs device-time floor (dinov2_vits14_dav2, compile; depth+seg) | ")
     assert (
-        "; frames written in place (frame_slot): thread mode 2.2 ms (+12%, -10% with transfers), "
-        "process mode 2.0 ms (+0%, -20% with transfers) |" in rows[2]
+        "floor 2.00 ms summed, 2.50 ms with the frame's upload and the results' download, 1.80 ms back to back on "
+        "one stream; thread mode 3.00 ms submitted (+50%), 2.25 ms written in place (+12%); process mode 2.50 ms "
+        "submitted (+25%), 2.00 ms written in place (+0%) | - | paper_cuda_floor.json |" in row
     )
-    assert "floor 2.0 ms; thread mode 3.0 ms (+50%), process mode 2.5 ms (+25%) |" in rows[0]
-    assert "transfers" not in rows[0]
+
+
+def test_a_floor_off_cuda_has_no_floors_and_says_so(tmp_path):
+    f = {k: v for k, v in _floor().items() if "overhead" not in k and "floor_" not in k}
+    f.update(device_ms={}, transfer_ms={}, chained_ms={})
+    _write(tmp_path, "paper_cpu", "2026-01-01T00:00:00", _setup(backend="eager"), floor=f)
+    r = collect(tmp_path)
+    (row,) = [line for line in table(r).splitlines() if "device-time floor" in line]
     assert (
-        "with the frame's upload and the results' download 2.5 ms: thread mode +20%, process mode +0% |"
-        in rows[1]
+        "(dinov2_vits14_dav2, eager; depth+seg) | no device times off CUDA; thread mode 3.00 ms submitted,"
+        in row
     )
+    assert floor_panel_rows(r) == []
 
 
-def test_floor_rows_say_when_thread_mode_handed_features_or_frames_over_the_older_way_or_seg_upsampled_so(
-    tmp_path,
-):
-    for name, date, runtime in (
-        ("auto", "2026-01-01", {"feature_handoff": "event", "inline_launch": "auto"}),
-        ("worker", "2026-01-02", {"feature_handoff": "event", "inline_launch": "never"}),
-        ("host", "2026-01-03", {"feature_handoff": "host", "inline_launch": "never"}),
-        ("prio", "2026-01-04", {"stream_priorities": {"depth": -1}}),
-        ("torch", "2026-01-05", {"seg_upsample": "torch"}),
-    ):
-        setup = {"backend": "compile", **runtime}
-        _write(tmp_path, f"paper_cuda_floor_{name}", f"{date}T00:00:00", setup, floor=_floor(True))
-    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 5, rows
-    assert "(dinov2_vits14_dav2, compile; " in rows[0]
-    assert "(dinov2_vits14_dav2, compile, worker launch; " in rows[1]
-    assert "(dinov2_vits14_dav2, compile, host hand-off, worker launch; " in rows[2]
-    assert "(dinov2_vits14_dav2, compile, stream priorities depth -1; " in rows[3]
-    assert "(dinov2_vits14_dav2, compile, seg upsample torch; " in rows[4]
-
-
-def test_floor_rows_give_the_chained_floor_where_it_was_measured(tmp_path):
-    _write(
-        tmp_path,
-        "paper_cuda_floor_a",
-        "2026-01-01T00:00:00",
-        {"backend": "compile"},
-        floor=_floor(True, True),
-    )
-    floor = _floor(True, True, chained=True)
-    _write(tmp_path, "paper_cuda_floor_b", "2026-01-02T00:00:00", {"backend": "compile"}, floor=floor)
-    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert len(rows) == 2 and "back to back" not in rows[0], rows
-    p50 = floor["thread_frame_slot"]["p50"]
-    assert (
-        f"; the models back to back on one stream 1.8 ms: thread mode from a frame slot p50 {p50:.1f} ms "
-        f"({p50 / 1.8 - 1:+.0%}) |" in rows[1]
-    ), rows[1]
-
-
-def _e5(frames: int, p50: float, lost: float) -> dict:
+def _e5(frames: int, p50: float, lost: float, flat: bool | None = True) -> dict:
     return {
         "frames": frames,
-        "all_three_latency_ms": _lat(p50),
+        "all_three_latency_ms": _lat(20.0, p50),
         "per_head_latency_ms": {"depth": _lat(p50 / 2), "det": _lat(p50)},
         "loss_pct": {"depth": 0.0, "det": lost},
         "memory": [],
-        "memory_flat": True,
+        "memory_flat": flat,
     }
 
 
 def test_every_e5_run_gets_a_row_and_the_figure_shows_the_longest(tmp_path):
-    _write(tmp_path, "paper_cuda_e5", "2026-01-01T00:00:00", {"backend": "compile"}, E5=_e5(10000, 12.9, 0.0))
+    _write(tmp_path, "paper_cuda_e5", "2026-01-01T00:00:00", E5=_e5(10000, 12.9, 0.0))
     _write(
         tmp_path,
-        "paper_cuda_e5_ab",
+        "paper_cuda_e5_thread",
         "2026-01-02T00:00:00",
-        {"backend": "compile", "slot_bound": False},
+        _setup(mode="thread"),
         E5=_e5(3000, 15.0, 0.1),
     )
+    _write(tmp_path, "paper_cpu_e5", "2026-01-03T00:00:00", E5=_e5(300, 5.0, 0.0, flat=None))
     r = collect(tmp_path)
     rows = [line for line in table(r).splitlines() if line.startswith("| E5")]
-    assert len(rows) == 2, rows
-    assert "E5 10000 frames" in rows[0] and "p50 12.9 ms" in rows[0] and "not slot-bound" not in rows[0]
-    assert "E5 3000 frames" in rows[1] and "not slot-bound" in rows[1] and "lost 0.10%" in rows[1]
+    assert len(rows) == 3, rows
+    assert "E5 10000 frames" in rows[0] and "p50 12.9 ms" in rows[0] and "memory flat: True" in rows[0]
+    assert "E5 3000 frames" in rows[1] and "thread mode" in rows[1] and "lost 0.10%" in rows[1]
+    assert "device memory not measured" in rows[2]
     assert r["E5"]["file"] == "paper_cuda_e5.json"  # the longest stream, not the newest
 
 
-def test_the_wait_spin_is_in_a_label_only_where_it_ran_on_cuda(tmp_path):
-    runs = [
-        ("paper_cuda_floor_a", "cuda", 200.0),
-        ("paper_cuda_floor_b", "cuda", 0.0),
-        ("paper_cpu_floor", "cpu", 200.0),
-    ]
-    for day, (name, device, spin) in enumerate(runs, 1):
-        setup = {"device": device, "wait_spin_us": spin}
-        _write(tmp_path, name, f"2026-01-0{day}T00:00:00", setup, floor=_floor(True))
-    rows = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
-    assert ["wait spin 200 us" in row for row in rows] == [True, False, False]
-
-
-def test_the_floor_panel_shows_the_newest_runs_that_timed_frames_written_in_place(tmp_path):
-    _write(tmp_path, "paper_cuda_floor_old", "2026-01-01T00:00:00", {}, floor=_floor(True))  # no frame slot
-    _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", {}, floor=_floor(True, True))
-    _write(tmp_path, "paper_cuda_floor_y", "2026-01-03T00:00:00", {}, floor=_floor(False, True))
-    assert floor_panel_rows(collect(tmp_path)) == [("x", 2.0, 2.5, 2.25), ("y", 2.0, None, 2.25)]
+def test_the_floor_panel_shows_the_newest_runs_thread_mode_means(tmp_path):
+    _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", floor=_floor(2.25, thread_p50=9.0))
+    assert floor_panel_rows(collect(tmp_path)) == [("cuda_floor_x", 2.0, 2.5, 2.25)]  # the mean, not the p50
     for i in range(FLOOR_RUNS_DRAWN + 2):
-        _write(
-            tmp_path,
-            f"paper_cuda_floor_z{i:02}",
-            f"2026-02-{i + 1:02}T00:00:00",
-            {},
-            floor=_floor(True, True),
-        )
+        _write(tmp_path, f"paper_cuda_floor_z{i:02}", f"2026-02-{i + 1:02}T00:00:00", floor=_floor())
     rows = floor_panel_rows(collect(tmp_path))
-    assert [x[0] for x in rows] == [
-        f"z{i:02}" for i in range(2, FLOOR_RUNS_DRAWN + 2)
-    ]  # the newest, oldest first
+    assert [x[0] for x in rows] == [f"cuda_floor_z{i:02}" for i in range(2, FLOOR_RUNS_DRAWN + 2)]
 
 
 def test_the_figure_has_a_panel_for_each_experiment_the_folder_has_and_no_empty_ones(tmp_path):
@@ -237,8 +217,8 @@ def test_the_figure_has_a_panel_for_each_experiment_the_folder_has_and_no_empty_
     assert empty.axes == [] and "no results in this folder" in [t.get_text() for t in empty.texts]
     e5 = _e5(10000, 12.9, 0.0)
     e5["memory"] = [{"t": float(t), "device_used": 1 << 30} for t in range(5)]
-    _write(tmp_path, "paper_cuda_e5", "2026-01-01T00:00:00", {}, E5=e5)
-    _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", {}, floor=_floor(True, True))
+    _write(tmp_path, "paper_cuda_e5", "2026-01-01T00:00:00", E5=e5)
+    _write(tmp_path, "paper_cuda_floor_x", "2026-01-02T00:00:00", floor=_floor())
     fig = build_figure(collect(tmp_path))
     titles = [ax.get_title() for ax in fig.axes]
     assert titles == [
@@ -248,60 +228,42 @@ def test_the_figure_has_a_panel_for_each_experiment_the_folder_has_and_no_empty_
     ]
     # the transfers alone (2.5 ms against 2.0 ms summed: +25%), then the engine (2.25 ms: +12.5%)
     assert [p.get_width() for p in fig.axes[2].patches] == [pytest.approx(25.0), pytest.approx(12.5)]
+    assert fig._suptitle.get_text() == "vpengine on NVIDIA H100 80GB HBM3"
 
 
-EVENT_STAGES = {  # one profile_steps.py variant: mean ms after the frame is in its slot
-    "foundation.input_published": 0.0,
-    "caller.submitted": 0.04,
-    "foundation.pinned": 0.13,
-    "foundation.model_enqueued": 0.34,
-    "depth.input_published": 0.38,
-    "seg.input_published": 0.38,
-    "depth.pinned": 0.5,
-    "seg.pinned": 0.5,
-    "seg.model_enqueued": 0.82,
-    "depth.model_enqueued": 0.84,
-    "foundation.device_done": 1.66,
-    "foundation.published": 1.67,
-    "seg.device_done": 2.61,
-    "seg.published": 2.66,
-    "depth.device_done": 3.34,
-    "depth.published": 3.39,
-    "caller.returned": 3.58,
-}
-
-
-def test_waterfall_rows_follow_the_stages_and_mark_what_each_model_published_when():
-    from vpengine.bench.report import waterfall_rows
-
-    rows = {name: (segs, out) for name, segs, out in waterfall_rows(EVENT_STAGES)}
-    names = list(rows)  # in the order they start; the caller last
-    assert names[0] == "foundation" and names[-1] == "caller" and set(names[1:3]) == {"depth", "seg"}
-    segs, out = rows["foundation"]
-    # woken 0 -> 0.13, queueing 0.13 -> 0.34, device 0.34 -> 1.66, publishing 1.66 -> 1.67
-    assert [(round(s, 2), round(length, 2), i) for s, length, i in segs] == [
-        (0.0, 0.13, 0),
-        (0.13, 0.21, 1),
-        (0.34, 1.32, 2),
-        (1.66, 0.01, 3),
+def test_a_baseline_compares_each_run_with_the_baselines_run_of_the_same_experiment(tmp_path):
+    _write(tmp_path, "paper_cuda_before_e1", "2026-01-01T00:00:00", E1=_e1(8, 10.0, 25.0))
+    _write(tmp_path, "paper_cuda_after_e1", "2026-01-01T00:10:00", E1=_e1(8, 10.4, 25.0))
+    _write(tmp_path, "paper_cuda_before_floor", "2026-01-01T00:20:00", floor=_floor(2.0))
+    _write(tmp_path, "paper_cuda_after_floor", "2026-01-01T00:30:00", floor=_floor(2.1))
+    _write(tmp_path, "paper_cuda_after_e5", "2026-01-01T00:40:00", E5=_e5(3000, 10.0, 0.0))  # no baseline run
+    md = report.comparison(collect(tmp_path), "before").splitlines()
+    assert md[2] == "| E1 | engine, 8 heads, mean | 10.00 | 10.40 | +4.0% | paper_cuda_after_e1.json |"
+    floor = [line for line in md if line.startswith("| floor")]
+    assert floor == [
+        "| floor | thread mode, mean | 3.00 | 3.00 | +0.0% | paper_cuda_after_floor.json |",
+        "| floor | thread mode, written in place, mean | 2.00 | 2.10 | +5.0% | paper_cuda_after_floor.json |",
+        "| floor | process mode, mean | 2.50 | 2.50 | +0.0% | paper_cuda_after_floor.json |",
+        "| floor | process mode, written in place, mean | 2.00 | 2.00 | +0.0% | paper_cuda_after_floor.json |",
     ]
+    assert not [line for line in md if line.startswith("| E5")]
+
+
+def test_main_writes_the_summary_naming_the_machine_and_the_figure(tmp_path, capsys):
+    _write(tmp_path, "paper_cuda_before", "2026-01-01T00:00:00", E1=_e1(8, 10.0, 25.0))
+    _write(tmp_path, "paper_cuda_after", "2026-01-02T00:00:00", E1=_e1(8, 9.0, 25.0))
+    assert report.main(argparse.Namespace(results=str(tmp_path), baseline="before")) == 0
+    md = (tmp_path / "summary.md").read_text()
+    assert md.startswith(
+        f"# vpengine benchmarks: {tmp_path.name}\n\nMachine: NVIDIA H100 80GB HBM3, 16-core Intel Xeon"
+    )
+    assert "torch 2.11.0, CUDA 13.0" in md
     assert (
-        out == 0.38
-    )  # the heads saw the features at 0.38 ms (event hand-off), not when the foundation finished
-    assert rows["depth"][1] == 3.39
-    caller_segs, returned = rows["caller"]
-    assert returned == 3.58 and caller_segs[-1][0] == 3.39 and round(caller_segs[-1][1], 2) == 0.19
-
-
-def test_waterfall_draws_each_variant_a_profile_has_and_nothing_for_none(tmp_path):
-    from vpengine.bench.report import waterfall
-
-    profile = {
-        "setup": {"heads": ["depth", "seg"], "backend": "compile"},
-        "slot": {"mean_ms": 3.58, "stages_ms_from_start": EVENT_STAGES},
-        "slot host hand-off": {"mean_ms": 4.08, "stages_ms_from_start": EVENT_STAGES},
-    }
-    png = tmp_path / "w.png"
-    assert waterfall(profile, png) and png.stat().st_size > 10_000
-    assert not waterfall({"setup": {}, "submit": profile["slot"]}, tmp_path / "none.png")
-    assert not (tmp_path / "none.png").exists()
+        "| E1 shared backbone + 8 depth heads (dinov2_vits14_dav2, compile) | engine 9.0 ms: 2.78x vs" in md
+    )
+    assert (
+        "## Against the baseline (files named *before*)" in md and "| -10.0% | paper_cuda_after.json |" in md
+    )
+    assert (tmp_path / "summary.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
+    with pytest.raises(ValueError, match="is not a folder"):
+        report.main(argparse.Namespace(results=str(tmp_path / "nothing"), baseline=None))

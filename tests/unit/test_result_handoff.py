@@ -17,6 +17,7 @@ import torch
 from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.engine import Engine
+from vpengine.runtime.handoff import SlotEvents
 from vpengine.specs import TensorSpec
 from vpengine.transport import ring as ring_module
 from vpengine.transport.ring import SlotRing, fifo_queue, latest_buffer
@@ -43,29 +44,29 @@ class Event:
         self.done = True
 
 
-def handed_off(ring: SlotRing) -> list[Event]:
-    ring.device_events = events = [Event() for _ in range(ring.n_slots)]
-    return events
+def handed_off(ring: SlotRing) -> SlotEvents:
+    """The ring's events as the engine makes them for a head's results (runtime/handoff.py), stand-ins here."""
+    return SlotEvents(ring.n_slots, blocking=True, make_event=lambda blocking: Event())
 
 
-def publish_queued(ring: SlotRing, value: float) -> tuple[int, int]:
+def publish_queued(ring: SlotRing, ev: SlotEvents, value: float) -> tuple[int, int]:
     """What a head does: queue the work into a slot, record its event, publish at once. (slot index, seq)."""
     w = ring.writer()
     slot = w.acquire(timeout=0)
     assert slot is not None
     slot.tensors["x"].fill_(value)
-    ring.device_events[slot.index].record()  # type: ignore[index]
+    ev.events[slot.index].record()
     seq = w.publish(slot, int(value), 0.0, time.monotonic())
     return slot.index, seq
 
 
-def finish(ring: SlotRing, index: int, seq: int) -> float:
+def finish(ring: SlotRing, ev: SlotEvents, index: int, seq: int) -> float:
     """The device finished the slot's work and its writer saw it."""
-    ring.device_events[index].done = True  # type: ignore[index]
+    ev.events[index].done = True
     t = time.monotonic()
     slot = ring._slot_info(index, tensors=False)
     assert slot.seq == seq
-    ring.mark_done(slot, t)
+    ev.mark_done(ring, slot, t)
     return t
 
 
@@ -75,18 +76,18 @@ def finish(ring: SlotRing, index: int, seq: int) -> float:
 def test_a_reader_asking_for_done_results_does_not_take_queued_ones_and_takes_them_once_done(make):
     ring = make("out", SPECS, ["results"])
     try:
-        handed_off(ring)
+        ev = handed_off(ring)
         r = ring.reader("results")
-        _, seq = publish_queued(ring, 1.0)
-        assert r.pin(done=True) is None  # queued: not there yet, and not consumed either
+        _, seq = publish_queued(ring, ev, 1.0)
+        assert r.pin(accept=ev.done) is None  # queued: not there yet, and not consumed either
         assert r.cursor == 0
         slot = r.pin()  # a reader that orders on the device (a head reading features) takes it at once
         assert slot is not None and slot.seq == seq
         r.release(slot)
-        i2, seq2 = publish_queued(ring, 2.0)
-        assert r.pin(done=True) is None
-        finish(ring, i2, seq2)
-        slot = r.pin(done=True)
+        i2, seq2 = publish_queued(ring, ev, 2.0)
+        assert r.pin(accept=ev.done) is None
+        finish(ring, ev, i2, seq2)
+        slot = r.pin(accept=ev.done)
         assert slot is not None and slot.seq == seq2 and slot.tensors["x"][0].item() == 2.0
         r.release(slot)
     finally:
@@ -96,15 +97,15 @@ def test_a_reader_asking_for_done_results_does_not_take_queued_ones_and_takes_th
 def test_a_fifo_reader_asking_for_done_results_never_takes_one_out_of_order():
     ring = fifo_queue("out", SPECS, ["results"], n_slots=4)
     try:
-        handed_off(ring)
+        ev = handed_off(ring)
         r = ring.reader("results")
-        a = publish_queued(ring, 1.0)
-        b = publish_queued(ring, 2.0)
-        finish(ring, *b)  # the later one is done first
-        assert r.pin(done=True) is None
-        finish(ring, *a)
+        a = publish_queued(ring, ev, 1.0)
+        b = publish_queued(ring, ev, 2.0)
+        finish(ring, ev, *b)  # the later one is done first
+        assert r.pin(accept=ev.done) is None
+        finish(ring, ev, *a)
         got = []
-        while (s := r.pin(done=True)) is not None:
+        while (s := r.pin(accept=ev.done)) is not None:
             got.append(s.seq)
             r.release(s)
         assert got == [a[1], b[1]]
@@ -115,13 +116,13 @@ def test_a_fifo_reader_asking_for_done_results_never_takes_one_out_of_order():
 def test_a_done_peek_takes_the_newest_done_result_not_a_queued_newer_one():
     ring = latest_buffer("out", SPECS, ["peek"])
     try:
-        handed_off(ring)
+        ev = handed_off(ring)
         r = ring.reader("peek")
-        assert r.pin(peek=True, done=True) is None
-        a = publish_queued(ring, 1.0)
-        finish(ring, *a)
-        publish_queued(ring, 2.0)
-        slot = r.pin(peek=True, done=True)
+        assert r.pin(peek=True, accept=ev.done) is None
+        a = publish_queued(ring, ev, 1.0)
+        finish(ring, ev, *a)
+        publish_queued(ring, ev, 2.0)
+        slot = r.pin(peek=True, accept=ev.done)
         assert slot is not None and slot.seq == a[1] and slot.tensors["x"][0].item() == 1.0
         r.release(slot)
         slot = r.pin(peek=True)
@@ -139,24 +140,23 @@ def test_wait_done_waits_for_queued_work_and_times_each_result_by_when_it_was_do
         s = w.acquire(timeout=0)
         w.publish(s, 0, 0.0, time.monotonic())
         slot = r.pin()
-        assert ring.wait_done(slot) == slot.t_publish  # published complete: its publish time
+        assert slot is not None
         r.release(slot)
 
-        events = handed_off(ring)
-        i, seq = publish_queued(ring, 1.0)
+        ev = handed_off(ring)
+        events = ev.events
+        i, seq = publish_queued(ring, ev, 1.0)
         slot = r.pin()
         before = time.monotonic()
-        t = ring.wait_done(slot)
+        t = ev.wait_done(slot)
         assert events[i].syncs == 1 and events[i].done and t >= before  # waited, then timed by the wait
         r.release(slot)
 
-        i, seq = publish_queued(ring, 2.0)
-        t_done = finish(ring, i, seq)
+        i, seq = publish_queued(ring, ev, 2.0)
+        t_done = finish(ring, ev, i, seq)
         time.sleep(0.01)
         slot = r.pin()
-        assert (
-            ring.wait_done(slot) == t_done and events[i].syncs == 0
-        )  # done before: the writer's time, no wait
+        assert ev.wait_done(slot) == t_done and events[i].syncs == 0  # done before: the writer's time, no wait
         r.release(slot)
     finally:
         ring.close()
@@ -168,16 +168,16 @@ def test_mark_done_wakes_a_reader_waiting_for_a_done_result(monkeypatch):
     )  # no periodic re-check: only the wake-up can end the wait
     ring = latest_buffer("out", SPECS, ["results"])
     try:
-        handed_off(ring)
+        ev = handed_off(ring)
         r = ring.reader("results")
-        i, seq = publish_queued(ring, 1.0)
+        i, seq = publish_queued(ring, ev, 1.0)
         got: list[object] = []
-        t = threading.Thread(target=lambda: got.append(r.pin(timeout=8.0, done=True)))
+        t = threading.Thread(target=lambda: got.append(r.pin(timeout=8.0, accept=ev.done)))
         t.start()
         time.sleep(0.2)
         assert t.is_alive()  # the slot is published, but queued: the reader keeps waiting
         woke = time.monotonic()
-        finish(ring, i, seq)
+        finish(ring, ev, i, seq)
         t.join(5.0)
         assert not t.is_alive() and time.monotonic() - woke < 5.0
         assert got and got[0] is not None and got[0].seq == seq  # type: ignore[attr-defined]
@@ -193,7 +193,7 @@ def test_results_without_device_events_are_done_when_published():
         s = w.acquire(timeout=0)
         s.tensors["x"].fill_(3.0)
         w.publish(s, 3, 0.0, time.monotonic())
-        slot = ring.reader("results").pin(done=True)
+        slot = ring.reader("results").pin()  # no events, no filter: published is done
         assert slot is not None and torch.equal(slot.tensors["x"], torch.full((4,), 3.0))
     finally:
         ring.close()
@@ -202,21 +202,21 @@ def test_results_without_device_events_are_done_when_published():
 def test_the_first_to_see_a_result_done_says_when_and_each_result_teaches_the_prediction():
     ring = latest_buffer("out", SPECS, ["results"])
     try:
-        handed_off(ring)
+        ev = handed_off(ring)
         r = ring.reader("results")
-        i, seq = publish_queued(ring, 1.0)
+        i, seq = publish_queued(ring, ev, 1.0)
         slot = r.pin()
-        t_reader = ring.wait_done(slot)  # the reader waited: its time is the result's
-        ring.mark_done(slot, t_reader + 0.5)  # the writer, later: ignored
-        assert ring.done_at[i] == (seq, t_reader)
-        assert ring.publish_to_done_s == pytest.approx(t_reader - slot.t_publish)
+        t_reader = ev.wait_done(slot)  # the reader waited: its time is the result's
+        ev.mark_done(ring, slot, t_reader + 0.5)  # the writer, later: ignored
+        assert ev.done_at[i] == (seq, t_reader)
+        assert ev.publish_to_done_s == pytest.approx(t_reader - slot.t_publish)
         r.release(slot)
-        first = ring.publish_to_done_s
-        i, seq = publish_queued(ring, 2.0)
+        first = ev.publish_to_done_s
+        i, seq = publish_queued(ring, ev, 2.0)
         slot = ring._slot_info(i, tensors=False)
-        ring.mark_done(slot, slot.t_publish + first + 0.08)
-        assert ring.publish_to_done_s == pytest.approx(first + 0.125 * 0.08)  # a moving average
-        assert ring.publish_to_done_dev_s == pytest.approx(0.25 * 0.08)  # and its spread
+        ev.mark_done(ring, slot, slot.t_publish + first + 0.08)
+        assert ev.publish_to_done_s == pytest.approx(first + 0.125 * 0.08)  # a moving average
+        assert ev.publish_to_done_dev_s == pytest.approx(0.25 * 0.08)  # and its spread
     finally:
         ring.close()
 
@@ -245,10 +245,10 @@ class DueEvent(Event):
         super().synchronize()
 
 
-def publish_due(ring: SlotRing, value: float, work_s: float) -> tuple[int, DueEvent]:
-    i, _ = publish_queued(ring, value)
+def publish_due(ring: SlotRing, ev: SlotEvents, value: float, work_s: float) -> tuple[int, DueEvent]:
+    i, _ = publish_queued(ring, ev, value)
     slot = ring._slot_info(i, tensors=False)
-    ring.device_events[i] = event = DueEvent(slot.t_publish + work_s)  # type: ignore[index]
+    ev.events[i] = event = DueEvent(slot.t_publish + work_s)
     return i, event
 
 
@@ -256,9 +256,8 @@ def publish_due(ring: SlotRing, value: float, work_s: float) -> tuple[int, DueEv
 def handed_off_ring():  # type: ignore[no-untyped-def]
     """A latest-buffer output ring whose slots are handed off by (stand-in) event, and its results reader."""
     ring = latest_buffer("out", SPECS, ["results"])
-    handed_off(ring)
     try:
-        yield ring, ring.reader("results")
+        yield ring, ring.reader("results"), handed_off(ring)
     finally:
         ring.close()
 
@@ -266,38 +265,38 @@ def handed_off_ring():  # type: ignore[no-untyped-def]
 def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_polls_only_for_the_rest(
     handed_off_ring,
 ):
-    ring, r = handed_off_ring
-    i, event = publish_due(ring, 1.0, 0.05)
+    ring, r, ev = handed_off_ring
+    i, event = publish_due(ring, ev, 1.0, 0.05)
     slot = r.pin()
-    ring.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no polling, the whole wait in the driver
+    ev.wait_done(slot, spin_s=0.02)  # nothing learnt yet: no polling, the whole wait in the driver
     assert event.syncs == 1 and event.polls == 1  # the one query that found it not done yet
     r.release(slot)
 
-    ring.publish_to_done_s = 0.15
-    i, event = publish_due(ring, 2.0, 0.15)
+    ev.publish_to_done_s = 0.15
+    i, event = publish_due(ring, ev, 2.0, 0.15)
     slot = r.pin()
-    t = ring.wait_done(slot, spin_s=0.02)
+    t = ev.wait_done(slot, spin_s=0.02)
     assert event.syncs == 0  # done while polled: never waited in the driver
     # the first query, then a sleep through 0.15 - 0.02 s, then the polls
     assert event.polls > 2 and event.polled_at[1] >= slot.t_publish + 0.13
     assert t >= event.due and t - event.due < 0.01
-    assert ring.done_at[i] == (slot.seq, t)
+    assert ev.done_at[i] == (slot.seq, t)
     r.release(slot)
 
-    i, event = publish_due(ring, 3.0, 0.05)
+    i, event = publish_due(ring, ev, 3.0, 0.05)
     slot = r.pin()
-    ring.wait_done(slot)  # no spin window: straight to the (sleeping) wait in the driver
+    ev.wait_done(slot, spin_s=0)  # no spin window: straight to the (sleeping) wait in the driver
     assert event.syncs == 1 and event.polls == 1
     r.release(slot)
 
 
 def test_a_spinning_wait_polls_no_longer_than_its_window_past_the_predicted_end(handed_off_ring):
-    ring, r = handed_off_ring
-    ring.publish_to_done_s = 0.05  # predicted: 0.05 s; the work takes 0.4 s
-    _, event = publish_due(ring, 1.0, 0.4)
+    ring, r, ev = handed_off_ring
+    ev.publish_to_done_s = 0.05  # predicted: 0.05 s; the work takes 0.4 s
+    _, event = publish_due(ring, ev, 1.0, 0.4)
     slot = r.pin()
     cpu = time.thread_time()
-    t = ring.wait_done(slot, spin_s=0.02)
+    t = ev.wait_done(slot, spin_s=0.02)
     spent = time.thread_time() - cpu
     # polled to the window's end, then waited in the driver, long before the work was done
     assert event.syncs == 1 and event.sync_called_at >= slot.t_publish + 0.05 + 0.02
@@ -315,12 +314,12 @@ def test_a_spinning_wait_polls_no_longer_than_its_window_past_the_predicted_end(
 def test_a_spinning_wait_widens_its_window_by_the_spread_of_recent_results_up_to_a_cap(
     handed_off_ring, spread, work_s, polled
 ):
-    ring, r = handed_off_ring
+    ring, r, ev = handed_off_ring
     # predicted 0.05 s; window 0.02 s plus twice the spread, at most 0.06 s: polled until 0.07 or 0.11 s
-    ring.publish_to_done_s, ring.publish_to_done_dev_s = 0.05, spread
-    _, event = publish_due(ring, 1.0, work_s)
+    ev.publish_to_done_s, ev.publish_to_done_dev_s = 0.05, spread
+    _, event = publish_due(ring, ev, 1.0, work_s)
     slot = r.pin()
-    t = ring.wait_done(slot, spin_s=0.02)
+    t = ev.wait_done(slot, spin_s=0.02)
     assert t >= event.due
     assert event.syncs == (0 if polled else 1)
     if not polled:
@@ -333,7 +332,7 @@ def test_a_spinning_wait_widens_its_window_by_the_spread_of_recent_results_up_to
 def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads(handed_off_ring):
     """A head thread woken while the caller polls must not wait for the poll to end: with a 50 ms switch interval,
     a poll that kept the lock would hold each wake-up about that long."""
-    ring, r = handed_off_ring
+    ring, r, ev = handed_off_ring
     delays: list[float] = []
     stop = threading.Event()
 
@@ -345,13 +344,13 @@ def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads(handed_off_
 
     interval = sys.getswitchinterval()
     try:
-        ring.publish_to_done_s = 0.3
-        _, event = publish_due(ring, 1.0, 0.5)
+        ev.publish_to_done_s = 0.3
+        _, event = publish_due(ring, ev, 1.0, 0.5)
         slot = r.pin()
         sys.setswitchinterval(0.05)
         other = threading.Thread(target=wake_up_often)
         other.start()
-        ring.wait_done(slot, spin_s=0.3)  # polls from publish to 0.5 s
+        ev.wait_done(slot, spin_s=0.3)  # polls from publish to 0.5 s
         stop.set()
         other.join()
         assert event.syncs == 0 and event.polls > 100
@@ -377,10 +376,11 @@ class SlowEvent(Event):
 def queued_results(engine, head: str, work_s: float, predicted_s: float) -> list[SlowEvent]:  # type: ignore[no-untyped-def]
     """Make ``head``'s results look published with their device work still queued (stand-in events, as a head
     hands off on CUDA), its recent results predicting ``predicted_s`` from publish to done."""
-    ring = engine._peek_readers[head].ring
-    events = [SlowEvent(work_s) for _ in range(ring.n_slots)]
-    ring.device_events, ring.publish_to_done_s = events, predicted_s
-    return events
+    n = engine._peek_readers[head].ring.n_slots
+    ev = SlotEvents(n, blocking=True, make_event=lambda blocking: SlowEvent(work_s))
+    ev.publish_to_done_s = predicted_s
+    engine._handoffs.results[head] = ev
+    return ev.events
 
 
 def test_wait_waits_in_the_driver_for_a_result_predicted_to_be_done_in_time():

@@ -283,6 +283,8 @@ def test_model_health_levels_and_values():
     assert model_status("d", _stats(state="restarting", restarts=2), "vp", "hw").level == WARN
     failed = model_status("d", _stats(state="failed", last_error="boom"), "vp", "hw")
     assert failed.level == ERROR and "boom" in failed.message
+    hung = model_status("d", _stats(state="hung", last_error="d: hung for 61 s"), "vp", "hw")
+    assert hung.level == ERROR and hung.message == "hung: d: hung for 61 s"
 
 
 # ---------------------------------------------------------------------------------------------- the core

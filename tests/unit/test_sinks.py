@@ -142,3 +142,135 @@ def test_a_sink_that_cannot_be_made_raises_its_own_error_from_the_constructor_an
 def test_a_queue_of_no_results_is_refused():
     with pytest.raises(ValueError, match="max_pending must be >= 1, got 0"):
         SinkThread([], max_pending=0, block=True)
+
+
+# ------------------------------------------------------------------------------------------------ files, pictures
+def test_depth_as_16_bit_png_gives_the_depth_back_within_half_a_step_and_marks_what_was_not_finite():
+    from vpengine.io.sinks import decode_depth_png, encode_depth_png
+
+    rng = np.random.default_rng(1)
+    d = (rng.random((48, 64)) * 30 + 0.5).astype(np.float32)
+    d[3, 4], d[5, 6], d[7, 8] = np.nan, np.inf, -np.inf
+    png, offset, scale = encode_depth_png(d)
+    assert png.dtype == np.uint16 and png.min() == 0 and png.max() == 65535
+    back = decode_depth_png(png, offset, scale)
+    finite = np.isfinite(d)
+    assert np.isnan(back[~finite]).all()
+    step = (np.nanmax(d[finite]) - np.nanmin(d[finite])) / 65534
+    assert np.abs(back[finite] - d[finite]).max() <= step / 2 + 1e-5 * np.abs(d[finite]).max()
+    flat = np.full((4, 4), 2.5, np.float32)
+    np.testing.assert_array_equal(decode_depth_png(*encode_depth_png(flat)), flat)
+    assert np.isnan(decode_depth_png(*encode_depth_png(np.full((2, 2), np.nan, np.float32)))).all()
+
+
+def head_results(i: int, n: int = 2) -> list[Result]:
+    rng = np.random.default_rng(i)
+    return [
+        Result("depth", i, i / 10, 0.01, {"depth": (rng.random((60, 80)) * 5).astype(np.float32)}),
+        Result("seg", i, i / 10, 0.01, {"classes": rng.integers(0, 3, (60, 80)).astype(np.uint8)}),
+        Result(
+            "det",
+            i,
+            i / 10,
+            0.01,
+            {
+                "boxes": np.array([[1, 2, 30, 40], [5, 5, 9, 9], [0, 0, 0, 0]], np.float32),
+                "scores": np.array([0.9, 0.6, 0], np.float32),
+                "labels": np.array([1, 0, -1], np.int32),
+                "count": np.array(n, np.int32),
+            },
+        ),
+    ]
+
+
+HEADS = {
+    "depth": {"kind": "depth"},
+    "seg": {"kind": "segmentation"},
+    "det": {"kind": "detection", "labels": ["person", "car"]},
+}
+
+
+def test_the_folder_sink_writes_depth_as_png_with_its_scale_by_default_and_starts_line_files_afresh(tmp_path):
+    import json
+
+    from vpengine.io.sinks import FolderSink, load_depth
+
+    frame = np.zeros((60, 80, 3), np.uint8)
+    for _ in range(2):  # a second run into the same folder replaces the line files, never appends to them
+        sink = FolderSink(tmp_path, HEADS, viz=True)
+        for i in range(3):
+            for r in head_results(i):
+                sink.write(r, frame, f"f{i}")
+        sink.close()
+    assert sorted(p.name for p in (tmp_path / "depth").iterdir()) == [
+        "depth_scale.jsonl", "f0.png", "f1.png", "f2.png", "viz",
+    ]  # fmt: skip
+    want = head_results(1)[0]["depth"]
+    assert np.abs(load_depth(tmp_path / "depth", "f1") - want).max() < 5 / 65534
+    lines = [json.loads(x) for x in (tmp_path / "det" / "detections.jsonl").read_text().splitlines()]
+    assert [x["frame"] for x in lines] == ["f0", "f1", "f2"]
+    assert lines[0]["names"] == ["car", "person"] and len(lines[0]["boxes"]) == 2  # the first `count` only
+    assert len((tmp_path / "depth" / "depth_scale.jsonl").read_text().splitlines()) == 3
+    assert sorted(p.name for p in (tmp_path / "seg" / "viz").iterdir()) == ["f0.jpg", "f1.jpg", "f2.jpg"]
+
+    sink = FolderSink(tmp_path / "npy", HEADS, depth_format="npy")
+    sink.write(head_results(1)[0], frame, "f1")
+    sink.close()
+    np.testing.assert_array_equal(load_depth(tmp_path / "npy" / "depth", "f1"), want)  # exact
+    with pytest.raises(ValueError, match=r"depth_format must be one of \('png16', 'npy'\), got 'exr'"):
+        FolderSink(tmp_path, HEADS, depth_format="exr")
+
+
+def test_a_file_that_cannot_be_written_raises(tmp_path):
+    from vpengine.io.sinks import FolderSink
+
+    sink = FolderSink(tmp_path, HEADS)
+    (tmp_path / "seg").rmdir()
+    (tmp_path / "seg").write_text("a file where the head's folder was")
+    with pytest.raises(OSError, match=r"cannot write '.*/seg/f0.png'"):  # loudly, not cv2's False
+        sink.write(head_results(0)[1], None, "f0")
+
+
+def test_annotated_pictures_wait_for_every_head_and_fill_a_missing_one_with_its_newest_result(tmp_path):
+    import cv2
+
+    from vpengine.io.sinks import AnnotatedSink
+
+    frame = np.full((60, 80, 3), 90, np.uint8)
+    sink = AnnotatedSink(HEADS, pictures=tmp_path / "p", video=tmp_path / "v.mp4", fps=10, lag=2)
+    drawn = []
+    sink_draw = sink._draw
+    sink._draw = lambda fid: (drawn.append(fid), sink_draw(fid))  # type: ignore[method-assign]
+    for r in head_results(0):
+        sink.write(r, frame, "f0")
+    assert drawn == [0]  # every head answered: drawn at once
+    depth1, seg1, _ = head_results(1)
+    sink.write(depth1, frame, "f1")
+    sink.write(seg1, frame, "f1")  # det skips frame 1 (a lower rate)
+    for i in (2, 3):
+        sink.write(head_results(i)[0], frame, f"f{i}")
+    assert drawn == [0, 1]  # frame 1 once two newer frames wait
+    # frames of another size are letterboxed into the video's size, never stretched
+    for r in head_results(4):
+        sink.write(r, np.full((120, 60, 3), 200, np.uint8), "f4")
+    sink.close()
+    assert drawn == [0, 1, 2, 3, 4]
+    assert sorted(p.name for p in (tmp_path / "p").iterdir()) == [f"f{i}.jpg" for i in range(5)]
+    cap = cv2.VideoCapture(str(tmp_path / "v.mp4"))
+    assert cap.get(cv2.CAP_PROP_FRAME_COUNT) == 5 and cap.get(cv2.CAP_PROP_FPS) == 10
+    first = cv2.imread(str(tmp_path / "p" / "f0.jpg"))
+    assert (cap.get(cv2.CAP_PROP_FRAME_WIDTH), cap.get(cv2.CAP_PROP_FRAME_HEIGHT)) == first.shape[1::-1]
+    cap.release()
+    # the det tile of frame 1 shows frame 0's boxes, not 'no result yet'
+    f0, f1 = first, cv2.imread(str(tmp_path / "p" / "f1.jpg"))
+    h, w = f0.shape[0] // 2, f0.shape[1] // 2
+    assert np.abs(f1[h:, w:].astype(int) - f0[h:, w:]).mean() < 2
+
+
+def test_an_annotated_sink_needs_somewhere_to_write():
+    from vpengine.io.sinks import AnnotatedSink
+
+    with pytest.raises(ValueError, match="needs a pictures folder, a video file or both"):
+        AnnotatedSink(HEADS)
+    with pytest.raises(ValueError, match="video rate must be a number of Hz above 0, got 0"):
+        AnnotatedSink(HEADS, video="x.mp4", fps=0)

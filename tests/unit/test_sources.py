@@ -82,3 +82,114 @@ def test_a_camera_that_fails_raises_naming_it_and_stopping_early_stops_its_reade
     cam.deliver()  # which returns with the camera's next frame, and the reader stops there
     wait_until(lambda: not camera_threads())
     assert cam.i == 2
+
+
+# ------------------------------------------------------------------------------------------------ images, specs
+def write_images(folder, sizes, ext: str = "png") -> list:
+    import cv2
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for i, (h, w) in enumerate(sizes):
+        img = np.zeros((h, w, 3), np.uint8)
+        img[:, : w // 2] = (10 * i, 100, 200)  # left half coloured: a stretched image would move the edge
+        paths.append(folder / f"im{i}.{ext}")
+        assert cv2.imwrite(str(paths[-1]), img)
+    return paths
+
+
+def test_a_folder_of_mixed_sizes_gives_each_image_at_its_own_size_stamped_on_the_folders_timeline(tmp_path):
+    from vpengine.io.sources import open_source
+
+    sizes = [(60, 80), (1080, 1920), (33, 47), (480, 640)]
+    write_images(tmp_path / "f", sizes)
+    with open_source(str(tmp_path / "f")) as src:
+        assert (src.height, src.width) == (60, 80) and len(src) == 4  # the first image's size
+        frames = list(src)
+    assert [f.image.shape for f in frames] == [(h, w, 3) for h, w in sizes]
+    for f, (_, w) in zip(frames, sizes):  # never stretched: the coloured half ends where it did
+        assert (f.image[:, : w // 2, 1] == 100).all() and not f.image[:, w // 2 :].any()
+    assert [f.name for f in frames] == ["im0", "im1", "im2", "im3"]
+    assert [f.timestamp for f in frames] == pytest.approx([0, 1 / 30, 2 / 30, 3 / 30])  # 30 Hz unless told
+    with open_source(str(tmp_path / "f"), fps=4) as src:
+        assert [f.timestamp for f in src] == [0, 0.25, 0.5, 0.75]
+
+
+def test_a_single_image_and_a_glob_are_sources(tmp_path):
+    from vpengine.io.sources import open_source
+
+    paths = write_images(tmp_path / "a", [(40, 50), (20, 30)])
+    write_images(tmp_path / "b", [(10, 20)], ext="jpg")
+    with open_source(str(paths[1])) as src:
+        assert [(f.name, f.image.shape) for f in src] == [("im1", (20, 30, 3))]
+    with open_source(str(tmp_path / "a" / "*.png")) as src:
+        assert [f.name for f in src] == ["im0", "im1"]
+    with open_source(str(tmp_path / "**" / "im0.*")) as src:  # the same name in two folders stays two names
+        assert [f.name for f in src] == ["000000_im0", "000001_im0"]
+    with pytest.raises(ValueError, match=r"no images .* match '.*\*\.bmp'"):
+        open_source(str(tmp_path / "a" / "*.bmp"))
+
+
+def test_an_unreadable_image_is_skipped_and_listed_and_a_truncated_one_is_used_with_a_warning(
+    tmp_path, caplog
+):
+    import cv2
+    import numpy as np
+
+    from vpengine.io.sources import open_source
+
+    folder = tmp_path / "f"
+    write_images(folder, [(40, 50)] * 3)
+    (folder / "im1.png").write_bytes(b"this is no image")
+    rng = np.random.default_rng(0)
+    assert cv2.imwrite(str(folder / "im3.jpg"), rng.integers(0, 256, (64, 64, 3), dtype=np.uint8))
+    data = (folder / "im3.jpg").read_bytes()
+    (folder / "im3.jpg").write_bytes(data[: len(data) // 2])  # cut in half: the decoder fills in the rest
+    png = (folder / "im2.png").read_bytes()
+    (folder / "im4.png").write_bytes(png[: len(png) - 20])  # a PNG cut short does not decode at all
+    with caplog.at_level("WARNING", logger="vpengine.sources"), open_source(str(folder)) as src:
+        frames = list(src)
+    assert [f.name for f in frames] == ["im0", "im2", "im3"]
+    assert frames[2].image.shape == (64, 64, 3)
+    assert src.skipped == [
+        {"file": str(folder / "im1.png"), "why": "not a readable image"},
+        {"file": str(folder / "im4.png"), "why": "not a readable image"},
+    ]
+    assert src.partial == [str(folder / "im3.jpg")]
+    assert "im3.jpg is truncated: decoded partially" in caplog.text and "skipping" in caplog.text
+
+    write_images(tmp_path / "g", [(40, 50)])
+    (tmp_path / "g" / "im0.png").write_bytes(b"")
+    with pytest.raises(ValueError, match="none of the 1 images .* can be read"):
+        open_source(str(tmp_path / "g"))
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ("synthetic:64x64@0", "synthetic source rate must be a number of Hz above 0, got 0.0"),
+        ("synthetic:64x64@0.0:3", "synthetic source rate must be a number of Hz above 0, got 0.0"),
+        ("synthetic:64x64@.", "bad synthetic source"),
+        ("camera:front", "use camera:N with N the camera's index"),
+        ("sample:nope", "no sample named 'nope'; samples: cheetah, street"),
+        ("no/such/file.avi", "does not exist .*sample:NAME"),
+    ],
+)
+def test_bad_source_specs_are_refused_with_what_is_accepted(spec, message):
+    from vpengine.io.sources import open_source
+
+    with pytest.raises(ValueError, match=message):
+        open_source(spec)
+
+
+def test_the_shipped_samples_are_sources():
+    from vpengine.io.sources import open_source
+
+    with open_source("sample:cheetah") as src:
+        (frame,) = list(src)
+        assert frame.image.shape == (1080, 1920, 3) and frame.name == "cheetah" and frame.image.mean() > 10
+    with open_source("sample:street") as src:
+        assert (src.width, src.height, src.fps, len(src)) == (768, 576, 10.0, 50)
+        stamps = [f.timestamp for f in src]
+    assert len(stamps) == 50 and stamps[:3] == pytest.approx([0.0, 0.1, 0.2])  # the video's own timeline

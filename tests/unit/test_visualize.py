@@ -5,7 +5,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vpengine.io.visualize import colorize_depth, colormap_lut, default_palette, overlay_segmentation
+from vpengine.io.visualize import (
+    caption,
+    colorize_depth,
+    colormap_lut,
+    default_palette,
+    depth_picture,
+    detections,
+    draw_detections,
+    draw_result,
+    draw_results,
+    overlay_segmentation,
+)
 
 RNG = np.random.default_rng(7)
 
@@ -85,3 +96,103 @@ def test_the_overlay_resizes_the_frame_to_the_class_map_and_refuses_a_frame_that
         overlay_segmentation(img.astype(np.float32), classes)
     with pytest.raises(ValueError, match=r"got uint8 \(240, 320\)"):
         overlay_segmentation(img[..., 0], classes)
+
+
+def test_class_colours_are_far_apart():
+    pal = default_palette(16).astype(np.float64)[1:]  # 0 is the grey of background
+    dist = np.sqrt(((pal[:, None] - pal[None]) ** 2).sum(-1))
+    assert dist[~np.eye(len(pal), dtype=bool)].min() >= 60
+    assert (default_palette(1000)[0] == 60).all() and len({tuple(c) for c in default_palette(256)}) == 256
+
+
+def test_a_caption_is_text_on_a_filled_box_inside_the_picture_in_a_colour_that_reads():
+    img = np.full((100, 200, 3), 128, np.uint8)
+    x1, y1, x2, y2 = caption(img, "depth", (190, 95), (255, 255, 255), 0.5)  # asked to start off the picture
+    assert 0 <= x1 < x2 == 200 and 0 <= y1 < y2 == 100  # moved inside
+    box = img[y1:y2, x1:x2].reshape(-1, 3)
+    assert (box == 255).all(-1).mean() > 0.6 and (box < 100).all(-1).any()  # white box, dark text on it
+    assert (img[:y1] == 128).all() and (img[:, :x1] == 128).all()  # nothing outside the box
+    dark = np.zeros((50, 100, 3), np.uint8)
+    x1, y1, x2, y2 = caption(dark, "seg", (0, 0), (90, 0, 0))
+    assert (dark[y1:y2, x1:x2] > 200).all(-1).any()  # white text on a dark box
+
+
+def test_depth_pictures_have_a_colour_bar_labelled_with_the_range():
+    d = np.tile(np.linspace(2.0, 9.0, 320, dtype=np.float32), (240, 1))
+    pic = depth_picture(d)
+    plain = colorize_depth(d)
+    assert pic.shape == plain.shape and (pic != plain).any()
+    bw = 320 // 40
+    x = 320 - bw - 4 + bw // 2  # the middle of the bar
+    bar = pic[:, x]
+    lut = colormap_lut()
+    rows = np.flatnonzero((bar[:, None, :] == lut[None, [0, 255], :]).all(-1).any(-1))
+    top, bottom = rows.min(), rows.max()
+    np.testing.assert_array_equal(bar[top], lut[255])  # the largest value at the top
+    np.testing.assert_array_equal(bar[bottom], lut[0])
+    assert bottom - top >= 0.5 * 240
+    np.testing.assert_array_equal(pic[:, :150], plain[:, :150])  # the map itself is untouched
+    assert (depth_picture(d, bar=False) == plain).all()
+
+
+def test_detections_are_the_first_count_of_a_fixed_capacity_output_each_class_in_its_colour():
+    out = {
+        "boxes": np.array([[10, 40, 60, 90], [100, 40, 150, 90], [0, 0, 0, 0]], np.float32),
+        "scores": np.array([0.9, 0.8, 0.0], np.float32),
+        "labels": np.array([1, 2, -1], np.int32),
+        "count": np.array(2, np.int32),
+    }
+    boxes, scores, labels = detections(out)
+    assert boxes.shape == (2, 4) and labels.tolist() == [1, 2]
+    pic = draw_detections(np.zeros((120, 160, 3), np.uint8), boxes, scores, labels, ["a", "b", "c"])
+    left, right = tuple(pic[65, 10]), tuple(pic[65, 100])  # on each box's left edge
+    assert left != right and left != (0, 0, 0) and right != (0, 0, 0)
+    assert not pic[100:, :].any()  # the padded third box is not drawn
+
+
+def test_one_heads_result_is_drawn_in_the_frames_grid_whatever_its_size():
+    frame = RNG.integers(0, 256, (120, 160, 3)).astype(np.uint8)
+    depth = draw_result(frame, {"depth": RNG.random((60, 80)).astype(np.float32)}, {"kind": "depth"}, "depth")
+    seg = draw_result(frame, {"classes": np.zeros((30, 40), np.uint8)}, {"kind": "segmentation"})
+    det = draw_result(
+        frame, {"boxes": np.zeros((0, 4)), "scores": np.zeros(0), "labels": np.zeros(0, int)}, None, "det"
+    )
+    assert depth.shape == seg.shape == det.shape == frame.shape
+    # class 0 everywhere: the frame blended with class 0's colour, except under the legend at the top left
+    want = overlay_segmentation(frame, np.zeros((120, 160), np.uint8))
+    np.testing.assert_array_equal(seg[60:], want[60:])
+    np.testing.assert_array_equal(det[60:], frame[60:])  # no boxes: the frame below its title
+
+
+@pytest.mark.parametrize(
+    ("size", "heads", "grid", "tile"),
+    [
+        ((120, 160), 3, (2, 2), (360, 480)),  # a small frame is shown larger, so its captions stay readable
+        ((576, 768), 2, (1, 3), (480, 640)),  # three pictures in a row within 1920 pixels
+        ((1080, 1920), 3, (2, 2), (540, 960)),
+        ((1080, 1920), 4, (2, 3), (360, 640)),
+    ],
+)
+def test_all_heads_side_by_side(size, heads, grid, tile):
+    frame = RNG.integers(0, 256, (*size, 3)).astype(np.uint8)
+    results = {
+        "depth": {"depth": RNG.random(size).astype(np.float32)},
+        "seg": {"classes": RNG.integers(0, 5, size).astype(np.uint8)},
+        "det": {"boxes": np.array([[10, 10, 50, 50]]), "scores": np.array([0.5]), "labels": np.array([0])},
+        "other": None,
+    }
+    results = dict(list(results.items())[:heads])
+    mosaic = draw_results(frame, results)
+    assert mosaic.shape == (grid[0] * tile[0], grid[1] * tile[1], 3)
+    import cv2
+
+    first = cv2.resize(
+        frame, tile[::-1], interpolation=cv2.INTER_AREA if tile[0] < size[0] else cv2.INTER_LINEAR
+    )
+    np.testing.assert_array_equal(
+        mosaic[tile[0] // 2 : tile[0], : tile[1]], first[tile[0] // 2 :]
+    )  # the input
+    if "other" in results:  # never answered yet: the frame, darkened, with a caption
+        r, c = divmod(heads, grid[1])
+        cell = mosaic[r * tile[0] : (r + 1) * tile[0], c * tile[1] : (c + 1) * tile[1]]
+        np.testing.assert_array_equal(cell[tile[0] // 2 :], first[tile[0] // 2 :] // 3)

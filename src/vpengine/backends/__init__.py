@@ -57,7 +57,7 @@ def make_executor(
 
         return CompiledExecutor(model, device, precision, name, opts)
     from vpengine.backends.onnxrt import OnnxExecutor
-    from vpengine.models.weights import cache_dir as vpengine_cache
+    from vpengine.models.catalog import cache_dir as vpengine_cache
 
     return OnnxExecutor(
         model, device, precision, name, opts, vpengine_cache(str(cache_dir) if cache_dir else None) / "onnx"

@@ -81,7 +81,7 @@ class OnnxExecutor(Executor):
         ort = _import_ort(name)
         self.providers = self._providers(ort)
         if cache_dir is None:
-            from vpengine.models.weights import cache_dir as vpengine_cache
+            from vpengine.models.catalog import cache_dir as vpengine_cache
 
             cache_dir = vpengine_cache() / "onnx"
         cache = OnnxCache(cache_dir)

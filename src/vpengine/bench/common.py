@@ -1,4 +1,4 @@
-"""Shared by the benchmarks: machine description and results files."""
+"""Shared by the benchmarks: machine description, results files, device timing and figures."""
 
 from __future__ import annotations
 
@@ -70,3 +70,13 @@ def event_ms(run: Any, n: int, warmup: int = 0) -> float:
         end.synchronize()
         times.append(start.elapsed_time(end))
     return float(np.median(times))
+
+
+def pyplot() -> Any:
+    """matplotlib.pyplot drawing to files only (the Agg backend: no display needed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

@@ -134,11 +134,9 @@ def main(args: argparse.Namespace) -> int:
 
 
 def _figure(samples: list[float], r: dict[str, Any], path: Any) -> None:
-    import matplotlib
+    from vpengine.bench.common import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.2), dpi=120)
     a = np.asarray(samples)
     ax.hist(a[a <= np.percentile(a, 99.5)], bins=80, color="#3b7dd8")

@@ -1,8 +1,10 @@
-"""Turn a folder of benchmark results (JSON) into one figure and one markdown table, for the README.
+"""``vpengine bench report``: a folder of results files (one folder per GPU kind) -> summary.md and summary.png.
 
     vpengine bench report --results benchmarks/results/h100
+    vpengine bench report --results DIR --baseline before   # each run against the runs of files named *before*
 
-Every number it prints is read from a results file in that folder; nothing is typed in by hand.
+Every number it writes is read from a results file in that folder, and every row names its file; nothing is typed in
+by hand. This is the one place the paper experiments' figures are drawn.
 """
 
 from __future__ import annotations
@@ -14,15 +16,19 @@ from typing import Any
 
 import numpy as np
 
+#: experiments of ``vpengine bench paper`` a results file may hold
+PAPER = ("E1", "E2", "E3", "E4", "E5", "floor")
+#: runs drawn in the floor panel, newest last
+FLOOR_RUNS_DRAWN = 8
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--results", default="benchmarks/results/h100", help="folder of results files")
-    p.set_defaults(out=None)
-
-
-def _load(folder: Path, name: str) -> dict[str, Any] | None:
-    path = folder / name
-    return json.loads(path.read_text()) if path.exists() else None
+    p.add_argument("--results", required=True, help="folder of results files, e.g. benchmarks/results/h100")
+    p.add_argument(
+        "--baseline",
+        metavar="NAME",
+        help="compare every run with the newest run of the same experiment in a file whose name holds NAME",
+    )
 
 
 def _paper_files(folder: Path) -> list[tuple[str, dict[str, Any]]]:
@@ -49,147 +55,123 @@ def _runs(files: list[tuple[str, dict[str, Any]]], key: str) -> list[dict[str, A
     return sorted(runs, key=lambda x: (x["date"], x["file"]))
 
 
-def _setup_label(setup: dict[str, Any], det: bool = False) -> str:
+def collect(folder: Path) -> dict[str, Any]:
+    """``{key}_all``: every run of each experiment, oldest first; ``{key}``: the run the figure draws (the newest,
+    for E1 and E2 the one with the most head counts, for E5 the longest stream); other benchmarks' files by name."""
+    files = _paper_files(folder)
+    out: dict[str, Any] = {}
+    for key in PAPER:
+        runs = out[f"{key}_all"] = _runs(files, key)
+        if runs:
+            out[key] = runs[-1]
+    for key in ("E1", "E2"):
+        if out[f"{key}_all"]:
+            out[key] = max(out[f"{key}_all"], key=lambda x: (len(x["rows"]), x["date"]))
+    if out["E5_all"]:
+        out["E5"] = max(out["E5_all"], key=lambda x: (x["frames"], x["date"]))
+    for name in ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"):
+        path = folder / name
+        if path.exists():
+            out[name] = json.loads(path.read_text())
+    return out
+
+
+# the overrides a label already says in words
+_LABELLED = {
+    "mode",
+    "mps",
+    "device",
+    "input.height",
+    "input.width",
+    "foundation_model.model",
+    "foundation_model.backend",
+}
+
+
+def setup_label(setup: dict[str, Any], det: bool = False) -> str:
+    """What ran, in a few words: backbone and backend, then only what differs from the usual (1080p, process mode,
+    no MPS, results copied), then any other ``--set`` override as given."""
     label = f"{setup.get('backbone', '?')}, {setup.get('backend', '?')}"
-    if det and setup.get("backend", "eager") != "eager":  # Setup.head keeps Faster R-CNN eager
-        label += ", detection heads eager"
+    det_backend = setup.get("heads", {}).get("det", {}).get("backend")
+    if det and det_backend and det_backend != setup.get("backend"):
+        label += f", detection heads {det_backend}"
     size = (setup.get("height", 1080), setup.get("width", 1920))
-    if not setup.get("tiny") and size != (1080, 1920):  # 1080p frames unless said
+    if size != (1080, 1920):
         label += f", {size[0]}x{size[1]}"
     if setup.get("mode", "process") != "process":
         label += f", {setup['mode']} mode"
-    if setup.get("mps", "off") != "off":
+    if setup.get("mps") == "required":
         label += ", MPS"
     if setup.get("results", "copy") == "borrow":
         label += ", borrowed results"
-    if setup.get("slot_bound") is False:
-        label += ", not slot-bound"
-    if setup.get("sync_spin_us"):
-        label += f", sync spin {setup['sync_spin_us']:g} us"
-    if setup.get("wait_spin_us") and str(setup.get("device", "")).startswith(
-        "cuda"
-    ):  # the CPU: nothing to spin for
-        label += f", wait spin {setup['wait_spin_us']:g} us"
-    # thread mode's features waited for on the host (runs before Note [Event hand-off] have no such key and
-    # handed off on the host too)
-    if setup.get("feature_handoff") == "host":
-        label += ", host hand-off"
-    # thread mode's results waited for by the heads on the host (as in runs before Note [Result hand-off], unlabelled)
-    if setup.get("result_handoff") == "host":
-        label += ", results handed off on the host"
-    # thread mode's foundation launched by its worker, never by submit (so were runs before Note [Inline launch])
-    if setup.get("inline_launch") == "never":
-        label += ", worker launch"
-    stream_priorities = setup.get("stream_priorities")
-    if stream_priorities:
-        label += ", stream priorities " + " ".join(f"{k} {v}" for k, v in stream_priorities.items())
-    # the linear seg head's upsampling chosen for a comparison (runs before the fused kernel have no such key)
-    if setup.get("seg_upsample", "auto") != "auto":
-        label += f", seg upsample {setup['seg_upsample']}"
+    for o in setup.get("overrides", []):
+        if o.partition("=")[0].strip() not in _LABELLED:
+            label += f", {o}"
     return label
 
 
-def collect(folder: Path) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    files = _paper_files(folder)
-    for key in ("E1", "E2", "E3", "E4", "E5", "floor"):
-        runs = _runs(files, key)
-        if runs:
-            out[key] = runs[-1]  # the newest
-        # E1, E2, E3, E5 and the floor are run for several backbones, backends and modes: every run gets a row.
-        if key in ("E1", "E2", "E3", "E5", "floor"):
-            out[f"{key}_all"] = runs
-    for key in ("E1", "E2"):  # the figure shows the run with the most head counts
-        if out[f"{key}_all"]:
-            out[key] = max(out[f"{key}_all"], key=lambda x: (len(x["rows"]), x["date"]))
-    if out["E5_all"]:  # ... and the longest stream
-        out["E5"] = max(out["E5_all"], key=lambda x: (x["frames"], x["date"]))
-    for name in ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"):
-        data = _load(folder, name)
-        if data:
-            out[name] = data
-    return out
+def machine_label(machine: dict[str, Any]) -> str:
+    """``NVIDIA H100 80GB HBM3, 16-core Intel Xeon ..., torch 2.11.0, CUDA 13.0`` (no GPU: the CPU alone)."""
+    cpu = f"{machine.get('cores', '?')}-core {machine.get('cpu', '?')}"
+    parts = [machine["gpu"], cpu] if machine.get("gpu") else [cpu]
+    parts.append(f"torch {machine.get('torch', '?')}")
+    if machine.get("cuda"):
+        parts.append(f"CUDA {machine['cuda']}")
+    return ", ".join(parts)
 
 
 def table(r: dict[str, Any]) -> str:
     rows = ["| experiment | result | paper | file |", "| --- | --- | --- | --- |"]
     for e1 in r.get("E1_all", []):
         last = e1["rows"][-1]
+        ideal = (
+            f" (ideal from device times {last['ideal_vs_independent']:.2f}x)"
+            if "ideal_vs_independent" in last
+            else ""
+        )
         rows.append(
-            f"| E1 shared backbone + {last['heads']} depth heads ({_setup_label(e1['setup'])}) | "
-            f"{last['speedup_vs_independent']:.2f}x vs independent models (ideal from device times "
-            f"{last.get('ideal_vs_independent', float('nan')):.2f}x), {last['speedup_vs_sequential']:.2f}x vs "
-            f"sequential | 2.3x vs independent | {e1['file']} |"
+            f"| E1 shared backbone + {last['heads']} depth heads ({setup_label(e1['setup'])}) | "
+            f"engine {last['engine']['mean']:.1f} ms: {last['speedup_vs_independent']:.2f}x vs independent models"
+            f"{ideal}, {last['speedup_vs_sequential']:.2f}x vs sequential | 2.3x vs independent | {e1['file']} |"
         )
     for e2 in r.get("E2_all", []):
         last = e2["rows"][-1]
         dt = last["device_ms"]
-        floor = f", summed device time {sum(dt.values()):.1f} ms" if dt else ""
+        summed = f", summed device time {sum(dt.values()):.1f} ms" if dt else ""
         rows.append(
-            f"| E2 {last['heads']} detection heads ({_setup_label(e2['setup'], det=True)}) | "
+            f"| E2 {last['heads']} detection heads ({setup_label(e2['setup'], det=True)}) | "
             f"{last['speedup_vs_sequential']:.2f}x vs sequential (engine {last['engine']['mean']:.1f} ms, sequential "
-            f"{last['sequential']['mean']:.1f} ms{floor}) | 3.3x | {e2['file']} |"
+            f"{last['sequential']['mean']:.1f} ms{summed}) | 3.3x | {e2['file']} |"
         )
     for e3 in r.get("E3_all", []):
         g = {(x["head"], x["heads"]): x["throughput_gain"] for x in e3["rows"]}
         det = ", ".join(f"{n} heads {g[('det', n)]:+.0%}" for n in (4, 8) if ("det", n) in g)
         dep = ", ".join(f"{n} heads {g[('depth', n)]:+.0%}" for n in (4, 8) if ("depth", n) in g)
         rows.append(
-            f"| E3 CUDA MPS on vs off ({_setup_label(e3['setup'], det=True)}) | detection: {det}; depth: {dep} | "
+            f"| E3 CUDA MPS on vs off ({setup_label(e3['setup'], det=True)}) | detection: {det}; depth: {dep} | "
             f"+39% (4), +77% (8) | {e3['file']} |"
         )
-    if "E4" in r:
-        errs = ", ".join(f"{x['rate_hz']} Hz {x['error']:+.0f}" for x in r["E4"]["rows"])
+    for e4 in r.get("E4_all", []):
+        errs = ", ".join(f"{x['rate_hz']} Hz {x['error']:+.0f}" for x in e4["rows"])
         rows.append(
-            f"| E4 rate limits, 10 s of 30 Hz input | runs vs ideal: {errs} | +-1 | {r['E4']['file']} |"
+            f"| E4 rate limits, {e4['input_seconds']:.0f} s of 30 Hz input ({setup_label(e4['setup'])}) | runs vs ideal: "
+            f"{errs} | +-1 | {e4['file']} |"
         )
     for e in r.get("E5_all", []):
         a = e["all_three_latency_ms"]
-        lost = max(e["loss_pct"].values())
         rows.append(
-            f"| E5 {e['frames']} frames at 30 Hz, depth+seg+det ({_setup_label(e['setup'], det=True)}) | submit -> all three on host: p50 {a['p50']:.1f} ms, "
-            f"p99 {a['p99']:.1f} ms; lost {lost:.2f}%; memory flat: {e['memory_flat']} | ~0.02% lost | {e['file']} |"
+            f"| E5 {e['frames']} frames at 30 Hz, depth+seg+det ({setup_label(e['setup'], det=True)}) | submit -> all "
+            f"three on host: p50 {a['p50']:.1f} ms, p99 {a['p99']:.1f} ms; lost {max(e['loss_pct'].values()):.2f}%; "
+            f"{_memory(e['memory_flat'])} | ~0.02% lost | {e['file']} |"
         )
     for f in r.get("floor_all", []):
-        if "floor_sum_ms" not in f:
-            continue
-        heads = "+".join(k for k in f["device_ms"] if k != "foundation")
-        with_xfer = ""
-        if f.get("transfer_ms"):  # runs before the transfers were measured have only the compute floor
-            with_xfer = (
-                f"; with the frame's upload and the results' download {f['floor_with_transfers_ms']:.1f} ms: "
-                f"thread mode {f['thread_overhead_vs_floor_with_transfers']:+.0%}, process mode "
-                f"{f['process_overhead_vs_floor_with_transfers']:+.0%}"
-            )
-        slot = ""
-        if "thread_frame_slot" in f:  # runs since Engine.frame_slot also time frames written in place
-            parts = []
-            for m in ("thread", "process"):
-                k = f"{m}_frame_slot"
-                part = f"{m} mode {f[k]['mean']:.1f} ms ({f[f'{k}_overhead_vs_floor']:+.0%}"
-                if f.get("transfer_ms"):
-                    part += f", {f[f'{k}_overhead_vs_floor_with_transfers']:+.0%} with transfers"
-                parts.append(part + ")")
-            slot = "; frames written in place (frame_slot): " + ", ".join(parts)
-            chained = f.get("chained_ms", {}).get("compute")
-            if chained:  # runs since the chained floor: medians against a median
-                p50 = f["thread_frame_slot"]["p50"]
-                slot += (
-                    f"; the models back to back on one stream {chained:.1f} ms: thread mode from a frame slot p50 "
-                    f"{p50:.1f} ms ({p50 / chained - 1:+.0%})"
-                )
-        rows.append(
-            f"| engine vs device-time floor ({_setup_label(f['setup'], det='det' in heads)}; {heads}) | floor {f['floor_sum_ms']:.1f} ms; "
-            "thread mode "
-            f"{f['thread']['mean']:.1f} ms ({f['thread_overhead_vs_floor']:+.0%}), process mode "
-            f"{f['process']['mean']:.1f} ms ({f['process_overhead_vs_floor']:+.0%}){with_xfer}{slot} | - | {f['file']} |"
-        )
+        rows.append(_floor_row(f))
     res = r.get("resources_gpu.json")
     if res:
         s = res["summary"]
         cpu = {x["mode"]: x for x in res["rows"] if "cpu_30hz_pct" in x}
         rows.append(
-            "| E6 device memory per extra head (DINOv2-S + DA-V2 depth, 1080p, fp16) | process mode "
+            "| E6 device memory per extra head | process mode "
             f"+{s['process']['mb_per_extra_head']:.0f} MB, thread mode +{s['thread']['mb_per_extra_head']:.0f} MB "
             "| +214-295 MB | resources_gpu.json |"
         )
@@ -207,15 +189,92 @@ def table(r: dict[str, Any]) -> str:
     return "\n".join(rows)
 
 
+def _memory(flat: bool | None) -> str:
+    return "device memory not measured" if flat is None else f"memory flat: {flat}"
+
+
+def _floor_row(f: dict[str, Any]) -> str:
+    """A floor run: the engine's mean frame in each mode, submitted and written in place, and where the device times
+    were measured (CUDA) the three floors and how far over the summed one each mean is."""
+    heads = "+".join(f.get("heads") or [k for k in f["device_ms"] if k != "foundation"])
+    if "floor_sum_ms" in f:
+        floors = (
+            f"floor {f['floor_sum_ms']:.2f} ms summed, {f['floor_with_transfers_ms']:.2f} ms with the frame's upload "
+            f"and the results' download, {f['chained_ms']['compute']:.2f} ms back to back on one stream; "
+        )
+    else:
+        floors = "no device times off CUDA; "
+
+    def mode(m: str) -> str:
+        parts = []
+        for key, what in ((m, "submitted"), (f"{m}_frame_slot", "written in place")):
+            over = f" ({f[f'{key}_overhead_vs_floor']:+.0%})" if f"{key}_overhead_vs_floor" in f else ""
+            parts.append(f"{f[key]['mean']:.2f} ms {what}{over}")
+        return f"{m} mode " + ", ".join(parts)
+
+    return (
+        f"| engine vs device-time floor ({setup_label(f['setup'], det='det' in heads)}{'; ' * bool(heads)}{heads}) "
+        f"| {floors}"
+        f"{mode('thread')}; {mode('process')} | - | {f['file']} |"
+    )
+
+
+def headline(key: str, run: dict[str, Any]) -> dict[str, float]:
+    """The numbers (ms) a before/after comparison looks at: the engine's mean frame at the largest head count (E1,
+    E2), a frame's three results at p50 and p99 (E5), the engine's mean frame in each mode (floor)."""
+    if key in ("E1", "E2"):
+        last = run["rows"][-1]
+        return {f"engine, {last['heads']} heads, mean": last["engine"]["mean"]}
+    if key == "E5":
+        a = run["all_three_latency_ms"]
+        return {"all three, p50": a["p50"], "all three, p99": a["p99"]}
+    if key == "floor":
+        return {
+            f"{m} mode{', written in place' if slot else ''}, mean": run[
+                f"{m}{'_frame_slot' if slot else ''}"
+            ]["mean"]
+            for m in ("thread", "process")
+            for slot in (False, True)
+        }
+    return {}
+
+
+def comparison(r: dict[str, Any], baseline: str) -> str:
+    """Each run against the newest run of its experiment in a file whose name holds ``baseline``: a markdown table
+    of the headline numbers and the change (+ is slower)."""
+    rows = [
+        "| experiment | measure | baseline (ms) | run (ms) | change | run's file |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
+    for key in ("E1", "E2", "E5", "floor"):
+        runs = r.get(f"{key}_all", [])
+        base = [x for x in runs if baseline in x["file"]]
+        if not base:
+            continue
+        ref = headline(key, base[-1])
+        for run in runs:
+            if baseline in run["file"]:
+                continue
+            for measure, value in headline(key, run).items():
+                if measure in ref:
+                    rows.append(
+                        f"| {key} | {measure} | {ref[measure]:.2f} | {value:.2f} | {value / ref[measure] - 1:+.1%} | "
+                        f"{run['file']} |"
+                    )
+    return "\n".join(rows)
+
+
+# ---------------------------------------------------------------------------------------------------- figure
 def _e1(ax: Any, r: dict[str, Any]) -> None:
     rows = r["E1"]["rows"]
     ns = [x["heads"] for x in rows]
     for s, style in (("engine", "o-"), ("independent", "s--"), ("sequential", "^:")):
         ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
+    ax.set_xticks(ns)
     ax.set(
         xlabel="depth heads",
         ylabel="frames/s, one frame in flight",
-        title=f"E1: shared backbone vs not\n({_setup_label(r['E1'].get('setup', {}))})",
+        title=f"E1: shared backbone vs not\n({setup_label(r['E1']['setup'])})",
     )
     ax.legend()
 
@@ -225,22 +284,22 @@ def _e2(ax: Any, r: dict[str, Any]) -> None:
     ns = [x["heads"] for x in rows]
     for s, style in (("engine", "o-"), ("sequential", "^:")):
         ax.plot(ns, [x[s]["hz"] for x in rows], style, label=s)
+    ax.set_xticks(ns)
     ax.set(
         xlabel="detection heads",
         ylabel="frames/s",
-        title=f"E2: parallel vs sequential heads\n({_setup_label(r['E2'].get('setup', {}), det=True)})",
+        title=f"E2: parallel vs sequential heads\n({setup_label(r['E2']['setup'], det=True)})",
     )
     ax.legend()
 
 
 def _e3(ax: Any, r: dict[str, Any]) -> None:
     rows = r["E3"]["rows"]
-    labels = [f"{x['head']} x{x['heads']}" for x in rows]
-    x = np.arange(len(labels))
+    x = np.arange(len(rows))
     ax.bar(x - 0.2, [y["mps_off"]["hz"] for y in rows], 0.4, label="MPS off")
     ax.bar(x + 0.2, [y["mps_on"]["hz"] for y in rows], 0.4, label="MPS on")
-    ax.set_xticks(x, labels)
-    ax.set(ylabel="frames/s", title=f"E3: CUDA MPS\n({_setup_label(r['E3'].get('setup', {}), det=True)})")
+    ax.set_xticks(x, [f"{y['head']} x{y['heads']}" for y in rows])
+    ax.set(ylabel="frames/s", title=f"E3: CUDA MPS\n({setup_label(r['E3']['setup'], det=True)})")
     ax.legend()
 
 
@@ -249,16 +308,21 @@ def _e4(ax: Any, r: dict[str, Any]) -> None:
     rates = [x["rate_hz"] for x in rows]
     ax.plot(rates, [x["ideal"] for x in rows], "k--", label="ideal")
     ax.plot(rates, [x["runs"] for x in rows], "o", label="measured")
-    ax.set(xlabel="rate limit (Hz)", ylabel="runs in 10 s", title="E4: rate limits (30 Hz input)")
+    ax.set(
+        xlabel="rate limit (Hz)",
+        ylabel=f"runs in {r['E4']['input_seconds']:.0f} s",
+        title="E4: rate limits (30 Hz input)",
+    )
     ax.legend()
 
 
 def _e5_latency(ax: Any, r: dict[str, Any]) -> None:
     lat = r["E5"]["per_head_latency_ms"]
     names = list(lat)
-    ax.bar(np.arange(len(names)) - 0.2, [lat[n]["p50"] for n in names], 0.4, label="p50")
-    ax.bar(np.arange(len(names)) + 0.2, [lat[n]["p99"] for n in names], 0.4, label="p99")
-    ax.set_xticks(np.arange(len(names)), names)
+    x = np.arange(len(names))
+    ax.bar(x - 0.2, [lat[n]["p50"] for n in names], 0.4, label="p50")
+    ax.bar(x + 0.2, [lat[n]["p99"] for n in names], 0.4, label="p99")
+    ax.set_xticks(x, names)
     ax.set(ylabel="submit -> result (ms)", title=f"E5: {r['E5']['frames']} frames at 30 Hz")
     ax.axhline(33.3, color="grey", lw=0.8, ls=":")
     ax.legend()
@@ -273,22 +337,20 @@ def _e5_memory(ax: Any, r: dict[str, Any]) -> None:
     ax.ticklabel_format(useOffset=False)
 
 
-#: floor runs drawn, newest last
-FLOOR_RUNS_DRAWN = 8
-
-
-def floor_panel_rows(r: dict[str, Any]) -> list[tuple[str, float, float | None, float]]:
-    """The floor panel's runs, newest last: (file name less ``paper_cuda_floor_`` and ``.json``, summed device
-    time, the same with the frame's upload and the results' download or None, the engine's thread-mode mean from a
-    frame slot, as the table's percentages), in ms; only runs that timed frames written in place."""
-    rows = []
-    for f in r.get("floor_all", []):
-        if "floor_sum_ms" not in f or "thread_frame_slot" not in f:
-            continue
-        name = f["file"].removeprefix("paper_cuda_floor_").removesuffix(".json")
-        rows.append(
-            (name, f["floor_sum_ms"], f.get("floor_with_transfers_ms"), f["thread_frame_slot"]["p50"])
+def floor_panel_rows(r: dict[str, Any]) -> list[tuple[str, float, float, float]]:
+    """The floor panel's runs, newest last: (file name less ``paper_`` and ``.json``, summed device time, the same
+    with the frame's upload and the results' download, the engine's thread-mode mean from a frame slot), in ms; only
+    runs with device times (CUDA)."""
+    rows = [
+        (
+            f["file"].removeprefix("paper_").removesuffix(".json"),
+            f["floor_sum_ms"],
+            f["floor_with_transfers_ms"],
+            f["thread_frame_slot"]["mean"],
         )
+        for f in r.get("floor_all", [])
+        if "floor_sum_ms" in f
+    ]
     return rows[-FLOOR_RUNS_DRAWN:]
 
 
@@ -296,7 +358,7 @@ def _floor(ax: Any, r: dict[str, Any]) -> None:
     rows = floor_panel_rows(r)
     y = np.arange(len(rows))
     over = [100 * (x[3] / x[1] - 1) for x in rows]
-    xfer = [100 * (x[2] / x[1] - 1) if x[2] else 0.0 for x in rows]
+    xfer = [100 * (x[2] / x[1] - 1) for x in rows]
     ax.barh(y - 0.2, xfer, 0.4, color="#bbbbbb", label="the frame's upload and the results' download alone")
     ax.barh(y + 0.2, over, 0.4, color="#4a7fc0", label="engine, thread mode, frame written in place (mean)")
     for yi, v in zip(y, over):
@@ -323,13 +385,16 @@ def _panels(r: dict[str, Any]) -> list[Any]:
     return [draw for draw, present in have.items() if present]
 
 
+def _newest_machine(r: dict[str, Any]) -> dict[str, Any]:
+    runs = [run for key in PAPER for run in r.get(f"{key}_all", [])]
+    return max(runs, key=lambda x: x["date"])["machine"] if runs else {}
+
+
 def build_figure(r: dict[str, Any]) -> Any:
     """One panel per experiment the folder has results for, three to a row (none: a figure saying so)."""
-    import matplotlib
+    from vpengine.bench.common import pyplot
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     panels = _panels(r)
     cols = min(3, max(1, len(panels)))
     rows = max(1, -(-len(panels) // cols))
@@ -341,112 +406,36 @@ def build_figure(r: dict[str, Any]) -> Any:
         fig.delaxes(ax)
     if not panels:
         fig.text(0.5, 0.5, "no results in this folder", ha="center", va="center")
-    newest = r.get("E5") or r.get("E1") or r.get("floor") or {}
-    fig.suptitle(f"vpengine on {newest.get('machine', {}).get('gpu', '?')}")
+    machine = _newest_machine(r)
+    fig.suptitle(f"vpengine on {machine.get('gpu') or machine.get('cpu', '?')}")
     fig.tight_layout()
     return fig
 
 
-def figure(r: dict[str, Any], path: Path) -> None:
-    import matplotlib.pyplot as plt
-
-    fig = build_figure(r)
-    fig.savefig(path)
-    plt.close(fig)
-
-
-# profile_steps.py variants drawn, in this order, where a file has them
-WATERFALL_VARIANTS = ("slot host hand-off", "slot worker launch", "slot", "slot+spin200")
-_SEGMENTS = (  # (from stage, to stage, what the time is, colour)
-    ("input_published", "pinned", "woken (a model by its input, the caller by results)", "#bbbbbb"),
-    ("pinned", "model_enqueued", "host work: queueing device work (the caller: submit)", "#f0a030"),
-    ("model_enqueued", "device_done", "device work, until its thread sees it done", "#4a7fc0"),
-    ("device_done", "published", "counting and publishing", "#50a050"),
-)
-
-
-def waterfall_rows(
-    stages: dict[str, float],
-) -> list[tuple[str, list[tuple[float, float, int]], float | None]]:
-    """Per model (in the order they start): its segments (start ms, length ms, index into _SEGMENTS) and when its
-    output was published for its readers, from one variant's mean stage times of profile_steps.py."""
-    per: dict[str, dict[str, float]] = {}
-    for key, t in stages.items():
-        model, _, stage = key.partition(".")
-        per.setdefault(model, {})[stage] = t
-    caller = per.pop("caller", {})
-    # what the heads saw published: with the event hand-off that is before the foundation's work is done
-    heads_input = [
-        m["input_published"] for n, m in per.items() if n != "foundation" and "input_published" in m
-    ]
-    rows = []
-    for name, m in sorted(per.items(), key=lambda kv: kv[1].get("pinned", 0.0)):
-        segs = [
-            (m[a], m[b] - m[a], i)
-            for i, (a, b, _, _) in enumerate(_SEGMENTS)
-            if a in m and b in m and m[b] >= m[a]
-        ]
-        out = min(heads_input) if name == "foundation" and heads_input else m.get("published")
-        rows.append((name, segs, out))
-    if caller:
-        last = max((m.get("published", 0.0) for m in per.values()), default=0.0)
-        segs = [(0.0, caller.get("submitted", 0.0), 1)]
-        if "returned" in caller and caller["returned"] >= last:
-            segs.append((last, caller["returned"] - last, 0))
-        rows.append(("caller", segs, caller.get("returned")))
-    return rows
-
-
-def waterfall(profile: dict[str, Any], path: Path) -> bool:
-    """One frame's time, stage by stage, for each variant of a profile_steps.py result; False: nothing to draw."""
-    variants = [v for v in WATERFALL_VARIANTS if v in profile]
-    if not variants:
-        return False
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    height = 1.0 + 1.9 * len(variants)
-    fig, axes = plt.subplots(len(variants), 1, figsize=(11, height), dpi=110, sharex=True)
-    axes = np.atleast_1d(axes)
-    for ax, v in zip(axes, variants, strict=True):
-        rows = waterfall_rows(profile[v]["stages_ms_from_start"])
-        for y, (_name, segs, out) in enumerate(rows):
-            for start, length, i in segs:
-                ax.barh(y, length, left=start, color=_SEGMENTS[i][3], height=0.6)
-            if out is not None:
-                ax.plot([out], [y], "k|", markersize=14)
-        ax.set_yticks(range(len(rows)), [r[0] for r in rows])
-        ax.invert_yaxis()
-        ax.set_title(
-            f"{v}: {profile[v]['mean_ms']:.2f} ms mean from the frame in its slot to the caller holding results"
-        )
-        ax.grid(axis="x", alpha=0.3)
-    axes[-1].set_xlabel("ms after the frame is in its input slot (mean over frames); | = output published")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=c) for _, _, _, c in _SEGMENTS]
-    fig.legend(handles, [s[2] for s in _SEGMENTS], loc="lower center", ncol=2, frameon=False)
-    setup = profile.get("setup", {})
-    fig.suptitle(
-        f"Where one frame's time goes, thread mode ({', '.join(setup.get('heads', []))}, {setup.get('backend', '?')})"
-    )
-    # room for the legend's two rows below the axis label, whatever the height
-    fig.tight_layout(rect=(0, 0.7 / height, 1, 1))
-    fig.savefig(path)
-    plt.close(fig)
-    return True
-
-
 def main(args: argparse.Namespace) -> int:
+    from vpengine.bench.common import pyplot
+
     folder = Path(args.results)
+    if not folder.is_dir():
+        raise ValueError(f"--results {args.results!r} is not a folder")
     r = collect(folder)
-    md = table(r)
-    (folder / "summary.md").write_text(md + "\n")
-    figure(r, folder / "summary.png")
-    print(md)
+    runs = [run for key in PAPER for run in r[f"{key}_all"]]
+    machines = sorted({machine_label(run["machine"]) for run in runs})
+    md = [f"# vpengine benchmarks: {folder.name}", ""]
+    md += [f"Machine: {m}" for m in machines] or ["No paper results in this folder."]
+    md += ["", table(r)]
+    if args.baseline:
+        md += [
+            "",
+            f"## Against the baseline (files named *{args.baseline}*)",
+            "",
+            comparison(r, args.baseline),
+        ]
+    text = "\n".join(md) + "\n"
+    (folder / "summary.md").write_text(text)
+    fig = build_figure(r)
+    fig.savefig(folder / "summary.png")
+    pyplot().close(fig)
+    print(text)
     print(f"-> {folder / 'summary.md'}, {folder / 'summary.png'}")
-    for f in sorted(folder.glob("profile_steps*.json")):
-        png = f.with_name(f"waterfall_{f.stem.removeprefix('profile_steps').strip('_') or 'run'}.png")
-        if waterfall(json.loads(f.read_text()), png):
-            print(f"-> {png}")
     return 0

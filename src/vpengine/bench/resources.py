@@ -13,10 +13,12 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.cli import add_overrides_argument
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
-        "--config", default="configs/tiny.yaml", help="engine config; its first head is the template"
+        "--config", default="configs/bench.yaml", help="engine config; its first head is the template"
     )
     p.add_argument("--heads", default="1,2,3,4", help="head counts to measure (comma separated)")
     p.add_argument("--modes", default="process,thread")
@@ -24,7 +26,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--width", type=int, default=1920)
     p.add_argument("--seconds", type=float, default=10.0, help="duration of each CPU measurement")
     p.add_argument("--device", default="cuda", help="cuda (default) or cpu (only to try the harness)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE")
+    add_overrides_argument(p, "mps=required", "a field of the engine config")
     p.add_argument("--single", metavar="MODE:N", help=argparse.SUPPRESS)  # one measurement, JSON on stdout
 
 

@@ -13,8 +13,9 @@ BENCHES = {
         "ROS 2 DDS bridge: 1080p frames in at 30 Hz, all outputs out",
     ),
     "resources": ("vpengine.bench.resources", "GPU: device memory per extra head, CPU idle and at 30 Hz"),
-    "paper": ("vpengine.bench.paper", "the VPEngine paper's experiments E1-E6 and the device-time floor"),
-    "report": ("vpengine.bench.report", "summary figure and table from a folder of results files"),
+    "paper": ("vpengine.bench.paper", "the VPEngine paper's experiments E1-E5 and the device-time floor"),
+    "web": ("vpengine.bench.web", "the live view's cost: E5's 30 Hz stream with and without a viewer"),
+    "report": ("vpengine.bench.report", "summary.md and summary.png from a folder of results files"),
 }
 
 

@@ -37,7 +37,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
     )
-    p.add_argument("--offline", action="store_true", help="never download checkpoints")
     p.add_argument(
         "--no-verify", action="store_true", help="skip running the export on ONNX Runtime against PyTorch"
     )
@@ -62,8 +61,8 @@ def export_model(
     from vpengine.backends.onnx_export import check_onnx_precision, export_onnx, resolve_exporter
     from vpengine.backends.options import parse_options
     from vpengine.config import load_config
+    from vpengine.models.build import build_model, model_config
     from vpengine.runtime.plan import make_plan
-    from vpengine.runtime.worker import build_model, model_config
 
     cfg = load_config(config)
     names = cfg.model_names()
@@ -112,8 +111,6 @@ def main(args: argparse.Namespace) -> int:
     overrides = list(args.overrides)
     if args.random_weights:
         overrides.append("weights.random_weights=true")
-    if args.offline:
-        overrides.append("weights.offline=true")
     cfg = load_config(args.config, overrides)
     m = export_model(cfg, args.model, args.out, args.precision, args.opset, args.exporter, not args.no_verify)
     path = Path(args.out) / m["file"]

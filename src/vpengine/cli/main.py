@@ -10,8 +10,13 @@ import sys
 # subcommand -> module with add_arguments(parser) and main(args) -> int
 COMMANDS = {
     "run": ("vpengine.cli.run", "run a pipeline on a video, an image folder, a camera or a synthetic scene"),
+    "predict": (
+        "vpengine.cli.predict",
+        "annotated pictures of every head's outputs for images, a video or a camera",
+    ),
+    "config": ("vpengine.cli.configs", "the configs that ship with vpengine: list, show"),
     "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
-    "bench": ("vpengine.cli.bench", "benchmarks: mailbox hop, pipeline throughput"),
+    "bench": ("vpengine.cli.bench", "benchmarks: the paper's experiments and their report, hop, pipeline, resources"),
     "export": ("vpengine.cli.export", "export a model of a config to ONNX"),
     "weights": ("vpengine.cli.weights", "checkpoint catalog: list, fetch, verify, path"),
     "train": (
@@ -20,6 +25,18 @@ COMMANDS = {
     ),
     "mps": ("vpengine.cli.mps", "start, stop or check a CUDA MPS control daemon (private pipe directory)"),
     "ros2": ("vpengine.cli.ros2", "the engine on a ROS 2 graph through a CycloneDDS bridge"),
+}
+
+# top-level module of an optional dependency -> the extra that installs it
+EXTRAS = {
+    "cyclonedds": "ros2",
+    "rosbags": "ros2",
+    "mcap": "ros2",
+    "onnx": "onnx",
+    "onnxruntime": "onnx",
+    "onnxscript": "onnx",
+    "cuda": "cuda",
+    "pynvml": "cuda",
 }
 
 
@@ -48,10 +65,25 @@ def main(argv: list[str] | None = None) -> int:
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
+        if isinstance(getattr(args, "config", None), str):  # a shipped config's name or a path, from anywhere
+            from vpengine import configs
+
+            args.config = str(configs.resolve(args.config))
         return int(importlib.import_module(args._module).main(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except ModuleNotFoundError as e:
+        top = (e.name or "").partition(".")[0]
+        extra = EXTRAS.get(top)
+        if extra is None or args.verbose >= 2:
+            raise
+        print(
+            f"vpengine {args.command}: error: this needs the optional extra '{extra}' ({top} is not "
+            f"installed): pip install 'vpengine[{extra}]'",
+            file=sys.stderr,
+        )
+        return 1
     except (ValueError, KeyError, FileNotFoundError, RuntimeError) as e:
         if args.verbose >= 2:
             raise

@@ -13,6 +13,7 @@ deleted) with exit status 0.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import signal
 import sys
@@ -21,6 +22,7 @@ import time
 from typing import Any
 
 from vpengine.cli import add_overrides_argument
+from vpengine.cli.serve import add_serve_arguments, serve_options, serving
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -81,6 +83,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_overrides_argument(p, "heads.depth.rate_hz=5")
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
     p.add_argument("--duration", type=float, help="stop after this many seconds (default: run until Ctrl-C)")
+    add_serve_arguments(p)
 
 
 def _domain_id(arg: int | None) -> int:
@@ -99,6 +102,7 @@ def main(args: argparse.Namespace) -> int:
     from vpengine.ros2.core import Ros2Core
     from vpengine.ros2.dds import loopback_config
 
+    serve = serve_options(args)
     overrides = list(args.overrides)
     if args.mode:
         overrides.append(f"mode={args.mode}")
@@ -119,7 +123,12 @@ def main(args: argparse.Namespace) -> int:
         domain_id=_domain_id(args.domain_id),
         dds_config=loopback_config() if args.loopback else None,
     )
+    if serve is not None:  # the view draws overlays and boxes on the input frames
+        from vpengine.ros2.core import FrameBook
+
+        core.book = FrameBook(frames=16)
     bridge = Ros2Bridge(core, opts)
+    view = contextlib.ExitStack()
     stop = threading.Event()
 
     def on_signal(signum: int, _frame: Any) -> None:
@@ -128,6 +137,7 @@ def main(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         bridge.start()
+        view.enter_context(serving(serve, lambda: core.engine, core.book.frame))
         print(
             f"vpengine ros2: ready on domain {opts.domain_id}: {opts.subscribed_topic} -> "
             f"{', '.join(t.topic for t in core.topics)}",
@@ -138,6 +148,7 @@ def main(args: argparse.Namespace) -> int:
             if deadline is not None and time.monotonic() >= deadline:
                 break
     finally:
+        view.close()
         bridge.stop()
         for s, h in previous.items():
             signal.signal(s, h)

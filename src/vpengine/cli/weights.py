@@ -1,7 +1,8 @@
 """``vpengine weights``: the checkpoint catalog and the local cache.
 
 * ``list``: every catalog entry with its size, licence and whether it is cached;
-* ``fetch NAME [NAME...]``: download, verify (sha256) and cache; resumes interrupted downloads;
+* ``fetch NAME [NAME...]`` or ``fetch --config FILE``: download, verify (sha256) and cache the named files, or
+  every catalog file a config loads (the engine itself never downloads);
 * ``verify [NAME...]``: re-hash cached files, report OK / MISMATCH / MISSING, exit 1 on any problem;
 * ``path NAME``: where the file of NAME lives (exit 1 if it is not there yet).
 
@@ -34,7 +35,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f = sub.add_parser(
         "fetch", parents=[common], help="download, verify and cache checkpoints (resumes partial downloads)"
     )
-    f.add_argument("names", nargs="+", metavar="NAME", help="catalog names (`vpengine weights list`)")
+    f.add_argument("names", nargs="*", metavar="NAME", help="catalog names (`vpengine weights list`)")
+    f.add_argument(
+        "--config",
+        "-c",
+        metavar="FILE",
+        help="also every catalog checkpoint this engine config loads (its weights.cache_dir and offline apply)",
+    )
     f.add_argument(
         "--sha256",
         metavar="HEX",
@@ -64,13 +71,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
     pa = sub.add_parser("path", parents=[common], help="the cache path of a checkpoint (exit 1 if not there)")
     pa.add_argument("name", metavar="NAME")
-    p.set_defaults(_weights_help=p.format_help)
+    p.set_defaults(weights_help=p.format_help)
 
 
-def _cache(args: argparse.Namespace) -> Path:
-    from vpengine.models.weights import cache_dir
+def _cache(args: argparse.Namespace, configured: str | None = None) -> Path:
+    from vpengine.models.catalog import cache_dir
 
-    return cache_dir(args.cache)
+    return cache_dir(args.cache or configured)
 
 
 def _entries(cache: Path) -> list[Any]:
@@ -93,15 +100,16 @@ def _lookup(name: str, cache: Path) -> Any:
 
 
 def _size(n: int | None) -> str:
-    from vpengine.models.catalog import _human
+    from vpengine.models.catalog import human_size
 
-    return "?" if n is None else _human(n)
+    return "?" if n is None else human_size(n)
 
 
 def _cached_text(entry: Any, cache: Path) -> str:
     from vpengine.models import catalog
+    from vpengine.models.download import cache_status
 
-    state = catalog.cache_status(entry, cache)
+    state = cache_status(entry, cache)
     if state == "partial":
         part = entry.path(cache).with_name(entry.file + ".part").stat().st_size
         size = catalog.effective(entry, cache).size
@@ -156,31 +164,48 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def cmd_fetch(args: argparse.Namespace) -> int:
-    from vpengine.models import catalog
-    from vpengine.models.weights import CheckpointError, offline
+    from vpengine.models import download
+    from vpengine.models.catalog import CatalogError, custom_entry
+    from vpengine.models.weights import CheckpointError, missing_error
 
-    cache = _cache(args)
-    is_offline = offline(args.offline)
-    if (args.sha256 or args.url or args.file) and len(args.names) != 1:
-        print(
-            "vpengine weights fetch: --sha256, --url and --file apply to one NAME at a time", file=sys.stderr
-        )
+    def usage(msg: str) -> int:
+        print(f"vpengine weights fetch: {msg}", file=sys.stderr)
         return 2
+
+    if not args.names and not args.config:
+        return usage("name the checkpoints to fetch (NAME...) or give --config FILE")
+    if (args.sha256 or args.url or args.file) and (len(args.names) != 1 or args.config):
+        return usage("--sha256, --url and --file apply to one NAME at a time, without --config")
     if args.file and not args.url:
-        print("vpengine weights fetch: --file only applies to a custom --url entry", file=sys.stderr)
-        return 2
+        return usage("--file only applies to a custom --url entry")
+    is_offline = download.offline(args.offline)
+    cache = _cache(args)
+    wanted: list[tuple[str, Any]] = [(name, None) for name in args.names]
+    if args.config:
+        from vpengine.config import load_config
+
+        cfg = load_config(args.config)
+        cache = _cache(args, cfg.weights.cache_dir)
+        is_offline = is_offline or cfg.weights.offline
+        names = set(args.names)
+        for _model, entry in download.checkpoints(cfg):
+            if entry.name not in names:
+                names.add(entry.name)
+                wanted.append((entry.name, entry))
+        if len(wanted) == len(args.names):
+            print(f"{args.config} loads no catalog checkpoint (files, random weights or none)")
     failed = 0
-    for name in args.names:
+    for name, entry in wanted:
         try:
             if args.url:
                 if is_offline:
                     raise CheckpointError(f"offline mode: not downloading {name} from {args.url}")
-                entry = catalog.add_custom(name, args.url, cache, file=args.file)
-            else:
+                entry = custom_entry(name, args.url, file=args.file)
+            elif entry is None:
                 entry = _lookup(name, cache)
             if is_offline and (args.force or not entry.path(cache).is_file()):
-                raise catalog.offline_error(entry, cache)
-            res = catalog.fetch(
+                raise missing_error(entry, cache, offline=True)
+            res = download.fetch(
                 entry,
                 cache,
                 sha256=args.sha256,
@@ -189,7 +214,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
                 progress=not args.no_progress,
                 timeout=args.timeout,
             )
-        except CheckpointError as e:
+        except (CheckpointError, CatalogError) as e:
             print(f"vpengine weights fetch: {name}: {e}", file=sys.stderr)
             failed += 1
             continue
@@ -208,7 +233,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
 
 
 def cmd_verify(args: argparse.Namespace) -> int:
-    from vpengine.models import catalog
+    from vpengine.models.download import cache_status, verify
     from vpengine.models.weights import CheckpointError
 
     cache = _cache(args)
@@ -219,16 +244,16 @@ def cmd_verify(args: argparse.Namespace) -> int:
         for name in args.names:
             try:
                 entries.append(_lookup(name, cache))
-            except CheckpointError as e:
-                print(f"UNKNOWN      {name}: {e}")
+            except CheckpointError as err:
+                print(f"UNKNOWN      {name}: {err}")
                 problems += 1
     else:
-        entries = [e for e in _entries(cache) if catalog.cache_status(e, cache) != "missing"]
+        entries = [e for e in _entries(cache) if cache_status(e, cache) != "missing"]
         if not entries:
             print(f"no checkpoint is cached in {cache}")
             return 0
     for e in entries:
-        r = catalog.verify(e, cache, progress=not args.no_progress)
+        r = verify(e, cache, progress=not args.no_progress)
         if r.status == "OK":
             line = f"{r.path}"
         elif r.status == "MISMATCH":
@@ -271,6 +296,6 @@ def cmd_path(args: argparse.Namespace) -> int:
 def main(args: argparse.Namespace) -> int:
     commands = {"list": cmd_list, "fetch": cmd_fetch, "verify": cmd_verify, "path": cmd_path}
     if not getattr(args, "weights_command", None):
-        print(args._weights_help())
+        print(args.weights_help())
         return 2
     return commands[args.weights_command](args)

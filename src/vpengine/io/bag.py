@@ -6,7 +6,7 @@ as a sink that records every head's outputs with the same message types and head
 * the source reads ``sensor_msgs/msg/Image`` (rgb8, bgr8, mono8) or ``sensor_msgs/msg/CompressedImage`` (jpeg,
   png) from one topic, in log-time order; each frame's timestamp is its message's ``header.stamp``. A bag is a folder
   with ``metadata.yaml`` or a bare ``.mcap`` / ``.db3`` file. A message that cannot be used (corrupt bytes, an
-  unsupported encoding, short data ...) is skipped and counted (``bad``), and logged in one line naming the bag,
+  unsupported encoding, short data ...) is skipped and listed (``skipped``), and logged in one line naming the bag,
   topic and message index (Note [Rejection log] in :mod:`vpengine.ros2.core`), so one bad frame does not end a long
   recording; ``strict=True`` stops at the first one instead, with that line as the error.
 * the sink writes ``<ns>/<head>/depth`` (32FC1), ``<ns>/<head>/classes`` (mono8), ``<ns>/<head>/detections``
@@ -130,15 +130,11 @@ class BagSource(Source):
             self._reader.close()
             raise
         self.resized = 0
-        #: indices of the messages skipped as bad (one line each is logged only per Note [Rejection log])
-        self.bad_indices: list[int] = []
+        #: the messages skipped as bad, as every source lists what it skipped (``vpengine run`` puts the list in
+        #: summary.json): bag, topic, message index and why; logged per Note [Rejection log]
+        self.skipped: list[dict[str, Any]] = []
         self._sizes: set[tuple[int, int]] = set()
         self._headers: collections.OrderedDict[str, Header] = collections.OrderedDict()
-
-    @property
-    def bad(self) -> int:
-        """Messages skipped because they could not be used (each logged, see the module docstring)."""
-        return self.rejected.total
 
     def _first_size(self) -> tuple[int, int]:
         """The size of the first usable frame. Bad messages before it are counted and logged when iteration
@@ -195,7 +191,7 @@ class BagSource(Source):
         if self.strict:
             raise e
         self.rejected.add(e.reason, f"{e} (skipped; --strict stops here instead)")
-        self.bad_indices.append(index)
+        self.skipped.append({"bag": str(self.path), "topic": self.topic, "message": index, "why": str(e)})
 
     def __len__(self) -> int:
         return self._n
@@ -237,15 +233,14 @@ class BagSource(Source):
 
     def close(self) -> None:
         self._reader.close()
-        if self.bad_indices:
-            shown = ", ".join(map(str, self.bad_indices[:20])) + (
-                ", ..." if len(self.bad_indices) > 20 else ""
-            )
+        if self.skipped:
+            indices = [str(s["message"]) for s in self.skipped]
+            shown = ", ".join(indices[:20]) + (", ..." if len(indices) > 20 else "")
             log.warning(
                 "bag %s, topic %s: %d bad messages skipped (message %s)",
                 self.path,
                 self.topic,
-                self.bad,
+                len(indices),
                 shown,
             )
 

@@ -1,21 +1,31 @@
-"""Frame sources: a built-in synthetic scene, image folders, video files, cameras and rosbag2 bags (io/bag.py).
+"""Frame sources: a built-in synthetic scene, images (a file, a folder, a glob), video files, cameras, rosbag2 bags
+(io/bag.py) and the samples that ship with the package (``sample:street``, ``sample:cheetah``).
 
 Every source yields :class:`Frame` objects: an HxWx3 uint8 image in the source's channel order (OpenCV order, BGR,
-for everything here) and a capture timestamp in seconds when the source has one.
+for everything here) at its own size, and a capture timestamp in seconds. Files are stamped on their own timeline
+(a video by each frame's position, images at ``i / fps``), so rate limits are judged by the source's clock, not by
+how fast the files are read; cameras by the time a frame arrived.
 """
 
 from __future__ import annotations
 
+import glob
+import logging
 import math
 import re
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+log = logging.getLogger("vpengine.sources")
+
+#: The sample media shipped with the package (see its README.md for origin and licences).
+SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 VIDEO_EXTS = {".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"}
@@ -30,7 +40,8 @@ class Frame:
 
 
 class Source:
-    """Iterable of frames with a known size. ``fps`` is None when the source has no natural rate."""
+    """Iterable of frames. ``height``/``width``: the (first) frame's size; ``fps`` is None when the source has no
+    natural rate."""
 
     color = "bgr"
     height: int
@@ -60,13 +71,14 @@ class SyntheticSource(Source):
     ``synthetic``, ``synthetic:640x480``, ``synthetic:1920x1080@30`` or ``synthetic:640x480@30:300`` (frames).
     """
 
-    _SPEC = re.compile(r"^synthetic(?::(\d+)x(\d+))?(?:@([\d.]+))?(?::(\d+))?$")
+    _SPEC = re.compile(r"^synthetic(?::(\d+)x(\d+))?(?:@(\d+(?:\.\d*)?|\.\d+))?(?::(\d+))?$")
 
     def __init__(
         self, width: int = 640, height: int = 480, fps: float = 30.0, frames: int = 300, seed: int = 0
     ):
         if width < 14 or height < 14:
             raise ValueError(f"synthetic source size {width}x{height} is too small (min 14x14)")
+        fps = _positive_rate(fps, "synthetic source rate")
         self.width, self.height, self.fps, self.frames = width, height, fps, frames
         rng = np.random.default_rng(seed)
         self._shapes = [
@@ -114,34 +126,83 @@ class SyntheticSource(Source):
             yield Frame(self.render(i), None, f"{i:06d}")
 
 
-class ImageFolderSource(Source):
-    """Every image in a folder, in name order."""
+class ImageSource(Source):
+    """Image files in a given order: a folder's images by name, a glob's matches, or a single image.
 
-    def __init__(self, folder: str | Path) -> None:
-        import cv2
+    Each image comes at its own size (a folder of mixed sizes is never stretched to one size); ``height`` and
+    ``width`` are those of the first image. Frames are stamped on the source's own timeline, image ``i`` at
+    ``i / fps`` seconds (30 Hz unless ``fps`` is given), so rate limits treat a folder like a camera at that rate.
+    An image that cannot be read is skipped with a warning and listed in ``skipped`` (file and why); one that
+    decodes only partly (a truncated JPEG or PNG, the rest filled in grey by the decoder) is used, with a warning,
+    and listed in ``partial``."""
 
-        self.folder = Path(folder)
-        self.files = sorted(p for p in self.folder.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+    def __init__(self, files: Sequence[str | Path], path: str | Path, fps: float | None = None) -> None:
+        self.path = str(path)
+        self.files = [Path(f) for f in files]
         if not self.files:
-            raise ValueError(f"no images ({', '.join(sorted(IMAGE_EXTS))}) in folder {str(self.folder)!r}")
-        first = cv2.imread(str(self.files[0]), cv2.IMREAD_COLOR)
-        if first is None:
-            raise ValueError(f"cannot read image {str(self.files[0])!r}")
-        self.height, self.width = first.shape[:2]
+            raise ValueError(f"no images ({', '.join(sorted(IMAGE_EXTS))}) in {self.path!r}")
+        self.fps = _positive_rate(fps, "image source rate") if fps is not None else 30.0
+        stems = [f.stem for f in self.files]
+        unique = len(set(stems)) == len(stems)  # a glob over several folders may repeat a name
+        self.names = stems if unique else [f"{i:06d}_{s}" for i, s in enumerate(stems)]
+        self.skipped: list[dict[str, str]] = []
+        self.partial: list[str] = []
+        self._first: tuple[int, np.ndarray] | None = None
+        for i, f in enumerate(self.files):  # the first readable image gives the nominal size
+            img = self._read(f)
+            if img is not None:
+                self._first = (i, img)
+                self.height, self.width = img.shape[:2]
+                break
+        if self._first is None:
+            raise ValueError(f"none of the {len(self.files)} images in {self.path!r} can be read")
 
     def __len__(self) -> int:
         return len(self.files)
 
     def __iter__(self) -> Iterator[Frame]:
+        first, img0 = self._first or (-1, None)
+        for i, f in enumerate(self.files):
+            if i < first:  # already found unreadable (and counted) while looking for the first image
+                continue
+            img = img0 if i == first else self._read(f)
+            img0 = None
+            if img is not None:
+                yield Frame(img, i / self.fps, self.names[i])
+
+    def _read(self, f: Path) -> np.ndarray | None:
         import cv2
 
-        for p in self.files:
-            img = cv2.imread(str(p), cv2.IMREAD_COLOR)
-            if img is None:
-                raise ValueError(f"cannot read image {str(p)!r}")
-            if img.shape[:2] != (self.height, self.width):
-                img = cv2.resize(img, (self.width, self.height), interpolation=cv2.INTER_AREA)
-            yield Frame(img, None, p.stem)
+        img = cv2.imread(str(f), cv2.IMREAD_COLOR)
+        if img is None:
+            why = "no such file" if not f.exists() else "not a readable image"
+            log.warning("skipping %s: %s", f, why)
+            self.skipped.append({"file": str(f), "why": why})
+            return None
+        if _truncated(f):
+            log.warning("%s is truncated: decoded partially (the missing part is filled in)", f)
+            self.partial.append(str(f))
+        return np.ascontiguousarray(img)
+
+
+def _truncated(f: Path) -> bool:
+    """True for a JPEG without its end-of-image marker or a PNG without its IEND chunk at the end of the file."""
+    with open(f, "rb") as fh:
+        head = fh.read(8)
+        fh.seek(0, 2)
+        fh.seek(max(fh.tell() - 16, 0))
+        tail = fh.read().rstrip(b"\x00\r\n ")
+    if head.startswith(b"\xff\xd8"):
+        return not tail.endswith(b"\xff\xd9")
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return not tail.endswith(b"IEND\xaeB`\x82")
+    return False
+
+
+def _positive_rate(fps: float, what: str) -> float:
+    if not (math.isfinite(fps) and fps > 0):
+        raise ValueError(f"{what} must be a number of Hz above 0, got {fps}")
+    return float(fps)
 
 
 class VideoSource(Source):
@@ -240,37 +301,70 @@ class VideoSource(Source):
         self._cap.release()
 
 
-def open_source(spec: str, topic: str | None = None, strict: bool = False) -> Source:
-    """A source from a command-line spec: ``synthetic[...]``, a folder, a video file, ``camera:N``, or a rosbag2 bag
-    (a folder with metadata.yaml, or a .mcap / .db3 file; ``topic`` names its image topic; ``strict`` stops at its
-    first bad message instead of skipping it, see vpengine.io.bag)."""
+def open_source(
+    spec: str, topic: str | None = None, fps: float | None = None, strict: bool = False
+) -> Source:
+    """A source from a command-line spec: ``synthetic[...]``, an image, a folder of images, a glob of images
+    (``frames/*.jpg``), a video file, ``camera:N``, ``sample:NAME`` or a rosbag2 bag (a folder with metadata.yaml, or a
+    .mcap / .db3 file; ``topic`` names its image topic; ``strict`` stops at its first bad message instead of skipping
+    it, see vpengine.io.bag). ``fps``: the rate images are stamped at (default 30 Hz)."""
     if spec.startswith("synthetic"):
         source: Source = SyntheticSource.parse(spec)
     elif spec.startswith("camera:"):
-        source = VideoSource(int(spec.split(":", 1)[1]))
+        index = spec.split(":", 1)[1]
+        if not index.isdigit():
+            raise ValueError(
+                f"bad camera source {spec!r}; use camera:N with N the camera's index, e.g. camera:0"
+            )
+        source = VideoSource(int(index))
+    elif spec.startswith("sample:"):
+        return open_source(str(sample(spec.split(":", 1)[1])), topic, fps, strict)
     else:
         path = Path(spec)
-        if not path.exists():
-            raise ValueError(
-                f"source {spec!r} does not exist (expected a folder, a video, a rosbag2 bag, camera:N or synthetic)"
+        if not path.exists() and glob.has_magic(spec):
+            files = sorted(
+                Path(f) for f in glob.glob(spec, recursive=True) if Path(f).suffix.lower() in IMAGE_EXTS
             )
-        if (path.is_dir() and (path / "metadata.yaml").is_file()) or (
+            if not files:
+                raise ValueError(f"no images ({', '.join(sorted(IMAGE_EXTS))}) match {spec!r}")
+            source = ImageSource(files, spec, fps)
+        elif not path.exists():
+            raise ValueError(
+                f"source {spec!r} does not exist (expected an image, a folder, a glob, a video, a rosbag2 bag, "
+                f"camera:N, sample:NAME or synthetic)"
+            )
+        elif (path.is_dir() and (path / "metadata.yaml").is_file()) or (
             path.is_file() and path.suffix.lower() in (".mcap", ".db3")
         ):
             from vpengine.io.bag import BagSource  # rosbags is an optional dependency
 
             return BagSource(path, topic, strict=strict)
-        if path.is_dir():
-            source = ImageFolderSource(path)
+        elif path.is_dir():
+            files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTS)
+            source = ImageSource(files, path, fps)
         elif path.suffix.lower() in VIDEO_EXTS:
             source = VideoSource(path)
         elif path.suffix.lower() in IMAGE_EXTS:
-            raise ValueError(f"source {spec!r} is a single image; give its folder instead")
+            source = ImageSource([path], path, fps)
         else:
             raise ValueError(
-                f"source {spec!r}: unknown kind (extensions: video {sorted(VIDEO_EXTS)}, bag .mcap/.db3, or a folder)"
+                f"source {spec!r}: unknown kind (extensions: images {sorted(IMAGE_EXTS)}, video "
+                f"{sorted(VIDEO_EXTS)}, bag .mcap/.db3, or a folder)"
             )
     if topic is not None:
         source.close()
         raise ValueError(f"--topic {topic!r} applies to rosbag2 bags only; source {spec!r} is not a bag")
     return source
+
+
+def sample_names() -> list[str]:
+    """Names of the sample media shipped with the package (``sample:NAME``)."""
+    return sorted(p.stem for p in SAMPLES.iterdir() if p.suffix.lower() in IMAGE_EXTS | VIDEO_EXTS)
+
+
+def sample(name: str) -> Path:
+    """The file of a shipped sample (``street``: 5 s of street video; ``cheetah``: a 1080p photo)."""
+    for p in SAMPLES.iterdir():
+        if p.stem == name and p.suffix.lower() in IMAGE_EXTS | VIDEO_EXTS:
+            return p
+    raise ValueError(f"no sample named {name!r}; samples: {', '.join(sample_names())}")

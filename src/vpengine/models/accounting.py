@@ -1,7 +1,7 @@
 """Parameter accounting: how many parameters each model of a config has, and what sharing the backbone saves.
 
-Every model is built on the meta device (``runtime.plan.make_plan``), so counting costs no memory and loads no
-weights, even for ViT-g. The saving compares the engine's layout, one foundation model whose features every head
+Every model is built on the meta device (``build_model(..., plan_only=True)``), so counting costs no memory and
+loads no weights, even for ViT-g. The saving compares the engine's layout, one foundation model whose features every head
 reads, with the naive one where each of the N heads runs its own copy of the backbone::
 
     shared      = F + sum(H_i)
@@ -53,20 +53,20 @@ def parameter_report(cfg: Any) -> dict[str, Any]:
     Returns ``{"config", "models": {name: {recipe, role, params, param_bytes, buffers}}, "foundation",
     "sharing": {heads, shared_total, independent_total, saved, percent_fewer}}``.
     """
+    import torch
+
     from vpengine.config import load_config
-    from vpengine.runtime.plan import make_plan
+    from vpengine.models.build import build_model, frame_spec
 
     cfg = load_config(cfg)
-    plan = make_plan(cfg)  # builds every model on the meta device and checks the pipeline
+    device = torch.device(cfg.device)
+    fm = build_model(cfg, "foundation", "foundation", frame_spec(cfg), {}, device, plan_only=True)
     models: dict[str, dict[str, Any]] = {
-        "foundation": {
-            "recipe": cfg.foundation_model.model,
-            "role": "foundation",
-            **count_parameters(plan.foundation),
-        }
+        "foundation": {"recipe": cfg.foundation_model.model, "role": "foundation", **count_parameters(fm)}
     }
     for h in cfg.heads:
-        models[h.name] = {"recipe": h.model, "role": "head", **count_parameters(plan.heads[h.name])}
+        head = build_model(cfg, h.name, "head", fm.output_spec, fm.meta, device, plan_only=True)
+        models[h.name] = {"recipe": h.model, "role": "head", **count_parameters(head)}
     heads = [m["params"] for m in models.values() if m["role"] == "head"]
     return {
         "config": cfg.name,

@@ -458,6 +458,7 @@ class FasterRCNNHead(Model):
         }
         self.meta = {
             "kind": "detection",
+            "output_grid": {"boxes": "boxes"},  # Note [Frame grid] in boundary.py
             "labels": self.class_names,
             "max_detections": m,
             "layer": opts.layer,

@@ -213,6 +213,7 @@ class DPTDepthHead(Model):
         self.output_spec = {"depth": TensorSpec(self.out_hw, "float32")}
         self.meta = {
             "kind": "depth",
+            "output_grid": {"depth": "map"},  # Note [Frame grid] in boundary.py
             "depth_type": "relative_inverse",  # disparity-like: larger is nearer, up to scale and shift
             "trained_on": size.trained_on if size and not custom else None,
         }
@@ -354,6 +355,7 @@ class DepthColormap(Model):
         self.input_spec = {"depth": depth}
         self.output_spec = {"depth": depth} if keep_depth else {}
         self.output_spec["depth_color"] = TensorSpec((*hw, 3), "uint8")
+        self.meta = {"output_grid": dict.fromkeys(self.output_spec, "map")}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         d = inputs["depth"].float()

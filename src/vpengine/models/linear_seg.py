@@ -152,6 +152,7 @@ class LinearSegHead(Model):
                 )
         self.meta = {
             "kind": "segmentation",
+            "output_grid": {"classes": "labels"},  # Note [Frame grid] in boundary.py
             "labels": labels,
             "palette": palette,
             "dataset": opts.dataset,

@@ -42,6 +42,10 @@ def target_size(height: int, width: int, cfg: PreprocessConfig, patch: int) -> t
     return fit(height * scale), fit(width * scale)
 
 
+#: Normalisation of every backbone in the zoo (DINOv2 and Depth-Anything-V2 were trained with ImageNet's), RGB 0..1.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
 _exact = threading.local()
 
 
@@ -69,6 +73,8 @@ class ImagePreprocess(Model):
         color: str = "bgr",
         in_dtype: str = "uint8",
         dtype: str = "float32",
+        mean: tuple[float, float, float] = IMAGENET_MEAN,
+        std: tuple[float, float, float] = IMAGENET_STD,
     ) -> None:
         super().__init__()
         self.cfg = cfg
@@ -79,19 +85,24 @@ class ImagePreprocess(Model):
         self.output_spec = {"image": TensorSpec((1, 3, *self.size), dtype)}
         self.out_dtype = self.output_spec["image"].torch_dtype
         self.register_buffer(
-            "mean", torch.tensor(cfg.mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
+            "mean", torch.tensor(mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
         )
         self.register_buffer(
-            "std", torch.tensor(cfg.std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
+            "std", torch.tensor(std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
         )
-        self.meta = {"image_size": self.size, "input_size": (height, width), "patch_size": patch}
+        # normalise_mean: what the boundary pads frames with, zero once normalised (Note [Frame grid])
+        self.meta = {
+            "image_size": self.size,
+            "input_size": (height, width),
+            "patch_size": patch,
+            "normalize_mean": tuple(mean),
+        }
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         frame = inputs["frame"]
         h, w = self.size
         if (
-            self.cfg.fast_uint8_resize
-            and frame.device.type == "cpu"
+            frame.device.type == "cpu"
             and frame.dtype == torch.uint8
             and self.cfg.resize != "none"
             and (frame.shape[0], frame.shape[1]) != (h, w)
@@ -103,7 +114,7 @@ class ImagePreprocess(Model):
             # level. GPUs take the float path below, which matches the reference implementations exactly.
             x = frame.permute(2, 0, 1).unsqueeze(0)
             x = F.interpolate(
-                x, size=(h, w), mode=self.cfg.interpolation, align_corners=False, antialias=True
+                x, size=(h, w), mode="bilinear", align_corners=False, antialias=True
             )
             x = x.float()
             if self.bgr:
@@ -120,7 +131,7 @@ class ImagePreprocess(Model):
             else:
                 # antialias: a 1080p frame shrinks ~2x, and without it thin structures alias.
                 x = F.interpolate(
-                    x, size=(h, w), mode=self.cfg.interpolation, align_corners=False, antialias=True
+                    x, size=(h, w), mode="bilinear", align_corners=False, antialias=True
                 )
         x = (x - self.mean) / self.std
         return {"image": x.to(self.out_dtype).contiguous()}

@@ -168,7 +168,7 @@ class TinyDepthHead(_TinyHead):
         self.proj = nn.Linear(self.dim, 1)
         _seeded_(self, opts.seed)
         self.output_spec = {"depth": TensorSpec(self.out_hw, "float32")}
-        self.meta = {"kind": "depth"}
+        self.meta = {"kind": "depth", "output_grid": {"depth": "map"}}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         m = self._tokens_to_map(self.proj(inputs[self.layer].float()))
@@ -186,7 +186,11 @@ class TinySegHead(_TinyHead):
         self.proj = nn.Linear(self.dim, opts.num_classes)
         _seeded_(self, opts.seed)
         self.output_spec = {"classes": TensorSpec(self.out_hw, "uint8")}
-        self.meta = {"kind": "segmentation", "labels": [f"class_{i}" for i in range(opts.num_classes)]}
+        self.meta = {
+            "kind": "segmentation",
+            "output_grid": {"classes": "labels"},
+            "labels": [f"class_{i}" for i in range(opts.num_classes)],
+        }
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         # argmax per token, then nearest upsampling: cheap, which is all a plumbing-test model needs
@@ -218,6 +222,7 @@ class TinyDetHead(_TinyHead):
         self.register_buffer("cells", cells.float(), persistent=False)
         self.meta = {
             "kind": "detection",
+            "output_grid": {"boxes": "boxes"},
             "labels": [f"class_{i}" for i in range(opts.num_classes)],
             "max_detections": m,
         }

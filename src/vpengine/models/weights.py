@@ -1,22 +1,29 @@
-"""Checkpoints: where they are, how they are read (never executing code), how they are applied (all or nothing).
+"""Loading checkpoints: finding the verified file, reading it without executing code, applying it all or nothing.
 
-Resolution of a model's ``checkpoint`` field:
+Resolution of a model's ``checkpoint`` field (:func:`resolve_checkpoint`):
 
 * ``weights.random_weights: true`` -> no file; random weights, announced loudly.
 * an existing path -> that file.
-* a catalog name (see ``catalog.py``) -> the file in the per-user cache; if missing, downloaded from the catalog
-  with progress and sha256 verification unless offline, in which case the error names the path to place it at.
+* a catalog name (``catalog.py``) -> the file in the per-user cache, verified against its sha256 before use. Nothing
+  is downloaded here: a missing file is an error that names the path to place it at and the command that fetches it
+  (``vpengine weights fetch``, ``download.py``).
 * null -> the recipe's default catalog name.
 
-Reading: ``.safetensors`` through safetensors; anything else through ``torch.load(weights_only=True)``, which refuses
-pickled code. Applying: every key is checked against the model before a single tensor is copied, so a wrong file
-fails with the file name, the model it was meant for and the mismatching keys, and nothing is half-loaded.
+Verification: a cached file is hashed in full unless its ``.verified`` stamp (size, mtime and sha256 of the last full
+hash) still matches; a file whose digest differs from the pin is refused. Reading: ``.safetensors`` through
+safetensors; anything else through ``torch.load(weights_only=True)``, which refuses pickled code. Applying: every key
+is checked against the model before a single tensor is copied, so a wrong file fails with the file name, the model
+it was meant for and the mismatching keys, and nothing is half-loaded.
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
 import logging
 import os
+import sys
+import threading
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -24,33 +31,18 @@ from typing import Any
 import torch
 from torch import nn
 
+from vpengine.models import catalog
 from vpengine.models.base import BuildContext, ModelBuildError
+from vpengine.models.catalog import Entry, human_size
 
 log = logging.getLogger("vpengine.weights")
 
 _RANDOM_WARNED: set[str] = set()
+_CHUNK = 1 << 20
 
 
 class CheckpointError(ModelBuildError):
-    """A checkpoint that cannot be used: missing, unreadable, truncated, or for another model."""
-
-
-def cache_dir(configured: str | None = None) -> Path:
-    """The checkpoint cache: config ``weights.cache_dir``, else $VPENGINE_CACHE, else $XDG_CACHE_HOME/vpengine."""
-    if configured:
-        return Path(configured).expanduser()
-    if os.environ.get("VPENGINE_CACHE"):
-        return Path(os.environ["VPENGINE_CACHE"]).expanduser()
-    xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
-    return Path(xdg).expanduser() / "vpengine"
-
-
-def offline(configured: bool = False) -> bool:
-    """Offline if the config says so or $VPENGINE_OFFLINE / $HF_HUB_OFFLINE is set to a true value."""
-    env = any(
-        os.environ.get(v, "").lower() in ("1", "true", "yes") for v in ("VPENGINE_OFFLINE", "HF_HUB_OFFLINE")
-    )
-    return configured or env
+    """A checkpoint that cannot be used: missing, unverifiable, corrupt, unreadable, or for another model."""
 
 
 def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
@@ -76,18 +68,137 @@ def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
     path = Path(name).expanduser()
     if path.is_file():
         return path
-    from vpengine.models import catalog
-
-    cache = cache_dir(wcfg.cache_dir)
+    cache = catalog.cache_dir(wcfg.cache_dir)
     entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
     if entry is None:
         raise CheckpointError(
             f"{ctx.name} ({ctx.cfg.model}): checkpoint {name!r} is neither an existing file nor a catalog name "
             f"(`vpengine weights list` shows the catalog)"
         )
-    return catalog.ensure(entry, cache, offline(wcfg.offline), for_model=ctx.name)
+    return cached_checkpoint(entry, cache, for_model=ctx.name)
 
 
+def cached_checkpoint(entry: Entry, cache: str | Path, for_model: str | None = None) -> Path:
+    """The verified file of ``entry`` in ``cache``; a CheckpointError if it is missing, unpinned or corrupt."""
+    who = f"{for_model}: " if for_model else ""
+    eff = catalog.effective(entry, cache)
+    dest = entry.path(cache)
+    if not dest.is_file():
+        raise missing_error(entry, cache, for_model)
+    if eff.sha256 is None:
+        raise CheckpointError(who + str(unverifiable_error(entry)))
+    try:  # files only appear through an atomic rename, so no lock is needed to read
+        check_file(eff, dest, eff.sha256, progress=False)
+    except CheckpointError as e:
+        raise CheckpointError(who + str(e)) from None
+    return dest
+
+
+def missing_error(
+    entry: Entry, cache: str | Path, for_model: str | None = None, offline: bool = False
+) -> CheckpointError:
+    """The error for a checkpoint that is not in the cache: where to put it, where to get it, what fetches it."""
+    eff = catalog.effective(entry, cache)
+    who = f"{for_model}: " if for_model else ""
+    if eff.sha256 is not None:
+        check = f"sha256 {eff.sha256}, {human_size(eff.size)}"
+    else:
+        check = (
+            f"no sha256 is known: afterwards pin one with `vpengine weights fetch {entry.name} --sha256 HEX`"
+        )
+    why = "downloads are off (offline mode)" if offline else "vpengine downloads only when asked"
+    return CheckpointError(
+        f"{who}checkpoint {entry.name!r} is not in the cache and {why}. Run `vpengine weights fetch {entry.name}` "
+        f"(or `vpengine weights fetch --config CONFIG` for every checkpoint of a config) where the network is "
+        f"reachable, or place the file at {entry.path(cache)} (download it from {entry.url}; {check})"
+    )
+
+
+def unverifiable_error(entry: Entry) -> CheckpointError:
+    """The error for an entry that has no digest to check a file against (neither published nor pinned)."""
+    return CheckpointError(
+        f"checkpoint {entry.name!r} has no known sha256 ({entry.sha256_missing or 'none recorded'}), so vpengine "
+        f"will not use it unverified. Run `vpengine weights fetch {entry.name} --sha256 HEX` with a digest you "
+        f"trust, or `vpengine weights fetch {entry.name} --trust-on-first-use` to accept and record the digest "
+        "of what is downloaded now"
+    )
+
+
+# ------------------------------------------------------------------------------------------- hashing, stamps
+def byte_progress(total: int | None, initial: int, desc: str, enabled: bool) -> Any:
+    """A tqdm bar over bytes on stderr (a no-op bar when not ``enabled``)."""
+    from tqdm import tqdm
+
+    return tqdm(
+        total=total,
+        initial=initial,
+        desc=desc,
+        unit="B",
+        unit_scale=True,
+        unit_divisor=1024,
+        disable=not enabled,
+        file=sys.stderr,
+        dynamic_ncols=True,
+        mininterval=0.5,
+    )
+
+
+def sha256_file(path: str | Path, progress: bool = False, desc: str | None = None) -> str:
+    """Hex sha256 of a file, read in 1 MiB chunks (optionally with a progress bar)."""
+    path = Path(path)
+    h = hashlib.sha256()
+    bar = byte_progress(path.stat().st_size, 0, desc or f"hashing {path.name}", progress)
+    with bar, path.open("rb") as f:
+        while chunk := f.read(_CHUNK):
+            h.update(chunk)
+            bar.update(len(chunk))
+    return h.hexdigest()
+
+
+def stamp_path(path: Path) -> Path:
+    """Where the ``.verified`` stamp of a cached file lives."""
+    return path.with_name(path.name + ".verified")
+
+
+def write_stamp(path: Path, digest: str) -> None:
+    """Record that ``path``, as it is now (size, mtime), hashed to ``digest``."""
+    st = path.stat()
+    stamp = {"sha256": digest, "size": st.st_size, "mtime_ns": st.st_mtime_ns}
+    # Unique per thread: in thread mode two workers can stamp the same file at once.
+    tmp = path.with_name(f".{path.name}.verified.{os.getpid()}.{threading.get_ident()}.tmp")
+    tmp.write_text(json.dumps(stamp) + "\n")
+    os.replace(tmp, stamp_path(path))  # atomic: a concurrent reader never sees half a stamp
+
+
+def _stamp_matches(path: Path, digest: str) -> bool:
+    """True if the file was fully hashed to ``digest`` and has not changed (size, mtime) since."""
+    try:
+        stamp = json.loads(stamp_path(path).read_text())
+        st = path.stat()
+    except (OSError, ValueError):
+        return False
+    return bool(stamp == {"sha256": digest, "size": st.st_size, "mtime_ns": st.st_mtime_ns})
+
+
+def check_file(entry: Entry, path: Path, expected: str, progress: bool) -> None:
+    """Raise unless ``path`` hashes to ``expected`` (a fresh stamp saves re-hashing an unchanged file)."""
+    if _stamp_matches(path, expected):
+        return
+    if entry.size is not None and path.stat().st_size != entry.size:
+        raise CheckpointError(
+            f"cached checkpoint {path} has {path.stat().st_size} bytes, expected {entry.size} for {entry.name}; "
+            f"delete it or run `vpengine weights fetch {entry.name} --force`"
+        )
+    digest = sha256_file(path, progress, f"verifying {entry.name}")
+    if digest != expected:
+        raise CheckpointError(
+            f"cached checkpoint {path} does not match {entry.name}: expected sha256 {expected}, got {digest}; "
+            f"delete it or run `vpengine weights fetch {entry.name} --force`"
+        )
+    write_stamp(path, digest)
+
+
+# ------------------------------------------------------------------------------------------- reading, applying
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """Tensors from a checkpoint file, without executing any code. Unwraps {'state_dict'|'model': ...}."""
     path = Path(path)

@@ -501,15 +501,15 @@ def _fmt(v: Any) -> str:
 
 def model_status(name: str, m: Mapping[str, Any], prefix: str, hardware_id: str) -> Status:
     """One model's health from ``Engine.stats()["models"][name]``: OK; WARN while restarting or paused (also
-    starting/loading); ERROR when failed for good."""
+    starting/loading); ERROR when failed for good or hung (thread mode, Note [Hung threads])."""
     state = str(m.get("state", "unknown"))
     target = m.get("target_hz")
     achieved = float(m.get("achieved_hz") or 0.0)
     tgt = "unlimited" if target is None else f"{target:g} Hz"
     lat = m.get("latency_ms") or {}
     paused = state == "paused" or target == 0
-    if state == "failed":
-        level, msg = ERROR, f"failed: {m.get('last_error') or 'no error text'}"
+    if state in ("failed", "hung"):
+        level, msg = ERROR, f"{state}: {m.get('last_error') or 'no error text'}"
     elif state == "restarting":
         level, msg = WARN, f"restarting after a crash ({m.get('restarts', 0)} restarts so far)"
     elif paused:

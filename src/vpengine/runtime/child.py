@@ -1,32 +1,44 @@
-"""Entry point of a worker process: ``python -m vpengine.runtime.child FD`` (see Note [Child lifecycle])."""
+"""Entry point of a worker process (see Note [Child lifecycle] in process.py for how it is started)."""
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
 import signal
-import sys
 import threading
 from multiprocessing.connection import Connection
 
+_PR_SET_PDEATHSIG = 1
 
-def main(fd: int) -> None:
+
+def _die_with_parent(parent_pid: int) -> None:
+    """Have the kernel SIGKILL us when the parent dies (Note [Child lifecycle]), however we are doing then:
+    stopped, or hung in C code that holds the GIL. Plain libc through ctypes, not vpengine.transport._linux, whose
+    package imports torch: this runs before anything slow."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
+        raise OSError(ctypes.get_errno(), "prctl(PR_SET_PDEATHSIG) failed")
+    if os.getppid() != parent_pid:  # the parent died before the request: no signal will come
+        os._exit(0)
+
+
+def main(fd: int, parent_pid: int) -> None:
+    _die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C belongs to the parent, which stops us in order
     conn = Connection(fd)
     try:
-        _kind, sys_path, spec, log_level = conn.recv()
+        _kind, spec, log_level, log_file = conn.recv()
     except (EOFError, OSError):
         os._exit(2)
-    for p in reversed(sys_path):  # user heads by import path resolve as in the parent
-        if p not in sys.path:
-            sys.path.insert(0, p)
     logging.basicConfig(
         level=log_level, format=f"%(asctime)s %(levelname)s [{spec.name}] %(name)s: %(message)s"
     )
 
     from vpengine.runtime.control import ControlBlock
     from vpengine.runtime.process import recv_fds
+    from vpengine.runtime.supervisor import log_to_file
     from vpengine.runtime.worker import describe_exception, prepare_worker
     from vpengine.transport.ring import SlotRing
 
@@ -49,6 +61,8 @@ def main(fd: int) -> None:
         os._exit(3)
     threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
     try:
+        if log_file:
+            log_to_file(log_file, log_level, spec.name)
         in_ring = SlotRing.attach(spec.in_ring, fds)
         out_ring = SlotRing.attach(spec.out_ring, fds)
         control = ControlBlock.attach(spec.control, fds)  # opening a region consumes (closes) its descriptor
@@ -69,7 +83,3 @@ def main(fd: int) -> None:
             conn.send(("error", text))
         os._exit(1)
     os._exit(0)
-
-
-if __name__ == "__main__":
-    main(int(sys.argv[1]))

@@ -29,6 +29,8 @@ from vpengine.transport import _linux
 from vpengine.transport.memory import HostRegion, RegionHandle
 
 LAT_N = 512
+#: Longest sleep of any wait in a worker or the engine: how soon a sleeper notices a stop and beats its heartbeat.
+POLL_S = 0.5
 ERR_BYTES = 2048
 _HEADER = 64
 _FIELDS = [
@@ -44,7 +46,10 @@ _FIELDS = [
     ("lat_count", "q"),
     ("last_frame_id", "q"),
     ("mps_active", "q"),
-    ("stream_priority", "q"),  # as the device has it (config stream_priority, mapped into the device's range)
+    # Note [Answered frames]: the input-ring seq (origin) of the newest frame this model is done with, run or
+    # skipped, and of the newest it ran
+    ("decided", "q"),
+    ("last_run", "q"),
     ("target_hz", "d"),  # NaN: unlimited
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
     ("started_at", "d"),
@@ -57,8 +62,11 @@ _LAT0 = 1 + len(_FIELDS)
 ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
 ENTRY_BYTES = ENTRY_WORDS * 8
 
-STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped"]
-STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED = range(len(STATES))
+STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped", "hung"]
+STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED, HUNG = range(len(STATES))
+#: States of a model that serves no frames now: waiting for its output is pointless (``Engine.wait``). "hung": a
+#: thread-mode worker silent past runtime.hang_timeout_s, which cannot be killed (runtime/threads.py).
+NOT_SERVING = ("failed", "hung")
 
 
 @dataclass(frozen=True)
@@ -202,6 +210,16 @@ class ControlBlock:
         self._add(i, "runs")
         self._set(i, "lat_count", n + 1)
 
+    def decide(self, name: str, origin: int, ran: bool, wake: bool = True) -> None:
+        """Note [Answered frames]: this model is done with the frame of input seq ``origin`` (``ran``: it published
+        an output for it); ``wake`` wakes whoever waits for outputs."""
+        i = self.index[name]
+        if ran:
+            self._set(i, "last_run", origin)
+        self._set(i, "decided", origin)  # after last_run: whoever sees this sees that
+        if wake:
+            self._bump(4)
+
     def amend_last_run(self, name: str, compute_s: float, e2e_s: float) -> None:
         """Correct the times of the run recorded last (a run counted when its work was queued, timed when done)."""
         i = self.index[name]
@@ -261,7 +279,6 @@ class ControlBlock:
             "latency_ms": pct(lat),
             "e2e_latency_ms": pct(e2e),
             "mps": bool(self._get(i, "mps_active")),
-            "stream_priority": self._get(i, "stream_priority"),
             "device_mem_bytes": self._get(i, "device_mem_bytes"),
             "last_error": self.last_error(name) or None,
         }

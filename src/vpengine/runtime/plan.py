@@ -11,7 +11,7 @@ import torch
 
 from vpengine.config import EngineConfig
 from vpengine.models.base import Model, ModelBuildError
-from vpengine.runtime.worker import build_model
+from vpengine.models.build import build_model
 from vpengine.specs import SpecDict, TensorSpec, format_specs, specs_nbytes
 
 log = logging.getLogger("vpengine.plan")

@@ -2,18 +2,31 @@
 
 Note [Child lifecycle]
 ~~~~~~~~~~~~~~~~~~~~~~
-* Children are fresh interpreters (``python -m vpengine.runtime.child``), never forks: the parent may have
-  initialised CUDA, and a forked CUDA context is unusable. Unlike multiprocessing's spawn, the user's ``__main__``
-  script is not re-imported in the child, so scripts need no ``if __name__ == "__main__"`` guard and a ROS node's
-  top-level code never runs twice. Children get their own session, so a Ctrl-C in the terminal reaches only the
-  parent, which then stops them in order.
+* Children are fresh interpreters, never forks: the parent may have initialised CUDA, and a forked CUDA context is
+  unusable. Unlike multiprocessing's spawn, the user's ``__main__`` script is not re-imported in the child, so
+  scripts need no ``if __name__ == "__main__"`` guard and a ROS node's top-level code never runs twice. Children get
+  their own session, so a Ctrl-C in the terminal reaches only the parent, which then stops them in order.
+* A child imports nothing from its working directory: it runs isolated (``python -I``: no current directory or
+  script directory on ``sys.path``, no PYTHON* variables, no user site) with an explicit ``sys.path``: the folder
+  of this vpengine package, then the parent's ``sys.path`` as absolute paths, so a user head the parent can import
+  (``package.module:Class``) the child imports from the same place. Before, ``python -m`` put the current directory
+  first, and a ``yaml.py`` planted in a shared directory ran in every worker. The working directory itself stays
+  the parent's (relative checkpoint and log paths mean what they mean to the parent); only imports ignore it. A
+  parent whose own ``sys.path`` holds its current directory ('' in a REPL or ``python -c``) passes it on: the child
+  then imports from where the parent already does, nowhere else.
 * Each child inherits exactly one file descriptor: its end of a UNIX socketpair. Over it the parent sends the
   child's spec and then the file descriptors of every region it maps (memfds, CUDA VMM handles) with SCM_RIGHTS --
   no socket file, no /dev/shm name, so no other process can attach -- and both ends check the peer's uid with
   SO_PEERCRED. The child answers READY (or its traceback) once its model is loaded and warmed up; the parent waits
   at most ``runtime.ready_timeout_s``.
 * The same socket is the death pipe: a watcher thread in the child blocks on it, and when the parent dies (even by
-  SIGKILL) the kernel closes the parent's end, the read returns EOF, and the child exits at once.
+  SIGKILL) the kernel closes the parent's end, the read returns EOF, and the child exits at once. That needs the
+  child's interpreter to run (not SIGSTOPped, not hung in C code holding the GIL) and no other process to hold the
+  parent's end (a helper the user's program forked inherits it). So the kernel kills the child too: it asks for
+  SIGKILL when its parent dies (``PR_SET_PDEATHSIG``) first thing, then checks that the parent is still the one
+  that started it (had it died before, nobody would send the signal). The kernel sends it when the *thread* that
+  started the child ends, so every child is started by one spawner thread that lives as long as the runner. And a
+  process forked from the parent gets /dev/null in place of the parent's socket ends (``os.register_at_fork``).
 * The parent's monitor thread waits on a pidfd of every child (EOF of its socket on kernels without pidfd); a
   death is handled by ``Runner._on_exit``.
 * ``stop`` asks politely (stop flag + message), then terminate -> wait(timeout) -> kill. It always returns.
@@ -24,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import queue
 import socket
 import struct
 import subprocess
@@ -31,12 +45,13 @@ import sys
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
-from vpengine.runtime.control import STOPPED
+from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.supervisor import EngineStartError, Runner
 
 log = logging.getLogger("vpengine.process")
@@ -84,6 +99,71 @@ def _child_env() -> dict[str, str]:
     return env
 
 
+# A worker's interpreter: isolated (-I), with the import path given on its command line (Note [Child lifecycle]).
+_BOOT = (
+    "import sys; sys.path[:0] = sys.argv[3:]; del sys.argv[3:]; "
+    "from vpengine.runtime.child import main; main(int(sys.argv[1]), int(sys.argv[2]))"
+)
+
+
+def child_command(fd: int) -> list[str]:
+    """The command line of a worker that talks over socket ``fd``: this package's folder, then the parent's
+    ``sys.path`` made absolute (as the parent resolves it now), is the child's import path; never its cwd."""
+    src = str(Path(__file__).resolve().parents[2])
+    path = [src, *(os.path.abspath(p) for p in sys.path)]
+    return [sys.executable, "-I", "-c", _BOOT, str(fd), str(os.getpid()), *dict.fromkeys(path)]
+
+
+# Note [Child lifecycle]: the parent's socket ends, replaced by /dev/null in any process forked from the parent
+_PARENT_ENDS: set[int] = set()
+
+
+def _drop_parent_ends() -> None:
+    if not _PARENT_ENDS:
+        return
+    null = os.open(os.devnull, os.O_RDWR)
+    for fd in list(_PARENT_ENDS):
+        with contextlib.suppress(OSError):  # the number stays valid: what closes it later closes /dev/null
+            os.dup2(null, fd, inheritable=False)
+    os.close(null)
+    _PARENT_ENDS.clear()
+
+
+os.register_at_fork(after_in_child=_drop_parent_ends)
+
+
+class _Spawner:
+    """Starts processes from one thread that lives as long as it is open: a child's parent-death signal comes when
+    the thread that started it ends (Note [Child lifecycle]), and restarts and ``start()`` run in threads that may
+    end sooner (a user's thread, say)."""
+
+    def __init__(self) -> None:
+        self._calls: queue.SimpleQueue[tuple[Callable[[], Any], Future[Any]] | None] = queue.SimpleQueue()
+        self._closed = False
+        self._thread = threading.Thread(target=self._serve, name="vpengine-spawner", daemon=True)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        while (call := self._calls.get()) is not None:
+            fn, fut = call
+            try:
+                fut.set_result(fn())
+            except BaseException as e:
+                fut.set_exception(e)
+
+    def call(self, fn: Callable[[], Any]) -> Any:
+        if self._closed:
+            raise RuntimeError("the engine is stopping: no worker is started any more")
+        fut: Future[Any] = Future()
+        self._calls.put((fn, fut))
+        return fut.result()
+
+    def close(self) -> None:
+        """Let the thread end; call once every process it started is gone."""
+        self._closed = True
+        self._calls.put(None)
+
+
 class _Child:
     def __init__(self, proc: subprocess.Popen[bytes], conn: Connection) -> None:
         self.proc = proc
@@ -124,12 +204,23 @@ class _Child:
             self.eof = True
 
     def close(self) -> None:
+        if not self.conn.closed:
+            _PARENT_ENDS.discard(self.conn.fileno())
         with contextlib.suppress(OSError):
             self.conn.close()
         if self.pidfd is not None:
             with contextlib.suppress(OSError):
                 os.close(self.pidfd)
             self.pidfd = None
+
+
+_TERM_GRACE_S = 2.0  # how long stop waits after SIGTERM, and after SIGKILL, for all children together
+
+
+def _join_all(children: list[_Child], timeout: float) -> None:
+    deadline = time.monotonic() + timeout
+    for ch in children:
+        ch.join(deadline - time.monotonic())
 
 
 class ProcessRunner(Runner):
@@ -139,6 +230,7 @@ class ProcessRunner(Runner):
         self._children: dict[str, _Child] = {}
         self._wake_r, self._wake_w = os.pipe()
         self._monitor: threading.Thread | None = None
+        self._spawner = _Spawner()
 
     def _launch(self, name: str) -> None:
         spec = self.specs[name]
@@ -149,13 +241,20 @@ class ProcessRunner(Runner):
             spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
         )
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+        _PARENT_ENDS.add(ours.fileno())
         try:
-            proc = subprocess.Popen(
-                [sys.executable, "-m", "vpengine.runtime.child", str(theirs.fileno())],
-                pass_fds=[theirs.fileno()],
-                env={**_child_env(), **self._env_for(name)},
-                start_new_session=True,
+            proc = self._spawner.call(
+                lambda: subprocess.Popen(
+                    child_command(theirs.fileno()),
+                    pass_fds=[theirs.fileno()],
+                    env={**os.environ, **self._env_for(name)},
+                    start_new_session=True,
+                )
             )
+        except BaseException:
+            _PARENT_ENDS.discard(ours.fileno())
+            ours.close()
+            raise
         finally:
             theirs.close()
         conn = Connection(ours.detach())
@@ -163,10 +262,13 @@ class ProcessRunner(Runner):
         if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
             proc.kill()
             raise PermissionError(f"worker {name}: socket peer has uid {uid}")
-        conn.send(("init", list(sys.path), child_spec, self.cfg.logging.level))
+        conn.send(("init", child_spec, self.cfg.logging.level, self.cfg.logging.file))
         send_fds(conn, fds)
         self._children[name] = _Child(proc, conn)
         os.write(self._wake_w, b"x")
+
+    def threads_alive(self) -> list[threading.Thread]:
+        return [self._monitor] if self._monitor is not None and self._monitor.is_alive() else []
 
     # ------------------------------------------------------------------------------------------- start
     def start(self) -> None:
@@ -211,9 +313,8 @@ class ProcessRunner(Runner):
 
     # ----------------------------------------------------------------------------------------- monitor
     def _watch(self) -> None:
-        cfg = self.cfg.runtime
         while not self._stopping:
-            timeout = min(self._run_due_restarts(), cfg.poll_s)
+            timeout = min(self._run_due_restarts(), POLL_S)
             by_obj: dict[Any, str] = {self._wake_r: ""}
             with self._lock:
                 for name, ch in self._children.items():
@@ -252,7 +353,8 @@ class ProcessRunner(Runner):
                         reason += ": " + ch.error.strip().splitlines()[-1]
                     ch.close()
                     ch.handled = True
-                    self._on_exit(name, crashed=code != 0, reason=reason)
+                    # a worker leaves by itself only at stop: any exit now is a crash, exit code 0 included
+                    self._on_exit(name, crashed=True, reason=reason)
             self._check_hangs()
 
     def _check_hangs(self) -> None:
@@ -286,22 +388,22 @@ class ProcessRunner(Runner):
         for _, ch in children:
             with contextlib.suppress(OSError, ValueError):
                 ch.conn.send(("stop",))
-        deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
-        for _, ch in children:
-            ch.join(deadline - time.monotonic())
+        # Each phase waits for all children at once, against one deadline: nine hung workers take one grace time,
+        # not nine.
+        _join_all([ch for _, ch in children], self.cfg.runtime.stop_timeout_s)
         forced = [name for name, ch in children if ch.alive()]
         for _, ch in children:
             if ch.alive():
                 ch.proc.terminate()
+        _join_all([ch for _, ch in children if ch.alive()], _TERM_GRACE_S)
         for _, ch in children:
             if ch.alive():
-                ch.join(2.0)
+                ch.proc.kill()  # works on a stopped (SIGSTOP) process too
+        _join_all([ch for _, ch in children if ch.alive()], _TERM_GRACE_S)
         for name, ch in children:
-            if ch.alive():
-                ch.proc.kill()
-                ch.join(2.0)
             self.control.set_state(name, STOPPED)
             ch.close()
+        self._spawner.close()
         if self._monitor is not None and self._monitor is not threading.current_thread():
             self._monitor.join(2.0)
         for fd in (self._wake_r, self._wake_w):

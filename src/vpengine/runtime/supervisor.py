@@ -1,19 +1,22 @@
 """Supervision shared by the thread and process runners: READY, death, restart with backoff, stop.
 
 A runner owns one worker per model. When a worker dies (an exception in its model, SIGKILL, a hang that the
-runner killed), the runner releases the pins it held in its input ring and forgets any slot it left half-written
-in its output ring, so the models next to it never block; then it restarts the worker after a backoff that doubles
-each time, up to ``runtime.max_restarts``, after which the model is marked ``failed`` in ``stats()`` and the rest
-of the engine goes on without it.
+runner killed, an exit nobody asked for), the runner releases the pins it held in its input ring, forgets any slot
+it left half-written in its output ring, so the models next to it never block, and counts the frames it took but
+never finished as dropped; then it restarts the worker after a backoff that doubles with each restart in the last
+``runtime.restart_window_s``. A worker restarted ``runtime.max_restarts`` times within that window is in a crash
+loop: it is marked ``failed`` in ``stats()`` and the rest of the engine goes on without it.
 """
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from pathlib import Path
 
 from vpengine.config import EngineConfig
 from vpengine.runtime.control import FAILED, RESTARTING, ControlBlock
@@ -21,6 +24,9 @@ from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotRing
 
 log = logging.getLogger("vpengine.supervisor")
+
+#: The longest wait before a restart: the delay doubles from runtime.restart_backoff_s up to this.
+RESTART_BACKOFF_MAX_S = 10.0
 
 
 class EngineStartError(RuntimeError):
@@ -34,7 +40,20 @@ class EngineDeadError(RuntimeError):
 @dataclass
 class _Restart:
     due: float
-    attempt: int
+
+
+def log_to_file(path: str, level: str, source: str) -> logging.Handler:
+    """Send vpengine's log records at ``level`` and above to ``path`` too (appended; every worker process of an
+    engine appends to the same file, a line per record). ``source`` names the writer in each line. The vpengine
+    logger is lowered to ``level`` if it would drop such records before they reach the file."""
+    handler = logging.FileHandler(Path(path).expanduser(), mode="a", encoding="utf-8")
+    handler.setLevel(level)
+    handler.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s [{source}] %(name)s: %(message)s"))
+    logger = logging.getLogger("vpengine")
+    if logger.getEffectiveLevel() > handler.level:
+        logger.setLevel(handler.level)
+    logger.addHandler(handler)
+    return handler
 
 
 class Runner(ABC):
@@ -47,7 +66,7 @@ class Runner(ABC):
         self.cfg = cfg
         self._lock = threading.RLock()
         self._stopping = False
-        self._restarts: dict[str, int] = {s.name: 0 for s in specs}
+        self._restarted_at: dict[str, collections.deque[float]] = {s.name: collections.deque() for s in specs}
         self._pending: dict[str, _Restart] = {}
 
     # --------------------------------------------------------------------------------------- interface
@@ -70,6 +89,11 @@ class Runner(ABC):
     def alive(self, name: str) -> bool:
         return self.control.state(name) not in ("failed", "stopped")
 
+    def threads_alive(self) -> list[threading.Thread]:
+        """Threads of this runner that may still touch the mailboxes after ``stop`` returned (Note [Unmapping at
+        stop] in runtime/fence.py)."""
+        return []
+
     # ------------------------------------------------------------------------------------- death handling
     def _cleanup_after(self, name: str) -> None:
         """Release what a dead worker held so its neighbours never wait on it."""
@@ -78,6 +102,20 @@ class Runner(ABC):
         out_ring = self.rings[spec.out_ring.name]
         in_ring.release_reader(spec.in_reader)
         out_ring.reset_writer()
+        self._count_lost_frames(name)
+
+    def _count_lost_frames(self, name: str) -> None:
+        """Count as dropped the frames a dead worker took from its input but never ran, skipped or dropped (the
+        one in flight when it died, those it had overtaken on the way): every frame a model saw ends in exactly one
+        of ``runs``, ``skipped`` and ``dropped``. Its counters are final (it is gone) and its successor is not
+        started yet, so they still have one writer at a time."""
+        spec = self.specs[name]
+        reader = self.rings[spec.in_ring.name].stats()["readers"][spec.in_reader]  # type: ignore[index]
+        seen = reader["reads"] + reader["missed"]
+        ctl = self.control
+        lost = seen - ctl.get(name, "runs") - ctl.get(name, "skipped") - ctl.get(name, "dropped")
+        if lost > 0:
+            ctl.add(name, "dropped", lost)
 
     def _on_exit(self, name: str, crashed: bool, reason: str) -> None:
         """Called by the runner's monitor when a worker is gone."""
@@ -87,16 +125,34 @@ class Runner(ABC):
                 return
             if crashed:
                 self.control.add(name, "crashes")
-            n = self._restarts[name]
-            limit = self.cfg.runtime.max_restarts
+            rt = self.cfg.runtime
+            now = time.monotonic()
+            recent = self._restarted_at[name]
+            while recent and recent[0] < now - rt.restart_window_s:  # older restarts no longer count
+                recent.popleft()
+            n, limit = len(recent), rt.max_restarts
             if n >= limit:
                 self.control.set_state(name, FAILED)
-                log.error("%s failed for good after %d restarts: %s", name, n, reason)
+                log.error(
+                    "%s failed for good after %d restarts within %.0f s: %s",
+                    name,
+                    n,
+                    rt.restart_window_s,
+                    reason,
+                )
                 return
-            delay = min(self.cfg.runtime.restart_backoff_s * (2**n), self.cfg.runtime.restart_backoff_max_s)
-            self._pending[name] = _Restart(time.monotonic() + delay, n + 1)
+            delay = min(rt.restart_backoff_s * 2 ** min(n, 32), RESTART_BACKOFF_MAX_S)
+            self._pending[name] = _Restart(now + delay)
             self.control.set_state(name, RESTARTING)
-            log.warning("%s stopped (%s); restart %d/%d in %.1f s", name, reason, n + 1, limit, delay)
+            log.warning(
+                "%s stopped (%s); restart %d/%d within %.0f s, in %.1f s",
+                name,
+                reason,
+                n + 1,
+                limit,
+                rt.restart_window_s,
+                delay,
+            )
 
     def _run_due_restarts(self) -> float:
         """Launch restarts whose time has come; return seconds until the next one (inf if none)."""
@@ -109,7 +165,7 @@ class Runner(ABC):
                     break
                 if r.due <= now:
                     del self._pending[name]
-                    self._restarts[name] = r.attempt
+                    self._restarted_at[name].append(now)
                     self.control.add(name, "restarts")
                     try:
                         self._launch(name)

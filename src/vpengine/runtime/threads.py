@@ -1,4 +1,17 @@
-"""Thread mode: every model in its own thread (and CUDA stream) of one process, same loop as process mode."""
+"""Thread mode: every model in its own thread (and CUDA stream) of one process, same loop as process mode.
+
+Note [Hung threads]
+~~~~~~~~~~~~~~~~~~~
+A Python thread cannot be killed, so a model hung in its forward (a deadlock, a C call that never returns) cannot be
+taken back as in process mode. What can be done is done: once its heartbeat is older than
+``runtime.hang_timeout_s`` the model is marked ``hung`` (``stats()``: state, a crash counted, the reason in
+``last_error``), ``Engine.wait`` no longer waits for it, and the rest of the engine goes on (the frame it holds
+is one of the slots its mailbox keeps for each reader, so nobody waits for it). Its thread is told to leave: if it
+ever returns, it finishes that frame and exits, and the model is restarted on a fresh thread and stream under the
+restart rules. Until then the thread keeps its frame, its output slot and its memory, and a thread hung while holding
+the GIL stops the whole process (process mode isolates that). At ``stop()`` a hung thread is abandoned (a daemon
+thread); the mailboxes stay mapped until it ends (Note [Unmapping at stop] in fence.py).
+"""
 
 from __future__ import annotations
 
@@ -7,7 +20,8 @@ import queue
 import threading
 import time
 
-from vpengine.runtime.control import STOPPED
+from vpengine.runtime.control import HUNG, POLL_S, STOPPED
+from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.supervisor import EngineStartError, Runner
 from vpengine.runtime.worker import describe_exception, prepare_worker
 
@@ -15,13 +29,18 @@ log = logging.getLogger("vpengine.threads")
 
 
 class ThreadRunner(Runner):
-    def __init__(self, *args, **kw) -> None:  # type: ignore[no-untyped-def]
+    def __init__(  # type: ignore[no-untyped-def]
+        self, *args, handoffs: Handoffs | None = None, **kw
+    ) -> None:
         super().__init__(*args, **kw)
+        # what the workers hand each other on the device and the submitting thread (handoff.py)
+        self.handoffs = handoffs or Handoffs()
         self._threads: dict[str, threading.Thread] = {}
         self._events: queue.Queue[tuple[str, str, str]] = (
             queue.Queue()
         )  # (name, "ready"|"error"|"exit", text)
         self._generation: dict[str, int] = dict.fromkeys(self.specs, 0)
+        self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
         self._monitor: threading.Thread | None = None
 
     def _should_stop(self, name: str, gen: int) -> bool:
@@ -36,6 +55,7 @@ class ThreadRunner(Runner):
                 self.rings[spec.out_ring.name],
                 self.control,
                 own_process=False,
+                handoff=self.handoffs.for_worker(name),
             )
         except BaseException as e:
             self._events.put((name, "error", describe_exception(name, e)))
@@ -89,16 +109,53 @@ class ThreadRunner(Runner):
 
     def _watch(self) -> None:
         while not self._stopping:
-            timeout = min(self._run_due_restarts(), self.cfg.runtime.poll_s)
+            timeout = min(self._run_due_restarts(), POLL_S)
             try:
                 name, kind, text = self._events.get(timeout=max(0.01, timeout))
             except queue.Empty:
+                self._check_hangs()
                 continue
             if kind == "exit" and not self._stopping:
                 first_line = text.splitlines()[0] if text else "exited"
-                self._on_exit(name, crashed=bool(text), reason=first_line)
+                with self._lock:
+                    was_hung = name in self._hung  # its crash was counted when it was found hung
+                    self._hung.discard(name)
+                self._on_exit(name, crashed=bool(text) and not was_hung, reason=first_line)
             elif kind == "error" and not self._stopping:
                 self._on_exit(name, crashed=True, reason=text.splitlines()[0])
+            self._check_hangs()
+
+    def _check_hangs(self) -> None:
+        """Note [Hung threads]: mark a model whose heartbeat is older than ``runtime.hang_timeout_s`` hung."""
+        limit = self.cfg.runtime.hang_timeout_s
+        if limit is None:
+            return
+        now = time.monotonic()
+        with self._lock:
+            for name, t in self._threads.items():
+                if self._stopping or name in self._pending or name in self._hung or not t.is_alive():
+                    continue
+                if self.control.state(name) not in ("running", "paused"):
+                    continue  # loading (a build can take long) or already handled
+                hb = self.control.get(name, "heartbeat")
+                if hb <= 0 or now - hb <= limit:
+                    continue
+                self._hung.add(name)
+                self._generation[name] += 1  # its thread leaves if it ever returns
+                text = (
+                    f"{name}: hung for {now - hb:.0f} s (runtime.hang_timeout_s = {limit:g} s); a thread cannot be "
+                    "killed: restarted if it returns"
+                )
+                self.control.set_state(name, HUNG)
+                self.control.add(name, "crashes")
+                self.control.set_error(name, text)
+                log.error("%s", text)
+
+    def threads_alive(self) -> list[threading.Thread]:
+        threads = [t for t in self._threads.values() if t.is_alive()]
+        if self._monitor is not None and self._monitor.is_alive():
+            threads.append(self._monitor)
+        return threads
 
     def stop(self) -> list[str]:
         with self._lock:
@@ -106,6 +163,9 @@ class ThreadRunner(Runner):
         self.control.request_stop()
         for ring in self.rings.values():
             ring.wake_all()
+        if self.handoffs.inline is not None:
+            self.handoffs.inline.wake()  # an armed foundation worker disarms and sees the stop
+        self._events.put(("", "stop", ""))  # the monitor leaves now, not at its next poll
         deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
         abandoned = []
         for name, t in self._threads.items():

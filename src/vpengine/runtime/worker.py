@@ -10,112 +10,26 @@ same object runs in-process under tests and debuggers, in a thread (thread mode)
 An executor bound to the slots (Note [Slot-bound runs], compiled models on CUDA) does the staging, the model and the
 copy into the output slot itself, from graphs captured at start.
 
-Note [Event hand-off]
-~~~~~~~~~~~~~~~~~~~~~
-Note [Device sync] makes a writer wait on the host until the work that filled a slot is done, then publish it. For
-the hop from the foundation model to the heads in thread mode that wait sits on every frame's critical path twice
-over: the foundation thread wakes from the driver (0.1-0.2 ms), then each head thread wakes from the ring and only
-then starts queueing its own work, while the GPU idles. In thread mode on CUDA (``runtime.feature_handoff: event``,
-the default) the foundation worker instead records a CUDA event per feature slot right after queueing its work and
-publishes the slot at once; a head that pins the slot makes its own stream wait on that event (``cudaStreamWaitEvent``,
-no host wait) before it reads, so the heads' work is queued while the features are still being computed and starts
-the moment they are done. What Note [Device sync] protects still holds: no head's device work reads a slot before
-the work that filled it is complete (stream order), and the foundation worker still waits for its own work before it
-releases its input slot, so the caller's frame is never overwritten while it is read. Heads hand their results to
-the host on the host's terms as before: they sync, then publish. Process mode keeps the host hand-off (its events
-would have to cross processes), and so does the CPU, where work is synchronous. The foundation's run is counted
-when it is published and its times corrected once its work is done (``ControlBlock.amend_last_run``).
-
-Note [Result hand-off]
+Note [Answered frames]
 ~~~~~~~~~~~~~~~~~~~~~~
-The last hop, from a head to the caller waiting for the frame, cost two wake-ups after the device was done: the
-head's thread woke from the driver, published, and woke the caller, who then pinned and read the result (on an H100,
-0.2 ms of a 3.4 ms depth + seg frame). In thread mode on CUDA (``runtime.result_handoff: event``, the default) a
-head records a blocking CUDA event per output slot after queueing its work and the copy to the host, publishes at
-once, and wakes the caller, who pins the result while the device still computes it. ``Engine.wait`` then sleeps in
-the driver on the slot's event (``SlotRing.wait_done``) and returns as soon as the device is done: the wake-ups happen
-while the device works, not after. The head's thread still waits for its own work before it releases its input
-slot, counts the run by its device time (``amend_last_run``), and records when the work was done
-(``SlotRing.mark_done``), which is each result's ``latency``; then it wakes readers again. ``Engine.results`` and
-``Engine.latest`` take only results that are done (``pin(done=True)``): they never block on device work, and a
-FIFO reader never takes a result out of order. No reader reads a slot before its content is there: ``wait_done``
-is called on every pinned result before its content is read (borrowed arrays over it may be made before). Process mode keeps the host hand-off (its events
-would have to cross processes), and so does the CPU. A wait in the driver cannot be cut short, so ``Engine.wait``
-waits there only for a result that its head's recent results say will be done before the caller's timeout; any
-other it leaves pinned by nobody until the head, having seen the work done, wakes it (or the timeout comes).
+``Engine.wait(frame)`` must learn that a model will give no output for a frame as soon as the model knows it, or a
+caller waiting for every head (``vpengine run``'s lockstep pacing, ``Engine.predict``) waits out a rate-limited
+head's whole period on every frame. So every worker answers each frame it is done with: after publishing its output,
+or at once when its rate gate holds the frame back, a run of it fails or finds no output slot, it records the frame's
+input seq (its origin) in the control block (``ControlBlock.decide``: ``decided``, and ``last_run`` when it
+published), and wakes the engine's waiters. A worker takes frames in order, so every frame up to ``decided`` is
+answered: ``wait`` reads ``decided`` before it looks for the output in the ring, and finding none then means none is
+coming. A frame the foundation model held back reaches no head: ``wait`` sees that as the foundation's ``decided``
+at or past the frame with its ``last_run`` before it. Frames a model missed because it was busy (newest wins) are
+answered by the newer frame it took.
 
-Measured on an H200 (thread mode, compiled depth + seg, frame slot, variants alternated round by round on one
-engine, median of 8-14 rounds' p50s; benchmarks/results/h200/ab_result_handoff_*.json): with the caller sleeping in
-the driver this alone gains little (2.47-2.51 against 2.45-2.53 ms with the host hand-off): its wake-up costs as
-much as the head thread's did. What the hand-off makes possible is spending CPU on that one wake-up only, which
-``runtime.wait_spin_us`` (default 200) does: ``wait_done`` sleeps through the part of the wait that the head's
-recent results predict (learnt from when each was done), then polls the event, offering the interpreter lock
-between polls with ``os.sched_yield`` (``time.sleep(0)`` sleeps out the timer slack, about 55 us: 2.367 against
-2.302 ms), until a window past the predicted end: ``wait_spin_us`` plus twice the results' recent spread, at most
-three times ``wait_spin_us``. A result later than that is waited for in the driver, asleep. So the CPU a wait
-spends is bounded however late a head is; the first version spun in the driver (default-flag events) until the
-result came, which is why it was off by default. Depth + seg, three machines: 2.302, 2.308 and 2.341 ms with the
-poll against 2.439, 2.457 and 2.477 asleep, as fast as that driver spin (2.313, 2.314) or spinning through the whole
-wait (2.301, 2.302), for 0 to 0.29 ms more of the caller's CPU a frame (1.36-1.89 ms, the frame's 6 MB write
-included). Eight depth heads, whose results' times vary more: 5.70 ms with the poll against 5.69-5.74 asleep and
-5.61-5.65 with the unbounded driver spin; the spread in the window took the waits the poll left to the driver from
-21% to 7% (ab_result_handoff_poll{,_spread}_depth8.json). Before any wait for the
-device, ``Engine.wait`` borrows every result it pinned (``Engine._copy_out``: the arrays over a slot read nothing
-of its content), so that what is left once the last result is there is little more than returning: 2.341 against
-2.406 ms (ab_result_handoff_launch.json). Tried and not kept: a head woken by its work sleeping until a caller woken
-by the same work had taken the interpreter lock (no gain: 2.50 against 2.51 ms); the frame copied into the
-foundation's static input with one cudaMemcpyAsync instead of its one-copy graph's launch (2.341 against 2.336 ms);
-the depth head's stream above seg's: the device trace shows depth's next kernel still waiting about 66 us behind
-seg's upsample + argmax kernel either way (profile_steps_trace_depth_first.json.gz), and neither that priority nor
-seg's kernel in 256-thread blocks instead of 64 (a wider block of depth's then fits where one of seg's ends) changed
-the frame: 2.280, 2.278, 2.282 and 2.283 ms (ab_result_handoff_seg_block{128,512}.json).
-
-Note [Inline launch]
-~~~~~~~~~~~~~~~~~~~~
-The frame's own hop, from the submitting thread to the foundation model, costs a wake-up too: on an H100 the
-foundation thread began its run 0.14 ms after the frame was published, while the GPU idled. In thread mode, when
-the foundation model runs from graphs bound to the slots (``runtime.inline_launch: auto``), its worker does not
-wait for frames in the ring when it is ready for one: it acquires its output slot and *arms* the input ring's
-``InlineLaunch`` with it. The thread that publishes the next frame (``Engine.submit`` or a
-``frame_slot`` closing) then queues the foundation's work itself, on the foundation's stream (three graph
-launches), *before* it publishes the frame: the slot is still its writer's, so no one else can see it, let alone
-reuse it. It then publishes the frame already pinned for the foundation's reader (``publish_pinned``, one
-critical section, the read counted as any other) and hands the pinned slots to the worker, which wakes, publishes
-the features (Note [Event hand-off]) and does the rest of its run as usual: counting, waiting for its work,
-releasing the frame. Nothing else changes hands: the worker alone decides when it is ready (rate limit, pause), a
-launch that raises is raised in the worker (restart rules), and a frame published while the worker is not armed is
-taken from the ring by the worker, as before. Arming, disarming, taking a frame from the ring and the inline launch
-all happen under the offer's lock, so each frame is taken exactly once. The worker arms with the rate its gate
-opened under and, under the lock, takes no frame if the rate has changed since; ``Engine.set_rate`` stores the rate
-and then takes the lock, so no frame submitted after it returns runs under the old rate (a pause set between the
-gate and the arming once let one through). Measured on the H100 (compiled depth + seg,
-benchmarks/results/h100/profile_steps_inline.json): the first graph is queued 0.19 ms after the frame is published
-instead of 0.29 ms, 3.44 instead of 3.52 ms a frame. The 0.14 ms that stayed between starting a run and the first
-graph launch, in whichever thread launched, was the launch path's code running cold (Note [Launch path]). Queueing
-the work before the frame is published, not after, took a further 0.05 ms off (H200, one engine, 14 rounds: 2.50
-against 2.55 ms p50; 2.37 against 2.41 ms with ``wait_spin_us: 200``; ab_result_handoff_prelaunch_ab.json).
-
-Note [Launch path]
-~~~~~~~~~~~~~~~~~~
-Host code runs several times slower right after its thread waited: on the H100 VM, entering a stream context and
-inference mode and replaying a CUDA graph take 26 us in a loop and 141 us after the thread slept 3 ms (stream context
-87 us, inference mode 21 us, the replay 32 us; benchmarks/results/h100/wakeups.json). Every run begins that way:
-woken by its input, or in the thread that just submitted a frame. So a worker's loop (``run``) makes its stream
-current and turns inference mode on once, for as long as it runs, and a run on the worker's own thread enters
-neither. A launch from the submitting thread (Note [Inline launch]) cannot leave that thread on the worker's stream,
-and switching there and back costs about 0.1 ms after a wait however it is done (wakeups_switch.json); so a
-slot-bound executor launches its three graphs with ``cudaGraphLaunch`` straight onto the worker's stream
-(``run_bound_on``; CUDA Python bindings), which needs no switch and no inference mode, and switches streams only
-where it cannot (no bindings, another device current, a graph that draws random numbers). Measured on the H100,
-compiled depth + seg from a frame slot, 300 frames: the foundation's first graph is queued 0.12 ms after the frame is
-published (0.18 ms with the stream switched, 0.2 ms before this Note), and a frame takes 3.38 ms p50 against 3.55
-ms with the worker launching (profile_steps_launch_path.json).
+The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
+launching the foundation's work) live in handoff.py.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import os
 import threading
 import time
@@ -127,18 +41,19 @@ from typing import Any
 import torch
 
 from vpengine.config import EngineConfig, load_config
-from vpengine.models.base import BuildContext, Model, Role, check_outputs
-from vpengine.models.registry import resolve
-from vpengine.runtime.control import PAUSED, RUNNING, ControlBlock, ControlDesc
+from vpengine.models.base import Role, check_outputs
+from vpengine.models.build import build_lock, build_model, model_config
+from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
 from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
 from vpengine.runtime.rate import RateGate
 from vpengine.specs import SpecDict
-from vpengine.transport.ring import RingDesc, RingWriter, SlotInfo, SlotRing
+from vpengine.transport.ring import RingDesc, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine.worker")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class WorkerSpec:
     """Everything a worker needs, picklable so it can cross into a spawned child."""
 
@@ -158,37 +73,6 @@ class WorkerSpec:
         return load_config(self.config)
 
 
-_build_lock = threading.Lock()
-
-
-def model_config(cfg: EngineConfig, name: str) -> Any:
-    return cfg.foundation_model if name == "foundation" else cfg.head(name)
-
-
-def build_model(
-    cfg: EngineConfig,
-    name: str,
-    role: Role,
-    upstream: SpecDict,
-    upstream_meta: dict[str, Any],
-    device: torch.device,
-    plan_only: bool,
-) -> Model:
-    """Build one recipe. With ``plan_only`` it lands on the meta device with no weights (for planning)."""
-    mcfg = model_config(cfg, name)
-    cls, defaults = resolve(mcfg.model, role)
-    ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
-    # One model at a time per process: construction draws from PyTorch's process-global RNG (default layer init,
-    # seeded random weights), so thread-mode workers building at once would interleave their draws and get weights
-    # that differ from run to run (and from process mode).
-    with _build_lock, torch.device("meta" if plan_only else device):
-        model = cls.from_config(ctx)
-    if not plan_only:
-        model.load_checkpoint(ctx)
-        model.eval().requires_grad_(False)
-    return model
-
-
 class WorkerCore:
     """The loop of one model. Construct with mapped rings; ``run`` until ``should_stop`` says so."""
 
@@ -201,8 +85,9 @@ class WorkerCore:
         out_ring: SlotRing,
         control: ControlBlock,
         device: DeviceContext,
-        poll_s: float = 0.5,
+        poll_s: float = POLL_S,
         bound: bool = False,
+        handoff: WorkerHandoff | None = None,
     ) -> None:
         self.spec = spec
         self.name = spec.name
@@ -218,10 +103,13 @@ class WorkerCore:
         self._should_stop: Callable[[], bool] = lambda: False
         self._keys = input_keys(spec, in_ring)
         self._in_ring = in_ring
-        # Note [Event hand-off]: this worker publishes queued work with one event per output slot.
-        self._handoff: list[Any] | None = out_ring.device_events
-        # Note [Inline launch]: the submitting thread may queue this (foundation) worker's work; set by prepare_worker
-        self._inline: InlineLaunch | None = None
+        handoff = handoff or WorkerHandoff()
+        # Notes [Event hand-off], [Result hand-off] in handoff.py: this worker waits on the device for the events of
+        # its input slots, and publishes queued work with the events of its output slots.
+        self._in_events = handoff.in_events
+        self._out_events = handoff.out_events
+        # Note [Inline launch]: the submitting thread may queue this (foundation) worker's work
+        self._inline = handoff.inline
         self._thread: int | None = None  # the thread running the loop (Note [Launch path])
         self._spare: SlotInfo | None = None  # the output slot an armed worker offers
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
@@ -255,73 +143,72 @@ class WorkerCore:
     def _loop(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
         while not should_stop():
-            now = time.monotonic()
             ctl.heartbeat(name)
             rate = ctl.rate(name)
-            self.gate.update(rate, now)
-            wait = self.gate.wait_time(now)
-            if wait > 0:
-                self._drop_spare()  # not armed while paused or rate-limited: takes no frames from submit
-                ctl.set_state(name, PAUSED if math.isinf(wait) else RUNNING)
-                ctl.wait_control(name, min(wait, self.poll_s))
+            self.gate.update(rate)
+            if self.gate.paused:
+                self._drop_spare()  # not armed while paused: takes no frames from submit
+                ctl.set_state(name, PAUSED)
+                ctl.wait_control(name, self.poll_s)
                 continue
             ctl.set_state(name, RUNNING)
-            gate_open = time.monotonic()
-            if self._inline is not None:
-                self._take_inline(gate_open, rate)
+            if self._inline is not None and rate is None:
+                self._take_inline()
             else:
-                self._take(gate_open, rate)
+                self._drop_spare()  # a rate-limited model decides on each frame first (Note [Inline launch])
+                self._take(rate)
 
-    def _take(self, gate_open: float, rate: float | None) -> None:
-        """One frame from the ring, or none within ``poll_s``; ``rate`` is the rate the gate opened under."""
+    def _take(self, rate: float | None) -> None:
+        """One frame from the ring, or none within ``poll_s``; ``rate`` is the rate read before waiting."""
         slot = self.reader.pin(timeout=self.poll_s, should_stop=self._should_stop)
         if slot is None:
             return
         try:
-            if self._gate_still_open(slot, rate):
-                self._step(slot, starved=slot.t_publish > gate_open)
+            if self._admit(slot, rate):
+                self._step(slot)
         finally:
             self.reader.release(slot)
 
-    def _gate_still_open(self, slot: SlotInfo, rate: float | None) -> bool:
-        """Whether the frame in ``slot``, which came while this worker waited, may run. A rate set while it waited
-        (a pause, say) decides again: ``Engine.set_rate`` stores the rate before it returns, and a frame published
-        after that is seen only after the store, so a pause stops every frame submitted after it. A frame the new
-        rate holds back is counted skipped, with any it overtook."""
+    def _admit(self, slot: SlotInfo, rate: float | None) -> bool:
+        """Whether the frame in ``slot`` runs, by the rate gate on the frame's own timestamp (``rate.py``); frames
+        this model never saw (it was busy) and a frame the gate holds back are counted skipped, and a held-back
+        frame is answered (Note [Answered frames]). A rate set while this worker waited for the frame (a pause,
+        say) decides: ``Engine.set_rate`` stores the rate before it returns, and a frame published after that is
+        seen only after the store, so a pause stops every frame submitted after it."""
         now_rate = self.control.rate(self.name)
-        if now_rate == rate:
-            return True
-        now = time.monotonic()
-        self.gate.update(now_rate, now)
-        if self.gate.wait_time(now) == 0:
+        if now_rate != rate:
+            self.gate.update(now_rate)
+        if self.gate.admit(slot.t_capture, slot.t_submit, slot.missed):
+            if slot.missed:
+                self.control.add(self.name, "skipped", slot.missed)
             return True
         self.control.add(self.name, "skipped", 1 + slot.missed)
+        self.control.decide(self.name, slot.origin, ran=False)
         return False
 
-    def _step(self, slot: SlotInfo, starved: bool, out: SlotInfo | None = None) -> None:
-        """One run on a pinned ``slot``, into ``out`` (an output slot already acquired) or one it acquires."""
+    def _step(self, slot: SlotInfo, out: SlotInfo | None = None) -> None:
+        """One run on a pinned, admitted ``slot``, into ``out`` (an output slot already acquired) or one it
+        acquires. A run that publishes nothing (no output slot, or the model raised) still answers the frame."""
         t_start = time.monotonic()
-        self._account(slot, t_start, starved)
-        if out is None:
-            out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
-        if out is None:
-            self.control.add(self.name, "dropped")
-            return
-        self._launch(slot, out)
-        self._finish(slot, out, t_start)
-
-    def _account(self, slot: SlotInfo, t_start: float, starved: bool) -> None:
-        self.gate.started(t_start, starved)
-        if slot.missed:
-            self.control.add(self.name, "skipped", slot.missed)
+        ran = False
+        try:
+            if out is None:
+                out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
+            if out is None:
+                self.control.add(self.name, "dropped")
+                return
+            self._launch(slot, out)
+            self._finish(slot, out, t_start)
+            ran = True
+        finally:
+            if not ran:
+                self.control.decide(self.name, slot.origin, ran=False)
 
     def _launch(self, slot: SlotInfo, out: SlotInfo) -> None:
         """Queue the model's work from ``slot`` into ``out`` (on the CPU: do it). Gives ``out`` back if that raises.
         Called by this worker's thread, or by the submitting thread (Note [Inline launch])."""
-        # read each frame: a head can start before the foundation thread has given the ring its events
-        events = self._in_ring.device_events
-        if events is not None:  # the slot's writer published it queued: read it only after that work
-            self.dev.wait_on(events[slot.index])
+        if self._in_events is not None:  # the slot's writer published it queued: read it only after that work
+            self.dev.wait_on(self._in_events.events[slot.index])
         try:
             if threading.get_ident() == self._thread:  # run() made the stream current, inference mode on
                 self._run_model(slot, out)
@@ -330,8 +217,8 @@ class WorkerCore:
             else:
                 with self.dev.active(), torch.inference_mode():
                     self._run_model(slot, out)
-            if self._handoff is not None:
-                self.dev.mark(self._handoff[out.index])
+            if self._out_events is not None:
+                self.dev.mark(self._out_events.events[out.index])
         except BaseException:
             self.writer.abort(out)
             raise
@@ -350,7 +237,7 @@ class WorkerCore:
     def _finish(self, slot: SlotInfo, out: SlotInfo, t_start: float) -> None:
         """Count and publish a run whose work ``_launch`` queued; the caller then releases ``slot``."""
         ctl, name = self.control, self.name
-        handoff = self._handoff
+        handoff = self._out_events
         if handoff is None:
             try:
                 self.dev.complete()  # Note [Device sync]: publish only what is complete
@@ -361,8 +248,7 @@ class WorkerCore:
         t_end = time.monotonic()
         ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
         self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
-        if self.spec.notify_output:
-            ctl.notify_output()
+        ctl.decide(name, slot.origin, ran=True, wake=self.spec.notify_output)
         if handoff is not None:
             # The input slot is released (by run) only after the work that read it is done; the run's times
             # are the device's, not the queueing's.
@@ -371,13 +257,14 @@ class WorkerCore:
             ctl.amend_last_run(name, t_end - t_start, t_end - slot.t_submit)
             if self.spec.notify_output:
                 # Note [Result hand-off]: when it was there; wakes readers waiting for done results
-                self.writer.ring.mark_done(out, t_end)
+                handoff.mark_done(self.writer.ring, out, t_end)
                 ctl.notify_output()
 
     # ---------------------------------------------------------------------- Note [Inline launch], worker side
-    def _take_inline(self, gate_open: float, rate: float | None) -> None:
-        """One frame, taken from the ring or launched by the submitting thread, or none within ``poll_s``; ``rate``
-        is the rate the gate opened under. A rate changed since (``Engine.set_rate`` sets it, then takes the
+    def _take_inline(self) -> None:
+        """One frame, taken from the ring or launched by the submitting thread, or none within ``poll_s``. Only
+        while the model is unlimited: a rate-limited one decides on each frame's timestamp before any work is
+        queued for it (``_take``). A rate set since the loop read it (``Engine.set_rate`` sets it, then takes the
         offer's lock to wake us) takes nothing: the loop's gate decides again."""
         offer = self._inline
         assert offer is not None
@@ -389,33 +276,46 @@ class WorkerCore:
                 return
         done = None
         with offer.cond:  # not armed before this: no launch can be waiting here
-            if self.control.rate(self.name) != rate:
-                return  # a pause or limit set after the gate opened: no frame submitted since may run
+            if self.control.rate(self.name) is not None:
+                return  # a pause or limit set since the loop read the rate: no frame submitted since may run
             slot = self.reader.pin(timeout=0)
             if slot is None:
-                offer.arm(self, self._spare, rate)
+                spare = self._spare
+                offer.arm(
+                    lambda frame: self._launch(frame, spare),
+                    self.reader,
+                    lambda: self.control.rate(self.name) is None,
+                )
                 try:
                     offer.cond.wait(self.poll_s)
                 finally:
-                    offer.disarm(self)
+                    offer.disarm()
                 done = offer.take_done()
         if done is None:
             if slot is None:
                 return  # nothing came: the spare slot stays for the next arming
-            out, self._spare = self._spare, None
             try:  # a frame was in the ring: run it here
-                self._step(slot, starved=slot.t_publish > gate_open, out=out)
+                if self._admit(slot, None):
+                    out, self._spare = self._spare, None
+                    self._step(slot, out=out)
             finally:
                 self.reader.release(slot)
             return
         out, self._spare = self._spare, None
         slot, t_start, error = done
+        ran = False
         try:
             if error is not None:
                 raise error  # the launch failed in the submitting thread; out was given back there
-            self._account(slot, t_start, starved=slot.t_publish > gate_open)
+            # launched while unlimited: the gate only keeps its clock; frames missed meanwhile are counted
+            self.gate.admit(slot.t_capture, slot.t_submit, slot.missed)
+            if slot.missed:
+                self.control.add(self.name, "skipped", slot.missed)
             self._finish(slot, out, t_start)
+            ran = True
         finally:
+            if not ran:
+                self.control.decide(self.name, slot.origin, ran=False)
             self.reader.release(slot)
 
     def _drop_spare(self) -> None:
@@ -424,64 +324,6 @@ class WorkerCore:
         if self._spare is not None:
             self.writer.abort(self._spare)
             self._spare = None
-
-
-class InlineLaunch:
-    """Note [Inline launch]: the input ring's offer from a ready foundation worker to the thread that publishes the
-    next frame. One per input ring object (thread mode), kept across restarts of the worker."""
-
-    def __init__(self) -> None:
-        self.cond = threading.Condition(threading.Lock())
-        self._core: WorkerCore | None = None
-        self._out: SlotInfo | None = None
-        self._done: tuple[SlotInfo, float, BaseException | None] | None = None
-        self._rate: float | None = None
-        self.launches = 0  # frames launched by submitting threads
-
-    # worker side, holding cond
-    def arm(self, core: WorkerCore, out: SlotInfo, rate: float | None) -> None:
-        """Offer ``core``'s output slot ``out`` to the next frame's publisher; ``rate`` is the rate its gate opened
-        under (read then, not now: a pause set in between must stop the launch)."""
-        self._core, self._out = core, out
-        self._rate = rate
-
-    def disarm(self, core: WorkerCore) -> None:
-        if self._core is core:
-            self._core = self._out = None
-
-    def take_done(self) -> tuple[SlotInfo, float, BaseException | None] | None:
-        done, self._done = self._done, None
-        return done
-
-    # submitting side
-    def publish(
-        self, writer: RingWriter, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float
-    ) -> int:
-        """Publish the frame filled in ``slot`` (the input ring's ``writer`` holds it); if a worker is armed, queue
-        its work on the frame first, then publish the frame pinned for its reader and hand it over. The frame's seq.
-        """
-        with self.cond:
-            core, out = self._core, self._out
-            if core is None or out is None or core.control.rate(core.name) != self._rate:
-                # no worker armed, or the rate changed since (a pause, say): the worker's gate decides, once woken
-                return writer.publish(slot, frame_id, t_capture, t_submit)
-            self._core = self._out = None
-            t_start = time.monotonic()
-            error: BaseException | None = None
-            try:  # queued before the frame is published: nobody else can see the slot yet, let alone reuse it
-                core._launch(slot, out)
-            except Exception as e:  # raised in the worker, under its restart rules; never in submit
-                error = e
-            pinned = writer.publish_pinned(slot, frame_id, t_capture, t_submit, core.reader)
-            self._done = (pinned, t_start, error)
-            self.launches += 1
-            self.cond.notify_all()
-            return pinned.seq
-
-    def wake(self) -> None:
-        """Wake an armed worker (at stop), which then disarms."""
-        with self.cond:
-            self.cond.notify_all()
 
 
 def input_keys(spec: WorkerSpec, in_ring: SlotRing) -> list[str]:
@@ -512,7 +354,12 @@ def _register_host_rings(*rings: SlotRing) -> None:
 
 
 def prepare_worker(
-    spec: WorkerSpec, in_ring: SlotRing, out_ring: SlotRing, control: ControlBlock, own_process: bool
+    spec: WorkerSpec,
+    in_ring: SlotRing,
+    out_ring: SlotRing,
+    control: ControlBlock,
+    own_process: bool,
+    handoff: WorkerHandoff | None = None,
 ) -> WorkerCore:
     """Build the model on its device, warm it up (allocations happen here, before READY), return its loop."""
     from vpengine.backends import make_executor
@@ -527,8 +374,7 @@ def prepare_worker(
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
-    dev = DeviceContext(device, mcfg.stream_priority, cfg.runtime.sync_spin_us * 1e-6)
-    control.set(spec.name, "stream_priority", dev.priority)
+    dev = DeviceContext(device)
     if dev.cuda:
         _register_host_rings(in_ring, out_ring)
         from vpengine.transport.cuda_vmm import mps_enabled
@@ -543,7 +389,7 @@ def prepare_worker(
         )
         # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
         # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
-        with _build_lock:
+        with build_lock:
             executor = make_executor(
                 model,
                 mcfg.backend,
@@ -560,29 +406,13 @@ def prepare_worker(
                 keys = input_keys(spec, in_ring)
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
-    # Note [Event hand-off]: every reader of the features is a head thread of this process on this device. A
-    # restarted model keeps the events: a slot its predecessor published is still ordered by them.
-    if dev.cuda and not own_process and out_ring.device_events is None:
-        if spec.role == "foundation" and cfg.runtime.feature_handoff == "event":
-            out_ring.device_events = [torch.cuda.Event() for _ in range(out_ring.n_slots)]
-        elif spec.role == "head" and cfg.runtime.result_handoff == "event":
-            # Note [Result hand-off]: read on the host by the engine, which sleeps in the driver on them, or polls
-            # them at the end of each wait (runtime.wait_spin_us > 0)
-            out_ring.device_events = [torch.cuda.Event(blocking=True) for _ in range(out_ring.n_slots)]
     control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
     control.set(spec.name, "started_at", time.monotonic())
+    if handoff is not None and not inline_wanted(dev.cuda, bound):
+        handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]
     core = WorkerCore(
-        spec, executor, model.output_spec, in_ring, out_ring, control, dev, cfg.runtime.poll_s, bound=bound
+        spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff
     )
-    inline = cfg.runtime.inline_launch
-    if (
-        spec.role == "foundation"
-        and not own_process
-        and (inline == "always" or (inline == "auto" and dev.cuda and bound))
-    ):
-        if in_ring.inline is None:  # Note [Inline launch]
-            in_ring.inline = InlineLaunch()
-        core._inline = in_ring.inline
     control.heartbeat(spec.name)
     control.set_state(spec.name, READY)
     return core

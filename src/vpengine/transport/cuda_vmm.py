@@ -65,12 +65,26 @@ def _check(result: Any, what: str) -> Any:
 def _current_context(index: int) -> Any:
     """Make the device's primary context (the one PyTorch uses) current in this thread."""
     d = _driver()
-    torch.cuda.init()
     _check(d.cuInit(0), "cuInit")
     dev = _check(d.cuDeviceGet(index), f"cuDeviceGet({index})")
+    _sleep_in_waits(d, dev)
+    torch.cuda.init()
     ctx = _check(d.cuDevicePrimaryCtxRetain(dev), "cuDevicePrimaryCtxRetain")
     _check(d.cuCtxSetCurrent(ctx), "cuCtxSetCurrent")
     return dev
+
+
+def _sleep_in_waits(d: Any, dev: Any) -> None:
+    """Note [Sleeping waits]: a process that shares device memory through this module (process mode) waits for
+    its device asleep, not spinning. With the default scheduling (CU_CTX_SCHED_AUTO) a process whose contexts are
+    fewer than the machine's cores spins a core in every wait that is not on a blocking event, so each worker
+    process burnt a core for its GPU's whole work. Set on the primary context before it is created; where it
+    already is (the parent, which made it off MPS first), the waits there are few and the error is ignored."""
+    flags, active = _check(d.cuDevicePrimaryCtxGetState(dev), "cuDevicePrimaryCtxGetState")
+    sched = int(d.CUctx_flags.CU_CTX_SCHED_MASK)
+    want = (int(flags) & ~sched) | int(d.CUctx_flags.CU_CTX_SCHED_BLOCKING_SYNC)
+    if int(flags) != want and not active:
+        _check(d.cuDevicePrimaryCtxSetFlags(dev, want), "cuDevicePrimaryCtxSetFlags")
 
 
 def vmm_support(index: int = 0) -> dict[str, bool]:

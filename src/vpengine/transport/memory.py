@@ -176,6 +176,38 @@ class LocalRegion(Region):
         self._tensor = None
 
 
+def _read_int(path: str, prefix: str = "") -> int | None:
+    """The first integer in file ``path`` (on the line starting with ``prefix``), or None."""
+    try:
+        with open(path) as f:
+            for line in f:
+                if line.startswith(prefix):
+                    word = line[len(prefix) :].split()[0]
+                    return int(word) if word.isdigit() else None
+    except (OSError, IndexError):
+        pass
+    return None
+
+
+def free_bytes(device: torch.device) -> int | None:
+    """Bytes that can be allocated on ``device`` now: for the host, the kernel's estimate of what is available
+    without swapping (``MemAvailable``), less if this process's cgroup allows less; for a CUDA device, its free
+    memory. None where it cannot be told."""
+    if device.type == "cuda":
+        try:
+            return int(torch.cuda.mem_get_info(device)[0])
+        except (RuntimeError, AssertionError):
+            return None
+    if device.type != "cpu":
+        return None
+    kb = _read_int("/proc/meminfo", "MemAvailable:")
+    free = None if kb is None else kb * 1024
+    limit, used = _read_int("/sys/fs/cgroup/memory.max"), _read_int("/sys/fs/cgroup/memory.current")
+    if limit is not None and used is not None:  # cgroup v2 with a limit ("max": none)
+        free = limit - used if free is None else min(free, limit - used)
+    return free
+
+
 def allocate(
     name: str, nbytes: int, device: torch.device | str, shared: bool, pinned: bool = False
 ) -> Region:

@@ -47,7 +47,7 @@ import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Literal
 
 import torch
 
@@ -57,6 +57,8 @@ from vpengine.transport.layout import SlotLayout
 from vpengine.transport.memory import HostRegion, Region, RegionHandle, allocate, open_region
 
 Overflow = Literal["drop_oldest", "drop_newest", "block"]
+#: A reader's pin filter: (slot index, seq) -> whether it may take that slot now.
+Accept = Callable[[int, int], bool]
 ReaderMode = Literal["latest", "fifo"]
 
 _EMPTY, _WRITING, _PUBLISHED = 0, 1, 2
@@ -147,20 +149,6 @@ class SlotRing:
         self._policy = _OVERFLOW_CODE[desc.overflow]
         self.views = desc.layout.views(data.tensor())
         self._pid = os.getpid()
-        # One CUDA event per slot when its writer hands slots off on the device (Note [Event hand-off] in
-        # runtime/worker.py): a reader's stream waits on the slot's event before reading it. Thread mode only, so a
-        # plain attribute of this process's ring object; None: the writer published only completed work.
-        self.device_events: list[Any] | None = None
-        # Per slot, (seq, monotonic time) of the last publish whose queued device work the writer saw finish
-        # (Note [Result hand-off] in runtime/worker.py): when a handed-off result was ready, for its latency.
-        self.done_at: list[tuple[int, float]] = [(0, 0.0)] * self.n_slots
-        # Moving average of the time from a slot's publish to its work done (0: none seen yet) and of how far each
-        # was from it (its spread), for ``wait_done``
-        self.publish_to_done_s = 0.0
-        self.publish_to_done_dev_s = 0.0
-        # The input ring's reader in thread mode may take frames from the submitting thread (Note [Inline launch] in
-        # runtime/worker.py): its ``InlineLaunch``, also in-process only; woken by ``wake_all``.
-        self.inline: Any = None
 
     # ----------------------------------------------------------------------------------------------- creation
     @classmethod
@@ -195,6 +183,12 @@ class SlotRing:
         meta = HostRegion(f"{name}.meta", _meta_bytes(n_slots, len(readers)))
         try:
             data = allocate(f"{name}.data", layout.total_bytes, device, shared, pinned)
+        except (OSError, RuntimeError) as e:  # ENOMEM from mmap, a CUDA out-of-memory error
+            meta.close()
+            raise MemoryError(
+                f"ring {name!r}: cannot allocate {layout.total_bytes / 1e9:.2f} GB ({n_slots} slots of "
+                f"{layout.slot_bytes} bytes) on {device}: {e}"
+            ) from e
         except BaseException:
             meta.close()
             raise
@@ -288,8 +282,13 @@ class SlotRing:
             self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
         _linux.futex_wake(self._publish_addr)
         _linux.futex_wake(self._release_addr)
-        if self.inline is not None:
-            self.inline.wake()
+
+    def notify_readers(self) -> None:
+        """Wake readers waiting to pin, without a publish: what they may take has changed (a pin filter that
+        accepts more now, see ``RingReader.pin``)."""
+        with self._mutex:
+            self._u[_PUBLISH_WORD_OFF // 4] = (self._u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
+        self._wake_publish()
 
     # -------------------------------------------------------------------------------------- supervision
     def release_reader(self, name: str) -> bool:
@@ -354,93 +353,6 @@ class SlotRing:
     @property
     def last_seq(self) -> int:
         return self._q[_H_LAST_SEQ]
-
-    # ------------------------------------------------------- slots published with queued work (thread mode)
-    def mark_done(self, slot: SlotInfo, t_done: float) -> None:
-        """The writer saw the device work behind its published ``slot`` finish at ``t_done`` (monotonic); wakes
-        readers waiting for a done slot (``pin(done=True)``)."""
-        self._record_done(slot, t_done)
-        with self._mutex:
-            self._u[_PUBLISH_WORD_OFF // 4] = (self._u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-        self._wake_publish()
-
-    def _record_done(self, slot: SlotInfo, t_done: float) -> None:
-        """The first to see a slot's work done (its writer, or a reader waiting for it) says when; each slot's time
-        from publish to done goes into the moving averages that ``wait_done`` predicts with (as TCP's round-trip
-        estimate: the mean, gain 1/8, and the mean deviation from it, gain 1/4)."""
-        if self.done_at[slot.index][0] == slot.seq:
-            return
-        self.done_at[slot.index] = (slot.seq, t_done)
-        took = t_done - slot.t_publish
-        ema = self.publish_to_done_s
-        if ema <= 0:
-            self.publish_to_done_s = took
-            return
-        error = took - ema
-        self.publish_to_done_s = ema + 0.125 * error
-        self.publish_to_done_dev_s += 0.25 * (abs(error) - self.publish_to_done_dev_s)
-
-    def _done(self, i: int, seq: int) -> bool:
-        """Whether published slot ``i`` (sequence ``seq``) holds its content now, not only queued work."""
-        events = self.device_events
-        return events is None or self.done_at[i][0] == seq or bool(events[i].query())
-
-    def done_after(self, slot: SlotInfo, deadline: float) -> bool:
-        """Whether pinned ``slot``'s queued device work is expected to finish only after ``deadline`` (monotonic
-        seconds): never if it is done; else by its publish time plus the moving average of publish-to-done times
-        (none seen yet: expected at once)."""
-        if self._done(slot.index, slot.seq):
-            return False
-        return slot.t_publish + self.publish_to_done_s > deadline
-
-    def wait_done(self, slot: SlotInfo, spin_s: float = 0.0) -> float:
-        """Block until the content of pinned ``slot`` is there to read (its device work, if it was published
-        queued, is done); returns when it was, in monotonic seconds: its publish time if it was published
-        complete, else when its writer or this call saw its work finish, whichever came first.
-
-        ``spin_s`` = 0: the wait is the event's (a blocking event sleeps in the driver, the interpreter lock free).
-        ``spin_s`` > 0: sleep through the part of the work that recent slots predict, less a window, then poll the
-        event, offering the interpreter lock between polls, until at most that window past the predicted end; a
-        result later than that is waited for in the driver as above. The window is ``spin_s`` plus twice the
-        recent results' spread, at most three times ``spin_s`` in all: a spin costs at most about six times
-        ``spin_s`` of CPU per result, however late the work (Note [Result hand-off])."""
-        events = self.device_events
-        if events is None:
-            return slot.t_publish
-        seq, t_done = self.done_at[slot.index]
-        if seq == slot.seq:
-            return t_done
-        event = events[slot.index]
-        if event.query():
-            return time.monotonic()
-        predicted = self.publish_to_done_s  # 0: nothing learnt yet
-        window = spin_s + min(2 * self.publish_to_done_dev_s, 2 * spin_s)
-        if not (spin_s > 0 and predicted > 0 and _poll(event, slot, predicted, window)):
-            event.synchronize()
-        t_done = time.monotonic()
-        self._record_done(slot, t_done)
-        return t_done
-
-
-def _poll(
-    event: Any, slot: SlotInfo, predicted_s: float, window_s: float, offer: Callable[[], Any] = os.sched_yield
-) -> bool:
-    """``wait_done``'s spin: sleep until ``window_s`` before ``slot``'s predicted end, then poll ``event`` until it
-    is done (True) or ``window_s`` past that end has come (False), calling ``offer`` between polls."""
-    due = slot.t_publish + predicted_s
-    now = time.monotonic()
-    if due - window_s > now:
-        time.sleep(due - window_s - now)
-        now = time.monotonic()
-    until = max(due, now) + window_s
-    while not event.query():
-        if time.monotonic() >= until:
-            return False
-        # os.sched_yield gives the interpreter lock to a thread that wants it (a head publishing), at once;
-        # time.sleep(0) would too, but sleeps out the timer slack (about 55 us on Linux), which a result done
-        # meanwhile waits through.
-        offer()
-    return True
 
 
 class RingWriter:
@@ -510,7 +422,7 @@ class RingWriter:
         self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, origin: int | None = None
     ) -> int:
         """Make a filled slot visible to readers and wake them. The slot's content must be complete, or its device
-        work queued before the slot's event in ``ring.device_events`` (Note [Event hand-off] in runtime/worker.py).
+        work queued before an event its readers wait on (Note [Event hand-off] in runtime/handoff.py).
 
         ``origin`` carries the frame's identity down the pipeline; None means this ring is the input ring and
         the new slot's own seq is the origin.
@@ -610,13 +522,12 @@ class RingReader:
         return self.ring._q[self._b + _R_CURSOR]
 
     # -------------------------------------------------------------------------------------------- reading
-    def _find(self, peek: bool, done: bool = False) -> int | None:
-        """The slot to pin next; ``done``: only one whose content is there, not queued on the device. A peek then
-        takes the newest such slot; a read takes its usual slot only once it is done (never one out of order)."""
+    def _find(self, peek: bool, accept: Accept | None = None) -> int | None:
+        """The slot to pin next; ``accept(index, seq)``: only a slot it accepts. A peek then takes the newest such
+        slot; a read takes its usual slot only once accepted (never one out of order)."""
         ring, q = self.ring, self.ring._q
         cursor = q[self._b + _R_CURSOR]
         fifo = self._mode == _MODE_CODE["fifo"] and not peek
-        done = done and ring.device_events is not None
         best, best_seq = None, None
         for i in range(ring.n_slots):
             b = ring._slot(i)
@@ -625,11 +536,11 @@ class RingReader:
             seq = q[b + _S_SEQ]
             if not peek and seq <= cursor:
                 continue
-            if peek and done and not ring._done(i, seq):
+            if peek and accept is not None and not accept(i, seq):
                 continue
             if best_seq is None or (seq < best_seq if fifo else seq > best_seq):
                 best, best_seq = i, seq
-        if done and not peek and best is not None and best_seq is not None and not ring._done(best, best_seq):
+        if accept is not None and not peek and best is not None and best_seq is not None and not accept(best, best_seq):
             return None
         return best
 
@@ -687,14 +598,14 @@ class RingReader:
         timeout: float = 0.0,
         should_stop: Callable[[], bool] | None = None,
         peek: bool = False,
-        done: bool = False,
+        accept: Accept | None = None,
     ) -> SlotInfo | None:
         """Pin the next slot for this reader (newest unseen, or next in order for FIFO readers).
 
         Waits up to ``timeout`` seconds for one (0: do not wait); returns None on timeout or when ``should_stop``
         says so. ``peek`` pins the newest published slot even if already seen, without counting anything.
-        ``done``: only a slot whose device work is done, if its writer publishes queued work (a writer that does
-        wakes readers again when it is done). The returned tensors are views into the pool: use them, then
+        ``accept(index, seq)``: only a slot it accepts (e.g. one whose device work is done, when its writer
+        publishes queued work; whoever makes it accept more calls ``SlotRing.notify_readers``). The returned tensors are views into the pool: use them, then
         :meth:`release`.
         """
         ring, q, u = self.ring, self.ring._q, self.ring._u
@@ -707,7 +618,7 @@ class RingReader:
                         f"reader {self.name!r} of ring {ring.name!r} already pins slot {q[b + _R_PINNED]}; "
                         "release it before pinning another"
                     )
-                i = self._find(peek, done)
+                i = self._find(peek, accept)
                 if i is not None:
                     return self._pin_locked(i, peek)
                 word = u[_PUBLISH_WORD_OFF // 4]

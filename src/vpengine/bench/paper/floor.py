@@ -1,0 +1,60 @@
+"""The device-time floor: the engine (thread and process mode, frames submitted and frames written in place with
+``Engine.frame_slot``) against the same models' device time, measured in one process with CUDA events and CUDA graphs
+where they capture.
+
+Three floors: the models each timed alone and summed; the same plus the frame's upload and the results' download
+(which any program that wants results on the host pays); the models back to back on one stream, timed as one. A
+model that cannot be graph-captured (Faster R-CNN: NMS has data-dependent shapes) is timed eager, launch gaps
+included, so a floor with it is generous. Off CUDA there are no device times: only the engine's latencies.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from vpengine.bench.paper.harness import KINDS, Bench, InProcess, engines, lockstep, log
+
+
+def check_kinds(kinds: tuple[str, ...]) -> tuple[str, ...]:
+    bad = sorted(set(kinds) - set(KINDS))
+    if bad or not kinds:
+        raise ValueError(f"floor heads {list(kinds)}: accepted are {', '.join(KINDS)} (at least one)")
+    return kinds
+
+
+def run(b: Bench, imgs: list[np.ndarray], kinds: tuple[str, ...] = KINDS) -> dict[str, Any]:
+    heads = [b.head(k, k) for k in check_kinds(kinds)]
+    seq = InProcess(b, heads)
+    dt = seq.device_times(imgs[0])
+    xfer = seq.transfer_times(imgs[0])
+    chained = seq.chained_times(imgs[0])
+    del seq  # its models' memory goes before the engines start
+    out: dict[str, Any] = {"heads": list(kinds), "device_ms": dt, "transfer_ms": xfer, "chained_ms": chained}
+    if dt:
+        out["floor_sum_ms"] = sum(dt.values())
+        out["floor_with_transfers_ms"] = out["floor_sum_ms"] + sum(xfer.values())
+    for mode in ("thread", "process"):
+        with engines([b.config(heads, mode=mode)]) as (eng,):
+            out[mode] = lockstep(eng, imgs, b)
+            out[f"{mode}_frame_slot"] = lockstep(eng, imgs, b, slot=True)
+        if dt:
+            for key in (mode, f"{mode}_frame_slot"):
+                out[f"{key}_overhead_vs_floor"] = out[key]["mean"] / out["floor_sum_ms"] - 1
+                out[f"{key}_overhead_vs_floor_with_transfers"] = (
+                    out[key]["mean"] / out["floor_with_transfers_ms"] - 1
+                )
+                out[f"{key}_overhead_vs_chained"] = out[key]["mean"] / chained["compute"] - 1
+    floors = (
+        f"summed device time {out['floor_sum_ms']:.2f} ms, with transfers {out['floor_with_transfers_ms']:.2f} ms, "
+        f"chained {chained['compute']:.2f} ms; "
+        if dt
+        else ""
+    )
+    log(
+        f"floor ({'+'.join(kinds)}): {floors}engine thread mode {out['thread']['mean']:.2f} ms "
+        f"({out['thread_frame_slot']['mean']:.2f} ms from a frame slot), process mode {out['process']['mean']:.2f} ms "
+        f"({out['process_frame_slot']['mean']:.2f} ms)"
+    )
+    return out

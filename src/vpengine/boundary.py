@@ -1,0 +1,254 @@
+"""The boundary: one door in, one door out, for every frame whatever door it came through.
+
+``Engine.submit``, ``Engine.frame_slot`` and ``Engine.predict`` bring frames in through :meth:`Boundary.write`, and
+every result leaves through :meth:`Boundary.to_frame`; ``vpengine run``/``predict``, the ROS 2 bridge, bags and the
+web view only ever use those engine calls, so none of them resizes anything on its own.
+
+Note [Frame grid]
+~~~~~~~~~~~~~~~~~
+The models are built, compiled and captured for one input size, the config's ``input.height`` x ``input.width``
+(the *canvas*): the mailboxes, CUDA graphs and full-resolution outputs all have that size, allocated once at start.
+A frame of any other size (up to ``input.max_frame_side``) is scaled to fit the canvas with its aspect ratio kept
+(never stretched) and centred; the band around it is filled with the normalisation mean, which is zero once
+normalised. Its outputs come back in the frame's own pixel grid: dense maps are cut out of the canvas and resized
+to the frame's size (bilinear for values, nearest for class ids), boxes are shifted and scaled into its pixels and
+clipped to it. A frame of the canvas size passes through untouched and costs nothing here. So the same frame gives
+the same outputs through every door, and a camera of another size gives outputs at its own size; setting
+input.height/width to the camera's size spares the two host resizes.
+
+A head's ``output.grid: native`` keeps its outputs in the canvas grid instead (``Result.grid`` says which, and
+``Result.placement`` maps them). Which outputs are maps, class maps or boxes, a head says in ``meta["output_grid"]``
+(``{"depth": "map", "classes": "labels", "boxes": "boxes"}``); for a head that does not, an output whose leading
+two dimensions are the canvas's is a map (floating point) or a class map (integers), and a ``boxes`` output of
+shape ``[N, 4]`` holds x1, y1, x2, y2 canvas pixels. Anything else passes unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+
+from vpengine.config import EngineConfig
+from vpengine.models.preprocess import IMAGENET_MEAN
+from vpengine.specs import SpecDict
+
+log = logging.getLogger("vpengine")
+
+GridKind = Literal["map", "labels", "boxes"]
+GRID_KINDS: tuple[str, ...] = ("map", "labels", "boxes")
+
+
+@dataclass(frozen=True)
+class Placement:
+    """Where a frame of ``frame_hw`` lies in the canvas of ``canvas_hw``: the region ``x0, y0, w, h`` (Note [Frame
+    grid]). The identity placement (frame == canvas) maps nothing."""
+
+    frame_hw: tuple[int, int]
+    canvas_hw: tuple[int, int]
+    x0: int
+    y0: int
+    w: int
+    h: int
+
+    @classmethod
+    def fit(cls, frame_hw: tuple[int, int], canvas_hw: tuple[int, int]) -> Placement:
+        fh, fw = frame_hw
+        ch, cw = canvas_hw
+        if (fh, fw) == (ch, cw):
+            return cls(frame_hw, canvas_hw, 0, 0, cw, ch)
+        s = min(ch / fh, cw / fw)
+        w = min(cw, max(1, round(fw * s)))
+        h = min(ch, max(1, round(fh * s)))
+        return cls(frame_hw, canvas_hw, (cw - w) // 2, (ch - h) // 2, w, h)
+
+    @property
+    def identity(self) -> bool:
+        return self.frame_hw == self.canvas_hw
+
+    def describe(self) -> str:
+        fh, fw = self.frame_hw
+        ch, cw = self.canvas_hw
+        pad = f", {self.y0} px bands top and bottom" if self.y0 else ""
+        pad += f", {self.x0} px bands left and right" if self.x0 else ""
+        return f"{fw}x{fh} frames are scaled by {self.w / fw:.3g} into the {cw}x{ch} input{pad}"
+
+    # ------------------------------------------------------------------------------------------- outputs
+    def boxes_to_frame(self, boxes: Any) -> Any:
+        """x1, y1, x2, y2 canvas pixels (numpy array or tensor, ``[..., 4]``) -> the frame's pixels, clipped to it."""
+        fh, fw = self.frame_hw
+        sx, sy = fw / self.w, fh / self.h
+        if isinstance(boxes, torch.Tensor):
+            off = torch.tensor([self.x0, self.y0, self.x0, self.y0], dtype=boxes.dtype, device=boxes.device)
+            sc = torch.tensor([sx, sy, sx, sy], dtype=boxes.dtype, device=boxes.device)
+            hi = torch.tensor([fw, fh, fw, fh], dtype=boxes.dtype, device=boxes.device)
+            return torch.minimum(((boxes - off) * sc).clamp_min(0), hi)
+        out = (boxes - np.array([self.x0, self.y0, self.x0, self.y0], boxes.dtype)) * np.array(
+            [sx, sy, sx, sy], boxes.dtype
+        )
+        return np.minimum(np.maximum(out, 0), np.array([fw, fh, fw, fh], boxes.dtype)).astype(boxes.dtype)
+
+    def to_frame(self, kind: GridKind, value: Any) -> Any:
+        """One output of ``kind`` in the canvas grid -> in the frame's (a new array; ``value`` is left alone)."""
+        if kind == "boxes":
+            return self.boxes_to_frame(value)
+        return self.map_to_frame(value, labels=kind == "labels")
+
+    def map_to_frame(self, m: Any, labels: bool) -> Any:
+        """A map ``[H, W, ...]`` in the canvas -> ``[h, w, ...]`` at the frame's size: the frame's region cut out
+        and resized, bilinear for values (``labels`` False) or nearest for class ids. Numpy arrays or tensors."""
+        region = m[self.y0 : self.y0 + self.h, self.x0 : self.x0 + self.w]
+        fh, fw = self.frame_hw
+        if isinstance(m, torch.Tensor):
+            return _resize_tensor(region, (fh, fw), labels, shrink=fw < self.w)
+        import cv2
+
+        if labels:
+            if region.dtype in _CV_NEAREST:
+                return cv2.resize(region, (fw, fh), interpolation=cv2.INTER_NEAREST_EXACT)
+            rows = np.minimum(((np.arange(fh) + 0.5) * (self.h / fh)).astype(np.intp), self.h - 1)
+            cols = np.minimum(((np.arange(fw) + 0.5) * (self.w / fw)).astype(np.intp), self.w - 1)
+            return region[rows][:, cols]
+        # area averaging when shrinking (no aliasing), bilinear when enlarging
+        filt = cv2.INTER_AREA if fw < self.w else cv2.INTER_LINEAR
+        if region.dtype in _CV_LINEAR:
+            return cv2.resize(region, (fw, fh), interpolation=filt)
+        return cv2.resize(region.astype(np.float32), (fw, fh), interpolation=filt).astype(m.dtype)
+
+
+# what cv2.resize takes for each filter (int32/int64 class maps are indexed by hand)
+_CV_NEAREST = {np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "float32", "float64")}
+_CV_LINEAR = {np.dtype(t) for t in ("uint8", "uint16", "int16", "float32", "float64")}
+
+
+def _resize_tensor(region: torch.Tensor, size: tuple[int, int], labels: bool, shrink: bool) -> torch.Tensor:
+    extra = region.shape[2:]
+    x = region.reshape(*region.shape[:2], -1).permute(2, 0, 1)[None]  # 1, C, h, w
+    if labels:  # exact for class ids below 2**24
+        y = torch.nn.functional.interpolate(x.float(), size=size, mode="nearest-exact")
+    else:
+        y = torch.nn.functional.interpolate(
+            x.float(), size=size, mode="bilinear", align_corners=False, antialias=shrink
+        )
+        if not region.dtype.is_floating_point:
+            y = y.round()
+    return y[0].permute(1, 2, 0).reshape(*size, *extra).to(region.dtype)
+
+
+def output_kinds(meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int]) -> dict[str, GridKind]:
+    """Which of a head's outputs are maps, class maps or boxes in the canvas grid (Note [Frame grid])."""
+    declared = dict(meta.get("output_grid") or {})
+    bad = {k: v for k, v in declared.items() if v not in GRID_KINDS or k not in spec}
+    if bad:
+        raise ValueError(
+            f"meta['grid'] {bad}: each key must be an output ({', '.join(spec)}) and each kind one of {GRID_KINDS}"
+        )
+    kinds: dict[str, GridKind] = {}
+    for k, s in spec.items():
+        if k in declared:
+            kinds[k] = declared[k]
+        elif s.shape[:2] == canvas_hw:
+            kinds[k] = "map" if s.torch_dtype.is_floating_point else "labels"
+        elif k == "boxes" and len(s.shape) == 2 and s.shape[1] == 4:
+            kinds[k] = "boxes"
+    return kinds
+
+
+class Boundary:
+    """Frames in (checked, fitted into the input canvas); outputs go back through ``Placement.to_frame`` with the
+    kinds in ``kinds``. One per engine (one per camera, later); ``write`` runs under the engine's submit lock."""
+
+    def __init__(
+        self,
+        cfg: EngineConfig,
+        heads: dict[str, tuple[dict[str, Any], SpecDict]],
+        normalize_mean: tuple[float, ...] = IMAGENET_MEAN,
+    ) -> None:
+        inp = cfg.input
+        self.canvas_hw = (inp.height, inp.width)
+        self.dtype = np.dtype(inp.dtype)
+        self.color = inp.color
+        self.max_side = inp.max_frame_side
+        mean = np.asarray(normalize_mean, np.float64)
+        if inp.color == "bgr":
+            mean = mean[::-1]
+        # the padding is the normalisation mean: zero once normalised
+        self.pad = (
+            (mean * 255).round().astype(self.dtype) if self.dtype == np.uint8 else mean.astype(self.dtype)
+        )
+        self.kinds = {h: output_kinds(meta, spec, self.canvas_hw) for h, (meta, spec) in heads.items()}
+        self.native = {h.name for h in cfg.heads if h.output.grid == "native"}
+        self._placements: dict[tuple[int, int], Placement] = {}
+        self._scratch: dict[tuple[int, int], np.ndarray] = {}
+
+    def describe_expected(self) -> str:
+        h, w = self.canvas_hw
+        return (
+            f"an HxWx3 {self.dtype} numpy array ({self.color.upper()}) of any size up to {self.max_side} px a side "
+            f"(the models run at {w}x{h})"
+        )
+
+    def check(self, frame: Any) -> np.ndarray:
+        """The frame as a numpy array, or ValueError naming what was expected and what came."""
+        want = self.describe_expected()
+        if isinstance(frame, torch.Tensor):
+            if frame.device.type != "cpu":
+                raise ValueError(f"expected {want}; got a tensor on {frame.device} (submit host frames)")
+            if frame.requires_grad:
+                raise ValueError(f"expected {want}; got a tensor that requires grad (submit frame.detach())")
+            frame = frame.numpy()
+        if not isinstance(frame, np.ndarray):
+            raise ValueError(f"expected {want}; got {type(frame).__name__}")
+        if frame.size == 0:
+            raise ValueError(f"expected {want}; got an empty array of shape {frame.shape}")
+        if frame.ndim != 3 or frame.shape[2] != 3:
+            channels = frame.shape[2] if frame.ndim == 3 else "no channel axis"
+            raise ValueError(f"expected {want}; got shape {frame.shape} ({channels} channels)")
+        if max(frame.shape[:2]) > self.max_side:
+            raise ValueError(
+                f"expected {want}; got {frame.shape[1]}x{frame.shape[0]} (raise input.max_frame_side to allow it)"
+            )
+        if frame.dtype != self.dtype:
+            raise ValueError(f"expected {want}; got dtype {frame.dtype}")
+        if frame.dtype.kind == "f" and not np.isfinite(frame).all():
+            raise ValueError(f"expected {want} with finite values; got NaN or inf")
+        return frame
+
+    def placement(self, frame_hw: tuple[int, int]) -> Placement:
+        p = self._placements.get(frame_hw)
+        if p is None:
+            p = self._placements[frame_hw] = Placement.fit(frame_hw, self.canvas_hw)
+            if not p.identity:
+                log.info("%s; set input.height/width to that size to spare the resizing", p.describe())
+        return p
+
+    def write(self, frame: np.ndarray, dst: np.ndarray) -> Placement:
+        """Fit a checked ``frame`` into the canvas ``dst`` (an input slot); returns where it went."""
+        p = self.placement(frame.shape[:2])
+        if p.identity:
+            # numpy, not torch: torch parallelises host copies over its OpenMP pool, whose idle threads then spin
+            # (one per core); a plain memcpy costs a fraction of that at 30 Hz.
+            np.copyto(dst, frame)
+            return p
+        import cv2
+
+        scratch = self._scratch.get((p.h, p.w))
+        if scratch is None:  # one per frame size, not per frame
+            scratch = self._scratch[(p.h, p.w)] = np.empty((p.h, p.w, 3), self.dtype)
+        shrink = p.w < frame.shape[1]
+        cv2.resize(
+            np.ascontiguousarray(frame),
+            (p.w, p.h),
+            dst=scratch,
+            interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR,
+        )
+        y0, x0, y1, x1 = p.y0, p.x0, p.y0 + p.h, p.x0 + p.w
+        dst[y0:y1, x0:x1] = scratch
+        dst[:y0] = self.pad
+        dst[y1:] = self.pad
+        dst[y0:y1, :x0] = self.pad
+        dst[y0:y1, x1:] = self.pad
+        return p

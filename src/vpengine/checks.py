@@ -1,0 +1,67 @@
+"""Checks of the public API's scalar arguments: frame ids, timestamps, timeouts and rates.
+
+Each returns the value as the engine stores it or raises ValueError naming the value and what is accepted, before
+the engine takes anything (a slot, a lock) that the error would leave behind. Python and numpy numbers are taken
+alike; booleans, NaN and infinity are not (``True`` is not 1 Hz, a NaN capture time is no time at all).
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+import operator
+from typing import Any
+
+#: Frame ids are stored as int64; the largest is kept free for the id after it (``submit`` without an id).
+FRAME_ID_MIN, FRAME_ID_MAX = -(2**63), 2**63 - 2
+
+
+def _real(value: Any) -> float | None:
+    """``value`` as a float if it is a real number (not a bool), else None."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    return float(value)
+
+
+def frame_id(value: Any) -> int | None:
+    """A frame id given to ``submit``/``frame_slot``: None, or an integer (Python or numpy) that fits int64."""
+    if value is None:
+        return None
+    if isinstance(value, bool):
+        raise ValueError(f"frame_id must be an integer, got {value!r}")
+    try:
+        fid = operator.index(value)
+    except TypeError:
+        raise ValueError(f"frame_id must be an integer, got {value!r} ({type(value).__name__})") from None
+    if not FRAME_ID_MIN <= fid <= FRAME_ID_MAX:
+        raise ValueError(f"frame_id must be from {FRAME_ID_MIN} to {FRAME_ID_MAX} (int64), got {fid}")
+    return fid
+
+
+def timestamp(value: Any) -> float | None:
+    """A capture time in seconds: None (now) or a finite real number."""
+    if value is None:
+        return None
+    t = _real(value)
+    if t is None or not math.isfinite(t):
+        raise ValueError(f"timestamp must be None or a finite number of seconds, got {value!r}")
+    return t
+
+
+def timeout(value: Any, what: str = "timeout") -> float:
+    """A timeout in seconds: a finite real number; one below 0 (a deadline already past, ``deadline - now``) is 0,
+    do not wait."""
+    t = _real(value)
+    if t is None or not math.isfinite(t):
+        raise ValueError(f"{what} must be a finite number of seconds, got {value!r}")
+    return max(t, 0.0)
+
+
+def rate(model: str, value: Any) -> float | None:
+    """A rate limit for ``model``: None (unlimited) or a finite real number >= 0 Hz (0 pauses)."""
+    if value is None:
+        return None
+    hz = _real(value)
+    if hz is None or not math.isfinite(hz) or hz < 0:
+        raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {value!r}")
+    return hz

@@ -1,0 +1,97 @@
+"""``vpengine predict SOURCE``: annotated pictures of every head's outputs, for an image, a glob, a folder, a video, a
+camera or a shipped sample, with a config that runs anywhere (``tiny``) unless told otherwise.
+
+Every head runs on every frame: the config's rate limits are switched off (and the command says so), because a
+picture per frame with some heads missing is not what this command is for; ``vpengine run`` honours them. Each frame
+goes in once the previous one is answered by every head (lockstep). Pictures go to a new folder each time,
+``runs/predict``, ``runs/predict2``, ... (never into an earlier run's), with ``summary.json`` beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from vpengine.cli import (
+    add_config_argument,
+    add_overrides_argument,
+    positive_int,
+    prepare_out_dir,
+)
+from vpengine.cli.run import SOURCE_HELP
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("source", help=SOURCE_HELP)
+    add_config_argument(p, default="tiny")
+    p.add_argument(
+        "--out",
+        "-o",
+        help="output folder (default: the first of runs/predict, runs/predict2, ... that does not exist); refused "
+        "if it holds files already",
+    )
+    p.add_argument("--exist-ok", action="store_true", help="write into an --out folder that exists")
+    p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
+    add_overrides_argument(p, "device=cuda")
+    p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
+    p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
+    p.add_argument(
+        "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
+    )
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def next_run_dir(base: str | Path = "runs/predict") -> Path:
+    """Create and return the first of ``base``, ``base2``, ``base3``, ... that does not exist yet (created here, so
+    that two runs started at once never share one)."""
+    base = Path(base)
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for i in range(1, 1_000_000):
+        out = base if i == 1 else base.with_name(f"{base.name}{i}")
+        try:
+            out.mkdir()
+        except FileExistsError:
+            continue
+        return out
+    raise RuntimeError(f"no free folder name left for {str(base)!r}")
+
+
+def main(args: argparse.Namespace) -> int:
+    from vpengine.cli.run import engine_overrides, format_summary, run_pipeline
+    from vpengine.config import load_config
+    from vpengine.io.sinks import AnnotatedSink
+    from vpengine.io.sources import open_source
+
+    cfg = load_config(args.config, engine_overrides(args))
+    # every head on every frame: one picture per frame with every head in it
+    rates = {"foundation": cfg.foundation_model.rate_hz, **{h.name: h.rate_hz for h in cfg.heads}}
+    limited = ", ".join(f"{n} to {hz:g} Hz" for n, hz in rates.items() if hz is not None)
+    cfg = load_config(
+        cfg, ["foundation_model.rate_hz=null", *(f"heads.{h.name}.rate_hz=null" for h in cfg.heads)]
+    )
+    out = prepare_out_dir(args.out, args.exist_ok) if args.out else None  # checked before a camera opens
+    with open_source(args.source) as source:
+        out = out or next_run_dir()  # made once the source opened: a bad one leaves no empty run folder
+        print(
+            "rate limits off: every head runs on every frame"
+            + (f" (the config limits {limited})" if limited else ""),
+            flush=True,
+        )
+
+        def pictures(heads: dict[str, dict[str, Any]]) -> AnnotatedSink:
+            return AnnotatedSink(heads, pictures=out)
+
+        summary = run_pipeline(
+            cfg,
+            source,
+            out,
+            pace="lockstep",
+            max_frames=args.max_frames,
+            progress=not args.no_progress,
+            sink_factories=[pictures],
+            folder=False,
+        )
+    print(format_summary(summary))
+    print(f"annotated pictures and summary.json in {out}")
+    return 130 if summary["interrupted"] else 0

@@ -1,0 +1,98 @@
+"""The fence between ``Engine.stop()`` and everything that still reads or writes the engine's mailboxes.
+
+Note [Unmapping at stop]
+~~~~~~~~~~~~~~~~~~~~~~~~
+A mailbox's metadata (its mutex, its futex words) is a shared mapping; a thread that locks the mutex after the
+mapping is gone does not get an exception, it segfaults the process. Two kinds of users can still be inside the
+mailboxes when ``stop()`` runs: API calls of other threads (``latest``/``results``/``wait``/``submit``, an open
+``frame_slot`` block), and, in thread mode, a worker thread that ``stop()`` gave up on (its model did not return
+within ``runtime.stop_timeout_s``; a Python thread cannot be killed). So every API call runs inside the fence
+(``with fence:``), a thread that may still touch the mappings is held (``hold_until_gone``), and ``close(unmap)``
+lets no new call in (they raise ``EngineDeadError``) and unmaps when the last user has left: at once if none is
+inside, else in the thread of whoever leaves last. ``stop()`` itself never waits for them; a thread that never
+returns keeps the mappings (its process's memory, no /dev/shm entry) until the process ends.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+
+from vpengine.runtime.supervisor import EngineDeadError
+
+
+class MappingFence:
+    """Counts the users of an engine's mappings; see Note [Unmapping at stop]."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._users = 0
+        self._closing = False
+        self._unmap: Callable[[], None] | None = None
+
+    @property
+    def closing(self) -> bool:
+        return self._closing
+
+    def enter(self) -> bool:
+        """Start a use; False (and no use started) once closing."""
+        with self._lock:
+            if self._closing:
+                return False
+            self._users += 1
+            return True
+
+    def leave(self) -> None:
+        """End a use; the last one out after ``close`` unmaps."""
+        with self._lock:
+            self._users -= 1
+            unmap = self._take_unmap()
+        if unmap is not None:
+            unmap()
+
+    def __enter__(self) -> MappingFence:  # enter(), raising; inlined: every API call goes through here
+        with self._lock:
+            if self._closing:
+                raise EngineDeadError("engine is stopped")
+            self._users += 1
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        with self._lock:
+            self._users -= 1
+            if not self._closing:
+                return
+            unmap = self._take_unmap()
+        if unmap is not None:
+            unmap()
+
+    def hold_until_gone(self, thread: threading.Thread) -> None:
+        """Count ``thread`` as a user until it ends (it may still touch the mappings), even past ``close``."""
+        with self._lock:
+            self._users += 1
+        try:
+            threading.Thread(
+                target=self._leave_after, args=(thread,), name="vpengine-unmap-after", daemon=True
+            ).start()
+        except RuntimeError:  # the interpreter is exiting: the process's end unmaps everything
+            pass
+
+    def _leave_after(self, thread: threading.Thread) -> None:
+        thread.join()
+        self.leave()
+
+    def close(self, unmap: Callable[[], None]) -> None:
+        """Admit no new use; run ``unmap`` once no use is left (now, or when the last one ends)."""
+        with self._lock:
+            self._closing = True
+            self._unmap = unmap
+            unmap_now = self._take_unmap()
+        if unmap_now is not None:
+            unmap_now()
+
+    def _take_unmap(self) -> Callable[[], None] | None:
+        """The unmap to run now, if it is due (caller holds the lock); it runs exactly once."""
+        if not self._closing or self._users > 0 or self._unmap is None:
+            return None
+        unmap, self._unmap = self._unmap, None
+        return unmap

@@ -1,0 +1,92 @@
+"""The Foxglove view: a WebSocket client speaking Foxglove's protocol (as the Foxglove app does) subscribes to a
+running tiny engine's heads and gets their pictures and detections; nothing is drawn while nobody subscribes."""
+
+from __future__ import annotations
+
+import json
+import struct
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from tests_paths import tiny
+
+pytestmark = pytest.mark.timeout(300)
+
+
+@pytest.fixture
+def fed_engine():
+    from vpengine.engine import Engine
+    from vpengine.io.sources import SyntheticSource
+
+    source = SyntheticSource(160, 120, 30.0, 1 << 30)
+    recent: dict[int, np.ndarray] = {}
+    stop = threading.Event()
+    with Engine(tiny("thread")) as engine:
+
+        def feed() -> None:
+            i = 0
+            while not stop.wait(1 / 30):
+                frame = source.render(i)
+                recent[engine.submit(frame)] = frame
+                if len(recent) > 32:
+                    recent.pop(next(iter(recent)))
+                i += 1
+
+        feeder = threading.Thread(target=feed, daemon=True)
+        feeder.start()
+        try:
+            yield engine, recent
+        finally:
+            stop.set()
+            feeder.join(10)
+
+
+def messages(ws, until: float) -> list:
+    """Every message (text as JSON, binary as bytes) until ``until`` (time.monotonic())."""
+    import websocket
+
+    out = []
+    while time.monotonic() < until:
+        ws.settimeout(max(0.05, until - time.monotonic()))
+        try:
+            op, data = ws.recv_data()
+        except websocket.WebSocketTimeoutException:
+            break
+        out.append(json.loads(data) if op == websocket.ABNF.OPCODE_TEXT else bytes(data))
+    return out
+
+
+def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscribed(fed_engine):
+    import websocket
+
+    from vpengine.web.foxglove import FoxgloveView
+
+    engine, recent = fed_engine
+    with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox:
+        ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
+        try:
+            hello = messages(ws, time.monotonic() + 2)
+            channels = {c["topic"]: c for m in hello if isinstance(m, dict) and m.get("op") == "advertise"
+                        for c in m["channels"]}
+            assert {"/vpengine/depth/image", "/vpengine/seg/image", "/vpengine/det/image",
+                    "/vpengine/det/annotations"} <= set(channels)
+            assert channels["/vpengine/det/image"]["schemaName"] == "foxglove.CompressedImage"
+            assert channels["/vpengine/det/annotations"]["schemaName"] == "foxglove.ImageAnnotations"
+            assert fox.pictures.made == 0 and fox.sent == 0  # nobody subscribed: nothing drawn
+            subs = {1: "/vpengine/seg/image", 2: "/vpengine/det/annotations"}
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
+                {"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()]}))
+            got: dict[str, list[bytes]] = {t: [] for t in subs.values()}
+            for m in messages(ws, time.monotonic() + 3):
+                if isinstance(m, bytes) and m[0] == 1:  # message data: opcode, subscription id, log time, payload
+                    sub, _log_time = struct.unpack_from("<IQ", m, 1)
+                    got[subs[sub]].append(m[13:])
+            assert len(got["/vpengine/seg/image"]) >= 5
+            assert all(b"\xff\xd8\xff" in p and b"jpeg" in p for p in got["/vpengine/seg/image"])  # a JPEG inside
+            assert got["/vpengine/det/annotations"] and all(b"class_" in p for p in got["/vpengine/det/annotations"])
+            assert {h for h, _ in fox._sent.items()} == {"seg", "det"}  # depth: nobody subscribed, never drawn
+        finally:
+            ws.close()

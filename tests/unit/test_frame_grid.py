@@ -1,0 +1,92 @@
+"""Frames of any size through the Engine API (thread mode): outputs in the submitted frame's pixel grid, the same
+frame treated the same whatever its door (Note [Frame grid] in boundary.py)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from tests_paths import MEDIA, tiny
+from vpengine.engine import Engine
+
+
+@pytest.fixture(scope="module")
+def engine():
+    with Engine(tiny("thread")) as e:  # the models run at 160x120
+        yield e
+
+
+@pytest.mark.parametrize("hw", [(120, 160), (576, 768), (1080, 1920), (50, 300), (300, 90)])
+def test_outputs_come_back_at_the_frame_size(engine, hw):
+    out = engine.predict(frame(3, *hw))
+    assert set(out) == {"depth", "seg", "det"}
+    h, w = hw
+    assert out["depth"]["depth"].shape == (h, w) and out["depth"]["depth"].dtype == np.float32
+    assert out["seg"]["classes"].shape == (h, w) and out["seg"]["classes"].dtype == np.uint8
+    boxes = out["det"]["boxes"]
+    assert len(boxes) == out["det"]["count"] > 0
+    assert (boxes[:, [0, 2]] <= w).all() and (boxes[:, [1, 3]] <= h).all() and (boxes >= 0).all()
+    for r in out.values():
+        assert r.frame_size == hw and r.grid == "frame" and r.image is not None
+        assert r.plot().shape == (h, w, 3)
+
+
+def test_a_frame_scaled_up_gives_the_outputs_of_the_frame_scaled_up(engine):
+    small = frame(5)
+    big = cv2.resize(small, (640, 480), interpolation=cv2.INTER_NEAREST)  # each pixel 4x4: shrinks back exactly
+    a, b = engine.predict(small), engine.predict(big)
+    np.testing.assert_allclose(
+        b["depth"]["depth"], cv2.resize(a["depth"]["depth"], (640, 480), interpolation=cv2.INTER_LINEAR), rtol=1e-5
+    )
+    want = cv2.resize(a["seg"]["classes"], (640, 480), interpolation=cv2.INTER_NEAREST_EXACT)
+    assert (b["seg"]["classes"] == want).mean() > 0.999
+    np.testing.assert_allclose(b["det"]["boxes"], a["det"]["boxes"] * 4, atol=1e-3)
+
+
+def test_a_native_grid_head_keeps_the_models_grid_and_says_so():
+    with Engine(tiny("thread", "heads.depth.output.grid=native")) as e:
+        out = e.predict(frame(1, 240, 640))
+        assert out["depth"].grid == "native" and out["depth"]["depth"].shape == (120, 160)
+        p = out["depth"].placement
+        assert p.frame_hw == (240, 640) and (p.x0, p.y0, p.w, p.h) == (0, 30, 160, 60)
+        assert out["seg"].grid == "frame" and out["seg"]["classes"].shape == (240, 640)
+
+
+def test_borrowed_results_of_another_size_are_copies_in_the_frame_grid(engine):
+    fid = engine.submit(frame(2, 240, 320))
+    r = engine.wait(fid, copy=False, timeout=5)["depth"]
+    assert not r.borrowed and r["depth"].shape == (240, 320)
+    fid = engine.submit(frame(2))
+    assert engine.wait(fid, copy=False, timeout=5)["depth"].borrowed
+
+
+def test_the_readme_frame_slot_snippet_on_the_street_video(engine):
+    cap = cv2.VideoCapture(str(MEDIA / "vtest.avi"))
+    h, w = int(cap.get(cv2.CAP_PROP_FRAME_HEIGHT)), int(cap.get(cv2.CAP_PROP_FRAME_WIDTH))
+    with engine.frame_slot(size=(h, w)) as slot:
+        ok, slot.array = cap.read(image=slot.array)
+        if not ok:
+            slot.cancel()
+    out = engine.wait(slot.frame_id, timeout=5)
+    assert out["depth"]["depth"].shape == (576, 768)
+    # the same frame submitted gives the same outputs
+    cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+    _, img = cap.read()
+    again = engine.predict(img)
+    np.testing.assert_array_equal(again["depth"]["depth"], out["depth"]["depth"])
+
+
+def test_a_writer_that_reallocates_instead_of_writing_into_the_slot_is_refused(engine):
+    cap = cv2.VideoCapture(str(MEDIA / "vtest.avi"))
+    before = engine.stats()["engine"]["submitted"]
+    refused = pytest.raises(ValueError, match=r"written into a new 768x576 array, not into the 160x120 slot")
+    with refused, engine.frame_slot() as slot:  # the models' size, not the video's
+        _, slot.array = cap.read(image=slot.array)
+    assert engine.stats()["engine"]["submitted"] == before  # nothing (no zero frame) went in
+    refused = pytest.raises(ValueError, match=r"the frame written is \(60, 160, 3\) uint8, the slot \(120, 160, 3\)")
+    with refused, engine.frame_slot() as slot:
+        slot.array = slot.array[:60]  # same memory, another shape
+    fid = engine.submit(frame(1))
+    assert set(engine.wait(fid, timeout=5)) == {"depth", "seg", "det"}

@@ -37,6 +37,8 @@ def write_bag(
     compressed: bool = False,
     topic: str = "/camera/image_raw",
     extra_topic: bool = True,
+    corrupt: tuple[int, ...] = (),
+    frames: int = N,
 ) -> None:
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -47,7 +49,8 @@ def write_bag(
         msgtype = "sensor_msgs/msg/CompressedImage" if compressed else "sensor_msgs/msg/Image"
         conn = w.add_connection(topic, msgtype, typestore=ts)
         other = w.add_connection("/chatter", "std_msgs/msg/String", typestore=ts) if extra_topic else None
-        for i, (sec, nsec) in enumerate(STAMPS):
+        for i in range(frames):
+            sec, nsec = STAMPS[i] if i < N else (STAMPS[-1][0] + i, 0)
             header = T["std_msgs/msg/Header"](
                 stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=FRAME_ID
             )
@@ -68,8 +71,11 @@ def write_bag(
                     step=480,
                     data=pixels.reshape(-1),
                 )
+            raw = ts.serialize_cdr(msg, msgtype)
+            if i in corrupt:  # cut short inside the header: not a message of that type at all
+                raw = raw[:30]
             # log time 50 ms after the stamp, like a recorder: outputs must carry the header stamp, not this
-            w.write(conn, sec * 10**9 + nsec + 50_000_000, ts.serialize_cdr(msg, msgtype))
+            w.write(conn, sec * 10**9 + nsec + 50_000_000, raw)
             if other is not None:
                 w.write(
                     other,
@@ -100,7 +106,8 @@ def read_bag(path: Path, distro: str) -> dict[str, list]:
     return out
 
 
-def check_outputs(topics: dict[str, list], viz: bool = False) -> None:
+def check_outputs(topics: dict[str, list], viz: bool = False, stamps: list | None = None) -> None:
+    stamps = STAMPS if stamps is None else stamps
     want = {
         "/vpengine/depth/depth": ("sensor_msgs/msg/Image", "32FC1", 640),
         "/vpengine/seg/classes": ("sensor_msgs/msg/Image", "mono8", 160),
@@ -112,9 +119,9 @@ def check_outputs(topics: dict[str, list], viz: bool = False) -> None:
     assert sorted(topics) == sorted(want)
     for topic, (msgtype, encoding, step) in want.items():
         msgs = topics[topic]
-        assert len(msgs) == N, topic  # lockstep: every head answers every frame
-        stamps = [(m.header.stamp.sec, m.header.stamp.nanosec) for _, _, m in msgs]
-        assert stamps == STAMPS, topic  # the input's header stamps, exactly, in order
+        assert len(msgs) == len(stamps), topic  # lockstep: every head answers every frame
+        got = [(m.header.stamp.sec, m.header.stamp.nanosec) for _, _, m in msgs]
+        assert got == stamps, topic  # the input's header stamps, exactly, in order
         for mtype, log_time, m in msgs:
             assert mtype == msgtype and m.header.frame_id == FRAME_ID
             assert log_time == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
@@ -232,3 +239,77 @@ def test_an_existing_output_bag_is_never_overwritten(tmp_path, capsys):
     out.mkdir()
     assert run("-s", str(src), "--out-bag", str(out)) == 1  # the only image topic is found without --topic
     assert "exists already" in capsys.readouterr().err
+
+
+def test_a_corrupt_message_is_skipped_counted_and_named_in_one_line(tmp_path, capsys, caplog):
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_bag(src, "mcap", "jazzy", corrupt=(1,))
+    with caplog.at_level("WARNING", logger="vpengine.bag"):
+        assert run("-s", str(src), "--out-bag", str(out), "--mode", "thread") == 0
+    printed = capsys.readouterr()
+    assert (
+        "3 frames in" in printed.out
+        and "images skipped as unreadable: 1 (listed in summary.json)" in printed.out
+    )
+    assert "Traceback" not in printed.err + printed.out
+    lines = [r.getMessage() for r in caplog.records]
+    named = f"bag {str(src)!r}, topic '/camera/image_raw', message 1: not a valid sensor_msgs/msg/Image (30 bytes)"
+    assert len([ln for ln in lines if named in ln]) == 1 and all("\n" not in ln for ln in lines), lines
+    assert any("1 bad messages skipped (message 1)" in ln for ln in lines)
+    check_outputs(read_bag(out, "jazzy"), stamps=[STAMPS[0], *STAMPS[2:]])  # the others, in a valid bag
+
+
+def test_strict_stops_at_the_first_corrupt_message_in_one_line_and_closes_the_output_bag(tmp_path, capsys):
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_bag(src, "sqlite3", "jazzy", corrupt=(2,))
+    assert run("-s", str(src), "--out-bag", str(out), "--mode", "thread", "--strict") == 1
+    err = capsys.readouterr().err
+    (line,) = err.strip().splitlines()  # one line, not a traceback
+    assert line.startswith(f"vpengine run: error: bag {str(src)!r}, topic '/camera/image_raw', message 2: ")
+    assert "not a valid sensor_msgs/msg/Image (30 bytes): SerdeError" in line
+    check_outputs(read_bag(out, "jazzy"), stamps=STAMPS[:2])  # what came before, in a bag closed valid
+    bad_first = tmp_path / "bad_first"
+    write_bag(bad_first, "mcap", "jazzy", corrupt=(0,))
+    assert run("-s", str(bad_first), "--strict") == 1  # also when the first message is the bad one
+    assert ", message 0: not a valid sensor_msgs/msg/Image" in capsys.readouterr().err
+
+
+def test_ctrl_c_leaves_a_valid_output_bag(tmp_path):
+    """Ctrl-C in a terminal signals the whole process group (the engine's workers too): the bag is closed valid."""
+    import os
+    import signal
+    import time
+
+    src, out = tmp_path / "in", tmp_path / "out"
+    write_bag(src, "mcap", "jazzy", frames=100)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "vpengine.cli.main", "run", "-c", "configs/tiny.yaml", "-s", str(src),
+         "--out-bag", str(out), "--pace", "realtime", "--fps", "10", "--no-progress"],
+        cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 240
+        while not out.exists():  # the sink is made once the engine runs
+            assert p.poll() is None and time.monotonic() < deadline, p.communicate()[0]
+            time.sleep(0.1)
+        time.sleep(2.0)
+        os.killpg(p.pid, signal.SIGINT)
+        text = p.communicate(timeout=120)[0]
+    finally:
+        if p.poll() is None:
+            p.kill()
+    assert p.returncode == 130 and "interrupted" in text and "Traceback" not in text, text
+    topics = read_bag(out, "jazzy")
+    assert sorted(topics) == ["/vpengine/depth/depth", "/vpengine/det/detections", "/vpengine/seg/classes"]
+    counts = {t: len(m) for t, m in topics.items()}
+    assert min(counts.values()) >= 1 and max(counts.values()) < 100, counts  # stopped part way, closed valid
+    check_mcap_readable(out)
+
+
+def check_mcap_readable(bag: Path) -> None:
+    from mcap.reader import make_reader
+
+    (path,) = bag.glob("*.mcap")
+    with path.open("rb") as f:
+        reader = make_reader(f)
+        assert reader.get_summary() is not None  # the footer and summary were written: closed, not cut off

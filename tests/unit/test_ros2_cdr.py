@@ -170,7 +170,75 @@ def test_qos_profiles_are_ros2s():
     assert sensor[Policy.History] == Policy.History.KeepLast(5)
     assert latched[Policy.Durability] == Policy.Durability.TransientLocal
     assert latched[Policy.History] == Policy.History.KeepLast(1)
-    for q in (default, sensor, latched):  # XCDR1, what ROS 2 writes
+    # the outputs': reliable (every ROS 2 subscriber matches), only the newest sample kept
+    latest = qos("latest")
+    assert isinstance(latest[Policy.Reliability], Policy.Reliability.Reliable)
+    assert latest[Policy.Durability] == Policy.Durability.Volatile
+    assert latest[Policy.History] == Policy.History.KeepLast(1)
+    for q in (default, sensor, latched, latest):  # XCDR1, what ROS 2 writes
         assert q[Policy.DataRepresentation] == Policy.DataRepresentation(use_cdrv0_representation=True)
-    with pytest.raises(ValueError, match="accepted: default, sensor, latched"):
+    with pytest.raises(ValueError, match="accepted: default, sensor, latched, latest"):
         qos("fast")  # type: ignore[arg-type]
+
+
+def _effective_receive_buffer(tmp_path, name: str, user: str, extra: str | None = None) -> str:
+    """What cyclonedds makes of the bridge's configuration, read from its own config trace."""
+    import os
+    import time
+
+    from vpengine.ros2.dds import DdsContext, bridge_config
+
+    trace = tmp_path / f"{name}.txt"
+    tracing = (
+        f'<CycloneDDS><Domain id="any"><Tracing><Verbosity>config</Verbosity><OutputFile>{trace}</OutputFile>'
+        "</Tracing></Domain></CycloneDDS>"
+    )
+    ctx = DdsContext(
+        200 + os.getpid() % 30, bridge_config(extra, user=",".join(filter(None, (user, tracing))))
+    )
+    ctx.close()
+    deadline = time.monotonic() + 5
+    while "SocketReceiveBufferSize[@max]" not in (trace.read_text() if trace.exists() else ""):
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    (line,) = [ln for ln in trace.read_text().splitlines() if "SocketReceiveBufferSize[@max]" in ln]
+    return line.split(": ")[-1].split(" {")[0]
+
+
+def test_the_bridge_asks_for_a_frame_sized_receive_buffer_and_the_users_settings_win(tmp_path):
+    from vpengine.ros2.dds import RECEIVE_BUFFER_BYTES, bridge_config, loopback_config
+
+    assert RECEIVE_BUFFER_BYTES == 64 << 20
+    lo_only = (
+        '<CycloneDDS><Domain id="any"><General><Interfaces><NetworkInterface name="lo"/></Interfaces>'
+        "</General></Domain></CycloneDDS>"
+    )
+    # a user's URI that pins the interface only (what a ROS user sets first) keeps its interface and gets the
+    # buffer; one that sets the buffer keeps its own; an explicit extra (--loopback) comes instead of the URI
+    assert _effective_receive_buffer(tmp_path, "lo_only", lo_only) == "64 MiB"
+    own = lo_only.replace("</General>", '</General><Internal><SocketReceiveBufferSize max="1MB"/></Internal>')
+    assert _effective_receive_buffer(tmp_path, "own", own) == "1 MiB"
+    config = bridge_config(user="file:///etc/my.xml")
+    assert config.index("64") < config.index("file:///etc/my.xml")
+    config = bridge_config(loopback_config(), user="file:///etc/my.xml")
+    assert config.index("64") < config.index("<Peer address") and "my.xml" not in config
+    assert bridge_config(user="") == bridge_config(user="  ")  # an empty $CYCLONEDDS_URI adds nothing
+
+
+def test_cyclonedds_private_calls_are_guarded_and_the_tested_major_is_pinned(monkeypatch):
+    import re
+    import sys
+    from importlib.metadata import version
+
+    from tests_paths import ROOT
+    from vpengine.ros2 import dds
+
+    pin = re.search(r'"cyclonedds>=(\d+),<(\d+)"', (ROOT / "pyproject.toml").read_text())
+    assert pin and (int(pin[1]), int(pin[2])) == (dds.TESTED_MAJOR, dds.TESTED_MAJOR + 1)
+    assert int(version("cyclonedds").split(".")[0]) == dds.TESTED_MAJOR
+    monkeypatch.setitem(sys.modules, "cyclonedds._clayer", None)  # a cyclonedds without them
+    with pytest.raises(ImportError) as e:
+        dds._private_api()
+    text = str(e.value)
+    assert "\n" not in text and "vpengine.ros2 needs cyclonedds 11.x" in text
+    assert "pip install 'cyclonedds>=11,<12'" in text

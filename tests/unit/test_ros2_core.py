@@ -17,9 +17,11 @@ from vpengine.ros2.core import (
     ERROR,
     OK,
     WARN,
+    ControlLoop,
     FrameBook,
     Header,
     InputError,
+    Rejections,
     Ros2Core,
     compressed_to_frame,
     detections_out,
@@ -29,6 +31,7 @@ from vpengine.ros2.core import (
     parse_rate,
     parse_rate_command,
     plan_outputs,
+    receive_buffer_advice,
 )
 
 STAMP = SimpleNamespace(sec=1_700_000_123, nanosec=987_654_321)
@@ -94,6 +97,29 @@ def test_other_encodings_fail_naming_the_encoding_and_the_accepted_ones(encoding
         InputError, match=rf"encoding '{encoding}' is not supported; accepted: rgb8, bgr8, mono8"
     ):
         image_to_frame(msg)
+
+
+def test_channel_swaps_at_1080p_cost_a_fraction_of_a_numpy_swap():
+    """rgb8 and mono8 at 1080p go through cv2.cvtColor: the previous numpy ``[..., ::-1]`` copy took 7-26 ms a
+    frame on the bridge's input thread. Compared on this machine, now, best of 5 each, so load shifts both."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (1080, 1920, 3), dtype=np.uint8)
+    msg = image_msg(rgb, "rgb8")
+    view = np.frombuffer(msg.data, np.uint8).reshape(1080, 1920, 3)
+
+    def best(f) -> float:
+        times = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            f()
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    numpy_swap = best(lambda: np.ascontiguousarray(view[..., ::-1]))
+    np.testing.assert_array_equal(image_to_frame(msg, "bgr"), rgb[..., ::-1])
+    assert best(lambda: image_to_frame(msg, "bgr")) < numpy_swap / 3
+    grey = image_msg(rgb[..., 0].copy(), "mono8")
+    assert best(lambda: image_to_frame(grey, "bgr")) < numpy_swap / 3
 
 
 def test_inconsistent_sizes_fail_with_the_numbers():
@@ -304,6 +330,30 @@ def test_core_outputs_carry_the_exact_input_header_on_every_topic():
     assert core.counters["header_fallbacks"] == 0
 
 
+@pytest.mark.parametrize("every_frame", [False, True])
+def test_outputs_that_waited_are_superseded_by_the_newest_unless_every_frame_is_taken(every_frame):
+    """Note [Output QoS]: three results of each head wait (the output thread was busy); with newest-wins input only
+    the newest goes out and the two older ones are counted, with input_mode: fifo all three go out in order."""
+    from tests_paths import ROOT
+
+    config = ROOT / "configs" / ("tiny_every_frame.yaml" if every_frame else "tiny.yaml")
+    core = Ros2Core(config, overrides=["mode=thread", f"device={tiny().device}"])
+    core.start()
+    try:
+        core.poll_outputs(0)
+        for i in range(3):
+            core.handle_image(image_msg(frame(i), "bgr8", stamp=SimpleNamespace(sec=100 + i, nanosec=0)))
+            time.sleep(0.5)  # each head answers each frame before the next
+        out = core.poll_outputs(1.0)
+        values = dict({s.name: s for s in core.diagnostics().status}["vpengine: interface"].values)
+    finally:
+        core.stop()
+    for head, topic in (("depth", "/vpengine/depth/depth"), ("det", "/vpengine/det/detections")):
+        secs = [p.header.sec for t, p in out if t.topic == topic]
+        assert secs == ([100, 101, 102] if every_frame else [102]), (head, secs)
+        assert values[f"outputs_superseded.{head}"] == ("0" if every_frame else "2")
+
+
 def test_core_resizes_or_rejects_frames_of_another_size_and_counts_them():
     big = np.tile(frame(1)[:60, :80], (4, 4, 1))
     for policy in ("resize", "reject"):
@@ -312,8 +362,8 @@ def test_core_resizes_or_rejects_frames_of_another_size_and_counts_them():
         try:
             fid = core.handle_image(image_msg(big, "bgr8"))
             assert (fid is None) == (policy == "reject")
-            key = "resized" if policy == "resize" else "size_rejected"
-            assert core.counters[key] == 1 and core.counters["received"] == 1
+            key = "resized" if policy == "resize" else "rejected.size"
+            assert core.counters["received"] == 1
             diag = {s.name: s for s in core.diagnostics().status}
             iface = diag["vpengine: interface"]
             assert dict(iface.values)[key] == "1"
@@ -370,7 +420,7 @@ def test_model_names_and_bad_input_messages_are_counted_not_fatal():
         bad.encoding = "16UC1"
         assert core.handle_image(bad) is None
         assert core.handle_image(image_msg(frame(1), "bgr8")) is not None
-        assert core.counters["decode_errors"] == 1 and core.counters["submitted"] == 1
+        assert core.counters["rejected"] == 1 and core.counters["submitted"] == 1
     finally:
         core.stop()
 
@@ -400,5 +450,189 @@ def test_the_bridge_benchmark_waits_until_diagnostics_account_for_every_run():
     assert not drained(status, topics)  # seg: 60 outputs still on their way out of the bridge
     status["interface"]["published:/vpengine/seg/image"] = "248"
     assert drained(status, topics)
+    status["interface"]["published:/vpengine/seg/image"] = "238"
+    assert not drained(status, topics)
+    status["interface"]["outputs_superseded.seg"] = "10"  # a newer result went out instead
+    assert drained(status, topics)
     assert not drained({}, topics)  # no diagnostics yet
     assert not drained({"depth": {"runs": "3"}, "interface": {}}, topics[:1])  # topic not yet published
+
+
+# ------------------------------------------------------------------------------- rejections and the input link
+def test_each_rejection_reason_is_logged_first_then_rate_limited_and_the_status_recovers(caplog):
+    core = Ros2Core(tiny("thread"))
+    now = [1000.0]
+    core.rejected.clock = lambda: now[0]
+    core.start()
+    try:
+        good = image_msg(frame(1), "bgr8")
+        encoding, short, step = (
+            image_msg(frame(1), "bgr8"),
+            image_msg(frame(1), "bgr8"),
+            image_msg(frame(1), "bgr8"),
+        )
+        encoding.encoding = "16UC1"
+        short.data = short.data[:-10]
+        step.step = 100
+        with caplog.at_level("WARNING", logger="vpengine.ros2"):
+            for _ in range(20):
+                assert core.handle_image(encoding) is None
+            assert core.handle_image(short) is None  # a different failure after the first: logged too
+            assert core.handle_image(step) is None
+            assert core.handle_image(SimpleNamespace(header=good.header)) is None  # not an Image at all
+        lines = [r.getMessage() for r in caplog.records if "input message rejected" in r.getMessage()]
+        assert len(lines) == 4, lines  # one per reason, not one per message, not only the first
+        assert "(encoding)" in lines[0] and "'16UC1' is not supported" in lines[0]
+        assert "(short_data)" in lines[1] and "(step)" in lines[2] and "(malformed)" in lines[3]
+        iface = {s.name: s for s in core.diagnostics().status}["vpengine: interface"]
+        values = dict(iface.values)
+        assert values["rejected"] == "23" and values["rejected.encoding"] == "20"
+        assert values["rejected.short_data"] == values["rejected.step"] == values["rejected.malformed"] == "1"
+        assert iface.level == WARN and "encoding, malformed, short_data, step" in iface.message
+
+        now[0] += 11.0  # past the log interval: one more line for the reason, counting what was not logged
+        caplog.clear()
+        with caplog.at_level("WARNING", logger="vpengine.ros2"):
+            core.handle_image(encoding)
+            core.handle_image(encoding)
+        (line,) = [r.getMessage() for r in caplog.records]
+        assert "(encoding; 21 in all, 19 not logged since the last line)" in line
+
+        now[0] += 6.0  # good frames for longer than the window: OK again, the totals stay
+        assert core.handle_image(good) is not None
+        iface = {s.name: s for s in core.diagnostics().status}["vpengine: interface"]
+        assert iface.level == OK and dict(iface.values)["rejected"] == "25"
+    finally:
+        core.stop()
+
+
+def test_rejections_log_the_first_of_each_reason_and_count_the_rest():
+    import logging
+
+    logged: list[str] = []
+
+    class Catch(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            logged.append(record.getMessage())
+
+    logger = logging.getLogger("test.rejections")
+    logger.addHandler(Catch())
+    now = [0.0]
+    r = Rejections("bad", logger, every_s=10.0, recent_s=5.0, clock=lambda: now[0])
+    for t in range(30):  # one a second, alternating reasons
+        now[0] = float(t)
+        r.add("a" if t % 2 else "b", f"text {t}")
+    assert r.counts == {"a": 15, "b": 15} and r.total == 30
+    assert logged == [
+        "bad (b): text 0",
+        "bad (a): text 1",
+        "bad (b; 6 in all, 4 not logged since the last line): text 10",
+        "bad (a; 6 in all, 4 not logged since the last line): text 11",
+        "bad (b; 11 in all, 4 not logged since the last line): text 20",
+        "bad (a; 11 in all, 4 not logged since the last line): text 21",
+    ]
+    assert r.recent() == ["a", "b"]
+    now[0] = 33.5
+    assert r.recent() == ["a"]  # b's newest was at 28 s
+    now[0] = 40.0
+    assert r.recent() == []
+
+
+def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_are_warnings(
+    monkeypatch, caplog
+):
+    from vpengine.ros2 import core as core_module
+
+    assert receive_buffer_advice(None, 10**7) is None  # unknown (not Linux): nothing to say
+    assert receive_buffer_advice(8 << 20, 6_220_800) is None
+    advice = receive_buffer_advice(212_992, 6_220_800)
+    assert "limited to 212992 bytes (net.core.rmem_max), less than one 6220800-byte input frame" in advice
+    assert "sudo sysctl -w net.core.rmem_max=16777216" in advice
+
+    monkeypatch.setattr(core_module, "SILENT_AFTER_S", 0.0)
+    core = Ros2Core(tiny("thread", "input.height=1080", "input.width=1920"))
+
+    def interface():
+        return {s.name: s for s in core.diagnostics().status}["vpengine: interface"]
+
+    assert interface().level == OK  # no publisher yet: nothing is wrong with silence
+    with caplog.at_level("WARNING", logger="vpengine.ros2"):
+        core.note_receive_buffer(212_992)
+        core.note_publishers(1)
+        first, again = interface(), interface()
+    assert first.level == WARN and "a publisher has been matched" in first.message
+    assert (
+        "net.core.rmem_max" in first.message and dict(first.values)["receive_buffer_limit_bytes"] == "212992"
+    )
+    assert again.message == first.message
+    assert len([r for r in caplog.records if r.getMessage().startswith("input link:")]) == 2  # each once
+    core.note_receive_buffer(64 << 20)
+    assert "net.core.rmem_max" not in interface().message  # the buffer holds a 1080p frame now
+    core.counters["received"] += 1  # something arrived
+    assert interface().level == OK
+    core.note_publishers(0)
+    core.note_publishers(1)  # a new publisher: silent since it matched
+    assert interface().level == WARN
+
+
+# --------------------------------------------------------------------------------------------- control path
+class _FakeCore:
+    def __init__(self) -> None:
+        self.rates: list[tuple[str, str, float]] = []
+
+    def set_rate(self, key: str, value: str):
+        if key != "depth":
+            raise ValueError(f"unknown model {key!r}")
+        self.rates.append((key, value, time.monotonic()))
+        return key, float(value)
+
+    def diagnostics(self):
+        return time.monotonic()
+
+
+def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplog):
+    import queue
+    import threading
+
+    commands: queue.SimpleQueue = queue.SimpleQueue()
+
+    def wait_commands(timeout: float):
+        try:
+            return [commands.get(timeout=timeout)]
+        except queue.Empty:
+            return []
+
+    published: list[float] = []
+    refreshed: list[float] = []
+    core = _FakeCore()
+    loop = ControlLoop(
+        core, published.append, wait_commands, period_s=0.2, before_diagnostics=lambda: refreshed.append(1)
+    )  # type: ignore[arg-type]
+    stop = threading.Event()
+    th = threading.Thread(target=loop.run, args=(stop,))
+    th.start()
+    try:
+        time.sleep(1.1)
+        n = len(published)
+        assert 5 <= n <= 7, published  # at 0, 0.2, ... 1.0 s
+        gaps = np.diff(published)
+        assert (np.abs(gaps - 0.2) < 0.1).all(), gaps
+        sent = time.monotonic()
+        commands.put(("depth", "5"))
+        with caplog.at_level("WARNING", logger="vpengine.ros2"):
+            commands.put(("nope", "5"))
+            time.sleep(0.15)
+    finally:
+        stop.set()
+        th.join(5)
+    ((_, value, applied),) = core.rates
+    assert value == "5" and applied - sent < 0.05
+    after = [t for t in published if t >= applied]
+    assert after and after[0] - applied < 0.05  # diagnostics right after the command, showing it
+    assert any(
+        "rate command {key: 'nope', value: '5'} ignored: unknown model" in r.getMessage()
+        for r in caplog.records
+    )
+    assert len(refreshed) == len(published)
+    with pytest.raises(ValueError, match="period must be > 0 s, got 0"):
+        ControlLoop(core, published.append, wait_commands, period_s=0)  # type: ignore[arg-type]

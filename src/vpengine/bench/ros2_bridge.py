@@ -1,8 +1,10 @@
 """ROS 2 bridge throughput: 1080p bgr8 frames in over DDS at 30 Hz, every head's outputs out, on loopback.
 
-Three parties: this process publishes ``sensor_msgs/Image`` frames (each with a unique stamp) at the target rate
-and, in a second participant, subscribes to every output topic; the bridge (``vpengine ros2``) runs in its own
-process with its engine. Counted per stage, so a loss is attributed to where it happened:
+Three parties: this process publishes ``sensor_msgs/Image`` frames (each with a unique stamp) at the target rate;
+a subscriber process takes every output topic with ROS 2's default subscriber QoS (reliable, keep last 10) and does
+real work on each sample (decodes it and copies its pixels, as a consumer would); the bridge (``vpengine ros2``)
+runs in its own process with its engine. ``--load N`` keeps N more processes busy on the CPU for the whole run (a
+machine partly loaded by other work). Counted per stage, so a loss is attributed to where it happened:
 
 * transport in: frames published vs frames the bridge received (its ``/diagnostics`` counters);
 * engine: frames each model ran on vs skipped (lossy by design when a model is slower than the input);
@@ -10,7 +12,8 @@ process with its engine. Counted per stage, so a loss is attributed to where it 
 * end to end: outputs received per head vs frames published (1.0 = nothing lost anywhere).
 
 Also measured: the CPU time of the bridge process and its engine workers (per frame), the engine's per-model
-latencies, and publish -> receive latency. Results go to ``<out>/ros2_bridge_throughput.json``.
+latencies, publish -> receive latency (p50, p99, max: whether outputs queue up), and the bridge's decode of one frame
+per encoding against the numpy channel swap it replaced (``decode_ms``). Results go to ``<out>/<name>.json``.
 """
 
 from __future__ import annotations
@@ -46,6 +49,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="input QoS of publisher and bridge: sensor (best effort, what cameras use; default) or default "
         "(reliable)",
     )
+    p.add_argument(
+        "--output-qos",
+        default="latest",
+        help="the bridge's output QoS (vpengine ros2 --output-qos): latest, default, or both comma-separated to "
+        "compare them, each size run with each (default: latest)",
+    )
+    p.add_argument(
+        "--load", type=int, default=0, help="extra processes keeping the CPU busy during the run (default 0)"
+    )
+    p.add_argument(
+        "--repeat",
+        type=int,
+        default=1,
+        help="run every size and QoS this many times, interleaved (default 1)",
+    )
+    p.add_argument("--name", default="ros2_bridge_throughput", help="results file name (without .json)")
     p.add_argument("--mode", choices=["process", "thread"], default="process", help="engine mode")
     p.add_argument("--extras", action="store_true", help="also publish depth_color and seg overlay topics")
     p.add_argument("--domain-id", type=int, default=None, help="DDS domain (default: from the process id)")
@@ -73,8 +92,44 @@ def _cpu_seconds(pid: int) -> tuple[float, float]:
     return own, total
 
 
+def hog(stop: Any) -> None:
+    """A process that keeps one core busy until ``stop`` is set (``--load``)."""
+    n = 0
+    while not stop.is_set():
+        for _ in range(100_000):
+            n += 1
+
+
+def decode_ms(width: int, height: int, repeat: int = 15) -> dict[str, float]:
+    """Median ms to decode one frame per encoding (:func:`vpengine.ros2.core.image_to_frame`, to BGR), and of the
+    numpy channel swap that decoded rgb8 before (``numpy_swap_rgb8``)."""
+    from vpengine.ros2.core import Header, image_out, image_to_frame
+
+    rng = np.random.default_rng(0)
+    img = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    out = {}
+    for enc, a in (("bgr8", img), ("rgb8", img), ("mono8", np.ascontiguousarray(img[..., 0]))):
+        msg = image_out(a, enc, Header(0, 0))
+        msg.data = bytes(msg.data)  # read-only, as received
+        out[enc] = _median_ms(lambda m=msg: image_to_frame(m, "bgr"), repeat)
+    view = np.frombuffer(bytes(img), np.uint8).reshape(img.shape)
+    out["numpy_swap_rgb8"] = _median_ms(lambda: np.ascontiguousarray(view[..., ::-1]), repeat)
+    return out
+
+
+def _median_ms(f: Any, repeat: int) -> float:
+    f()
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        f()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times) * 1e3)
+
+
 def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
-    """The subscriber process: counts every output (stamp, receive time) and keeps the last /diagnostics."""
+    """The subscriber process: takes every output, copies its pixels (real work, as a consumer would), records
+    (stamp, receive time), and keeps the last /diagnostics."""
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
     from vpengine.ros2.dds import DdsContext
@@ -87,7 +142,8 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
     while any(not r.dds.get_matched_publications() for r in readers.values()):
         time.sleep(0.05)
     conn.send("matched")
-    received: dict[str, list[tuple[int, int, float]]] = {t: [] for t in topics}
+    # (stamp sec, stamp nanosec, time taken here, time the bridge wrote it)
+    received: dict[str, list[tuple[int, int, float, float]]] = {t: [] for t in topics}
     last: Any = None
 
     def parsed() -> dict[str, dict[str, str]]:
@@ -104,15 +160,16 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
             conn.send(parsed())  # "status": the newest diagnostics so far; keep counting
         got = False
         for t, r in readers.items():
-            for raw in r.take_raw(64):
+            for raw, written in r.take_raw_stamped(64):
                 got = True
                 now = time.time()
                 if t.endswith("/detections"):
                     m = T.Detection2DArray_.deserialize(raw)
-                    received[t].append((m.header.stamp.sec, m.header.stamp.nanosec, now))
+                    received[t].append((m.header.stamp.sec, m.header.stamp.nanosec, now, written))
                 else:
-                    h = cdr.decode_image(raw).header
-                    received[t].append((h.sec, h.nanosec, now))
+                    view = cdr.decode_image(raw)
+                    view.data.copy()
+                    received[t].append((view.header.sec, view.header.nanosec, now, written))
         for d in diag.take(16):
             last = d
         if not got:
@@ -122,8 +179,9 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
 
 
 def drained(status: dict[str, dict[str, str]], topics: list[str]) -> bool:
-    """True when the bridge's diagnostics account for every head run: each output topic published it or the
-    result stream counted it missed (nothing still on its way out of the bridge)."""
+    """True when the bridge's diagnostics account for every head run: each output topic published it, or the
+    result stream counted it missed, or a newer result of the head superseded it (nothing still on its way out of
+    the bridge)."""
     iface = status.get("interface", {})
     for t in topics:
         head = t.split("/")[2]
@@ -131,7 +189,10 @@ def drained(status: dict[str, dict[str, str]], topics: list[str]) -> bool:
         published = iface.get(f"published:{t}")
         if runs is None or published is None:
             return False
-        if int(float(runs)) != int(published) + int(iface.get(f"results_missed.{head}", "0")):
+        gone = int(iface.get(f"results_missed.{head}", "0")) + int(
+            iface.get(f"outputs_superseded.{head}", "0")
+        )
+        if int(float(runs)) != int(published) + gone:
             return False
     return True
 
@@ -154,7 +215,7 @@ def _wait_drained(conn: Any, topics: list[str], least_s: float = 3.0, most_s: fl
     return time.monotonic() - t0
 
 
-def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]:
+def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) -> dict[str, Any]:
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
     from vpengine.ros2.core import Header, image_out
@@ -177,6 +238,8 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
         str(domain),
         "--input-qos",
         args.input_qos,
+        "--output-qos",
+        output_qos,
         "--mode",
         args.mode,
         "--set",
@@ -220,6 +283,10 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
             time.sleep(0.05)
         time.sleep(0.5)
 
+        stop_hogs = ctx.Event()
+        hogs = [ctx.Process(target=hog, args=(stop_hogs,), daemon=True) for _ in range(args.load)]
+        for h in hogs:
+            h.start()
         sent_at: dict[tuple[int, int], float] = {}
         rng = np.random.default_rng(0)
         frames = [rng.integers(0, 256, (height, width, 3), dtype=np.uint8) for _ in range(4)]
@@ -240,6 +307,9 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
         pub_wall = time.monotonic() - t0
         drain_s = _wait_drained(parent_end, topics)  # let the pipeline drain
         cpu1 = _cpu_seconds(bridge.pid)
+        stop_hogs.set()
+        for h in hogs:
+            h.join(10)
         parent_end.send("stop")
         if not parent_end.poll(60):
             raise RuntimeError("the subscriber process did not report within 60 s")
@@ -259,15 +329,23 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
     per_topic = {}
     for t in topics:
         stamps = received.get(t, [])
-        lat = [rx_t - sent_at[(s, ns)] for s, ns, rx_t in stamps if (s, ns) in sent_at]
+        lat = [rx_t - sent_at[(s, ns)] for s, ns, rx_t, _ in stamps if (s, ns) in sent_at]
+        out = [rx_t - wr_t for _, _, rx_t, wr_t in stamps]
         per_topic[t] = {
             "received": len(stamps),
             "published_by_bridge": int(iface.get(f"published:{t}", -1)),
-            "unknown_stamps": sum((s, ns) not in sent_at for s, ns, _ in stamps),
+            "unknown_stamps": sum((s, ns) not in sent_at for s, ns, _, _ in stamps),
             "fraction_of_frames": len(stamps) / n if n else 0.0,
             "latency_ms": {
                 "p50": float(np.percentile(lat, 50) * 1e3) if lat else None,
                 "p99": float(np.percentile(lat, 99) * 1e3) if lat else None,
+                "max": float(np.max(lat) * 1e3) if lat else None,
+            },
+            # the last hop alone: the bridge's write -> taken by the subscriber (where outputs queue, if they do)
+            "write_to_take_ms": {
+                "p50": float(np.percentile(out, 50) * 1e3) if out else None,
+                "p99": float(np.percentile(out, 99) * 1e3) if out else None,
+                "max": float(np.max(out) * 1e3) if out else None,
             },
         }
     interface = status.get("interface", {})
@@ -279,7 +357,11 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
             },
             # outputs the engine produced that the bridge did not collect in time (counted by the engine)
             **(
-                {"results_missed": interface.get(f"results_missed.{name}", "0")}
+                {
+                    "results_missed": interface.get(f"results_missed.{name}", "0"),
+                    # results the bridge did not publish because a newer one of the head was already there
+                    "outputs_superseded": interface.get(f"outputs_superseded.{name}", "0"),
+                }
                 if name != "foundation"
                 else {}
             ),
@@ -305,6 +387,9 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
         "seconds": args.seconds,
         "mode": args.mode,
         "input_qos": args.input_qos,
+        "output_qos": output_qos,
+        "subscriber": "another process; ROS 2 default QoS (reliable, keep last 10); decodes and copies each image",
+        "load_processes": args.load,
         "extras": args.extras,
         "overrides": args.overrides,
         "frames_published": n,
@@ -328,8 +413,13 @@ def measure(args: argparse.Namespace, width: int, height: int) -> dict[str, Any]
         # the machine may be shared: the 1-minute load average before the bridge started and after the run
         "load_average_1m_at_start": load_start,
         "load_average_1m_at_end": os.getloadavg()[0],
+        "decode_ms": decode_ms(width, height),
         "bridge_log_tail": "".join(lines[-15:]),
     }
+
+
+def _ms(v: float | None) -> str:
+    return "-" if v is None else f"{v:.0f}"
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -342,13 +432,22 @@ def _size(text: str) -> tuple[int, int]:
 
 def main(args: argparse.Namespace) -> int:
     from vpengine.bench.common import write_results
+    from vpengine.ros2.core import OUTPUT_QOS
 
-    runs = [measure(args, *_size(sz)) for sz in args.sizes.split(",") if sz.strip()]
-    path = write_results(args.out, "ros2_bridge_throughput", {"runs": runs})
+    profiles = [q.strip() for q in args.output_qos.split(",") if q.strip()]
+    for q in profiles:
+        if q not in OUTPUT_QOS:
+            raise ValueError(f"output QoS {q!r} is not known; accepted: {', '.join(OUTPUT_QOS)}")
+    if args.repeat < 1:
+        raise ValueError(f"--repeat must be >= 1, got {args.repeat}")
+    sizes = [_size(sz) for sz in args.sizes.split(",") if sz.strip()]
+    runs = [measure(args, w, h, q) for _ in range(args.repeat) for w, h in sizes for q in profiles]
+    path = write_results(args.out, args.name, {"runs": runs})
     for res in runs:
         print(
             f"{res['frame']} at {res['target_hz']:g} Hz for {res['seconds']:g} s ({res['mode']} mode, input QoS "
-            f"{res['input_qos']}): published {res['frames_published']}, bridge received {res['bridge_received']}, "
+            f"{res['input_qos']}, output QoS {res['output_qos']}, {res['load_processes']} CPU hogs): published "
+            f"{res['frames_published']}, bridge received {res['bridge_received']}, "
             f"submitted {res['bridge_submitted']} (superseded {res['bridge_superseded']}); CPU: bridge process "
             f"{res['bridge_process_cpu_cores']:.2f} cores, engine workers {res['engine_workers_cpu_cores']:.2f} "
             f"cores; load avg {res['load_average_1m_at_start']:.1f} before, {res['load_average_1m_at_end']:.1f} after"
@@ -366,9 +465,13 @@ def main(args: argparse.Namespace) -> int:
         for t, v in res["topics"].items():
             print(
                 f"  {t:32s} received {v['received']:4d}/{res['frames_published']} (bridge published "
-                f"{v['published_by_bridge']}), latency p50 {v['latency_ms']['p50']} ms"
+                f"{v['published_by_bridge']}), latency p50 / p99 / max {_ms(v['latency_ms']['p50'])} / "
+                f"{_ms(v['latency_ms']['p99'])} / {_ms(v['latency_ms']['max'])} ms (write -> take "
+                f"{_ms(v['write_to_take_ms']['p50'])} / {_ms(v['write_to_take_ms']['p99'])} / "
+                f"{_ms(v['write_to_take_ms']['max'])} ms)"
             )
         print(f"  lossless end to end: {res['lossless']}")
+        print("  decode ms per frame: " + ", ".join(f"{k} {v:.2f}" for k, v in res["decode_ms"].items()))
     print(f"-> {path}")
     return 0
 

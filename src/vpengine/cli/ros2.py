@@ -3,7 +3,7 @@
 ::
 
     vpengine ros2 --config configs/tiny.yaml --input-topic /camera/image_raw [--namespace /vpengine]
-                  [--input-qos sensor|default] [--compressed] [--depth-color] [--seg-overlay] [--domain-id N]
+                  [--input-qos sensor|default] [--output-qos latest|default] [--compressed] [--depth-color] [--seg-overlay] [--domain-id N]
 
 Topics, types and QoS: see ``docs/ros2.md`` (and :mod:`vpengine.ros2.bridge`). Prints one ``ready`` line when the
 engine runs and every topic is up; Ctrl-C (SIGINT) or SIGTERM stops it cleanly (engine stopped, DDS entities
@@ -38,6 +38,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=["sensor", "default"],
         default="sensor",
         help="input QoS: sensor (best effort, keep last 5; default) or default (reliable, keep last 10)",
+    )
+    p.add_argument(
+        "--output-qos",
+        choices=["latest", "default"],
+        default="latest",
+        help="output QoS: latest (reliable, keep last 1; default: a slow subscriber gets the newest output, not a "
+        "queue of old ones) or default (ROS 2's: reliable, keep last 10)",
     )
     p.add_argument(
         "--compressed",
@@ -112,6 +119,7 @@ def main(args: argparse.Namespace) -> int:
         input_topic=args.input_topic,
         compressed=args.compressed,
         input_qos=args.input_qos,
+        output_qos=args.output_qos,
         domain_id=_domain_id(args.domain_id),
         dds_config=loopback_config() if args.loopback else None,
     )
@@ -144,13 +152,13 @@ def main(args: argparse.Namespace) -> int:
         bridge.stop()
         for s, h in previous.items():
             signal.signal(s, h)
-    if bridge.error is not None:
-        print(f"vpengine ros2: stopped on an error: {bridge.error}", file=sys.stderr)
-        return 1
     c = core.counters
     print(
         f"vpengine ros2: stopped; {c['received']} messages in, {c['submitted']} submitted, "
-        f"{sum(core.published.values())} published",
+        f"{c['superseded']} superseded, {c['rejected']} rejected, {sum(core.published.values())} published",
         flush=True,
     )
+    if bridge.error is not None:
+        print(f"vpengine ros2: stopped on an error: {bridge.error}", file=sys.stderr)
+        return 1
     return 0

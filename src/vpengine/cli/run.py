@@ -58,6 +58,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--source", "-s", default="synthetic", help=SOURCE_HELP + " (default: synthetic)")
     p.add_argument("--topic", help="image topic of a bag source (sensor_msgs/Image or CompressedImage)")
     p.add_argument(
+        "--strict",
+        action="store_true",
+        help="stop at a bag's first bad message (default: skip it, log it, list it in the summary)",
+    )
+    p.add_argument(
         "--out-bag", help="also record every head's outputs to this new rosbag2 bag (ROS 2 message types)"
     )
     p.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap", help="--out-bag storage")
@@ -383,7 +388,7 @@ def main(args: argparse.Namespace) -> int:
         prepare_out_file(args.video, args.exist_ok, "--video")
     if args.out:
         prepare_out_dir(args.out, args.exist_ok)
-    with open_source(args.source, topic=args.topic, fps=args.fps) as source:
+    with open_source(args.source, topic=args.topic, fps=args.fps, strict=args.strict) as source:
         factories = []
         if args.out_bag:
             from vpengine.io.bag import BagSink

@@ -5,7 +5,10 @@ as a sink that records every head's outputs with the same message types and head
 
 * the source reads ``sensor_msgs/msg/Image`` (rgb8, bgr8, mono8) or ``sensor_msgs/msg/CompressedImage`` (jpeg,
   png) from one topic, in log-time order; each frame's timestamp is its message's ``header.stamp``. A bag is a folder
-  with ``metadata.yaml`` or a bare ``.mcap`` / ``.db3`` file.
+  with ``metadata.yaml`` or a bare ``.mcap`` / ``.db3`` file. A message that cannot be used (corrupt bytes, an
+  unsupported encoding, short data ...) is skipped and listed (``skipped``), and logged in one line naming the bag,
+  topic and message index (Note [Rejection log] in :mod:`vpengine.ros2.core`), so one bad frame does not end a long
+  recording; ``strict=True`` stops at the first one instead, with that line as the error.
 * the sink writes ``<ns>/<head>/depth`` (32FC1), ``<ns>/<head>/classes`` (mono8), ``<ns>/<head>/detections``
   (vision_msgs/Detection2DArray 4.x) and, with ``viz``, ``depth_color`` / ``overlay`` (bgr8); every output's
   header (stamp and frame_id) is its input message's header, and its log time is that stamp.
@@ -32,6 +35,7 @@ from vpengine.ros2.core import (
     Header,
     InputError,
     OutputTopic,
+    Rejections,
     compressed_to_frame,
     image_to_frame,
     payload_for,
@@ -59,22 +63,34 @@ def _topic_list(conns: list[Any]) -> str:
     return ", ".join(f"{t} ({m})" for t, m in seen) or "(none)"
 
 
+class BadMessage(ValueError):
+    """A bag message that cannot be used; the text names the bag, topic and message index (0-based) in one line."""
+
+    def __init__(self, message: str, reason: str) -> None:
+        super().__init__(message)
+        self.reason = reason
+
+
 class BagSource(Source):
     """Camera frames from one Image or CompressedImage topic of a rosbag2 bag.
 
     ``topic`` may be omitted when the bag has exactly one image topic. Frames are in ``color`` order (the engine's
     ``input.color``); a frame whose size differs from the first one is resized to it (counted in ``resized`` and
-    logged once per size). The exact input header of each frame is kept by its frame name for the bag sink
-    (:meth:`header_for`).
+    logged once per size). The exact input header of each frame is kept by its frame name (the message index) for
+    the bag sink (:meth:`header_for`). Bad messages are skipped and counted in ``bad`` (or, ``strict``, raised as
+    :class:`BadMessage`), see the module docstring.
     """
 
-    def __init__(self, path: str | Path, topic: str | None = None, color: str = "bgr") -> None:
+    def __init__(
+        self, path: str | Path, topic: str | None = None, color: str = "bgr", strict: bool = False
+    ) -> None:
         from rosbags.rosbag2 import Reader
 
         from vpengine.ros2.rosbags_msgs import DISTROS, typestore
 
         self.path = Path(path)
         self.color = color
+        self.strict = strict
         try:
             self._reader = Reader(self.path)
             self._reader.open()
@@ -108,29 +124,74 @@ class BagSource(Source):
             self._n = sum(c.msgcount for c in self._conns)
             if self._n == 0:
                 raise ValueError(f"bag {str(self.path)!r}: topic {topic!r} has no messages")
-            messages = self._messages()
-            first = next(messages)
-            messages.close()  # release the storage cursor; iteration starts afresh
-            _, img = self._decode(first, 0)
-            self.height, self.width = img.shape[:2]
+            self.rejected = Rejections("bag message skipped", log)
+            self.height, self.width = self._first_size()
         except BaseException:
             self._reader.close()
             raise
         self.resized = 0
+        #: the messages skipped as bad, as every source lists what it skipped (``vpengine run`` puts the list in
+        #: summary.json): bag, topic, message index and why; logged per Note [Rejection log]
+        self.skipped: list[dict[str, Any]] = []
         self._sizes: set[tuple[int, int]] = set()
         self._headers: collections.OrderedDict[str, Header] = collections.OrderedDict()
 
+    def _first_size(self) -> tuple[int, int]:
+        """The size of the first usable frame. Bad messages before it are counted and logged when iteration
+        reaches them (or raised here, strict)."""
+        reasons: collections.Counter[str] = collections.Counter()
+        first = ""
+        messages = self._messages()
+        try:
+            for i, raw in enumerate(messages):
+                try:
+                    h, w = self._decode(raw, i)[1].shape[:2]
+                    return h, w
+                except BadMessage as e:
+                    if self.strict:
+                        raise
+                    reasons[e.reason] += 1
+                    first = first or str(e)
+        finally:
+            messages.close()  # release the storage cursor; iteration starts afresh
+        raise ValueError(
+            f"bag {str(self.path)!r}: none of the {self._n} messages on {self.topic!r} is usable "
+            f"({', '.join(f'{n} {r}' for r, n in sorted(reasons.items()))}); the first: {first}"
+        )
+
     def _messages(self) -> Iterator[bytes]:
-        for _conn, _t, raw in self._reader.messages(connections=self._conns):
-            yield raw
+        i = -1
+        try:
+            for i, (_conn, _t, raw) in enumerate(self._reader.messages(connections=self._conns)):  # noqa: B007
+                yield raw
+        except Exception as e:  # the storage itself (a truncated file, a bad chunk): no way past it
+            raise ValueError(
+                f"bag {str(self.path)!r}: reading {self.topic!r} failed after message {i}: "
+                f"{type(e).__name__}: {_line(e)}"
+            ) from None
 
     def _decode(self, raw: bytes, index: int) -> tuple[Header, np.ndarray]:
+        where = f"bag {str(self.path)!r}, topic {self.topic!r}, message {index}"
         try:
             msg = self._ts.deserialize_cdr(raw, self.msgtype)
+        except Exception as e:  # rosbags' SerdeError, or struct/index/unicode errors on garbage bytes
+            raise BadMessage(
+                f"{where}: not a valid {self.msgtype} ({len(raw)} bytes): {type(e).__name__}: {_line(e)}",
+                "malformed",
+            ) from None
+        try:
             decode = image_to_frame if self.msgtype == IMAGE_TYPE else compressed_to_frame
             return Header.of(msg.header), decode(msg, self.color)
         except InputError as e:
-            raise ValueError(f"bag {str(self.path)!r}, topic {self.topic!r}, message {index}: {e}") from None
+            raise BadMessage(f"{where}: {e}", e.reason) from None
+        except (ValueError, AttributeError, TypeError) as e:
+            raise BadMessage(f"{where}: {type(e).__name__}: {_line(e)}", "malformed") from None
+
+    def _bad(self, e: BadMessage, index: int) -> None:
+        if self.strict:
+            raise e
+        self.rejected.add(e.reason, f"{e} (skipped; --strict stops here instead)")
+        self.skipped.append({"bag": str(self.path), "topic": self.topic, "message": index, "why": str(e)})
 
     def __len__(self) -> int:
         return self._n
@@ -139,7 +200,11 @@ class BagSource(Source):
         import cv2
 
         for i, raw in enumerate(self._messages()):
-            header, img = self._decode(raw, i)
+            try:
+                header, img = self._decode(raw, i)
+            except BadMessage as e:
+                self._bad(e, i)
+                continue
             if img.shape[:2] != (self.height, self.width):
                 h, w = img.shape[:2]
                 if (w, h) not in self._sizes:
@@ -168,6 +233,21 @@ class BagSource(Source):
 
     def close(self) -> None:
         self._reader.close()
+        if self.skipped:
+            indices = [str(s["message"]) for s in self.skipped]
+            shown = ", ".join(indices[:20]) + (", ..." if len(indices) > 20 else "")
+            log.warning(
+                "bag %s, topic %s: %d bad messages skipped (message %s)",
+                self.path,
+                self.topic,
+                len(indices),
+                shown,
+            )
+
+
+def _line(e: BaseException) -> str:
+    """An exception's text on one line (some libraries' messages span several)."""
+    return " ".join(str(e).split()) or "(no message)"
 
 
 def default_qos() -> list[Any]:

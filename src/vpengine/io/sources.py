@@ -301,10 +301,13 @@ class VideoSource(Source):
         self._cap.release()
 
 
-def open_source(spec: str, topic: str | None = None, fps: float | None = None) -> Source:
+def open_source(
+    spec: str, topic: str | None = None, fps: float | None = None, strict: bool = False
+) -> Source:
     """A source from a command-line spec: ``synthetic[...]``, an image, a folder of images, a glob of images
     (``frames/*.jpg``), a video file, ``camera:N``, ``sample:NAME`` or a rosbag2 bag (a folder with metadata.yaml, or a
-    .mcap / .db3 file; ``topic`` names its image topic). ``fps``: the rate images are stamped at (default 30 Hz)."""
+    .mcap / .db3 file; ``topic`` names its image topic; ``strict`` stops at its first bad message instead of skipping
+    it, see vpengine.io.bag). ``fps``: the rate images are stamped at (default 30 Hz)."""
     if spec.startswith("synthetic"):
         source: Source = SyntheticSource.parse(spec)
     elif spec.startswith("camera:"):
@@ -315,7 +318,7 @@ def open_source(spec: str, topic: str | None = None, fps: float | None = None) -
             )
         source = VideoSource(int(index))
     elif spec.startswith("sample:"):
-        return open_source(str(sample(spec.split(":", 1)[1])), topic, fps)
+        return open_source(str(sample(spec.split(":", 1)[1])), topic, fps, strict)
     else:
         path = Path(spec)
         if not path.exists() and glob.has_magic(spec):
@@ -335,7 +338,7 @@ def open_source(spec: str, topic: str | None = None, fps: float | None = None) -
         ):
             from vpengine.io.bag import BagSource  # rosbags is an optional dependency
 
-            return BagSource(path, topic)
+            return BagSource(path, topic, strict=strict)
         elif path.is_dir():
             files = sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTS)
             source = ImageSource(files, path, fps)

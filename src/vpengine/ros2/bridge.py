@@ -10,22 +10,24 @@ input topic (``--input-topic``)     sensor_msgs/Image                  sensor da
                                     (CompressedImage with              default (reliable, keep last 10)
                                     ``--compressed``, on
                                     ``<input>/compressed``)
-``<ns>/<head>/depth``               sensor_msgs/Image 32FC1            default
-``<ns>/<head>/depth_color``         sensor_msgs/Image bgr8             default (``--depth-color``)
-``<ns>/<head>/classes``             sensor_msgs/Image mono8            default
-``<ns>/<head>/overlay``             sensor_msgs/Image bgr8             default (``--seg-overlay``)
-``<ns>/<head>/detections``          vision_msgs/Detection2DArray       default
+``<ns>/<head>/depth``               sensor_msgs/Image 32FC1            latest (reliable, keep last 1; or
+                                                                       ``--output-qos default``)
+``<ns>/<head>/depth_color``         sensor_msgs/Image bgr8             latest (``--depth-color``)
+``<ns>/<head>/classes``             sensor_msgs/Image mono8            latest
+``<ns>/<head>/overlay``             sensor_msgs/Image bgr8             latest (``--seg-overlay``)
+``<ns>/<head>/detections``          vision_msgs/Detection2DArray       latest
 ``<ns>/set_rate``                   diagnostic_msgs/KeyValue (in)      default
 ``<ns>/model_names``                std_msgs/String (JSON list)        latched (transient local, keep last 1)
-``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, ~1 Hz
+``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, 1 Hz
 ==================================  =================================  =========================================
 
 Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
 "{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit).
 
-Two threads: one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
-every result (``Engine.results``), applies rate commands and publishes diagnostics. All decisions about content live
-in :class:`vpengine.ros2.core.Ros2Core`.
+Three threads: one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
+the results (``Engine.results``; each head's newest, Note [Output QoS] in :mod:`vpengine.ros2.core`), and one applies rate commands and publishes diagnostics (Note [Control path] in
+:mod:`vpengine.ros2.core`), so neither waits behind the writes of big images. All decisions about content live in
+:class:`vpengine.ros2.core.Ros2Core`.
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ from vpengine.ros2 import cdr
 from vpengine.ros2 import dds_types as T
 from vpengine.ros2.core import (
     DETECTIONS_TYPE,
+    OUTPUT_QOS,
+    ControlLoop,
     DetectionsOut,
     DiagnosticsOut,
     Header,
@@ -48,8 +52,9 @@ from vpengine.ros2.core import (
     OutputTopic,
     Ros2Core,
     model_names_text,
+    receive_buffer_limit,
 )
-from vpengine.ros2.dds import DdsContext, Reader, Writer, dds_topic
+from vpengine.ros2.dds import DdsContext, Reader, Writer, bridge_config, dds_topic, receive_buffer_granted
 
 log = logging.getLogger("vpengine.ros2.bridge")
 
@@ -66,8 +71,12 @@ class BridgeOptions:
     #: QoS of the input subscription: "sensor" (best effort, keep last 5: what camera drivers publish) or "default"
     #: (reliable, keep last 10; matches only reliable publishers).
     input_qos: Literal["sensor", "default"] = "sensor"
+    #: QoS of the output topics: "latest" (reliable, keep last 1) or "default" (ROS 2's, reliable, keep last 10);
+    #: see Note [Output QoS] in vpengine.ros2.core.
+    output_qos: Literal["latest", "default"] = "latest"
     domain_id: int = 0
-    #: CycloneDDS XML configuration; None: $CYCLONEDDS_URI or cyclonedds' defaults.
+    #: CycloneDDS XML configuration used instead of $CYCLONEDDS_URI (e.g. ``loopback_config()``); see
+    #: :func:`vpengine.ros2.dds.bridge_config` for what the bridge sets itself.
     dds_config: str | None = None
     diagnostics_topic: str = "/diagnostics"
     diagnostics_period_s: float = 1.0
@@ -133,13 +142,16 @@ class Ros2Bridge:
             raise ValueError(f"DDS domain id must be 0..232 (the RTPS port mapping), got {options.domain_id}")
         if options.input_qos not in ("sensor", "default"):
             raise ValueError(f"input QoS {options.input_qos!r} is not known; accepted: sensor, default")
+        if options.output_qos not in OUTPUT_QOS:
+            raise ValueError(
+                f"output QoS {options.output_qos!r} is not known; accepted: {', '.join(OUTPUT_QOS)}"
+            )
         self.core = core
         self.opts = options
         self.dds: DdsContext | None = None
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._writers: dict[str, Writer] = {}
-        self._diag_now = threading.Event()
         self.error: BaseException | None = None
         self.ns = core.namespace
 
@@ -157,19 +169,32 @@ class Ros2Bridge:
     def _start(self) -> Ros2Bridge:
         self.core.start()
         o = self.opts
-        self.dds = ctx = DdsContext(o.domain_id, o.dds_config)
+        self.dds = ctx = DdsContext(o.domain_id, bridge_config(o.dds_config))
         for t in self.core.topics:
             dtype = T.Detection2DArray_ if t.msgtype == DETECTIONS_TYPE else T.Image_
-            self._writers[t.topic] = ctx.writer(t.topic, dtype, "default")
+            self._writers[t.topic] = ctx.writer(t.topic, dtype, o.output_qos)
         self._diag = ctx.writer(o.diagnostics_topic, T.DiagnosticArray_, "default")
         self._names = ctx.writer(f"{self.ns}/model_names", T.String_, "latched")
         self._names.write(T.String_(model_names_text(self.core.model_names)))
         self._rates: Reader = ctx.reader(f"{self.ns}/set_rate", T.KeyValue_, "default")
         in_type = T.CompressedImage_ if o.compressed else T.Image_
         self._input: Reader = ctx.reader(o.subscribed_topic, in_type, o.input_qos)
+        if not o.compressed:  # a compressed frame is a fraction of the raw one: no buffer advice for it
+            self.core.note_receive_buffer(receive_buffer_granted(receive_buffer_limit()))
+            self.core.link_warnings()  # logged now, before the "ready" line, not in the middle of it
+        control = ControlLoop(
+            self.core,
+            self._publish_diagnostics,
+            self._wait_rate_commands,
+            period_s=o.diagnostics_period_s,
+            before_diagnostics=lambda: self.core.note_publishers(self._input.matched()),
+        )
         self._threads = [
             threading.Thread(target=self._guard, args=(self._input_loop,), name="ros2-input", daemon=True),
             threading.Thread(target=self._guard, args=(self._output_loop,), name="ros2-output", daemon=True),
+            threading.Thread(
+                target=self._guard, args=(lambda: control.run(self._stop),), name="ros2-control", daemon=True
+            ),
         ]
         for th in self._threads:
             th.start()
@@ -232,35 +257,28 @@ class Ros2Bridge:
                 try:
                     msg = decode(raw)
                 except cdr.CdrError as e:
-                    self.core.counters["received"] += 1
-                    self.core.counters["decode_errors"] += 1
-                    log.error("malformed input sample: %s", e)
+                    self.core.reject_message("malformed", str(e))
                     continue
                 handle(msg)
 
     def _output_loop(self) -> None:
-        period = self.opts.diagnostics_period_s
-        next_diag = time.monotonic()
         while not self._stop.is_set():
             try:
                 items = self.core.poll_outputs(timeout=0.05)
             except EngineDeadError:
                 # the foundation model failed for good: say so on /diagnostics (ERROR) before the bridge stops
-                self._diag.write(diagnostics_to_dds(self.core.diagnostics()))
+                self._publish_diagnostics(self.core.diagnostics())
                 raise
             for topic, payload in items:
                 self._publish(topic, payload)
-            for kv in self._rates.take(16):
-                try:
-                    self.core.set_rate(kv.key, kv.value)
-                    self._diag_now.set()
-                except ValueError as e:
-                    log.warning("rate command {key: %r, value: %r} ignored: %s", kv.key, kv.value, e)
-            now = time.monotonic()
-            if now >= next_diag or self._diag_now.is_set():
-                self._diag_now.clear()
-                self._diag.write(diagnostics_to_dds(self.core.diagnostics()))
-                next_diag = now + period
+
+    def _wait_rate_commands(self, timeout: float) -> list[tuple[str, str]]:
+        if not self._rates.wait(timeout):
+            return []
+        return [(kv.key, kv.value) for kv in self._rates.take(16)]
+
+    def _publish_diagnostics(self, d: DiagnosticsOut) -> None:
+        self._diag.write(diagnostics_to_dds(d))
 
     def _publish(self, topic: OutputTopic, payload: Any) -> None:
         w = self._writers[topic.topic]

@@ -53,6 +53,19 @@ STRING_TYPE = "std_msgs/msg/String"
 # diagnostic_msgs/DiagnosticStatus levels
 OK, WARN, ERROR, STALE = 0, 1, 2, 3
 
+#: QoS profiles of the output topics (Note [Output QoS]); the first is the default.
+OUTPUT_QOS = ("latest", "default")
+
+# Note [Output QoS]: outputs must stay fresh when a subscriber or the machine cannot keep up. Measured with 1080p
+# frames at 30 Hz, a subscriber that copies each image and a busy CPU (benchmarks/results/
+# ros2_bridge_throughput.json), two queues made outputs seconds old: (1) a reliable keep-last-10 writer keeps up to
+# ten unacknowledged 8 MB images per topic and a write blocks while a slow reader catches up, so (2) results waited
+# for the output thread in the engine's result stream and went out in order, each older than the last. So: outputs
+# are reliable (a best-effort writer matches no reliable subscriber, ROS 2's default) but keep last 1 ("latest"),
+# so a writer holds one image and never more; and with newest-wins input (input_mode: latest) the output thread
+# publishes only each head's newest result (poll_outputs), counting the ones it skips. ROS 2's default profile
+# stays available ("default", for recording every output).
+
 #: Rate values (case-insensitive) that mean "no limit", in rate commands.
 UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
 
@@ -60,7 +73,15 @@ SizePolicy = Literal["resize", "reject"]
 
 
 class InputError(ValueError):
-    """An input message the engine cannot use; the message names what was wrong and what is accepted."""
+    """An input message the engine cannot use; the message names what was wrong and what is accepted.
+
+    ``reason`` is a short key for what kind of wrong it is (``encoding``, ``empty``, ``step``, ``short_data``,
+    ``format``, ``undecodable``, ``malformed`` ...): rejections are counted and logged per reason (:class:`Rejections`).
+    """
+
+    def __init__(self, message: str, reason: str = "invalid") -> None:
+        super().__init__(message)
+        self.reason = reason
 
 
 # ------------------------------------------------------------------------------------------------- headers
@@ -151,36 +172,43 @@ def image_to_frame(msg: Any, color: str = "bgr") -> np.ndarray:
     Accepts rgb8, bgr8 and mono8 (grey is replicated to three channels). Rows may be padded (``step`` larger than
     width x channels). ``is_bigendian`` only orders the bytes of multi-byte pixels; every accepted encoding has one
     byte per channel, so both values decode the same. The result is a view of the message data when no conversion
-    is needed (bgr8 in, bgr wanted, unpadded rows), else one copy.
+    is needed (bgr8 in, bgr wanted, unpadded rows), else one copy. Channel swaps and grey-to-colour go through
+    ``cv2.cvtColor`` (vectorised, threaded): at 1080p it takes about 0.2 ms where the numpy ``[..., ::-1]`` copy it
+    replaced took 7 ms on the input thread (``decode_ms`` in benchmarks/results/ros2_bridge_throughput.json).
     """
+    import cv2
+
     encoding = str(msg.encoding)
     channels = INPUT_ENCODINGS.get(encoding)
     if channels is None:
         raise InputError(
-            f"sensor_msgs/Image encoding {encoding!r} is not supported; accepted: {', '.join(INPUT_ENCODINGS)}"
+            f"sensor_msgs/Image encoding {encoding!r} is not supported; accepted: {', '.join(INPUT_ENCODINGS)}",
+            "encoding",
         )
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
     if h <= 0 or w <= 0:
-        raise InputError(f"sensor_msgs/Image is empty ({w}x{h}, encoding {encoding})")
+        raise InputError(f"sensor_msgs/Image is empty ({w}x{h}, encoding {encoding})", "empty")
     row = w * channels
     if step < row:
         raise InputError(
-            f"sensor_msgs/Image step {step} is smaller than width x channels = {w} x {channels} = {row} ({encoding})"
+            f"sensor_msgs/Image step {step} is smaller than width x channels = {w} x {channels} = {row} ({encoding})",
+            "step",
         )
     data = as_uint8(msg.data)
     if data.size < step * (h - 1) + row:
         raise InputError(
             f"sensor_msgs/Image data holds {data.size} bytes; a {w}x{h} {encoding} image with step {step} "
-            f"needs {step * h}"
+            f"needs {step * h}",
+            "short_data",
         )
     if step == row:
         img = data[: h * row].reshape(h, w, channels)
-    else:  # padded rows: a strided view, no copy yet
+    else:  # padded rows: a strided view, no copy yet (OpenCV reads it as a matrix with a row step)
         img = np.lib.stride_tricks.as_strided(data, shape=(h, w, channels), strides=(step, channels, 1))
     if channels == 1:
-        return np.ascontiguousarray(np.broadcast_to(img, (h, w, 3)))
+        return cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)  # three equal channels: the same in either order
     if encoding[:3] != color:
-        img = img[..., ::-1]
+        return cv2.cvtColor(img, cv2.COLOR_RGB2BGR)  # the same swap either way
     return np.ascontiguousarray(img)
 
 
@@ -191,7 +219,8 @@ def compressed_codec(fmt: str, data: np.ndarray) -> str:
     if "compresseddepth" in f:
         raise InputError(
             f"sensor_msgs/CompressedImage format {fmt!r} (depth) is not a camera image; accepted: "
-            f"{', '.join(COMPRESSED_CODECS)}"
+            f"{', '.join(COMPRESSED_CODECS)}",
+            "format",
         )
     if "jpeg" in f or "jpg" in f:
         return "jpeg"
@@ -205,7 +234,8 @@ def compressed_codec(fmt: str, data: np.ndarray) -> str:
             return "png"
     raise InputError(
         f"sensor_msgs/CompressedImage format {fmt!r} is not supported; accepted: "
-        f"{', '.join(COMPRESSED_CODECS)} (e.g. 'jpeg', 'png', 'bgr8; jpeg compressed bgr8')"
+        f"{', '.join(COMPRESSED_CODECS)} (e.g. 'jpeg', 'png', 'bgr8; jpeg compressed bgr8')",
+        "format",
     )
 
 
@@ -220,14 +250,15 @@ def compressed_to_frame(msg: Any, color: str = "bgr") -> np.ndarray:
     data = as_uint8(msg.data)
     codec = compressed_codec(str(msg.format), data)
     if data.size == 0:
-        raise InputError(f"sensor_msgs/CompressedImage ({codec}) has no data")
+        raise InputError(f"sensor_msgs/CompressedImage ({codec}) has no data", "empty")
     img = cv2.imdecode(data, cv2.IMREAD_COLOR)
     if img is None:
         raise InputError(
-            f"sensor_msgs/CompressedImage: {data.size} bytes of {codec} data could not be decoded"
+            f"sensor_msgs/CompressedImage: {data.size} bytes of {codec} data could not be decoded",
+            "undecodable",
         )
     if color == "rgb":
-        img = np.ascontiguousarray(img[..., ::-1])
+        img = cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
     return img
 
 
@@ -502,6 +533,161 @@ def model_status(name: str, m: Mapping[str, Any], prefix: str, hardware_id: str)
     return Status(level, f"{prefix}: {name}", msg, hardware_id, values)
 
 
+# ------------------------------------------------------------------------------------------------ rejections
+class Rejections:
+    """Note [Rejection log]: bad inputs are counted and logged per reason, never one line per frame, never only once.
+
+    The first rejection of each reason (:attr:`InputError.reason`: encoding, short_data, step, malformed ...) is
+    logged at once with its full text, so a different later failure is never hidden behind the first one; after
+    that each reason logs at most one line per ``every_s`` seconds, saying how many were not logged. ``recent()``
+    names the reasons seen in the last ``recent_s`` seconds: the interface status in /diagnostics warns while it is
+    not empty and so goes back to OK once good frames have flowed that long, instead of warning for the rest of the
+    run. ``where`` starts each line (what was rejected, and by whom). Thread-safe; ``clock`` is for tests.
+    """
+
+    def __init__(
+        self,
+        where: str,
+        logger: logging.Logger = log,
+        every_s: float = 10.0,
+        recent_s: float = 5.0,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        self.where = where
+        self.counts: collections.Counter[str] = collections.Counter()
+        self._log, self.every_s, self.recent_s, self.clock = logger, every_s, recent_s, clock
+        self._last: dict[str, float] = {}  # reason -> time of its newest rejection
+        self._logged: dict[str, float] = {}  # reason -> time of its newest log line
+        self._unlogged: collections.Counter[str] = collections.Counter()
+        self._lock = threading.Lock()
+
+    def add(self, reason: str, text: str) -> None:
+        now = self.clock()
+        with self._lock:
+            self.counts[reason] += 1
+            self._last[reason] = now
+            logged = self._logged.get(reason)
+            if logged is not None and now - logged < self.every_s:
+                self._unlogged[reason] += 1
+                return
+            self._logged[reason] = now
+            more, self._unlogged[reason] = self._unlogged[reason], 0
+            total = self.counts[reason]
+        if logged is None:
+            self._log.warning("%s (%s): %s", self.where, reason, text)
+        else:
+            self._log.warning(
+                "%s (%s; %d in all, %d not logged since the last line): %s",
+                self.where,
+                reason,
+                total,
+                more,
+                text,
+            )
+
+    @property
+    def total(self) -> int:
+        return sum(self.counts.values())
+
+    def recent(self) -> list[str]:
+        """The reasons rejected within the last ``recent_s`` seconds, sorted."""
+        now = self.clock()
+        with self._lock:
+            return sorted(r for r, t in self._last.items() if now - t < self.recent_s)
+
+
+# ---------------------------------------------------------------------------------------------- input link
+#: A publisher matched this long with nothing received is reported (Note [Input link]).
+SILENT_AFTER_S = 5.0
+
+
+def receive_buffer_limit() -> int | None:
+    """The largest socket receive buffer an unprivileged process gets (Linux ``net.core.rmem_max``); None where
+    unknown."""
+    try:
+        with open("/proc/sys/net/core/rmem_max") as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def receive_buffer_advice(limit: int | None, frame_bytes: int) -> str | None:
+    """Note [Input link]: what to do when the UDP receive buffer cannot hold one input frame; None when it can.
+
+    A best-effort sample (cameras publish with the sensor-data profile) arrives as a burst of UDP datagrams; the
+    ones that do not fit the socket's receive buffer while the receiving thread is busy are dropped, and a sample
+    missing one fragment is lost whole, without any count on either side (DDS reports no sample lost for it). On
+    loopback a 1080p frame (6.2 MB) came through 36 of 150 times with cyclonedds' default 1 MB buffer and 113 of
+    150 with 3 MB; all 150 with 4 MB. So the buffer must hold a whole frame. The kernel caps what a process asks
+    for at ``net.core.rmem_max`` (Linux default 208 kB).
+    """
+    if limit is None or limit >= frame_bytes:
+        return None
+    want = 1 << max(2 * frame_bytes - 1, 1).bit_length()  # two frames, rounded up to a power of two
+    return (
+        f"the UDP receive buffer is limited to {limit} bytes (net.core.rmem_max), less than one {frame_bytes}-byte "
+        f"input frame: best-effort frames are lost, uncounted, whenever the receiver falls behind; fix: "
+        f"sudo sysctl -w net.core.rmem_max={want} (and in /etc/sysctl.d/ to keep it)"
+    )
+
+
+# ------------------------------------------------------------------------------------------- control path
+class ControlLoop:
+    """Note [Control path]: rate commands and /diagnostics have a thread of their own, shared by every transport.
+
+    On the output thread they waited behind the writes of 8 MB images (a reliable write can block until a slow
+    reader acknowledges): at 1080p /diagnostics went silent for 3-17 s, longer than diagnostic_aggregator's stale
+    timeout, and rate commands, wanted most when the machine is overloaded, waited as long. This loop waits only for
+    rate commands (``wait_commands(timeout)`` returns the (model, rate) pairs that arrived, waiting at most
+    ``timeout`` s), applies each at once and publishes diagnostics right after it (the change is seen, and the
+    diagnostics' stamp says when it was applied), and otherwise publishes diagnostics every ``period_s`` on a fixed
+    schedule. It touches the engine only through ``set_rate`` and ``stats`` (shared-memory writes and reads), so it
+    never waits for a frame or a result. ``before_diagnostics`` lets the transport refresh what only it knows (the
+    input link: matched publishers, receive buffer) first.
+    """
+
+    def __init__(
+        self,
+        core: Ros2Core,
+        publish: Callable[[DiagnosticsOut], None],
+        wait_commands: Callable[[float], Iterable[tuple[str, str]]],
+        *,
+        period_s: float = 1.0,
+        before_diagnostics: Callable[[], None] | None = None,
+    ) -> None:
+        if not period_s > 0:
+            raise ValueError(f"diagnostics period must be > 0 s, got {period_s}")
+        self.core, self.publish, self.wait_commands = core, publish, wait_commands
+        self.period_s = period_s
+        self.before_diagnostics = before_diagnostics
+
+    def diagnostics_now(self) -> None:
+        if self.before_diagnostics is not None:
+            self.before_diagnostics()
+        self.publish(self.core.diagnostics())
+
+    def run(self, stop: threading.Event) -> None:
+        """Until ``stop`` is set."""
+        next_at = time.monotonic()
+        while not stop.is_set():
+            applied = False
+            for key, value in self.wait_commands(max(0.0, min(next_at - time.monotonic(), 0.2))):
+                try:
+                    self.core.set_rate(key, value)
+                    applied = True
+                except ValueError as e:
+                    log.warning("rate command {key: %r, value: %r} ignored: %s", key, value, e)
+            now = time.monotonic()
+            if applied or now >= next_at:
+                self.diagnostics_now()
+                # a fixed schedule; after a command (or a stall longer than a period) a period from now
+                next_at = (
+                    now + self.period_s
+                    if applied or now - next_at > self.period_s
+                    else next_at + self.period_s
+                )
+
+
 # ------------------------------------------------------------------------------------------------- the core
 class Ros2Core:
     """The engine behind a ROS 2 interface, with no middleware: messages in, neutral outputs out.
@@ -560,6 +746,17 @@ class Ros2Core:
         self._seen_sizes: set[tuple[int, int]] = set()
         self.counters: collections.Counter[str] = collections.Counter()
         self.published: collections.Counter[str] = collections.Counter()
+        #: Note [Rejection log]: input messages and outputs that could not be used, per reason
+        self.rejected = Rejections("input message rejected")
+        self.output_errors = Rejections("output not published")
+        self.outputs_superseded: collections.Counter[str] = collections.Counter()
+        # Note [Input link]: when a publisher of the input topic was matched (None: none is), the transport's
+        # receive-buffer advice, and the largest input message seen (bytes)
+        self._matched_since: float | None = None
+        self._received_at_match = 0
+        self._buffer_limit: int | None = None
+        self._largest_input = 0
+        self._link_logged: set[str] = set()
         #: CPU seconds (of the calling thread: time.thread_time, so neither waiting for data nor for the GIL counts)
         #: per stage: decode, resize, submit (per input frame); results, convert (per output); transports add
         #: encode, write. Where the interface's time goes; reported in /diagnostics as busy_s.<stage>.
@@ -620,11 +817,13 @@ class Ros2Core:
             header = Header.of(msg.header)
             frame = decode(msg, self.config.input.color)
             self.busy["decode"] += time.thread_time() - t0
-        except (InputError, ValueError, AttributeError, TypeError) as e:
-            self.counters["decode_errors"] += 1
-            if self.counters["decode_errors"] == 1 or self.counters["decode_errors"] % 100 == 0:
-                log.error("input message rejected (%d so far): %s", self.counters["decode_errors"], e)
+        except InputError as e:
+            self._reject(e.reason, str(e))
             return None
+        except (ValueError, AttributeError, TypeError) as e:  # not shaped like the message type at all
+            self._reject("malformed", f"{type(e).__name__}: {e}")
+            return None
+        self._largest_input = max(self._largest_input, as_uint8(msg.data).size)
         if self.engine is None:
             if self.input_size == "first":
                 from vpengine.config import load_config
@@ -657,8 +856,7 @@ class Ros2Core:
         try:
             eng.submit(frame, frame_id=fid, timestamp=header.seconds)
         except ValueError as e:
-            self.counters["decode_errors"] += 1
-            log.error("engine rejected a frame: %s", e)
+            self._reject("engine", str(e))
             return None
         self.busy["submit"] += time.thread_time() - t0
         self.counters["submitted"] += 1
@@ -669,16 +867,9 @@ class Ros2Core:
         first = (w, h) not in self._seen_sizes
         self._seen_sizes.add((w, h))
         if self.on_size_mismatch == "reject":
-            self.counters["size_rejected"] += 1
-            if first:
-                log.warning(
-                    "rejecting %dx%d frames: the engine runs at %dx%d (on_size_mismatch=reject; counted as "
-                    "size_rejected in /diagnostics)",
-                    w,
-                    h,
-                    want[1],
-                    want[0],
-                )
+            self._reject(
+                "size", f"{w}x{h} frame; the engine runs at {want[1]}x{want[0]} (on_size_mismatch=reject)"
+            )
             return None
         import cv2
 
@@ -696,7 +887,12 @@ class Ros2Core:
 
     # -------------------------------------------------------------------------------------------- output
     def poll_outputs(self, timeout: float = 0.1) -> list[tuple[OutputTopic, Payload]]:
-        """Every head output since the last call as (topic, message), oldest first; waits up to ``timeout``."""
+        """The head outputs since the last call as (topic, message), oldest first; waits up to ``timeout``.
+
+        Note [Output QoS]: when the engine takes the newest frame (``input_mode: latest``), only each head's newest
+        result is converted and published; older ones that waited for the output thread (it was writing) are
+        counted in ``outputs_superseded.<head>``. Publishing them would only put stale images in front of the
+        fresh one. With ``input_mode: fifo`` every result goes out, in order."""
         eng = self.engine
         if eng is None:
             self._engine_ready.wait(timeout)
@@ -705,6 +901,12 @@ class Ros2Core:
         t0 = time.thread_time()
         results = eng.results(timeout=timeout)
         self.busy["results"] += time.thread_time() - t0  # the engine API's copies out of its mailboxes
+        if self.config.foundation_model.input_mode != "fifo":
+            newest = {r.head: r for r in results}  # results are oldest first
+            for r in results:
+                if newest[r.head] is not r:
+                    self.outputs_superseded[r.head] += 1
+            results = [r for r in results if newest[r.head] is r]
         for r in results:
             topics = self._by_head.get(r.head)
             if not topics:
@@ -720,8 +922,7 @@ class Ros2Core:
                 try:
                     p = payload_for(t, r.outputs, info, header, frame)
                 except (ValueError, KeyError) as e:
-                    self.counters["output_errors"] += 1
-                    log.error("head %r output %s could not be converted: %s", r.head, t.role, e)
+                    self.output_errors.add(t.role, f"head {r.head!r}: {e}")
                     continue
                 if p is None:
                     self.counters["overlays_skipped"] += 1
@@ -729,6 +930,56 @@ class Ros2Core:
                 out.append((t, p))
             self.busy["convert"] += time.thread_time() - t0
         return out
+
+    def _reject(self, reason: str, text: str) -> None:
+        self.counters["rejected"] += 1
+        self.rejected.add(reason, text)
+
+    def reject_message(self, reason: str, text: str) -> None:
+        """A transport received a message it could not even parse (e.g. malformed CDR): counted as received and
+        rejected, and logged per Note [Rejection log]."""
+        self.counters["received"] += 1
+        self._reject(reason, text)
+
+    def note_publishers(self, n: int) -> None:
+        """The transport's count of publishers matched on the input topic (Note [Input link])."""
+        if n <= 0:
+            self._matched_since = None
+        elif self._matched_since is None:
+            self._matched_since = time.monotonic()
+            self._received_at_match = self.counters["received"]
+
+    def note_receive_buffer(self, limit: int | None) -> None:
+        """The largest receive buffer the transport's sockets can have, in bytes (Note [Input link])."""
+        self._buffer_limit = limit
+
+    def link_warnings(self) -> list[str]:
+        """Note [Input link]: what is wrong with the way in; each kind is logged once, when first seen."""
+        found: dict[str, str] = {}
+        want = self._largest_input or 3 * self.config.input.height * self.config.input.width
+        advice = receive_buffer_advice(self._buffer_limit, want)
+        since = self._matched_since
+        if (
+            since is not None
+            and self.counters["received"] == self._received_at_match
+            and time.monotonic() - since >= SILENT_AFTER_S
+        ):
+            found["silent"] = (
+                f"a publisher has been matched for {time.monotonic() - since:.0f} s and no input message "
+                "arrived: large samples are probably lost on the way in"
+                + (
+                    ""
+                    if advice
+                    else " (check the transport's receive buffer, fragment and sample size settings)"
+                )
+            )
+        if advice:
+            found["buffer"] = advice
+        for kind, text in found.items():
+            if kind not in self._link_logged:
+                self._link_logged.add(kind)
+                log.warning("input link: %s", text)
+        return list(found.values())
 
     def count_superseded(self, n: int) -> None:
         """``n`` input messages were received but not submitted because a newer one was already waiting."""
@@ -784,24 +1035,36 @@ class Ros2Core:
                 "received",
                 "submitted",
                 "superseded",
-                "decode_errors",
+                "rejected",
                 "resized",
-                "size_rejected",
                 "not_ready",
                 "header_fallbacks",
                 "overlays_skipped",
-                "output_errors",
                 "rate_commands",
                 "rate_commands_rejected",
             )
         ]
+        values += [(f"rejected.{r}", str(n)) for r, n in sorted(self.rejected.counts.items())]
+        values += [(f"output_errors.{r}", str(n)) for r, n in sorted(self.output_errors.counts.items())]
         values += [(f"results_missed.{h}", str(r.get("missed", 0))) for h, r in results.items()]
+        values += [(f"outputs_superseded.{h}", str(self.outputs_superseded[h])) for h in results]
         values += [(f"published:{t.topic}", str(self.published[t.topic])) for t in self.topics]
         values += [(f"busy_s.{k}", f"{v:.3f}") for k, v in sorted(self.busy.items())]
-        bad = c["decode_errors"] + c["size_rejected"] + c["output_errors"]
-        level = WARN if bad else OK
-        msg = f"{c['submitted']} frames in, {sum(self.published.values())} messages out"
-        if bad:
-            msg += f"; {bad} inputs/outputs rejected (see values)"
-        status.append(Status(level, f"{self.status_prefix}: interface", msg, self.hardware_id, values))
+        if self._buffer_limit is not None:
+            values.append(("receive_buffer_limit_bytes", str(self._buffer_limit)))
+        # Note [Rejection log]: WARN while rejections are recent, OK again once good frames have flowed a while
+        problems = []
+        for what, rej in (("inputs rejected", self.rejected), ("outputs not published", self.output_errors)):
+            recent = rej.recent()
+            if recent:
+                problems.append(f"{what} in the last {rej.recent_s:g} s ({', '.join(recent)})")
+        problems += self.link_warnings()
+        msg = "; ".join(
+            [f"{c['submitted']} frames in, {sum(self.published.values())} messages out", *problems]
+        )
+        status.append(
+            Status(
+                WARN if problems else OK, f"{self.status_prefix}: interface", msg, self.hardware_id, values
+            )
+        )
         return DiagnosticsOut(header, status)

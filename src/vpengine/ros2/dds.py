@@ -8,11 +8,13 @@ ROS 2 conventions matched (rmw_cyclonedds_cpp):
 * data representation XCDR1 (encapsulation ``CDR_LE``), which is what ROS 2 writes and reads;
 * QoS: the default profile is reliable, volatile, keep last 10; the sensor-data profile best effort, volatile, keep
   last 5; "latched" (what ``ros2 topic echo --qos-durability transient_local`` receives) is reliable,
-  transient-local, keep last 1.
+  transient-local, keep last 1; "latest" (the bridge's outputs, Note [Output QoS] in :mod:`vpengine.ros2.core`) is
+  reliable, volatile, keep last 1.
 """
 
 from __future__ import annotations
 
+import os
 import re
 from typing import Any, Literal
 
@@ -23,8 +25,33 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-QosName = Literal["default", "sensor", "latched"]
-QOS_NAMES = ("default", "sensor", "latched")
+QosName = Literal["default", "sensor", "latched", "latest"]
+QOS_NAMES = ("default", "sensor", "latched", "latest")
+
+#: The cyclonedds major release this module is tested with (its private _clayer calls, see _private_api).
+TESTED_MAJOR = 11
+#: The socket receive buffer the bridge asks for (Note [Input link] in vpengine.ros2.core); the kernel grants at
+#: most net.core.rmem_max of it.
+RECEIVE_BUFFER_BYTES = 64 << 20
+
+
+def _private_api() -> tuple[Any, Any]:
+    """cyclonedds' C calls behind DataWriter.write and DataReader.take, which the hot path calls with CDR bytes.
+
+    They are private (``cyclonedds._clayer``), so an untested cyclonedds may lack or change them: fail with one line
+    that says which release to install, not with a traceback from deep in a write."""
+    try:
+        from cyclonedds._clayer import ddspy_take, ddspy_write
+    except ImportError:
+        from importlib.metadata import version
+
+        raise ImportError(
+            f"vpengine.ros2 needs cyclonedds {TESTED_MAJOR}.x (it writes and takes raw CDR through cyclonedds' "
+            f"private _clayer module, which cyclonedds {version('cyclonedds')} does not have as expected): "
+            f"pip install 'cyclonedds>={TESTED_MAJOR},<{TESTED_MAJOR + 1}'"
+        ) from None
+    return ddspy_write, ddspy_take
+
 
 _ANY = SampleState.Any | ViewState.Any | InstanceState.Any
 _ROS_NAME = re.compile(r"^(/[A-Za-z_][A-Za-z0-9_]*)+$")
@@ -63,6 +90,13 @@ def qos(name: QosName) -> Qos:
             Policy.History.KeepLast(1),
             xcdr1,
         )
+    if name == "latest":
+        return Qos(
+            Policy.Reliability.Reliable(duration(seconds=1)),
+            Policy.Durability.Volatile,
+            Policy.History.KeepLast(1),
+            xcdr1,
+        )
     raise ValueError(f"QoS profile {name!r} is not known; accepted: {', '.join(QOS_NAMES)}")
 
 
@@ -71,15 +105,15 @@ def loopback_config(large_messages: bool = True) -> str:
 
     Loopback has no multicast, so participants find each other by unicast to 127.0.0.1 on the well-known ports of
     participant indices 0..(MaxAutoParticipantIndex). ``large_messages`` sizes the transport for camera images:
-    64 kB messages (loopback's MTU allows it; cyclonedds' default of 14 kB makes a 1080p frame ~450 packets), a 4 MB
-    receive buffer (the common net.core.rmem_max), and a writer history high-water mark of 64 MB so reliable writers
-    of multi-megabyte images do not stall on acknowledgements.
+    64 kB messages (loopback's MTU allows it; cyclonedds' default of 14 kB makes a 1080p frame ~450 packets), the
+    bridge's receive buffer (:data:`RECEIVE_BUFFER_BYTES`, as much as net.core.rmem_max allows), and a writer
+    history high-water mark of 64 MB so reliable writers of multi-megabyte images do not stall on acknowledgements.
     """
     big = (
         "<MaxMessageSize>65500B</MaxMessageSize><FragmentSize>60000B</FragmentSize>" if large_messages else ""
     )
     internal = (
-        '<Internal><SocketReceiveBufferSize min="default" max="4MB"/>'
+        f'<Internal><SocketReceiveBufferSize min="default" max="{RECEIVE_BUFFER_BYTES}B"/>'
         "<Watermarks><WhcHigh>64MB</WhcHigh></Watermarks></Internal>"
         if large_messages
         else ""
@@ -91,6 +125,31 @@ def loopback_config(large_messages: bool = True) -> str:
         '<Peers><Peer address="127.0.0.1"/></Peers></Discovery>'
         f"{internal}</Domain></CycloneDDS>"
     )
+
+
+def bridge_config(extra: str | None = None, user: str | None = None) -> str:
+    """The bridge's CycloneDDS configuration: its own needs first, then the user's: ``extra`` when given (e.g.
+    :func:`loopback_config`, asked for on the command line), else ``$CYCLONEDDS_URI`` (``user`` defaults to it).
+
+    CycloneDDS reads a comma-separated list of files and XML fragments in order, and a later setting replaces an
+    earlier one, so whatever the user configured wins and nothing of theirs is dropped. (Lists such as network
+    interfaces and peers add up instead, which is why ``extra`` replaces $CYCLONEDDS_URI rather than joining it.)
+    Of its own the bridge asks for a large socket receive buffer (:data:`RECEIVE_BUFFER_BYTES`, granted up to
+    net.core.rmem_max): cyclonedds' default of 1 MB loses most 1080p frames sent best effort (Note [Input link] in
+    :mod:`vpengine.ros2.core`).
+    """
+    user = os.environ.get("CYCLONEDDS_URI") if user is None else user
+    own = (
+        '<CycloneDDS><Domain id="any"><Internal>'
+        f'<SocketReceiveBufferSize min="default" max="{RECEIVE_BUFFER_BYTES}B"/>'
+        "</Internal></Domain></CycloneDDS>"
+    )
+    return ",".join(part for part in (own, (extra or user or "").strip()) if part)
+
+
+def receive_buffer_granted(limit: int | None) -> int | None:
+    """What the bridge's sockets get of :data:`RECEIVE_BUFFER_BYTES` where the kernel caps it at ``limit``."""
+    return None if limit is None else min(limit, RECEIVE_BUFFER_BYTES)
 
 
 class DdsContext:
@@ -134,10 +193,8 @@ class Writer:
     """A DataWriter that also writes pre-serialized CDR (``write_raw``) for the hot path."""
 
     def __init__(self, writer: DataWriter) -> None:
-        from cyclonedds._clayer import ddspy_write  # the C call DataWriter.write ends in
-
         self.dds = writer
-        self._write = ddspy_write
+        self._write = _private_api()[0]  # the C call DataWriter.write ends in
 
     def write(self, sample: Any) -> None:
         self.dds.write(sample)
@@ -159,10 +216,8 @@ class Reader:
     """A DataReader that can hand out the raw CDR of each sample (``take_raw``) and wait for data."""
 
     def __init__(self, reader: DataReader) -> None:
-        from cyclonedds._clayer import ddspy_take
-
         self.dds = reader
-        self._take = ddspy_take
+        self._take = _private_api()[1]
         self._waitset = WaitSet(reader.participant)
         self._cond = ReadCondition(reader, _ANY)
         self._waitset.attach(self._cond)
@@ -173,12 +228,20 @@ class Reader:
 
     def take_raw(self, n: int = 16) -> list[bytes]:
         """Up to ``n`` samples as CDR bytes (encapsulation header included); invalid samples (disposals) skipped."""
+        return [data for data, _ in self.take_raw_stamped(n)]
+
+    def take_raw_stamped(self, n: int = 16) -> list[tuple[bytes, float]]:
+        """Like :meth:`take_raw`, each with the time its writer wrote it (DDS source timestamp, s since the epoch)."""
         ret = self._take(self.dds._ref, _ANY, n)
         if isinstance(ret, int):
             from cyclonedds.core import DDSException
 
             raise DDSException(ret, f"taking samples from {self.dds.topic.name}")
-        return [data for data, info in ret if info.valid_data]
+        return [(data, info.source_timestamp * 1e-9) for data, info in ret if info.valid_data]
+
+    def matched(self) -> int:
+        """How many writers this reader is matched with."""
+        return len(self.dds.get_matched_publications())
 
     def take(self, n: int = 16) -> list[Any]:
         """Up to ``n`` deserialized samples (valid ones only)."""

@@ -28,7 +28,7 @@ limit), set with ``ros2 param set /vpengine rate.depth 5``. The ``<ns>/set_rate`
 and the latched ``<ns>/model_names`` topic work in both cases.
 
 Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``compressed`` (false), ``input_qos``
-(sensor | default), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
+(sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in the core), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
 (config | first), ``on_size_mismatch`` (resize | reject), ``overrides`` (string array of KEY=VALUE).
 """
 
@@ -38,12 +38,15 @@ import array
 import importlib
 import json
 import logging
+import queue
 import sys
 import threading
 from typing import Any
 
 from vpengine.ros2.core import (
     DETECTIONS_TYPE,
+    OUTPUT_QOS,
+    ControlLoop,
     DetectionsOut,
     DiagnosticsOut,
     Header,
@@ -161,6 +164,7 @@ def build_node(argv: list[str] | None = None) -> Any:
     _require_rclpy()
     from diagnostic_msgs.msg import DiagnosticArray, KeyValue
     from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+    from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
     from rclpy.node import Node
     from rclpy.parameter import Parameter
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -179,6 +183,9 @@ def build_node(argv: list[str] | None = None) -> Any:
             input_qos = p("input_qos", "sensor").value
             if input_qos not in ("sensor", "default"):
                 raise ValueError(f"parameter input_qos={input_qos!r}; accepted: sensor, default")
+            output_qos = p("output_qos", OUTPUT_QOS[0]).value
+            if output_qos not in OUTPUT_QOS:
+                raise ValueError(f"parameter output_qos={output_qos!r}; accepted: {', '.join(OUTPUT_QOS)}")
             self.core = Ros2Core(
                 config,
                 namespace=p("output_namespace", "/vpengine").value,
@@ -192,36 +199,69 @@ def build_node(argv: list[str] | None = None) -> Any:
             core = self.core
             core.start()
             default_qos = QoSProfile(depth=10)
+            out_qos = QoSProfile(depth=1 if output_qos == "latest" else 10)  # reliable, volatile
             latched = QoSProfile(
                 depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
             )
             self._pubs = {
                 t.topic: self.create_publisher(
-                    _detection_type() if t.msgtype == DETECTIONS_TYPE else Image, t.topic, default_qos
+                    _detection_type() if t.msgtype == DETECTIONS_TYPE else Image, t.topic, out_qos
                 )
                 for t in core.topics
             }
             self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", default_qos)
             self._names = self.create_publisher(String, f"{core.namespace}/model_names", latched)
             self._names.publish(String(data=model_names_text(core.model_names)))
-            self.create_subscription(KeyValue, f"{core.namespace}/set_rate", self._on_rate, default_qos)
+            # Note [Control path]: rate commands only queue here (callbacks of the executor); the core's control
+            # loop applies them and publishes /diagnostics on its own thread. Input has a callback group of its own,
+            # so a MultiThreadedExecutor never holds a command or a service call behind a frame's decode.
+            self._commands: queue.SimpleQueue[tuple[str, str]] = queue.SimpleQueue()
+            control_group = MutuallyExclusiveCallbackGroup()
+            self.create_subscription(
+                KeyValue,
+                f"{core.namespace}/set_rate",
+                lambda m: self._commands.put((m.key, m.value)),
+                default_qos,
+                callback_group=control_group,
+            )
             in_qos = qos_profile_sensor_data if input_qos == "sensor" else default_qos
+            self._input_topic = input_topic
+            input_group = MutuallyExclusiveCallbackGroup()
             if compressed:
-                topic = (
+                self._input_topic = (
                     input_topic
                     if input_topic.rstrip("/").endswith("/compressed")
                     else f"{input_topic}/compressed"
                 )
-                self.create_subscription(CompressedImage, topic, core.handle_compressed, in_qos)
+                self.create_subscription(
+                    CompressedImage,
+                    self._input_topic,
+                    core.handle_compressed,
+                    in_qos,
+                    callback_group=input_group,
+                )
             else:
-                self.create_subscription(Image, input_topic, core.handle_image, in_qos)
-            self._services()
-            self.create_timer(1.0, lambda: self._diag.publish(ros_diagnostics(core.diagnostics())))
+                self.create_subscription(
+                    Image, input_topic, core.handle_image, in_qos, callback_group=input_group
+                )
+            self._services(control_group)
             self._stop = threading.Event()
-            self._out = threading.Thread(target=self._output_loop, name="vpengine-outputs", daemon=True)
-            self._out.start()
+            control = ControlLoop(
+                core,
+                lambda d: self._diag.publish(ros_diagnostics(d)),
+                self._wait_commands,
+                before_diagnostics=lambda: core.note_publishers(self.count_publishers(self._input_topic)),
+            )
+            self._threads = [
+                threading.Thread(target=self._output_loop, name="vpengine-outputs", daemon=True),
+                threading.Thread(
+                    target=control.run, args=(self._stop,), name="vpengine-control", daemon=True
+                ),
+            ]
+            for th in self._threads:
+                th.start()
 
-        def _services(self) -> None:
+        def _services(self, group: Any) -> None:
             core = self.core
             found = find_services()
             if found is not None:
@@ -241,8 +281,8 @@ def build_node(argv: list[str] | None = None) -> Any:
                     res.model_names = list(core.model_names)
                     return res
 
-                self.create_service(change, "~/change_model_rate", on_change)
-                self.create_service(names, "~/get_model_names", on_names)
+                self.create_service(change, "~/change_model_rate", on_change, callback_group=group)
+                self.create_service(names, "~/get_model_names", on_names, callback_group=group)
                 return
             from std_srvs.srv import Trigger
 
@@ -250,7 +290,7 @@ def build_node(argv: list[str] | None = None) -> Any:
                 res.success, res.message = True, json.dumps(core.model_names)
                 return res
 
-            self.create_service(Trigger, "~/get_model_names", on_trigger)
+            self.create_service(Trigger, "~/get_model_names", on_trigger, callback_group=group)
             for m in core.model_names:
                 self.declare_parameter(
                     f"rate.{m}",
@@ -269,13 +309,14 @@ def build_node(argv: list[str] | None = None) -> Any:
 
             self.add_on_set_parameters_callback(on_params)
 
-        def _on_rate(self, msg: Any) -> None:
+        def _wait_commands(self, timeout: float) -> list[tuple[str, str]]:
             try:
-                self.core.set_rate(msg.key, msg.value)
-            except ValueError as e:
-                self.get_logger().warning(
-                    f"rate command {{key: {msg.key!r}, value: {msg.value!r}}} ignored: {e}"
-                )
+                got = [self._commands.get(timeout=timeout)]
+            except queue.Empty:
+                return []
+            while not self._commands.empty():
+                got.append(self._commands.get_nowait())
+            return got
 
         def _output_loop(self) -> None:
             while not self._stop.is_set():
@@ -286,7 +327,8 @@ def build_node(argv: list[str] | None = None) -> Any:
 
         def shutdown(self) -> None:
             self._stop.set()
-            self._out.join(timeout=5.0)
+            for th in self._threads:
+                th.join(timeout=5.0)
             self.core.stop()
 
     def _detection_type() -> Any:

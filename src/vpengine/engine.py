@@ -714,5 +714,7 @@ class Engine:
 
     def head_info(self, head: str) -> dict[str, Any]:
         """Output specs and metadata (labels, capacity, backbone it was trained on) of a head."""
-        model = self.plan.heads[self._outbox.head(head)]
+        if head not in self.plan.heads:
+            raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
+        model = self.plan.heads[head]
         return {"outputs": {k: str(v) for k, v in model.output_spec.items()}, **model.meta}

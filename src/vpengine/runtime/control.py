@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from vpengine.transport import _linux
-from vpengine.transport.memory import HostRegion, RegionHandle
+from vpengine.transport.memory import HostRegion
+from vpengine.transport.region import RegionHandle
 
 LAT_N = 512
 #: Longest sleep of any wait in a worker or the engine: how soon a sleeper notices a stop and beats its heartbeat.

@@ -65,7 +65,8 @@ import torch
 from vpengine.specs import SpecDict
 from vpengine.transport import _linux
 from vpengine.transport.layout import SlotLayout
-from vpengine.transport.memory import HostRegion, Region, RegionHandle, allocate, open_region
+from vpengine.transport.memory import HostRegion, allocate, open_region
+from vpengine.transport.region import Region, RegionHandle
 
 Overflow = Literal["drop_oldest", "drop_newest", "block"]
 #: A reader's pin filter: (slot index, seq) -> whether it may take that slot now.

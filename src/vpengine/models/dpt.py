@@ -25,12 +25,12 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from pydantic import Field, field_validator
 from torch import nn
 
+from vpengine import colormaps
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options, Pipeline
 from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
@@ -89,8 +89,14 @@ class DepthPostprocessOptions(Options):
         description="raw: depth (float32); colormap: depth_color only (uint8 BGR); both: depth and depth_color.",
     )
     cmap: str = Field(
-        "Spectral_r", description="matplotlib colormap of depth_color (Depth-Anything-V2 uses Spectral_r)."
+        "Spectral_r", description="colormap of depth_color: a matplotlib name (Depth-Anything-V2 uses Spectral_r)."
     )
+
+    @field_validator("cmap")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        colormaps.lut(v)  # ValueError naming the accepted maps
+        return v
 
 
 # ----------------------------------------------------------------------------------------------- building blocks
@@ -319,24 +325,6 @@ def _upstream_geometry(ctx: BuildContext) -> tuple[tuple[int, int], int, int]:
 
 
 # ------------------------------------------------------------------------------------------- postprocessing
-def spectral_lut(name: str = "Spectral_r") -> np.ndarray:
-    """256x3 uint8 BGR table of a matplotlib colormap.
-
-    Same table as ``vpengine.io.visualize.colormap_lut`` (a test checks it), built here so that models/ does not
-    import io/ (layers only import downwards).
-    """
-    import matplotlib
-
-    try:
-        cmap = matplotlib.colormaps[name]
-    except KeyError:
-        raise ModelBuildError(
-            f"unknown colormap {name!r}; accepted: any matplotlib colormap name, e.g. Spectral_r, inferno, turbo"
-        ) from None
-    rgb = (cmap(np.linspace(0, 1, 256))[:, :3] * 255).round().astype(np.uint8)
-    return np.ascontiguousarray(rgb[:, ::-1])
-
-
 class DepthColormap(Model):
     """``depth: float32[H, W]`` -> ``depth_color: uint8[H, W, 3]`` (BGR), on the depth's device.
 
@@ -348,7 +336,7 @@ class DepthColormap(Model):
         super().__init__()
         # torch.tensor (not from_numpy) so the table lands on the device the model is being built on.
         self.register_buffer(
-            "lut", torch.tensor(spectral_lut(cmap).tolist(), dtype=torch.uint8), persistent=False
+            "lut", torch.tensor(colormaps.lut(cmap).tolist(), dtype=torch.uint8), persistent=False
         )
         self.keep_depth = keep_depth
         depth = TensorSpec(hw, "float32")

@@ -19,8 +19,9 @@ A mailbox slot holds exactly one frame's tensors of these shapes (the layouts ar
 (``depth: [B, H, W]``, ``boxes: [B, M, 4]``, ``count: [B]``); ``check_outputs`` checks both. Frame ``i`` of the
 outputs depends on frame ``i`` of the inputs only, and equals what a batch of that one frame gives (up to float
 rounding of batched kernels): per-frame statistics (a colour map's min-max scaling) are taken per frame. Models
-batch for real, one forward for the whole batch, not a Python loop over frames, except where a part cannot (the
-Triton upsample + argmax kernel launches once per frame; torchvision's RPN and RoI heads take lists of images).
+batch for real, one forward for the whole batch, not a Python loop over frames, except where a part cannot:
+torchvision's proposal filtering and NMS in Faster R-CNN take lists with one entry per frame, and the ONNX backend
+runs its batch-of-one export once per frame (``backends/onnxrt.py``).
 ``example_inputs(device, batch)`` makes such batched inputs; a single frame is a batch of one (``t.unsqueeze(0)``,
 a view). ``finalize`` sees one frame's host outputs, as read from a slot: no batch dimension.
 """

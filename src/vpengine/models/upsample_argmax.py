@@ -24,6 +24,10 @@ CUDA graphs capture:
    candidates in registers; it writes the class index in the output's dtype (uint8 / int16), so no int64 map and no
    cast follow. The upsampled logits are never written.
 
+A batch of frames is one launch of each kernel: the frame is the last axis of both grids, and each program offsets
+its pointers to its own frame's logits, candidates and class map (not yet run on a GPU: the CPU tests run it under
+Triton's interpreter and compile it for an H100 without one).
+
 The result is the argmax of the float32 interpolation, the same with or without candidates (tested bit for bit): it
 equals the float64 argmax except at near-ties (1-4 pixels in 10^6 in the tests), and PyTorch's on float32 logits up
 to the last bit of rounding. PyTorch's eager CUDA path rounds the upsampled logits to the model's precision before

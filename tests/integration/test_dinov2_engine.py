@@ -54,7 +54,7 @@ def test_plan_of_the_run():
     # 270x480 -> short side 140 -> 140x252 -> 10 x 18 tokens
     assert plan.feature_meta["grid"] == (10, 18) and plan.feature_meta["image_size"] == (140, 252)
     assert plan.feature_meta["backbone"] == "dinov2_vits14" and plan.feature_meta["embed_dim"] == 48
-    assert str(plan.features["patch.3"]) == "float32[1, 180, 48]"
+    assert str(plan.features["patch.3"]) == "float32[180, 48]"  # one frame, no batch dimension
 
 
 @pytest.mark.parametrize("mode", ["thread", "process"])

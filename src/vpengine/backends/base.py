@@ -19,10 +19,10 @@ Mailbox slots are allocated once, at start, at fixed addresses, so an executor m
 them: ``bind(inputs, outputs)`` is handed every input slot's tensors and every output slot's tensors (lists indexed
 like the rings' slots; one frame each, no batch dimension) and returns True if it will take ``run_bound(i, j)`` --
 run the batch of one frame in input slot ``i``, write output slot ``j``, both enqueued on the current stream --
-instead of a call followed by the worker's own copies. The compile
-backend binds on CUDA: it captures, per slot, a small CUDA graph of the copies into its static inputs and out of its
-static outputs, so a frame costs three graph launches instead of one copy launch per tensor (a DPT head reads eight
-feature tensors), each of which holds Python's interpreter lock in thread mode. The base class binds nothing.
+instead of a call followed by the worker's own copies. The compile backend binds on CUDA: it captures, per slot, a
+small CUDA graph of the copies into the static inputs of its batch-of-one graph and out of its static outputs, so a
+frame costs three graph launches instead of one copy launch per tensor (a DPT head reads eight feature tensors), each
+of which holds Python's interpreter lock in thread mode. The base class binds nothing.
 
 Note [Precision]
 ~~~~~~~~~~~~~~~~

@@ -136,8 +136,9 @@ class CompiledExecutor(Executor):
 
     def _compile(self) -> None:
         # Each batch size is a recompilation of the same forward (dynamic=False); dynamo would fall back to eager
-        # past its recompile limit (8 by default), so the limit covers every size while they compile.
-        limit = max(torch._dynamo.config.recompile_limit, self.max_batch + 1)
+        # past its recompile limit (8 by default), so while they compile the limit grows by one per size. (Entries
+        # of earlier, dead instances of the model may count too, when a new one reuses their id.)
+        limit = torch._dynamo.config.recompile_limit + self.max_batch
         try:
             with torch._dynamo.config.patch(recompile_limit=limit), torch.inference_mode():
                 for static in self._static.values():

@@ -2,7 +2,8 @@
 
 Depth-Anything-V2 (Yang et al., 2024) is a DINOv2 backbone fine-tuned together with a DPT decoder. This module is
 that decoder, ``DPTHead`` of ``depth_anything_v2/dpt.py`` in the DepthAnything/Depth-Anything-V2 repository, as a
-vpengine head: it reads ``patch.0 .. patch.3`` (and ``cls.0 .. cls.3`` only with ``use_clstoken``) and produces
+vpengine head: it reads ``patch.0 .. patch.3`` (and ``cls.0 .. cls.3`` only with ``use_clstoken``) of a batch of
+frames and produces, per frame (Note [Batched models] in base.py),
 
 * ``depth: float32[H, W]`` at input resolution: relative *inverse* depth (disparity-like: larger is nearer, known
   up to scale and shift), exactly as the reference ``infer_image`` produces it, never quantised.
@@ -256,7 +257,7 @@ class DPTDepthHead(Model):
         dtype = self.scratch.layer1_rn.weight.dtype
         layers = []
         for i in range(N_LAYERS):
-            x = inputs[f"patch.{i}"].to(dtype)  # [1, gh*gw, C]
+            x = inputs[f"patch.{i}"].to(dtype)  # [B, gh*gw, C]
             if self.use_clstoken:
                 cls_tok = inputs[f"cls.{i}"].to(dtype)[:, None].expand_as(x)
                 x = self.readout_projects[i](torch.cat((x, cls_tok), -1))
@@ -278,7 +279,7 @@ class DPTDepthHead(Model):
         out = s.output_conv2(out)
         if tuple(out.shape[-2:]) != self.out_hw:
             out = F.interpolate(out, self.out_hw, mode="bilinear", align_corners=True)
-        return {"depth": out[0, 0].float()}
+        return {"depth": out[:, 0].float()}
 
 
 @torch.no_grad()
@@ -311,12 +312,12 @@ def _upstream_geometry(ctx: BuildContext) -> tuple[tuple[int, int], int, int]:
     dims = set()
     for i in range(N_LAYERS):
         spec = ctx.upstream[f"patch.{i}"]
-        if len(spec.shape) != 3 or spec.shape[0] != 1 or spec.shape[1] != gh * gw:
+        if len(spec.shape) != 2 or spec.shape[0] != gh * gw:
             raise ModelBuildError(
-                f"{ctx.name} ({ctx.cfg.model}): patch.{i} is {spec}, expected [1, {gh * gw}, C] for the "
+                f"{ctx.name} ({ctx.cfg.model}): patch.{i} is {spec}, expected [{gh * gw}, C] for the "
                 f"{gh}x{gw} token grid"
             )
-        dims.add(spec.shape[2])
+        dims.add(spec.shape[1])
     if len(dims) != 1:
         raise ModelBuildError(
             f"{ctx.name} ({ctx.cfg.model}): patch.0..3 must share one width, got {sorted(dims)}"
@@ -328,8 +329,9 @@ def _upstream_geometry(ctx: BuildContext) -> tuple[tuple[int, int], int, int]:
 class DepthColormap(Model):
     """``depth: float32[H, W]`` -> ``depth_color: uint8[H, W, 3]`` (BGR), on the depth's device.
 
-    Per frame min-max scaling over the finite pixels, then a 256-entry colormap lookup: the same arithmetic as
-    ``vpengine.io.visualize.colorize_depth`` (non-finite pixels are black), without a trip through the host.
+    Per frame min-max scaling over the finite pixels (each frame of a batch by its own minimum and maximum), then
+    a 256-entry colormap lookup: the same arithmetic as ``vpengine.io.visualize.colorize_depth`` (non-finite pixels
+    are black), without a trip through the host.
     """
 
     def __init__(self, hw: tuple[int, int], cmap: str = "Spectral_r", keep_depth: bool = False) -> None:
@@ -346,10 +348,10 @@ class DepthColormap(Model):
         self.meta = {"output_grid": dict.fromkeys(self.output_spec, "map")}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        d = inputs["depth"].float()
+        d = inputs["depth"].float()  # B, H, W
         finite = torch.isfinite(d)
-        lo = torch.where(finite, d, torch.inf).amin()
-        hi = torch.where(finite, d, -torch.inf).amax()
+        lo = torch.where(finite, d, torch.inf).amin(dim=(1, 2), keepdim=True)
+        hi = torch.where(finite, d, -torch.inf).amax(dim=(1, 2), keepdim=True)
         scaled = (d - lo) / (hi - lo).clamp_min(1e-12)
         idx = torch.where(finite, (scaled.clamp(0, 1) * 255).round(), 0).long()
         color = self.lut[idx].masked_fill_(~finite[..., None], 0)

@@ -2,7 +2,8 @@
 
 A model declares ``input_spec`` and ``output_spec`` as ``{name: TensorSpec}``. The engine checks a whole
 pipeline against these at build time and preallocates every mailbox slot from them, so nothing is allocated per
-frame. Specs carry no batch dimension of their own: a shape is stored exactly as written.
+frame. A spec describes one frame and carries no batch dimension: models compute batches of frames, each tensor
+with a leading batch dimension in front of its spec's shape (Note [Batched models] in models/base.py).
 """
 
 from __future__ import annotations

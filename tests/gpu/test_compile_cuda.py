@@ -1,5 +1,5 @@
-"""The compile backend on CUDA: torch.compile replayed as one CUDA graph over static buffers (Note [CUDA graphs]),
-and the ONNX backend on the CUDA provider. Run on the GPU machine: ``pytest -m gpu tests/gpu``.
+"""The compile backend on CUDA: torch.compile replayed as CUDA graphs over static buffers, one per batch size (Note
+[CUDA graphs]), and the ONNX backend on the CUDA provider. Run on the GPU machine: ``pytest -m gpu tests/gpu``.
 
 What must hold for a long-running robot process: same results as eager (fp32 tolerance), no device memory
 allocated by a replay, outputs copied out of the static buffers stay intact when the next frame replays, replays
@@ -40,9 +40,10 @@ def build(cfg, name: str) -> Model:
 
 
 def inputs_for(cfg, name: str, i: int) -> dict[str, torch.Tensor]:
-    """Frame ``i`` on the GPU for the foundation model; its (eager) features for a head. Fresh tensors each time."""
+    """Frame ``i`` on the GPU for the foundation model; its (eager) features for a head; a batch of one. Fresh
+    tensors each time."""
     h, w = cfg.input.height, cfg.input.width
-    x = {"frame": torch.from_numpy(frame(i, h, w)).to(CUDA)}
+    x = {"frame": torch.from_numpy(frame(i, h, w))[None].to(CUDA)}
     if name == "foundation":
         return x
     precision = cfg.foundation_model.precision or cfg.precision
@@ -110,6 +111,38 @@ def test_compiled_cuda_graph_at_low_precision_stays_close_to_fp32(precision):
         assert (got[k].float() - w).abs().max().item() <= tol * scale, k
 
 
+@pytest.mark.parametrize("name", ["foundation", "seg"])
+def test_one_cuda_graph_per_batch_size_each_frame_as_if_alone(name):
+    """A graph per batch size 1..max_batch, captured at warm-up: a batch of B frames gives each frame what a batch of
+    one gives it and what eager gives, in any order of sizes, and no replay allocates (one pool for all sizes)."""
+    cfg = tiny("thread", "device=cuda")
+    worker = torch.cuda.Stream()
+    with torch.cuda.stream(worker):
+        ex = make_executor(build(cfg, name), "compile", CUDA, name, max_batch=3)
+    assert ex.describe()["cudagraphs"] is True and sorted(ex._graphs) == [1, 2, 3]
+    eager = make_executor(build(cfg, name), "eager", CUDA, name)
+    xs = [inputs_for(cfg, name, i) for i in range(3)]
+    batches = {n: {k: torch.cat([x[k] for x in xs[:n]]) for k in xs[0]} for n in (1, 2, 3)}
+    alone = []
+    for x in xs:
+        with torch.cuda.stream(worker):
+            worker.wait_stream(torch.cuda.default_stream())
+            alone.append(snapshot(ex(x)))
+    worker.synchronize()
+    for n in (3, 1, 2, 3):
+        torch.cuda.synchronize()
+        allocated = torch.cuda.memory_allocated()
+        with torch.cuda.stream(worker):
+            out = ex(batches[n])
+        worker.synchronize()
+        assert torch.cuda.memory_allocated() == allocated, f"a batch of {n} allocated"
+        got = snapshot(out)
+        for i in range(n):
+            frame_i = {k: v[i : i + 1] for k, v in got.items()}
+            assert_same_results(name, frame_i, alone[i], 1e-5, f"{name} frame {i} of {n}")
+            assert_same_results(name, frame_i, snapshot(eager(xs[i])), 1e-4, f"{name} frame {i} of {n} vs eager")
+
+
 # ------------------------------------------------------------------------------------------ memory and buffers
 def test_replays_allocate_no_device_memory():
     """200 frames through every tiny model from rotating 'mailbox slots': allocated and reserved memory stay flat."""
@@ -147,7 +180,7 @@ def test_copied_outputs_survive_the_next_replay():
     ex = make_executor(build(cfg, "depth"), "compile", CUDA, "depth")
     eager = make_executor(build(cfg, "depth"), "eager", CUDA, "depth")
     a, b = inputs_for(cfg, "depth", 0), inputs_for(cfg, "depth", 1)
-    slot_a = torch.empty(ex.output_spec["depth"].shape, device=CUDA)
+    slot_a = torch.empty((1, *ex.output_spec["depth"].shape), device=CUDA)
     slot_b = torch.empty_like(slot_a)
     out_a = ex(a)
     slot_a.copy_(out_a["depth"])
@@ -170,7 +203,7 @@ def test_replay_is_ordered_on_the_callers_stream():
     eager = make_executor(build(cfg, "depth"), "eager", CUDA, "depth")
     a, b = inputs_for(cfg, "depth", 0), inputs_for(cfg, "depth", 1)
     slot = {k: v.clone() for k, v in a.items()}
-    out = torch.empty(ex.output_spec["depth"].shape, device=CUDA)
+    out = torch.empty((1, *ex.output_spec["depth"].shape), device=CUDA)
     torch.cuda.synchronize()
     with torch.cuda.stream(worker):
         torch.cuda._sleep(200_000_000)  # ~0.1 s of GPU time before the slot is refilled with frame B
@@ -192,7 +225,8 @@ def test_slot_bound_runs_read_and_write_the_slots_they_are_told(name):
         ex = make_executor(build(cfg, name), "compile", CUDA, name)
     eager = make_executor(build(cfg, name), "eager", CUDA, name)
     on_host = name == "foundation"  # frames come from host mailboxes; the depth head's outputs go to one
-    ins = [inputs_for(cfg, name, i) for i in range(3)]
+    batches = [inputs_for(cfg, name, i) for i in range(3)]
+    ins = [{k: v[0] for k, v in x.items()} for x in batches]  # a slot holds one frame: no batch dimension
     if on_host:
         ins = [{k: v.cpu().pin_memory() for k, v in x.items()} for x in ins]
     outs = [
@@ -214,8 +248,8 @@ def test_slot_bound_runs_read_and_write_the_slots_they_are_told(name):
             ex.run_bound(i, j)
         worker.synchronize()
         assert torch.cuda.memory_allocated() == allocated, f"slot {i} -> {j} allocated"
-        want = snapshot(eager({k: v.to(CUDA) for k, v in ins[i].items()}))
-        got = {k: v.to(CUDA) for k, v in outs[j].items()}
+        want = snapshot(eager(batches[i]))
+        got = {k: v.to(CUDA)[None] for k, v in outs[j].items()}
         assert_same_results(name, got, want, 1e-4, f"{name} slot {i} -> {j}")
 
 
@@ -230,7 +264,7 @@ def test_a_run_launched_from_another_thread_is_queued_on_the_workers_stream():
         ex = make_executor(build(cfg, "depth"), "compile", CUDA, "depth")
     eager = make_executor(build(cfg, "depth"), "eager", CUDA, "depth")
     feats = [inputs_for(cfg, "depth", i) for i in range(2)]
-    ins = [{k: torch.zeros_like(v) for k, v in feats[0].items()}]
+    ins = [{k: torch.zeros_like(v[0]) for k, v in feats[0].items()}]  # one slot, one frame
     outs = [{k: torch.empty(s.shape, dtype=s.torch_dtype).pin_memory() for k, s in ex.output_spec.items()}]
     with torch.cuda.stream(worker):
         assert ex.bind(ins, outs) is True
@@ -243,13 +277,13 @@ def test_a_run_launched_from_another_thread_is_queued_on_the_workers_stream():
         with torch.cuda.stream(worker):
             torch.cuda._sleep(50_000_000)  # ~25 ms, then this frame's features land in the input slot
             for k, v in feats[i].items():
-                ins[0][k].copy_(v)
+                ins[0][k].copy_(v[0])
         ex.run_bound_on(worker, 0, 0)
         assert torch.cuda.current_stream() == mine
         worker.synchronize()
         assert torch.cuda.memory_allocated() == allocated
         want = snapshot(eager(feats[i]))
-        assert_same_results("depth", {k: v.to(CUDA) for k, v in outs[0].items()}, want, 1e-4, f"frame {i}")
+        assert_same_results("depth", {k: v.to(CUDA)[None] for k, v in outs[0].items()}, want, 1e-4, f"frame {i}")
         for v in ins[0].values():
             v.zero_()
 
@@ -282,7 +316,7 @@ def test_a_slot_that_cannot_be_bound_leaves_the_executor_running_unbound():
     """Pageable host slots cannot be copied inside a CUDA graph: bind says no and calls keep working."""
     cfg = tiny("thread", "device=cuda")
     ex = make_executor(build(cfg, "foundation"), "compile", CUDA, "foundation")
-    pageable = [{k: v.cpu() for k, v in inputs_for(cfg, "foundation", 0).items()}]
+    pageable = [{k: v[0].cpu() for k, v in inputs_for(cfg, "foundation", 0).items()}]
     outs = [{k: torch.empty(s.shape, dtype=s.torch_dtype, device=CUDA) for k, s in ex.output_spec.items()}]
     assert ex.bind(pageable, outs) is False
     assert ex.describe()["slot_bound"] is False
@@ -307,7 +341,7 @@ def test_a_model_that_cannot_be_captured_fails_at_warm_up_with_the_fix():
         make_executor(_HostSync().to(CUDA), "compile", CUDA, "user", options=opts)
     ex = make_executor(_HostSync().to(CUDA), "compile", CUDA, "user", options={**opts, "cudagraphs": False})
     assert ex.describe()["cudagraphs"] is False
-    x = {"x": torch.randn(4, 8, device=CUDA)}
+    x = {"x": torch.randn(1, 4, 8, device=CUDA)}
     torch.testing.assert_close(ex(x)["y"], x["x"] * 2 + (x["x"] * 2).max())
 
 

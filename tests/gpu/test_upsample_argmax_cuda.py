@@ -56,10 +56,22 @@ def test_fused_kernel_on_cuda_is_the_argmax_of_float64_upsampling_at_1080p(dtype
     g = torch.Generator(device=CUDA).manual_seed(classes)
     logits = (torch.randn(1, classes, *GRID, generator=g, device=CUDA) * 3).to(dtype)
     got = fused_upsample_argmax(logits, FRAME, torch.uint8)
-    assert got.dtype == torch.uint8 and got.shape == FRAME and got.is_cuda
+    assert got.dtype == torch.uint8 and got.shape == (1, *FRAME) and got.is_cuda
+    got = got[0]  # the batch of one
     up, best = reference(logits, FRAME)  # float64 of the same (rounded) logits
     share = assert_argmax_of(got, up, best, tol=tolerance(logits), at_most=1e-5)
     print(f"{classes} classes, {dtype}: {share:.2e} of pixels at a near-tie differ")
+
+
+def test_a_batch_is_one_launch_of_each_kernel_and_each_frame_its_own_map():
+    # the frame is the grids' last axis (Note [Fused upsample + argmax]): each frame as if it were alone
+    g = torch.Generator(device=CUDA).manual_seed(3)
+    logits = (torch.randn(3, 150, *GRID, generator=g, device=CUDA) * 3).half()
+    got = fused_upsample_argmax(logits, FRAME, torch.uint8)
+    assert got.shape == (3, *FRAME)
+    for i in range(3):
+        assert torch.equal(got[i], fused_upsample_argmax(logits[i : i + 1], FRAME, torch.uint8)[0]), i
+    assert not torch.equal(got[0], got[1])
 
 
 def test_candidate_classes_on_smooth_logits_give_the_same_map_faster():
@@ -92,8 +104,8 @@ def test_the_head_runs_the_fused_kernel_on_cuda_and_agrees_with_the_pytorch_path
     x = features()
     with torch.inference_mode():
         logits = fused.logits(x)
-        got = fused(x)["classes"]
-        old = plain(x)["classes"]
+        got = fused(x)["classes"][0]  # the batch of one
+        old = plain(x)["classes"][0]
     assert got.dtype == old.dtype == torch.uint8 and got.shape == old.shape == FRAME
     up, best = reference(logits, FRAME)
     assert_argmax_of(got, up, best, tol=tolerance(logits), at_most=1e-5)

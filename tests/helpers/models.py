@@ -13,7 +13,8 @@ from vpengine.specs import TensorSpec
 
 
 class SmallHead(Model):
-    """A user head on a 4x8 float32 ``x``, giving a 4x8 ``y``: subclasses write ``forward``."""
+    """A user head on a 4x8 float32 ``x``, giving a 4x8 ``y`` (per frame): subclasses write ``forward``, which gets
+    ``x: [B, 4, 8]`` and returns ``y: [B, 4, 8]`` (Note [Batched models])."""
 
     role = "head"
 
@@ -29,8 +30,8 @@ class NeedsMissingFeature(Model):
     @classmethod
     def from_config(cls, ctx: BuildContext) -> Model:
         m = cls()
-        m.input_spec = {"patch.9": TensorSpec((1, 16, 32), "float32")}
-        m.output_spec = {"y": TensorSpec((1,), "float32")}
+        m.input_spec = {"patch.9": TensorSpec((16, 32), "float32")}  # one frame: specs have no batch dimension
+        m.output_spec = {"y": TensorSpec((), "float32")}
         return m
 
 

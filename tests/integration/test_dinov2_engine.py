@@ -54,7 +54,7 @@ def test_plan_of_the_run():
     # 270x480 -> short side 140 -> 140x252 -> 10 x 18 tokens
     assert plan.feature_meta["grid"] == (10, 18) and plan.feature_meta["image_size"] == (140, 252)
     assert plan.feature_meta["backbone"] == "dinov2_vits14" and plan.feature_meta["embed_dim"] == 48
-    assert str(plan.features["patch.3"]) == "float32[1, 180, 48]"
+    assert str(plan.features["patch.3"]) == "float32[180, 48]"  # one frame, no batch dimension
 
 
 @pytest.mark.parametrize("mode", ["thread", "process"])
@@ -65,8 +65,8 @@ def test_engine_runs_dinov2_on_a_camera_frame(cheetah, mode):
     fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, device, False)
     head = build_model(cfg, "depth", "head", plan.features, plan.feature_meta, device, False)
     with torch.inference_mode():
-        feats = fm({"frame": torch.from_numpy(cheetah).to(device)})
-        want = head({k: feats[k] for k in head.input_spec})["depth"].cpu().numpy()
+        feats = fm({"frame": torch.from_numpy(cheetah).to(device)[None]})  # a batch of one frame
+        want = head({k: feats[k] for k in head.input_spec})["depth"][0].cpu().numpy()
 
     with Engine(cfg) as engine:
         fid = engine.submit(cheetah, timestamp=1700000000.5)
@@ -97,9 +97,9 @@ def test_full_hd_depth_maps_of_several_heads_arrive_exact():
     want = {}
     with torch.inference_mode():
         for name, frame in (("upright", img), ("flipped", flipped)):
-            feats = fm({"frame": torch.from_numpy(frame).to(device)})
+            feats = fm({"frame": torch.from_numpy(frame).to(device)[None]})  # a batch of one frame
             for h, m in heads.items():
-                want[name, h] = m({k: feats[k] for k in m.input_spec})["depth"].cpu().numpy()
+                want[name, h] = m({k: feats[k] for k in m.input_spec})["depth"][0].cpu().numpy()
     assert not np.array_equal(
         want["upright", "depth"], want["upright", "depth1"]
     )  # a swap of heads would show

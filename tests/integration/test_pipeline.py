@@ -32,11 +32,11 @@ class Reference:
 
     @torch.inference_mode()
     def __call__(self, img: np.ndarray) -> dict[str, dict[str, np.ndarray]]:
-        feats = self.fm({"frame": torch.from_numpy(img).to(self.device)})
+        feats = self.fm({"frame": torch.from_numpy(img).to(self.device)[None]})  # a batch of one frame
         out = {}
         for name, head in self.heads.items():
             res = head({k: feats[k] for k in head.input_spec})
-            out[name] = head.finalize({k: v.cpu().numpy() for k, v in res.items()})
+            out[name] = head.finalize({k: v[0].cpu().numpy() for k, v in res.items()})
         return out
 
 

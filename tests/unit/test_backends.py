@@ -51,9 +51,10 @@ def build(cfg, name: str) -> Model:
 
 
 def inputs_for(cfg, name: str, i: int) -> dict[str, torch.Tensor]:
-    """Realistic inputs: frame ``i`` for the foundation model, the (eager) features of frame ``i`` for a head."""
+    """Realistic inputs, a batch of one: frame ``i`` for the foundation model, the (eager) features of frame ``i``
+    for a head."""
     h, w = cfg.input.height, cfg.input.width
-    frame_t = {"frame": torch.from_numpy(frame(i, h, w))}
+    frame_t = {"frame": torch.from_numpy(frame(i, h, w))[None]}
     if name == "foundation":
         return frame_t
     precision = cfg.foundation_model.precision or cfg.precision
@@ -107,8 +108,8 @@ def test_onnx_export_has_the_spec_io_passes_the_checker_and_matches_pytorch(name
     assert path.is_file() and path.is_relative_to(tmp_path / "onnx")
     onnx.checker.check_model(str(path), full_check=True)
     graph_in, graph_out = onnx_io(path)
-    assert graph_in == [(k, s.dtype, s.shape) for k, s in specs_in.items()]
-    assert graph_out == [(k, s.dtype, s.shape) for k, s in specs_out.items()]
+    assert graph_in == [(k, s.dtype, (1, *s.shape)) for k, s in specs_in.items()]  # a batch of one frame
+    assert graph_out == [(k, s.dtype, (1, *s.shape)) for k, s in specs_out.items()]
 
     eager = make_executor(build(cfg, name), "eager", CPU, name)
     for i in range(3):
@@ -152,7 +153,7 @@ def test_compile_fullgraph_refuses_graph_breaks_and_false_runs_them():
     with pytest.raises(BackendError, match=r"(?s)user: torch.compile .* failed at warm-up.*fullgraph: false"):
         make_executor(_GraphBreak(), "compile", CPU, "user")
     ex = make_executor(_GraphBreak(), "compile", CPU, "user", options={"fullgraph": False})
-    x = {"x": torch.randn(4, 8)}
+    x = {"x": torch.randn(1, 4, 8)}
     torch.testing.assert_close(ex(x)["y"], torch.relu(x["x"] * 2) + 1)
 
 
@@ -228,9 +229,11 @@ def test_static_buffer_backends_check_input_shapes_and_accept_strided_views(back
     with pytest.raises(
         BackendError,
         match=r"depth: input 'patch.3' is torch.float32\[1, 87, 32\], the model was "
-        r"built for float32\[1, 88, 32\]",
+        r"built for a batch of float32\[88, 32\] frames: float32\[B, 88, 32\]",
     ):
         ex({"patch.3": x[:, :87]})
+    with pytest.raises(BackendError, match=r"input 'patch.3' is torch.float32\[88, 32\], .*float32\[B, 88, 32\]"):
+        ex({"patch.3": x[0]})  # one frame needs its batch dimension
     with pytest.raises(BackendError, match=r"input 'patch.3' is missing"):
         ex({})
 
@@ -358,7 +361,7 @@ def test_onnx_cache_is_reused_and_a_new_input_size_exports_again(tmp_path):
     bigger = tiny("thread", "input.height=150")
     other = make_executor(build(bigger, "foundation"), "onnx", CPU, "foundation", cache_dir=tmp_path)
     assert other.artifact.exported and other.artifact.path != path
-    assert onnx_io(other.artifact.path)[0] == [("frame", "uint8", (150, 160, 3))]
+    assert onnx_io(other.artifact.path)[0] == [("frame", "uint8", (1, 150, 160, 3))]
     assert path.stat().st_mtime_ns == mtime  # the other size's entry stays valid
 
     manifest = json.loads((path.parent / "manifest.json").read_text())
@@ -395,10 +398,11 @@ def test_cli_export_writes_a_checked_onnx_named_after_the_specs(tmp_path, capsys
     onnx.checker.check_model(str(path), full_check=True)
     model = build(tiny("thread"), "det")
     graph_in, graph_out = onnx_io(path)
-    assert graph_in == [(k, s.dtype, s.shape) for k, s in model.input_spec.items()]
-    assert graph_out == [(k, s.dtype, s.shape) for k, s in model.output_spec.items()]
+    assert graph_in == [(k, s.dtype, (1, *s.shape)) for k, s in model.input_spec.items()]
+    assert graph_out == [(k, s.dtype, (1, *s.shape)) for k, s in model.output_spec.items()]
     manifest = json.loads((tmp_path / "det.json").read_text())
-    assert manifest["precision"] == "fp32" and manifest["recipe"] == "tiny_det"
+    assert manifest["precision"] == "fp32" and manifest["recipe"] == "tiny_det" and manifest["batch"] == 1
+    assert manifest["outputs"]["count"] == {"shape": [], "dtype": "int32"}  # the per-frame specs
     assert manifest["verification"]["ok"] and set(manifest["verification"]["outputs"]) == set(
         model.output_spec
     )
@@ -409,7 +413,7 @@ def test_cli_export_fp16_changes_the_graph_precision(tmp_path):
         cli(["export", "-c", str(TINY), "-m", "foundation", "-o", str(tmp_path), "--precision", "fp16"]) == 0
     )
     graph_in, graph_out = onnx_io(tmp_path / "foundation.onnx")
-    assert graph_in == [("frame", "uint8", (120, 160, 3))]
+    assert graph_in == [("frame", "uint8", (1, 120, 160, 3))]
     assert {dt for _, dt, _ in graph_out} == {"float16"}
     assert json.loads((tmp_path / "foundation.json").read_text())["verification"]["ok"]
 
@@ -524,7 +528,7 @@ class _FrozenCount(Model):
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         n = int((inputs["x"] > 0.5).sum())
-        return {"count": torch.tensor(n, dtype=torch.int32)}
+        return {"count": torch.tensor([n], dtype=torch.int32)}
 
 
 def test_an_export_that_froze_a_data_dependent_value_is_refused(tmp_path):
@@ -548,10 +552,10 @@ def test_unused_declared_inputs_survive_export_or_are_dropped_cleanly(tmp_path):
         def __init__(self) -> None:
             super().__init__()
             self.input_spec = {
-                "patch.2": TensorSpec((1, 6, 4), "float32"),
-                "patch.3": TensorSpec((1, 6, 4), "float32"),
+                "patch.2": TensorSpec((6, 4), "float32"),
+                "patch.3": TensorSpec((6, 4), "float32"),
             }
-            self.output_spec = {"y": TensorSpec((1, 6), "float32")}
+            self.output_spec = {"y": TensorSpec((6,), "float32")}
 
         def forward(self, inputs):
             return {"y": inputs["patch.3"].sum(-1)}
@@ -585,6 +589,7 @@ def test_faster_rcnn_exports_with_the_tracing_exporter_and_its_count_follows_the
     for i in range(3):
         x = inputs_for(cfg, "h", i)
         got, want = snapshot(ex(x)), snapshot(eager(x))
+        got, want = {k: v[0] for k, v in got.items()}, {k: v[0] for k, v in want.items()}  # the one frame
         n = int(want["count"])
         assert int(got["count"]) == n, f"frame {i}: ONNX count {int(got['count'])}, PyTorch {n}"
         torch.testing.assert_close(got["boxes"][:n], want["boxes"][:n], rtol=1e-4, atol=1e-3)

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from vpengine.config import load_config
-from vpengine.models.base import BuildContext, ModelBuildError
+from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.build import build_model
 from vpengine.models.detection import FasterRCNNHead
 from vpengine.models.preprocess import ImagePreprocess
@@ -56,13 +56,13 @@ def build(cfg) -> tuple[object, FasterRCNNHead]:
 
 
 def tokens_of(plan, seed: int = 0) -> torch.Tensor:
-    """patch.3 of the tiny backbone for a random frame (real features, not noise)."""
+    """patch.3 of the tiny backbone for a random frame (real features, not noise), as a batch of one."""
     cfg = plan.cfg
     fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, torch.device("cpu"), False)
     g = torch.Generator().manual_seed(seed)
     frame = torch.randint(0, 256, plan.frame_spec["frame"].shape, generator=g, dtype=torch.uint8)
     with torch.inference_mode():
-        return fm({"frame": frame})["patch.3"]
+        return fm({"frame": frame[None]})["patch.3"]
 
 
 def force_class(head: FasterRCNNHead, label: int) -> None:
@@ -97,8 +97,8 @@ def test_outputs_match_specs_with_padding_past_count_and_best_first():
     plan, head = build(config({"score_threshold": 0.0, "max_detections": 50}))
     with torch.inference_mode():
         out = head({"patch.3": tokens_of(plan)})
-    for k, spec in plan.heads["det"].output_spec.items():
-        assert spec.matches(out[k]), k
+    check_outputs("det", plan.heads["det"].output_spec, out, batch=1)
+    out = {k: v[0] for k, v in out.items()}
     n = int(out["count"])
     assert 1 < n <= 50
     boxes, scores, labels = out["boxes"], out["scores"], out["labels"]
@@ -117,7 +117,7 @@ def test_outputs_match_specs_with_padding_past_count_and_best_first():
 def _extent_in_image(pre: ImagePreprocess, frame: np.ndarray) -> list[float]:
     """Where the bright region of ``frame`` lands in the preprocessed image, measured on the pixels."""
     with torch.inference_mode():
-        img = pre({"frame": torch.from_numpy(frame)})["image"][0, 0]
+        img = pre({"frame": torch.from_numpy(frame)[None]})["image"][0, 0]
     mask = img > (img.max() + img.min()) / 2
     ys, xs = torch.nonzero(mask, as_tuple=True)
     return [float(xs.min()), float(ys.min()), float(xs.max()) + 1, float(ys.max()) + 1]
@@ -205,7 +205,7 @@ def test_count_never_exceeds_capacity_and_keeps_the_best():
     _, large = build(config({**opts, "max_detections": 1000}))  # same seed: same weights
     tokens = tokens_of(plan)
     with torch.inference_mode():
-        out = small({"patch.3": tokens})
+        out = {k: v[0] for k, v in small({"patch.3": tokens}).items()}
         (everything,) = large.predict(tokens)
     assert everything["scores"].shape[0] > 50
     assert int(out["count"]) == 5
@@ -219,7 +219,7 @@ def test_several_objects_give_several_detections_in_the_padded_output(monkeypatc
     props = torch.tensor([[10.0, 10.0, 40.0, 40.0], [60.0, 20.0, 100.0, 90.0], [110.0, 50.0, 150.0, 100.0]])
     monkeypatch.setattr(head.rpn, "forward", lambda images, features, targets=None: ([props], {}))
     with torch.inference_mode():
-        out = head({"patch.3": tokens_of(plan)})
+        out = {k: v[0] for k, v in head({"patch.3": tokens_of(plan)}).items()}
     assert int(out["count"]) == 3
     found = sorted(map(tuple, out["boxes"][:3].tolist()))
     expected = sorted(map(tuple, head.boxes_to_input(props).tolist()))

@@ -18,7 +18,7 @@ import torch.nn.functional as F
 import transformers
 
 from vpengine.config import load_config
-from vpengine.models.base import BuildContext, ModelBuildError
+from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.dinov2 import DinoV2
 from vpengine.models.registry import resolve
 from vpengine.models.weights import CheckpointError, read_state_dict
@@ -591,8 +591,8 @@ def test_plan_at_1080p_on_the_meta_device(model):
     assert plan.feature_meta["backbone"] == model
     assert plan.frame_spec["frame"] == TensorSpec((1080, 1920, 3), "uint8")
     for i in range(4):
-        assert plan.features[f"patch.{i}"] == TensorSpec((1, 37 * 66, c), "float32")
-        assert plan.features[f"cls.{i}"] == TensorSpec((1, c), "float32")
+        assert plan.features[f"patch.{i}"] == TensorSpec((37 * 66, c), "float32")
+        assert plan.features[f"cls.{i}"] == TensorSpec((c,), "float32")
     assert len(plan.features) == 8
     assert all(p.device.type == "meta" for p in plan.foundation.parameters())
     assert plan.heads["depth"].output_spec == {"depth": TensorSpec((1080, 1920), "float32")}
@@ -623,7 +623,7 @@ def test_reduced_precision_computes_and_declares_its_dtype(precision, tol):
         out, ref = m({"image": img.to(dtype)}), m32({"image": img})
     for k, spec in m.output_spec.items():
         assert spec.dtype == {"fp16": "float16", "bf16": "bfloat16"}[precision]
-        assert spec.matches(out[k]), k
+        assert spec.matches(out[k][0]) and out[k].shape[0] == 1, k
         rel = ((out[k].float() - ref[k]).abs().max() / ref[k].abs().max()).item()
         assert rel < tol, (k, rel)
 
@@ -666,6 +666,7 @@ def test_outputs_match_the_declared_specs_and_registers_are_not_outputs():
     model = tiny_model((140, 196), registers=4)
     out = model(model.example_inputs())
     assert model.meta["grid"] == (10, 14) and model.meta["registers"] == 4
-    for k, spec in model.output_spec.items():
-        assert spec.matches(out[k]), k
-    assert model.output_spec["patch.0"] == TensorSpec((1, 140, 32), "float32")
+    check_outputs("foundation", model.output_spec, out, batch=1)
+    assert model.output_spec["patch.0"] == TensorSpec((140, 32), "float32")
+    assert model.output_spec["cls.0"] == TensorSpec((32,), "float32")
+    assert model.input_spec == {"image": TensorSpec((3, 140, 196), "float32")}

@@ -13,10 +13,10 @@ from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, D
 from helpers import heads
 from helpers.heads import upstream
 from vpengine.config import load_config
-from vpengine.io.visualize import colorize_depth, colormap_lut
+from vpengine.io.visualize import colorize_depth
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.build import build_model
-from vpengine.models.dpt import SIZES, DepthColormap, DPTDepthHead, spectral_lut
+from vpengine.models.dpt import SIZES, DepthColormap, DPTDepthHead
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
 
@@ -156,7 +156,7 @@ def test_depth_matches_hugging_face_depth_anything(hw):
     with torch.no_grad():
         ref = hf(pixel_values=pixels).predicted_depth[0]
         maps = hf.backbone(pixels).feature_maps  # four layers after the final LayerNorm, CLS first
-        ours = head({f"patch.{i}": maps[i][:, 1:] for i in range(4)})["depth"]
+        ours = head({f"patch.{i}": maps[i][:, 1:] for i in range(4)})["depth"][0]  # a batch of one
     assert ours.dtype == torch.float32 and ours.shape == hw == tuple(ref.shape)
     assert (ref > 0).float().mean() > 0.5, "degenerate reference: mostly clipped by the final ReLU"
     rel = ((ours - ref).abs().max() / ref.abs().max()).item()
@@ -191,7 +191,7 @@ def test_official_checkpoint_loads_strictly(tmp_path, size):
         assert torch.equal(v, sd[f"depth_head.{k}"]), k
     assert head.meta["trained_on"] == sz.trained_on and head.meta["kind"] == "depth"
     out = head(head.example_inputs())["depth"]
-    assert out.shape == (28, 28) and torch.isfinite(out).all() and (out >= 0).all()
+    assert out.shape == (1, 28, 28) and torch.isfinite(out).all() and (out >= 0).all()
 
 
 def _snapshot(module):
@@ -288,10 +288,10 @@ def test_real_build_on_tiny_vit_gives_documented_outputs():
     head = build_model(cfg, "depth", "head", plan.features, plan.feature_meta, cpu, False)
     frame = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8))
     with torch.no_grad():
-        feats = fm({"frame": frame})
+        feats = fm({"frame": frame[None]})
         out = head({k: feats[k] for k in head.input_spec})
-    check_outputs("depth", plan.heads["depth"].output_spec, out)
-    depth, color = out["depth"], out["depth_color"]
+    check_outputs("depth", plan.heads["depth"].output_spec, out, batch=1)
+    depth, color = out["depth"][0], out["depth_color"][0]
     assert depth.dtype == torch.float32 and torch.isfinite(depth).all() and (depth >= 0).all()
     assert depth.std() > 0
     np.testing.assert_array_equal(color.numpy(), colorize_depth(depth.numpy()))
@@ -315,7 +315,7 @@ def test_reduced_precision_still_outputs_float32_depth_close_to_fp32():
     inputs = ref_head.example_inputs()
     with torch.no_grad():
         ref, low = ref_head(inputs)["depth"], bf16(inputs)["depth"]
-    assert low.dtype == torch.float32 and low.shape == hw
+    assert low.dtype == torch.float32 and low.shape == (1, *hw)
     assert ((low - ref).abs().max() / ref.abs().max()).item() < 0.1
 
 
@@ -329,11 +329,11 @@ def test_final_resize_to_input_resolution_uses_align_corners_like_reference():
         head.out_hw = (100, 150)
         full = head(inputs)["depth"]
     expected = torch.nn.functional.interpolate(
-        at_backbone[None, None], (100, 150), mode="bilinear", align_corners=True
-    )[0, 0]
+        at_backbone[:, None], (100, 150), mode="bilinear", align_corners=True
+    )[:, 0]
     torch.testing.assert_close(full, expected)
     # align_corners=True keeps the corner pixels exactly
-    assert full[0, 0] == at_backbone[0, 0] and full[-1, -1] == at_backbone[-1, -1]
+    assert full[0, 0, 0] == at_backbone[0, 0, 0] and full[0, -1, -1] == at_backbone[0, -1, -1]
 
 
 # ---------------------------------------------------------------------------------------------- colormap
@@ -342,15 +342,24 @@ def test_device_colormap_equals_visualize_colorize_depth():
     depth = (rng.random((37, 53), dtype=np.float32) * 40 + 3).astype(np.float32)
     depth[3, 4], depth[10, 11], depth[0, 0] = np.nan, np.inf, -np.inf
     cm = DepthColormap((37, 53), keep_depth=True)
-    out = cm({"depth": torch.from_numpy(depth)})
-    np.testing.assert_array_equal(out["depth_color"].numpy(), colorize_depth(depth))
-    assert out["depth"] is not None and (out["depth_color"][3, 4] == 0).all()
-    np.testing.assert_array_equal(spectral_lut("Spectral_r"), colormap_lut("Spectral_r"))
-    flat = DepthColormap((4, 5))({"depth": torch.full((4, 5), 2.0)})  # hi == lo: no division by zero
+    out = cm({"depth": torch.from_numpy(depth)[None]})
+    np.testing.assert_array_equal(out["depth_color"][0].numpy(), colorize_depth(depth))
+    assert out["depth"] is not None and (out["depth_color"][0, 3, 4] == 0).all()
+    flat = DepthColormap((4, 5))({"depth": torch.full((1, 4, 5), 2.0)})  # hi == lo: no division by zero
     assert set(flat) == {"depth_color"}
     np.testing.assert_array_equal(
-        flat["depth_color"].numpy(), colorize_depth(np.full((4, 5), 2.0, np.float32))
+        flat["depth_color"][0].numpy(), colorize_depth(np.full((4, 5), 2.0, np.float32))
     )
+
+
+def test_device_colormap_scales_each_frame_of_a_batch_by_its_own_range():
+    rng = np.random.default_rng(1)
+    near = (rng.random((6, 7), dtype=np.float32) * 2 + 1).astype(np.float32)  # 1..3
+    far = (rng.random((6, 7), dtype=np.float32) * 90 + 10).astype(np.float32)  # 10..100
+    far[2, 3] = np.nan
+    out = DepthColormap((6, 7))({"depth": torch.from_numpy(np.stack([near, far, near]))})["depth_color"]
+    for i, d in enumerate((near, far, near)):  # as if each frame were alone: never scaled by the other's range
+        np.testing.assert_array_equal(out[i].numpy(), colorize_depth(d))
 
 
 # ----------------------------------------------------------------------------------------- config errors
@@ -363,7 +372,7 @@ def test_bad_options_and_postprocess_are_named():
         build_head((28, 28), (2, 2), 32, options={"size": "x"})
     with pytest.raises(ModelBuildError, match=r"bad postprocess options: output: .*accepted: cmap, output"):
         build_head((28, 28), (2, 2), 32, postprocess={"output": "jet"})
-    with pytest.raises(ModelBuildError, match=r"unknown colormap 'nope'"):
+    with pytest.raises(ModelBuildError, match=r"cmap: .*unknown colormap 'nope'; accepted: Spectral_r"):
         build_head((28, 28), (2, 2), 32, postprocess={"output": "both", "cmap": "nope"})
 
 
@@ -373,7 +382,7 @@ def test_missing_grid_or_mismatched_tokens_fail_at_build():
     size_s = {"size": "s"}
     with pytest.raises(ModelBuildError, match=r"needs the foundation model's token grid"):
         DPTDepthHead.from_config(BuildContext("head", "depth", cfg.heads[0], cfg, specs, {}, defaults=size_s))
-    with pytest.raises(ModelBuildError, match=r"patch.0 is float32\[1, 4, 32\], expected \[1, 6, C\]"):
+    with pytest.raises(ModelBuildError, match=r"patch.0 is float32\[4, 32\], expected \[6, C\]"):
         DPTDepthHead.from_config(
             BuildContext("head", "depth", cfg.heads[0], cfg, specs, {"grid": (2, 3)}, defaults=size_s)
         )

@@ -95,6 +95,7 @@ def test_logits_match_reference_on_hugging_face_dinov2(hw):
     rel = ((ours - ref).abs().max() / ref.abs().max()).item()
     assert rel <= 1e-4, rel
 
+    classes = classes[0]  # a batch of one
     assert classes.dtype == torch.uint8 and classes.shape == hw
     ref_classes = F.interpolate(ref, size=hw, mode="bilinear", align_corners=False)[0].argmax(0)
     agree = (classes.long() == ref_classes).float().mean().item()
@@ -118,7 +119,7 @@ def test_official_checkpoint_loads_strictly(tmp_path, size, dataset):
     assert head.default_checkpoint == f"dinov2_vit{size}14_{dataset}_linear_head"
     assert head.meta["trained_on"] == f"dinov2_vit{size}14" == SIZES[size].trained_on
     out = head(head.example_inputs())["classes"]
-    assert out.dtype == torch.uint8 and out.shape == (28, 42) and int(out.max()) < n
+    assert out.dtype == torch.uint8 and out.shape == (1, 28, 42) and int(out.max()) < n
 
 
 def test_checkpoint_without_batch_counter_still_loads(tmp_path):
@@ -190,7 +191,7 @@ def test_head_meta_carries_labels_and_palette_usable_by_visualize():
     meta = head.meta
     assert meta["kind"] == "segmentation" and meta["labels"][15] == "person"
     assert meta["palette"] == palettes.palette_bgr("voc2012") and meta["dataset"] == "voc2012"
-    classes = head(head.example_inputs())["classes"].numpy()
+    classes = head(head.example_inputs())["classes"][0].numpy()
     frame = np.zeros((28, 42, 3), np.uint8)
     pic = overlay_segmentation(frame, classes, np.asarray(meta["palette"], np.uint8), alpha=1.0)
     np.testing.assert_array_equal(pic, np.asarray(meta["palette"], np.uint8)[classes])
@@ -238,10 +239,10 @@ def test_real_build_on_tiny_vit_gives_documented_outputs():
     head = build_model(cfg, "seg", "head", plan.features, plan.feature_meta, cpu, False)
     frame = torch.from_numpy(np.random.default_rng(0).integers(0, 256, (120, 160, 3), dtype=np.uint8))
     with torch.no_grad():
-        feats = fm({"frame": frame})
+        feats = fm({"frame": frame[None]})
         out = head({k: feats[k] for k in head.input_spec})
-    check_outputs("seg", plan.heads["seg"].output_spec, out)
-    classes = out["classes"]
+    check_outputs("seg", plan.heads["seg"].output_spec, out, batch=1)
+    classes = out["classes"][0]
     assert classes.dtype == torch.uint8 and classes.shape == (120, 160)
     assert int(classes.max()) < 150 and len(classes.unique()) > 1
     again = build_model(cfg, "seg", "head", plan.features, plan.feature_meta, cpu, False)
@@ -264,7 +265,7 @@ def test_upsample_choice_names_why_the_fused_kernel_cannot_run():
         head = build_head((28, 42), (2, 3), 32, options={"upsample": choice})
         assert head.upsample == "torch"
         out = head(head.example_inputs())["classes"]
-        assert out.dtype == torch.uint8 and out.shape == (28, 42)
+        assert out.dtype == torch.uint8 and out.shape == (1, 28, 42)
     with pytest.raises(
         ModelBuildError, match=r"upsample is 'fused', which cannot run on cpu: it runs on CUDA only"
     ):
@@ -286,7 +287,7 @@ def test_bad_options_are_named():
         build_head((28, 42), (2, 3), 32, options={"layers": 4})
     cfg = head_config((28, 42))
     specs, _ = upstream((2, 3), 32)
-    with pytest.raises(ModelBuildError, match=r"patch.3 is float32\[1, 6, 32\], expected \[1, 4, C\]"):
+    with pytest.raises(ModelBuildError, match=r"patch.3 is float32\[6, 32\], expected \[4, C\]"):
         LinearSegHead.from_config(
             BuildContext(
                 "head", "seg", cfg.heads[0], cfg, specs, {"grid": (2, 2)}, defaults={"dataset": "ade20k"}

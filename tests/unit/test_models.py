@@ -8,7 +8,7 @@ import torch
 
 from tests_paths import tiny
 from vpengine.config import PreprocessConfig, load_config
-from vpengine.models.base import ModelBuildError, Pipeline
+from vpengine.models.base import ModelBuildError, Pipeline, check_outputs
 from vpengine.models.build import build_model
 from vpengine.models.preprocess import IMAGENET_MEAN, IMAGENET_STD, ImagePreprocess, target_size
 from vpengine.runtime.plan import make_plan
@@ -35,13 +35,13 @@ def test_preprocess_matches_a_hand_computation():
     frame = np.random.default_rng(0).integers(0, 256, (28, 42, 3), dtype=np.uint8)
     cfg = PreprocessConfig(resize="none")
     pre = ImagePreprocess(28, 42, cfg, 14, color="bgr")
-    out = pre({"frame": torch.from_numpy(frame)})["image"]
+    out = pre({"frame": torch.from_numpy(frame)[None]})["image"]  # a batch of one frame
     rgb = frame[..., ::-1].astype(np.float32) / 255
     ref = (rgb - np.array(IMAGENET_MEAN)) / np.array(IMAGENET_STD)
     assert out.shape == (1, 3, 28, 42)
     np.testing.assert_allclose(out[0].permute(1, 2, 0).numpy(), ref, rtol=1e-5, atol=1e-5)
     rgb_pre = ImagePreprocess(28, 42, cfg, 14, color="rgb")
-    out_rgb = rgb_pre({"frame": torch.from_numpy(np.ascontiguousarray(frame[..., ::-1]))})["image"]
+    out_rgb = rgb_pre({"frame": torch.from_numpy(np.ascontiguousarray(frame[..., ::-1]))[None]})["image"]
     torch.testing.assert_close(out, out_rgb)
 
 
@@ -52,6 +52,10 @@ def test_plan_builds_on_meta_device_and_declares_specs():
     assert all(p.device.type == "meta" for p in plan.foundation.parameters())
     assert plan.heads["depth"].output_spec == {"depth": TensorSpec((120, 160), "float32")}
     assert plan.heads["det"].output_spec["count"] == TensorSpec((), "int32")
+    # one frame per spec, no batch dimension anywhere (Note [Batched models])
+    assert plan.features["patch.3"] == TensorSpec((88, 32), "float32")
+    assert plan.features["cls.3"] == TensorSpec((32,), "float32")
+    assert plan.foundation.stages[0].output_spec == {"image": TensorSpec((3, 112, 154), "float32")}
     assert plan.feature_meta["grid"] == (8, 11)  # 120x160 -> 112x154 -> 8x11 tokens
 
 
@@ -60,13 +64,44 @@ def test_real_build_runs_and_matches_declared_specs():
     plan = make_plan(cfg)
     fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, torch.device("cpu"), False)
     feats = fm(fm.example_inputs())
+    check_outputs("foundation", plan.features, feats, batch=1)
     for k, spec in plan.features.items():
-        assert spec.matches(feats[k])
+        assert feats[k].shape[0] == 1 and spec.matches(feats[k][0])  # specs have no batch dimension
     for name, meta_model in plan.heads.items():
         head = build_model(cfg, name, "head", plan.features, plan.feature_meta, torch.device("cpu"), False)
         out = head({k: feats[k] for k in head.input_spec})
+        check_outputs(name, meta_model.output_spec, out, batch=1)
         for k, spec in meta_model.output_spec.items():
-            assert spec.matches(out[k]), (name, k)
+            assert out[k].shape[0] == 1 and spec.matches(out[k][0]), (name, k)
+
+
+def test_check_outputs_wants_one_leading_batch_dimension_on_every_output():
+    spec = {"depth": TensorSpec((4, 5), "float32"), "count": TensorSpec((), "int32")}
+    good = {"depth": torch.zeros(3, 4, 5), "count": torch.zeros(3, dtype=torch.int32)}
+    check_outputs("h", spec, good)
+    check_outputs("h", spec, good, batch=3)
+    with pytest.raises(
+        ModelBuildError,
+        match=r"h: outputs differ .*depth: declared float32\[4, 5\] per frame, so float32\[2, 4, 5\] for a "
+        r"batch of 2; got torch.float32\[3, 4, 5\].*count: declared int32\[\] per frame, so int32\[2\]",
+    ):
+        check_outputs("h", spec, good, batch=2)
+    with pytest.raises(ModelBuildError, match=r"depth: .*got torch.float32\[4, 5\]"):  # one frame, unbatched
+        check_outputs("h", spec, {"depth": torch.zeros(4, 5), "count": torch.zeros(4, dtype=torch.int32)})
+    with pytest.raises(ModelBuildError, match=r"count: .*for a batch of 3; got torch.int32\[2\]"):
+        check_outputs("h", spec, {**good, "count": torch.zeros(2, dtype=torch.int32)})
+    with pytest.raises(ModelBuildError, match=r"missing \['count'\]"):
+        check_outputs("h", spec, {"depth": good["depth"]})
+
+
+def test_example_inputs_are_a_batch_of_the_specs():
+    fm = make_plan(tiny()).foundation
+    one, three = fm.example_inputs(batch=1), fm.example_inputs(batch=3)
+    assert one["frame"].shape == (1, 120, 160, 3) and three["frame"].shape == (3, 120, 160, 3)
+    assert one["frame"].dtype == torch.uint8 and one["frame"].device.type == "cpu"
+    assert not torch.equal(three["frame"][0], three["frame"][1])  # different frames, never zeros
+    with pytest.raises(ValueError, match="batch must be at least 1, got 0"):
+        fm.example_inputs(batch=0)
 
 
 def test_same_recipe_gives_same_weights_in_every_build():
@@ -171,9 +206,9 @@ def test_cpu_uint8_fast_resize_stays_within_one_grey_level_of_the_float_path():
     frame = torch.from_numpy(np.random.default_rng(3).integers(0, 256, (270, 480, 3), dtype=np.uint8))
     cfg = PreprocessConfig(size=112)
     pre = ImagePreprocess(270, 480, cfg, 14)
-    fast = pre({"frame": frame})["image"]  # uint8 on the CPU: resized before the float conversion
+    fast = pre({"frame": frame[None]})["image"]  # uint8 on the CPU: resized before the float conversion
     pre_f = ImagePreprocess(270, 480, cfg, 14, in_dtype="float32")  # float frames take the float path
-    slow = pre_f({"frame": frame.float() / 255})["image"]
+    slow = pre_f({"frame": frame[None].float() / 255})["image"]
     assert fast.shape == slow.shape == (1, 3, 112, 196)
     one_level = (1 / 255) / min(IMAGENET_STD)  # one grey level in normalised units
     assert (fast - slow).abs().max().item() <= one_level

@@ -15,14 +15,16 @@ from vpengine.models.upsample_argmax import upsample_argmax
 
 def test_upsample_argmax_in_class_chunks_equals_one_big_resize_and_keeps_first_on_ties():
     g = torch.Generator().manual_seed(0)
-    logits = torch.randn(1, 23, 5, 7, generator=g)
+    logits = torch.randn(2, 23, 5, 7, generator=g)  # a batch of two frames
     logits[:, 15] = logits[:, 3]  # exact tie between classes 3 and 15: 3 must win, as with argmax
     size = (61, 83)
-    full = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)[0].argmax(0)
-    per_class = size[0] * size[1] * 4
+    full = F.interpolate(logits, size=size, mode="bilinear", align_corners=False).argmax(1)
+    per_class = 2 * size[0] * size[1] * 4
     for chunk in (1, 4, 7, 22, 23, 100):
         got = upsample_argmax(logits, size, budget_bytes=chunk * per_class)
         assert torch.equal(got, full), chunk
+        for i in range(2):  # each frame as if alone
+            assert torch.equal(upsample_argmax(logits[i : i + 1], size, budget_bytes=chunk * per_class)[0], full[i])
     assert not (full == 15).any() and (full == 3).any()
 
 
@@ -59,6 +61,25 @@ def test_fused_kernel_is_the_argmax_of_bilinear_upsampling(kernel, k, src, dst):
     assert_argmax_of(out, up, best)
     if src == dst:
         assert torch.equal(out.long(), logits[0].argmax(0))
+
+
+def test_fused_kernel_runs_a_batch_in_one_launch_each_frame_as_if_alone(kernel):
+    # one program grid over every frame: each must read its own logits and candidates and write its own map
+    g = torch.Generator().manual_seed(5)
+    logits = torch.cat([smooth_logits(9, (5, 6), seed=6), torch.randn(1, 9, 5, 6, generator=g)])  # few, many
+    logits = torch.cat([logits, logits[:1] * -1])  # a third frame whose classes win elsewhere
+    out = torch.full((3, 17, 23), 255, dtype=torch.uint8)
+    counts = kernel.launch(logits, out, max_candidates=4).view(3, 5, 6)
+    for i in range(3):
+        alone = torch.full((17, 23), 255, dtype=torch.uint8)
+        alone_counts = kernel.launch(logits[i : i + 1], alone, max_candidates=4).view(5, 6)
+        assert torch.equal(out[i], alone), i
+        assert torch.equal(counts[i], alone_counts), i
+        up, best = reference(logits[i : i + 1], (17, 23))
+        assert_argmax_of(out[i], up, best)
+    assert not torch.equal(out[0], out[2])
+    with pytest.raises(ValueError, match="3 frames of logits but 2 class maps"):
+        kernel.launch(logits, out[:2])
 
 
 def test_fused_kernel_keeps_the_first_class_on_ties_and_writes_int16(kernel):
@@ -132,7 +153,7 @@ def test_fused_kernels_compile_for_a_gpu_from_every_logit_and_class_type(src, ds
             {"MAX_CAND": module.MAX_CANDIDATES, "CLASS_BLOCK": module.CLASS_BLOCK},
         ),
         module._upsample_argmax_kernel: (
-            {"src": src, "dst": dst, "cand": "*i32", "count": "*i32", **ints, "W": "i32", "scale_h": scale,
+            {"src": src, "dst": dst, "cand": "*i32", "count": "*i32", **ints, "H": "i32", "W": "i32", "scale_h": scale,
              "scale_w": scale, "MAX_CAND": "constexpr", "BLOCK": "constexpr"},
             {"MAX_CAND": module.MAX_CANDIDATES, "BLOCK": module.BLOCK},
         ),

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vpengine.colormaps import lut as colormap_lut
 from vpengine.io.visualize import (
     caption,
     colorize_depth,
-    colormap_lut,
     default_palette,
     depth_picture,
     detections,

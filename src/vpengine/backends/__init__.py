@@ -1,7 +1,7 @@
 """Execution backends: how a model runs. Each returns an executor with the model's dict-in/dict-out contract.
 
 * ``eager``: the PyTorch model as written.
-* ``compile``: ``torch.compile`` (inductor); on CUDA replayed as one CUDA graph over static buffers
+* ``compile``: ``torch.compile`` (inductor); on CUDA replayed as one CUDA graph per batch size over static buffers
   (Note [CUDA graphs] in ``compiled.py``).
 * ``onnx``: an ONNX export, cached on disk (Note [ONNX cache key] in ``onnx_export.py``), run by ONNX Runtime with
   IO binding.
@@ -36,13 +36,16 @@ def make_executor(
     options: Mapping[str, Any] | None = None,
     precision: str = "fp32",
     cache_dir: str | Path | None = None,
+    max_batch: int = 1,
 ) -> Executor:
     """The executor that runs ``model`` (built on ``device``, in eval mode) with ``backend``.
 
     ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` the
-    configured ``weights.cache_dir`` (ONNX exports go to its ``onnx`` subfolder; None: the default cache).
-    Compilation, export and CUDA graph capture happen here. The eager and compile backends cast ``model`` to the
-    precision in place and keep it; the onnx backend leaves it untouched and does not keep it.
+    configured ``weights.cache_dir`` (ONNX exports go to its ``onnx`` subfolder; None: the default cache),
+    ``max_batch`` the most frames one call computes (Note [Executor contract] in ``base.py``).
+    Compilation, export and CUDA graph capture (for every batch size up to ``max_batch``) happen here. The eager
+    and compile backends cast ``model`` to the precision in place and keep it; the onnx backend leaves it untouched
+    and does not keep it.
     Raises BackendError (a ValueError) naming the model and the accepted values for a bad backend, option or
     precision, and carrying the underlying error when an export, compilation or capture fails.
     """
@@ -51,14 +54,20 @@ def make_executor(
     if backend == "eager":
         from vpengine.backends.eager import EagerExecutor
 
-        return EagerExecutor(model, device, precision, name, opts)
+        return EagerExecutor(model, device, precision, name, opts, max_batch)
     if backend == "compile":
         from vpengine.backends.compiled import CompiledExecutor
 
-        return CompiledExecutor(model, device, precision, name, opts)
+        return CompiledExecutor(model, device, precision, name, opts, max_batch)
     from vpengine.backends.onnxrt import OnnxExecutor
     from vpengine.models.catalog import cache_dir as vpengine_cache
 
     return OnnxExecutor(
-        model, device, precision, name, opts, vpengine_cache(str(cache_dir) if cache_dir else None) / "onnx"
+        model,
+        device,
+        precision,
+        name,
+        opts,
+        vpengine_cache(str(cache_dir) if cache_dir else None) / "onnx",
+        max_batch,
     )

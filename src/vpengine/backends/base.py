@@ -2,22 +2,27 @@
 
 Note [Executor contract]
 ~~~~~~~~~~~~~~~~~~~~~~~~
-An executor is called with ``{name: tensor}`` matching the model's ``input_spec`` and returns ``{name: tensor}``
-matching its ``output_spec`` (same names, shapes and dtypes). The returned tensors may be the executor's own static
-buffers (CUDA graphs, ONNX Runtime IO binding): they are valid until the next call, and the caller copies them out
-before calling again -- the worker copies them into the output slot at once (``WorkerCore._step``). Inputs are only
-read, never kept: the worker passes views into mailbox slots whose addresses change from call to call. Executors are
-called from one thread at a time.
+An executor computes a batch of frames in one call (Note [Batched models] in models/base.py): it is called with
+``{name: tensor}`` holding every input of the model's ``input_spec`` with a leading batch dimension ``B``,
+``1 <= B <= max_batch`` (``make_executor(..., max_batch=N)``, default 1), the same ``B`` for every input, and returns
+``{name: tensor}`` holding every output of its ``output_spec`` with the same leading ``B`` (same names, and per frame
+the declared shapes and dtypes). One frame is a batch of one: ``t.unsqueeze(0)``, a view. The returned tensors may be
+the executor's own static buffers (CUDA graphs, ONNX Runtime IO binding): they are valid until the next call, and
+the caller copies them out before calling again -- the worker copies them into the output slot at once
+(``WorkerCore._run_model``). Inputs are only read, never kept: the worker passes views into mailbox slots whose
+addresses change from call to call. Executors are called from one thread at a time. Backends with static buffers
+(compile, onnx) hold them for ``max_batch`` frames and refuse a larger batch, naming the limit; eager takes any.
 
 Note [Slot-bound runs]
 ~~~~~~~~~~~~~~~~~~~~~~
 Mailbox slots are allocated once, at start, at fixed addresses, so an executor may prepare to run straight from
 them: ``bind(inputs, outputs)`` is handed every input slot's tensors and every output slot's tensors (lists indexed
-like the rings' slots) and returns True if it will take ``run_bound(i, j)`` -- read input slot ``i``, write output
-slot ``j``, both enqueued on the current stream -- instead of a call followed by the worker's own copies. The compile
-backend binds on CUDA: it captures, per slot, a small CUDA graph of the copies into its static inputs and out of its
-static outputs, so a frame costs three graph launches instead of one copy launch per tensor (a DPT head reads eight
-feature tensors), each of which holds Python's interpreter lock in thread mode. The base class binds nothing.
+like the rings' slots; one frame each, no batch dimension) and returns True if it will take ``run_bound(i, j)`` --
+run the batch of one frame in input slot ``i``, write output slot ``j``, both enqueued on the current stream --
+instead of a call followed by the worker's own copies. The compile backend binds on CUDA: it captures, per slot, a
+small CUDA graph of the copies into the static inputs of its batch-of-one graph and out of its static outputs, so a
+frame costs three graph launches instead of one copy launch per tensor (a DPT head reads eight feature tensors), each
+of which holds Python's interpreter lock in thread mode. The base class binds nothing.
 
 Note [Precision]
 ~~~~~~~~~~~~~~~~
@@ -117,17 +122,22 @@ class Executor(abc.ABC):
 
     backend: ClassVar[str]
 
-    def __init__(self, model: Model, device: torch.device | str, precision: str, name: str) -> None:
+    def __init__(
+        self, model: Model, device: torch.device | str, precision: str, name: str, max_batch: int = 1
+    ) -> None:
         self.name = name
         self.device = resolve_device(device)
         self.precision = precision
         self.dtype = precision_dtype(precision, name)
+        if not isinstance(max_batch, int) or max_batch < 1:
+            raise BackendError(f"{name}: max_batch must be a whole number >= 1, got {max_batch!r}")
+        self.max_batch = max_batch
         self.input_spec: SpecDict = dict(model.input_spec)
         self.output_spec: SpecDict = dict(model.output_spec)
 
     @abc.abstractmethod
     def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        """Run the model on ``inputs``; see Note [Executor contract] for the lifetime of the outputs."""
+        """Run the model on a batch of ``inputs``; see Note [Executor contract] for shapes and the outputs' lifetime."""
 
     def bind(self, inputs: list[dict[str, torch.Tensor]], outputs: list[dict[str, torch.Tensor]]) -> bool:
         """Prepare ``run_bound`` over these input and output slots (Note [Slot-bound runs]); False: not supported."""
@@ -148,19 +158,42 @@ class Executor(abc.ABC):
 
     def describe(self) -> dict[str, Any]:
         """Facts for logs and stats (backend, precision, and what the backend chose)."""
-        return {"backend": self.backend, "precision": self.precision, "device": str(self.device)}
+        return {
+            "backend": self.backend,
+            "precision": self.precision,
+            "device": str(self.device),
+            "max_batch": self.max_batch,
+        }
 
-    def _check_input(self, key: str, t: torch.Tensor | None) -> torch.Tensor:
-        spec = self.input_spec[key]
-        if t is None:
+    def _batch(self, inputs: dict[str, torch.Tensor], keys: list[str]) -> int:
+        """The batch size of ``inputs`` (the ``keys`` of them the model reads), checked: each is ``[B, *spec]`` of
+        its spec's dtype, with one ``B`` from 1 to ``max_batch`` (Note [Executor contract])."""
+        batch = None
+        for key in keys:
+            t = inputs.get(key)
+            spec = self.input_spec[key]
+            if t is None:
+                raise BackendError(
+                    f"{self.name}: input {key!r} is missing; the model reads {format_specs(self.input_spec)}"
+                )
+            if t.dim() != len(spec.shape) + 1 or t.shape[1:] != spec.shape or t.dtype != spec.torch_dtype:
+                raise BackendError(
+                    f"{self.name}: input {key!r} is {t.dtype}{list(t.shape)}, the model was built for a batch of "
+                    f"{spec} frames: {spec.dtype}[{', '.join(['B', *map(str, spec.shape)])}]"
+                )
+            if batch is None:
+                batch = t.shape[0]
+            elif t.shape[0] != batch:
+                raise BackendError(
+                    f"{self.name}: input {key!r} holds {t.shape[0]} frames but {keys[0]!r} holds {batch}; "
+                    "every input needs the same batch size"
+                )
+        if batch is None or not 1 <= batch <= self.max_batch:
             raise BackendError(
-                f"{self.name}: input {key!r} is missing; the model reads {format_specs(self.input_spec)}"
+                f"{self.name}: a batch of {batch} frames; the {self.backend} backend was set up for 1 to "
+                f"{self.max_batch} (make_executor's max_batch)"
             )
-        if t.shape != spec.shape or t.dtype != spec.torch_dtype:
-            raise BackendError(
-                f"{self.name}: input {key!r} is {t.dtype}{list(t.shape)}, the model was built for {spec}"
-            )
-        return t
+        return batch
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r}, {', '.join(f'{k}={v}' for k, v in self.describe().items())})"

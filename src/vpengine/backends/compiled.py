@@ -1,27 +1,32 @@
-"""``torch.compile``: inductor kernels, replayed as one CUDA graph on CUDA devices.
+"""``torch.compile``: inductor kernels, replayed as CUDA graphs on CUDA devices, one per batch size.
 
 Note [CUDA graphs]
-~~~~~~~~~~~~~~~~~~
-On a CUDA device the compiled model is captured once, at warm-up, into a ``torch.cuda.CUDAGraph`` over static
-buffers: each call copies the inputs into static input tensors, replays the graph and returns the static output
-tensors, which the worker copies into its output slot (Note [Executor contract]). We capture explicitly instead of
-using ``mode="reduce-overhead"`` (inductor's CUDA graph trees) because a robot process runs for days and must behave
-the same on frame 10 and frame 10 million:
+~~~~~~~~~~~~~~~~~
+On a CUDA device the compiled model is captured at warm-up into one ``torch.cuda.CUDAGraph`` per batch size
+``B = 1 .. max_batch`` (Note [Executor contract] in base.py) over static buffers: a call of ``B`` frames copies the
+inputs into static input tensors, replays the graph of ``B`` and returns that graph's static output tensors, which
+the worker copies into its output slots. The static inputs are one buffer per key for ``max_batch`` frames; the
+graph of ``B`` reads its first ``B`` frames (a view at offset 0), so a bigger ``max_batch`` costs no extra input
+copies. We capture explicitly instead of using ``mode="reduce-overhead"`` (inductor's CUDA graph trees) because a
+robot process runs for days and must behave the same on frame 10 and frame 10 million:
 
 * Failure is loud and early. Graph trees skip CUDA graphs with a log line when they meet something they cannot
   capture (CPU tensors, input mutation, a host sync) and the steady state then allocates per frame; an explicit
   capture either succeeds before READY or fails the worker's start with the reason.
 * Nothing is re-recorded. Graph trees re-record on new static-input addresses or shapes, on a new "generation", or
-  when outputs of an earlier replay are still alive; each re-recording costs a stall and pool memory. Our graph is
-  recorded once into its own private memory pool; a replay allocates nothing, so ``memory_allocated`` stays flat
-  (Invariant: constant memory).
+  when outputs of an earlier replay are still alive; each re-recording costs a stall and pool memory. Our graphs
+  are recorded once, every batch size before READY, into one private memory pool that they share (a replay of one
+  may overwrite what another left in the pool, which is harmless: a call's outputs are valid only until the next
+  call, and calls never overlap); a replay allocates nothing, so ``memory_allocated`` stays flat (Invariant:
+  constant memory), and the pool holds about what the largest batch needs, not the sum over all sizes.
 * No thread affinity. Graph trees keep per-thread state and assert when a graph recorded in one thread is replayed
   from another (pytorch/pytorch#123177); thread mode runs every model in its own thread. A CUDAGraph object can be
   replayed from any thread.
 * Plain stream semantics. ``replay()`` enqueues on the caller's current stream -- the worker's own stream
   (``DeviceContext.active``) -- after the copies into the static inputs and before the worker's copies out of the
   static outputs, so stream order alone makes it correct. Capture happens on a private side stream nobody else uses,
-  after ``warmup_iters`` runs on that stream (lazy cuBLAS/cuDNN set-up must not happen inside a capture).
+  after ``warmup_iters`` runs of every batch size on that stream (lazy cuBLAS/cuDNN set-up must not happen inside a
+  capture).
 * Captures use ``capture_error_mode="thread_local"``: other workers' threads (thread mode) may keep calling the CUDA
   API (allocations, event waits) while one captures; captures within a process take a lock so pools never interleave.
 
@@ -29,10 +34,12 @@ The price is one device-to-device copy of the inputs per frame, small next to a 
 518x518 are ~8 MB). Inductor's own CUDA graphs are never enabled (``max-autotune`` maps to
 ``max-autotune-no-cudagraphs``), so there are never two layers of graphs.
 
-The CPU path compiles the same way (inductor generates C++, built with the system compiler) and also feeds the
-compiled code from static input buffers: it always sees the same tensors, so dynamo's guards (dtype, shape, strides,
-whether a tensor is an inference tensor) cannot fail and recompile in the steady state, and inductor's alignment
-assumptions hold (per-key views carved out of one mailbox allocation need not be 16-byte aligned).
+The CPU path compiles the same way (inductor generates C++, built with the system compiler), once per batch size
+(``dynamic=False``: each size gets code specialised to its shapes, as the single-frame code always was), and also
+feeds the compiled code from the static input buffers: each batch size always sees the same tensors, so dynamo's
+guards (dtype, shape, strides, whether a tensor is an inference tensor) cannot fail and recompile in the steady
+state, and inductor's alignment assumptions hold (per-key views carved out of one mailbox allocation need not be
+16-byte aligned).
 """
 
 from __future__ import annotations
@@ -78,7 +85,8 @@ def _reset_capture_state(device: torch.device) -> None:
 
 
 class CompiledExecutor(Executor):
-    """``torch.compile`` of the model, compiled and (on CUDA) graph-captured at construction, before READY.
+    """``torch.compile`` of the model, compiled for every batch size up to ``max_batch`` and (on CUDA) graph-captured
+    at construction, before READY.
 
     The model is cast to the precision in place: the executor owns it from here on.
     """
@@ -92,8 +100,9 @@ class CompiledExecutor(Executor):
         precision: str,
         name: str,
         opts: CompileOptions | None = None,
+        max_batch: int = 1,
     ) -> None:
-        super().__init__(model, device, precision, name)
+        super().__init__(model, device, precision, name, max_batch)
         self.opts = opts or CompileOptions.model_validate({})
         self.model = cast_model_(model, self.dtype)
         self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
@@ -103,15 +112,12 @@ class CompiledExecutor(Executor):
         )
         self._run = PrecisionRunner(self._compiled, self.output_spec, self.dtype, self.device.type)
         self._keys = list(self.input_spec)
-        self._static = {
-            k: torch.empty(s.shape, dtype=s.torch_dtype, device=self.device)
-            for k, s in self.input_spec.items()
-        }
-        example = model.example_inputs(self.device)
-        for k in self._keys:
-            self._static[k].copy_(example[k])
-        self._graph: torch.cuda.CUDAGraph | None = None
-        self._graph_out: dict[str, torch.Tensor] = {}
+        # One buffer per key for max_batch frames; batch size b reads its first b frames, through views made once
+        # here, so each batch size always sees the same tensors (Note [CUDA graphs]).
+        full = model.example_inputs(self.device, max_batch)
+        self._static = {b: {k: full[k][:b] for k in self._keys} for b in range(1, max_batch + 1)}
+        self._graphs: dict[int, torch.cuda.CUDAGraph] = {}
+        self._graph_out: dict[int, dict[str, torch.Tensor]] = {}
         self._side: torch.cuda.Stream | None = None
         self._in_graphs: list[torch.cuda.CUDAGraph] = []
         self._out_graphs: list[torch.cuda.CUDAGraph] = []
@@ -129,9 +135,14 @@ class CompiledExecutor(Executor):
         )
 
     def _compile(self) -> None:
+        # Each batch size is a recompilation of the same forward (dynamic=False); dynamo would fall back to eager
+        # past its recompile limit (8 by default), so while they compile the limit grows by one per size. (Entries
+        # of earlier, dead instances of the model may count too, when a new one reuses their id.)
+        limit = torch._dynamo.config.recompile_limit + self.max_batch
         try:
-            with torch.inference_mode():
-                self._run(self._static)
+            with torch._dynamo.config.patch(recompile_limit=limit), torch.inference_mode():
+                for static in self._static.values():
+                    self._run(static)
         except Exception as e:
             hint = (
                 "; backend_options.fullgraph: false runs graph breaks eagerly"
@@ -147,65 +158,78 @@ class CompiledExecutor(Executor):
         side = torch.cuda.Stream(self.device)
         side.wait_stream(cur)
         with torch.inference_mode(), torch.cuda.stream(side):
-            for _ in range(self.opts.warmup_iters):
-                self._run(self._static)
-        graph = torch.cuda.CUDAGraph()
+            for static in self._static.values():
+                for _ in range(self.opts.warmup_iters):
+                    self._run(static)
+        graphs: dict[int, torch.cuda.CUDAGraph] = {}
+        outs: dict[int, dict[str, torch.Tensor]] = {}
         with _CAPTURE_LOCK:
-            try:
-                with (
-                    torch.inference_mode(),
-                    torch.cuda.graph(graph, stream=side, capture_error_mode="thread_local"),
-                ):
-                    out = self._run(self._static)
-            except Exception as e:
-                _reset_capture_state(self.device)
-                raise BackendError(
-                    f"{self.name}: CUDA graph capture failed: {_short(e)}. The model synchronises with the host or "
-                    "has data-dependent shapes (e.g. .item(), nonzero, NMS); set backend_options.cudagraphs: false "
-                    "to run it compiled without a graph"
-                ) from e
+            for b, static in self._static.items():
+                graph = torch.cuda.CUDAGraph()
+                # Every graph after the first shares the first one's pool (Note [CUDA graphs]).
+                pool = graphs[1].pool() if graphs else None
+                try:
+                    with (
+                        torch.inference_mode(),
+                        torch.cuda.graph(graph, pool=pool, stream=side, capture_error_mode="thread_local"),
+                    ):
+                        outs[b] = self._run(static)
+                except Exception as e:
+                    _reset_capture_state(self.device)
+                    raise BackendError(
+                        f"{self.name}: CUDA graph capture (batch of {b}) failed: {_short(e)}. The model "
+                        "synchronises with the host or has data-dependent shapes (e.g. .item(), nonzero, NMS); set "
+                        "backend_options.cudagraphs: false to run it compiled without a graph"
+                    ) from e
+                graphs[b] = graph
         cur.wait_stream(side)
-        # The graph reads the weights (self.model), the static inputs and workspaces set up for the side stream in
-        # place, and writes the outputs into its private pool: all of them must live as long as the graph does.
-        self._graph, self._graph_out, self._side = graph, out, side
-
-    def _load(self, inputs: dict[str, torch.Tensor]) -> None:
-        for k in self._keys:
-            self._static[k].copy_(self._check_input(k, inputs.get(k)), non_blocking=True)
+        # The graphs read the weights (self.model), the static inputs and workspaces set up for the side stream in
+        # place, and write the outputs into their pool: all of them must live as long as the graphs do.
+        self._graphs, self._graph_out, self._side = graphs, outs, side
 
     def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        self._load(inputs)
-        if self._graph is not None:
-            self._graph.replay()
-            return dict(self._graph_out)
+        b = self._batch(inputs, self._keys)
+        static = self._static[b]
+        for k in self._keys:
+            static[k].copy_(inputs[k], non_blocking=True)
+        graph = self._graphs.get(b)
+        if graph is not None:
+            graph.replay()
+            return dict(self._graph_out[b])
         with torch.inference_mode():
-            return self._run(self._static)
+            return self._run(static)
 
     def bind(self, inputs: list[dict[str, torch.Tensor]], outputs: list[dict[str, torch.Tensor]]) -> bool:
-        """Capture the copies into the static inputs from each input slot, and out of the static outputs into each
-        output slot, as CUDA graphs (Note [Slot-bound runs]). Host slots must be page-locked (the worker registers
-        them); a capture that fails leaves the executor unbound, running as before, and says why in the log."""
-        if self._graph is None or self._side is None or not self.opts.slot_bound:
+        """Capture the copies from each input slot into the static inputs of the batch-of-one graph, and out of its
+        static outputs into each output slot, as CUDA graphs (Note [Slot-bound runs]). A slot holds one frame with
+        no batch dimension; the graph's buffers have a leading 1, so both sides of each copy are plain views. Host
+        slots must be page-locked (the worker registers them); a capture that fails leaves the executor unbound,
+        running as before, and says why in the log."""
+        if 1 not in self._graphs or self._side is None or not self.opts.slot_bound:
             return False
+        static, graph_out = self._static[1], self._graph_out[1]
         for slot in inputs:
             for k in self._keys:
-                self._check_input(k, slot.get(k))
+                t, spec = slot.get(k), self.input_spec[k]
+                if t is None or t.shape != spec.shape or t.dtype != spec.torch_dtype:
+                    raise BackendError(
+                        f"{self.name}: input slot tensor {k!r} is "
+                        f"{'missing' if t is None else f'{t.dtype}{list(t.shape)}'}, the model reads {spec}"
+                    )
         for slot in outputs:
             for k, t in slot.items():
-                src = self._graph_out.get(k)
-                if src is None or src.shape != t.shape:
+                src = graph_out.get(k)
+                if src is None or src.shape[1:] != t.shape:
                     raise BackendError(
                         f"{self.name}: output slot tensor {k!r} {list(t.shape)} does not match the model's "
-                        f"output {None if src is None else list(src.shape)}"
+                        f"output {None if src is None else list(src.shape[1:])}"
                     )
         cur = torch.cuda.current_stream(self.device)
         self._side.wait_stream(cur)
         try:
             with _CAPTURE_LOCK, torch.inference_mode():
-                in_graphs = [self._copy_graph([(self._static[k], s[k]) for k in self._keys]) for s in inputs]
-                out_graphs = [
-                    self._copy_graph([(t, self._graph_out[k]) for k, t in s.items()]) for s in outputs
-                ]
+                in_graphs = [self._copy_graph([(static[k][0], s[k]) for k in self._keys]) for s in inputs]
+                out_graphs = [self._copy_graph([(t, graph_out[k][0]) for k, t in s.items()]) for s in outputs]
         except Exception as e:
             _reset_capture_state(self.device)
             log.warning(
@@ -215,7 +239,7 @@ class CompiledExecutor(Executor):
         finally:
             cur.wait_stream(self._side)
         self._in_graphs, self._out_graphs = in_graphs, out_graphs
-        self._raw = _RawLaunch.make(self.name, self.device, self._graph, in_graphs, out_graphs)
+        self._raw = _RawLaunch.make(self.name, self.device, self._graphs[1], in_graphs, out_graphs)
         return True
 
     def _copy_graph(self, pairs: list[tuple[torch.Tensor, torch.Tensor]]) -> torch.cuda.CUDAGraph:
@@ -227,9 +251,8 @@ class CompiledExecutor(Executor):
         return graph
 
     def run_bound(self, in_index: int, out_index: int) -> None:
-        assert self._graph is not None
         self._in_graphs[in_index].replay()
-        self._graph.replay()
+        self._graphs[1].replay()
         self._out_graphs[out_index].replay()
 
     def run_bound_on(self, stream: torch.cuda.Stream | None, in_index: int, out_index: int) -> None:
@@ -245,7 +268,7 @@ class CompiledExecutor(Executor):
             "compiler": self.opts.compiler,
             "mode": self.opts.mode,
             "fullgraph": self.opts.fullgraph,
-            "cudagraphs": self._graph is not None,
+            "cudagraphs": bool(self._graphs),
             "slot_bound": bool(self._in_graphs),
             "raw_launch": self._raw is not None,
         }

@@ -10,7 +10,8 @@ from vpengine.models.base import Model
 
 
 class EagerExecutor(Executor):
-    """Calls the model directly. Outputs are fresh tensors from the caching allocator (reused blocks after warm-up).
+    """Calls the model directly, on a batch of any size. Outputs are fresh tensors from the caching allocator (reused
+    blocks after warm-up).
 
     The model is cast to the precision in place: the executor owns it from here on.
     """
@@ -24,8 +25,9 @@ class EagerExecutor(Executor):
         precision: str,
         name: str,
         opts: EagerOptions | None = None,
+        max_batch: int = 1,
     ) -> None:
-        super().__init__(model, device, precision, name)
+        super().__init__(model, device, precision, name, max_batch)
         self.model = cast_model_(model, self.dtype)
         self._run = PrecisionRunner(self.model, self.output_spec, self.dtype, self.device.type)
 

@@ -1,7 +1,8 @@
 """Export any traceable :class:`Model` to ONNX, and the on-disk cache of exports.
 
 The exported graph has the model's own names: one graph input per ``input_spec`` key and one graph output per
-``output_spec`` key, with the declared static shapes and dtypes (checked after every export). Exports always run on
+``output_spec`` key, with the declared dtypes and static shapes for a batch of one frame, ``[1, *shape]`` (checked
+after every export; Note [Batched models] in models/base.py: the ONNX backend runs a batch as one run per frame). Exports always run on
 the CPU, from a host copy of the model cast to the requested precision and run under autocast exactly as the eager
 backend runs it (Note [Precision]): the file depends on the weights and the specs, never on the device the engine
 runs on, and the model in the caller's hands is left untouched.
@@ -48,7 +49,7 @@ from torch import nn
 
 from vpengine.backends.base import PrecisionRunner, cast_model_, precision_dtype
 from vpengine.backends.options import BackendError, OnnxOptions
-from vpengine.models.base import Model, Pipeline
+from vpengine.models.base import Model, Pipeline, random_inputs
 from vpengine.specs import SpecDict, TensorSpec
 
 log = logging.getLogger("vpengine.backends")
@@ -215,6 +216,7 @@ def _export_onnx(
     report = None
     if verify:
         runner = PrecisionRunner(host, model.output_spec, dtype, "cpu")
+        # a batch of one frame, as the graph holds
         report = verify_export(runner, [example, random_inputs(model.input_spec, 1)], path, precision)
         if not report["ok"]:
             bad = "; ".join(f"{k}: {describe_check(r)}" for k, r in report["outputs"].items() if not r["ok"])
@@ -232,19 +234,6 @@ VERIFY_TOLERANCE = {"fp32": 1e-3, "fp16": 2e-2}
 #: Largest tolerated fraction of differing elements of an integer output (argmax ties may break differently);
 #: for a scalar such as a detection count, any difference fails.
 VERIFY_INT_MISMATCH = 0.01
-
-
-def random_inputs(spec: SpecDict, seed: int) -> dict[str, torch.Tensor]:
-    """Inputs of ``spec`` like ``Model.example_inputs``, from another seed (a frame the exporter never saw)."""
-    g = torch.Generator().manual_seed(seed)
-    out = {}
-    for k, s in spec.items():
-        if s.torch_dtype.is_floating_point:
-            out[k] = torch.rand(s.shape, generator=g, device="cpu").to(s.torch_dtype)
-        else:
-            high = 255 if s.dtype == "uint8" else 8
-            out[k] = torch.randint(0, high, s.shape, generator=g, device="cpu").to(s.torch_dtype)
-    return out
 
 
 def describe_check(r: dict[str, Any]) -> str:
@@ -323,7 +312,7 @@ def check_onnx(
     opset: int | None = None,
 ) -> None:
     """``onnx.checker`` on the file, its opset (if given), then its graph inputs/outputs against the specs (names,
-    dtypes, shapes)."""
+    dtypes, and the spec's shapes for a batch of one: ``[1, *shape]``)."""
     import onnx
 
     try:
@@ -355,8 +344,11 @@ def check_onnx(
                     problems.append(f"{kind} {k!r} is missing")
                 continue
             dt, shape = got[k]
-            if dt != spec.dtype or shape != spec.shape:
-                problems.append(f"{kind} {k!r} is {dt}{list(shape)}, declared {spec}")
+            if dt != spec.dtype or shape != (1, *spec.shape):
+                problems.append(
+                    f"{kind} {k!r} is {dt}{list(shape)}, declared {spec} per frame, so "
+                    f"{spec.dtype}{[1, *spec.shape]} for the batch of one the graph holds"
+                )
         problems.extend(f"unexpected {kind} {k!r}" for k in got if k not in want)
 
     compare("input", got_in, input_spec)

@@ -1,9 +1,12 @@
 """ONNX Runtime: run the model's ONNX export (cached, see ``onnx_export.py``) with IO binding.
 
-Outputs are bound once, at construction, to preallocated tensors on the model's device, so ONNX Runtime writes
-straight into them and a run allocates no output memory; inputs are rebound every call to the tensors the worker
-hands in (mailbox views whose addresses change per slot), which is just a pointer swap. Inputs that are not
-contiguous or not on the model's device go through preallocated staging tensors.
+The export holds one frame (every graph input and output has a leading batch dimension of 1: Faster R-CNN's traced
+graph cannot have another, its RPN and RoI heads loop over the images in Python), so a batch of B frames is B runs,
+one per frame (Note [Executor contract] in base.py). Outputs are bound once, at construction, to preallocated
+tensors for ``max_batch`` frames on the model's device -- one IO binding per frame of a batch, bound to that frame
+of the outputs -- so ONNX Runtime writes straight into them and a run allocates no output memory; inputs are rebound
+every call to the tensors the worker hands in (mailbox views whose addresses change per slot), which is just a
+pointer swap. Inputs that are not contiguous or not on the model's device go through preallocated staging tensors.
 
 On CUDA, ONNX Runtime runs on the worker's own stream (the CUDA provider's ``user_compute_stream``), so the copies
 the worker queues before and after a run are ordered with it by the stream itself. fp16 models on the CPU provider
@@ -74,8 +77,9 @@ class OnnxExecutor(Executor):
         name: str,
         opts: OnnxOptions | None = None,
         cache_dir: str | Path | None = None,
+        max_batch: int = 1,
     ) -> None:
-        super().__init__(model, device, precision, name)
+        super().__init__(model, device, precision, name, max_batch)
         self.opts = opts or OnnxOptions.model_validate({})
         check_onnx_precision(precision, name)
         ort = _import_ort(name)
@@ -194,43 +198,55 @@ class OnnxExecutor(Executor):
         # A model may ignore some declared inputs; an exporter may then drop them from the graph.
         self._in_keys = [k for k in self.input_spec if k in graph_in]
         self._in_meta = {
-            k: (_NUMPY[s.torch_dtype], list(s.shape)) for k, s in self.input_spec.items() if k in graph_in
+            k: (_NUMPY[s.torch_dtype], [1, *s.shape]) for k, s in self.input_spec.items() if k in graph_in
         }
+        n = self.max_batch
         self._staging = {
-            k: torch.empty(self.input_spec[k].shape, dtype=self.input_spec[k].torch_dtype, device=self.device)
+            k: torch.empty((n, *self.input_spec[k].shape), dtype=self.input_spec[k].torch_dtype, device=self.device)
             for k in self._in_keys
         }
         self._out = {
-            k: torch.empty(s.shape, dtype=s.torch_dtype, device=self.device)
+            k: torch.empty((n, *s.shape), dtype=s.torch_dtype, device=self.device)
             for k, s in self.output_spec.items()
         }
-        self._binding = session.io_binding()
-        for k, t in self._out.items():
-            self._binding.bind_output(
-                k, self._dev_type, self._dev_id, _NUMPY[t.dtype], list(t.shape), t.data_ptr()
-            )
+        self._bindings = []
+        for i in range(n):
+            binding = session.io_binding()
+            for k, t in self._out.items():
+                frame = t[i : i + 1]
+                binding.bind_output(
+                    k, self._dev_type, self._dev_id, _NUMPY[t.dtype], list(frame.shape), frame.data_ptr()
+                )
+            self._bindings.append(binding)
 
     # -------------------------------------------------------------------------------------------- run
     def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        binding = self._binding
+        b = self._batch(inputs, self._in_keys or list(self.input_spec))
+        staged = {}
         for k in self._in_keys:
-            t = self._check_input(k, inputs.get(k))
+            t = inputs[k]
             if t.device != self.device or not t.is_contiguous():
-                t = self._staging[k].copy_(t)
-            np_type, shape = self._in_meta[k]
-            binding.bind_input(k, self._dev_type, self._dev_id, np_type, shape, t.data_ptr())
+                t = self._staging[k][:b].copy_(t)
+            staged[k] = t
+        for i in range(b):
+            binding = self._bindings[i]
+            for k, t in staged.items():
+                np_type, shape = self._in_meta[k]
+                binding.bind_input(k, self._dev_type, self._dev_id, np_type, shape, t[i].data_ptr())
         if self._dev_type == "cuda":
             cur = torch.cuda.current_stream(self.device)
             if self._stream is None:
                 cur.synchronize()  # ONNX Runtime's own stream cannot wait on ours: inputs must be complete
             elif cur != self._stream:
                 self._stream.wait_stream(cur)
-            self.session.run_with_iobinding(binding)
+            for i in range(b):
+                self.session.run_with_iobinding(self._bindings[i])
             if self._stream is not None and cur != self._stream:
                 cur.wait_stream(self._stream)
         else:
-            self.session.run_with_iobinding(binding)
-        return dict(self._out)
+            for i in range(b):
+                self.session.run_with_iobinding(self._bindings[i])
+        return {k: t[:b] for k, t in self._out.items()}
 
     def describe(self) -> dict[str, Any]:
         return {

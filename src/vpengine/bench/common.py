@@ -73,7 +73,8 @@ def event_ms(run: Any, n: int, warmup: int = 0) -> float:
 
 
 def pyplot() -> Any:
-    """matplotlib.pyplot drawing to files only (the Agg backend: no display needed)."""
+    """matplotlib.pyplot drawing to files only (the Agg backend: no display needed); figures need the extra
+    ``vpengine[plots]`` (``vpengine bench`` names it when matplotlib is missing)."""
     import matplotlib
 
     matplotlib.use("Agg")

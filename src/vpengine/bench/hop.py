@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         choices=["flat", "vits-1080p"],
         default="flat",
         help="flat: four tensors of --mbytes in all; vits-1080p: DINOv2 ViT-S features of a 1080p frame "
-        "(4 layers x [1, 2442, 384] patch + CLS tokens, float32, 15 MB)",
+        "(4 layers x [2442, 384] patch + CLS tokens, float32, 15 MB)",
     )
 
 
@@ -36,8 +36,8 @@ def _specs(mbytes: float, layout: str = "flat") -> dict[str, Any]:
     from vpengine.specs import TensorSpec
 
     if layout == "vits-1080p":  # 1920x1080 -> 924x518 -> 66x37 tokens
-        specs = {f"patch.{i}": TensorSpec((1, 66 * 37, 384), "float32") for i in range(4)}
-        specs.update({f"cls.{i}": TensorSpec((1, 384), "float32") for i in range(4)})
+        specs = {f"patch.{i}": TensorSpec((66 * 37, 384), "float32") for i in range(4)}
+        specs.update({f"cls.{i}": TensorSpec((384,), "float32") for i in range(4)})
         return specs
     per = int(mbytes * 1e6 / 4 / 4)  # four float32 tensors
     return {f"patch.{i}": TensorSpec((per,), "float32") for i in range(4)}

@@ -1,7 +1,8 @@
 """``vpengine export``: one model of a config to ONNX, checked, and verified against PyTorch.
 
 ``--model`` is ``foundation`` (preprocessing + backbone: uint8 frame in, features out) or a head name (features in,
-the head's outputs out). Graph inputs and outputs carry the model's spec names, shapes and dtypes. The file is
+the head's outputs out). Graph inputs and outputs carry the model's spec names and dtypes, and its per-frame shapes
+behind a batch dimension of 1 (``[1, *shape]``; the manifest's ``batch``). The file is
 written to ``OUT/NAME.onnx`` with ``OUT/NAME.json`` beside it (specs, precision, opset, model metadata and the
 verification result): what a TensorRT build or another runtime needs to wire the model up.
 """
@@ -91,6 +92,7 @@ def export_model(
         "precision": precision,
         "opset": opset,
         "exporter": exporter,
+        "batch": 1,  # graph shapes are [batch, *the per-frame shapes below]
         "inputs": {k: s.to_json() for k, s in model.input_spec.items()},
         "outputs": {k: s.to_json() for k, s in model.output_spec.items()},
         "meta": _jsonable(model.meta),

@@ -37,6 +37,8 @@ EXTRAS = {
     "onnxscript": "onnx",
     "cuda": "cuda",
     "pynvml": "cuda",
+    "matplotlib": "plots",
+    "prometheus_client": "web",
 }
 
 

@@ -9,20 +9,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from functools import lru_cache
 from typing import Any
 
 import numpy as np
 
-
-@lru_cache(maxsize=8)
-def colormap_lut(name: str = "Spectral_r") -> np.ndarray:
-    """256x3 uint8 BGR lookup table of a matplotlib colormap (Depth-Anything-V2 draws with Spectral_r)."""
-    import matplotlib
-
-    cmap = matplotlib.colormaps[name]
-    rgb = (cmap(np.linspace(0, 1, 256))[:, :3] * 255).round().astype(np.uint8)
-    return np.ascontiguousarray(rgb[:, ::-1])
+from vpengine.colormaps import lut
 
 
 def colorize_depth(
@@ -48,7 +39,7 @@ def colorize_depth(
     np.clip(scaled, 0, 1, out=scaled)
     scaled *= 255
     idx = np.rint(scaled, out=scaled).astype(np.uint8)
-    out = _lookup(colormap_lut(cmap), idx)
+    out = _lookup(lut(cmap), idx)
     if not all_finite:
         out[~finite] = 0
     return out
@@ -196,7 +187,7 @@ def depth_picture(depth: np.ndarray, cmap: str = "Spectral_r", bar: bool = True)
         bw, bh = max(6, w // 40), max(8, int(h * 0.6))
         x, y = w - bw - max(4, w // 80), (h - bh) // 2
         ramp = np.linspace(255, 0, bh).round().astype(np.uint8)  # top: the largest value
-        out[y : y + bh, x : x + bw] = colormap_lut(cmap)[ramp][:, None, :]
+        out[y : y + bh, x : x + bw] = lut(cmap)[ramp][:, None, :]
         out[[y - 1, y + bh], x - 1 : x + bw + 1] = 0
         out[y - 1 : y + bh + 1, [x - 1, x + bw]] = 0
         scale = text_scale(out) * 0.7

@@ -1,7 +1,8 @@
 """The Triton kernels of Note [Fused upsample + argmax] (upsample_argmax.py). Imported only where Triton is.
 
 ``launch`` runs them on any tensors Triton accepts: CUDA tensors, or CPU tensors under Triton's interpreter
-(``TRITON_INTERPRET=1``, which the CPU tests use). ``register`` makes them the custom op ``vpengine::upsample_argmax``,
+(``TRITON_INTERPRET=1``, which the CPU tests use). A batch of frames is one launch of each kernel: the last axis of
+each grid is the frame, and every program offsets its pointers to its frame's logits, candidates and class map. ``register`` makes them the custom op ``vpengine::upsample_argmax``,
 which ``torch.compile`` traces into its graph (and CUDA graphs capture) like any other kernel.
 
 Only Triton's builtins and this module's own jit functions are called from the kernels: the standard library's
@@ -51,10 +52,14 @@ def _corners(src, kk, m, h, w, y0, x0, y1, x1):
 
 @triton.jit
 def _candidates_kernel(src, cand, count, K, h, w, MAX_CAND: tl.constexpr, CLASS_BLOCK: tl.constexpr):
-    # One program per cell: the source pixel (y0, x0) and its right, lower and lower-right neighbours (clamped at
-    # the edges), whose values every output pixel with that (y0, x0) interpolates with weights >= 0 summing to 1.
-    # So in that cell class k's value lies in [lo_k, hi_k], the min and max of its four, and a class whose hi is
-    # below the largest lo can never win there: the class with that lo beats it everywhere in the cell.
+    # One program per cell of one frame: the source pixel (y0, x0) and its right, lower and lower-right neighbours
+    # (clamped at the edges), whose values every output pixel with that (y0, x0) interpolates with weights >= 0
+    # summing to 1. So in that cell class k's value lies in [lo_k, hi_k], the min and max of its four, and a class
+    # whose hi is below the largest lo can never win there: the class with that lo beats it everywhere in the cell.
+    frame = tl.program_id(1).to(tl.int64)
+    src += frame * K * h * w
+    cand += frame * h * w * MAX_CAND
+    count += frame * h * w
     cell = tl.program_id(0)
     y0 = cell // w
     x0 = cell % w
@@ -94,14 +99,19 @@ def _candidates_kernel(src, cand, count, K, h, w, MAX_CAND: tl.constexpr, CLASS_
 
 @triton.jit
 def _upsample_argmax_kernel(
-    src, dst, cand, count, K, h, w, W, scale_h, scale_w, MAX_CAND: tl.constexpr, BLOCK: tl.constexpr
+    src, dst, cand, count, K, h, w, H, W, scale_h, scale_w, MAX_CAND: tl.constexpr, BLOCK: tl.constexpr
 ):
-    # One program: BLOCK pixels of output row ``row``. Source coordinates as PyTorch's bilinear upsampling with
+    # One program: BLOCK pixels of output row ``row`` of frame ``frame``. Source coordinates as PyTorch's bilinear upsampling with
     # align_corners=False (area_pixel_compute_source_index): (dst + 0.5) * in / out - 0.5, clamped at 0; the
     # neighbour is the next row/column except on the last one. In float32 like PyTorch's kernel, also where a
     # caller passes the scales as float64 (torch.compile's launcher does).
     scale_h = tl.cast(scale_h, tl.float32)
     scale_w = tl.cast(scale_w, tl.float32)
+    frame = tl.program_id(2).to(tl.int64)
+    src += frame * K * h * w
+    dst += frame * H * W
+    cand += frame * h * w * MAX_CAND
+    count += frame * h * w
     row = tl.program_id(1)
     cols = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
     mask = cols < W
@@ -149,21 +159,21 @@ def _upsample_argmax_kernel(
 
 
 def _run(cand_kernel, kernel, logits, out, cand, count, max_cand: int, block: int, num_warps: int) -> None:  # type: ignore[no-untyped-def]
-    """The two launches, with the kernels as given (plain, or wrapped for torch.compile)."""
-    _, k, h, w = logits.shape
-    oh, ow = out.shape
+    """The two launches over the whole batch, with the kernels as given (plain, or wrapped for torch.compile)."""
+    b, k, h, w = logits.shape
+    oh, ow = out.shape[-2:]
     if max_cand > 0:
-        cand_kernel[(h * w,)](logits, cand, count, k, h, w, MAX_CAND=max_cand, CLASS_BLOCK=CLASS_BLOCK)
+        cand_kernel[(h * w, b)](logits, cand, count, k, h, w, MAX_CAND=max_cand, CLASS_BLOCK=CLASS_BLOCK)
     else:
         count.fill_(-1)
-    kernel[(triton.cdiv(ow, block), oh)](
-        logits, out, cand, count, k, h, w, ow, float(h) / oh, float(w) / ow,
+    kernel[(triton.cdiv(ow, block), oh, b)](
+        logits, out, cand, count, k, h, w, oh, ow, float(h) / oh, float(w) / ow,
         MAX_CAND=max(max_cand, 1), BLOCK=block, num_warps=num_warps,
     )  # fmt: skip
 
 
 def _buffers(logits: torch.Tensor, max_cand: int) -> tuple[torch.Tensor, torch.Tensor]:
-    cells = logits.shape[-2] * logits.shape[-1]
+    cells = logits.shape[0] * logits.shape[-2] * logits.shape[-1]
     cand = torch.empty(cells * max(max_cand, 1), dtype=torch.int32, device=logits.device)
     return cand, torch.empty(cells, dtype=torch.int32, device=logits.device)
 
@@ -175,8 +185,13 @@ def launch(
     num_warps: int = NUM_WARPS,
     max_candidates: int = MAX_CANDIDATES,
 ) -> torch.Tensor:
-    """``out[y, x] = argmax_k bilinear(logits[0, k])[y, x]`` for contiguous ``logits: [1, K, h, w]``. Returns the
-    candidate count of every cell (-1: all classes searched); ``max_candidates=0`` searches all classes everywhere."""
+    """``out[b, y, x] = argmax_k bilinear(logits[b, k])[y, x]`` for contiguous ``logits: [B, K, h, w]`` and
+    ``out: [B, H, W]`` (``[H, W]`` for one frame). Returns the candidate count of every cell, frame after frame (-1:
+    all classes searched); ``max_candidates=0`` searches all classes everywhere."""
+    if out.dim() == 2:
+        out = out[None]
+    if out.shape[0] != logits.shape[0]:
+        raise ValueError(f"{logits.shape[0]} frames of logits but {out.shape[0]} class maps")
     cand, count = _buffers(logits, max_candidates)
     _run(
         _candidates_kernel,
@@ -213,7 +228,7 @@ def _define() -> None:
     @triton_op("vpengine::upsample_argmax", mutates_args={})
     def upsample_argmax(logits: torch.Tensor, height: int, width: int, dtype: torch.dtype) -> torch.Tensor:
         logits = logits.contiguous()
-        out = torch.empty((height, width), dtype=dtype, device=logits.device)
+        out = torch.empty((logits.shape[0], height, width), dtype=dtype, device=logits.device)
         cand, count = _buffers(logits, MAX_CANDIDATES)
         _run(cand_kernel, kernel, logits, out, cand, count, MAX_CANDIDATES, BLOCK, NUM_WARPS)
         return out

@@ -7,6 +7,23 @@ and size every mailbox before any weight is loaded or any worker is started.
 
 A recipe (a ``Model`` subclass) is built through ``from_config(ctx)``, which may return a :class:`Pipeline` of
 several models (preprocess -> backbone, head -> postprocess); the engine runs one recipe per worker.
+
+Note [Batched models]
+~~~~~~~~~~~~~~~~~~~~~
+Specs describe ONE frame and carry no batch dimension anywhere: a frame is ``uint8[H, W, 3]``, DINOv2's features
+``patch.i: float[h*w, C]`` and ``cls.i: float[C]``, a depth map ``float32[H, W]``, a detection count ``int32[]``.
+A mailbox slot holds exactly one frame's tensors of these shapes (the layouts are planned from the specs).
+
+``Model.forward`` computes a batch of frames in one go: it receives every input with a leading batch dimension
+``B >= 1`` (``frame: [B, H, W, 3]``, ``patch.3: [B, h*w, C]``) and returns every output with the same leading ``B``
+(``depth: [B, H, W]``, ``boxes: [B, M, 4]``, ``count: [B]``); ``check_outputs`` checks both. Frame ``i`` of the
+outputs depends on frame ``i`` of the inputs only, and equals what a batch of that one frame gives (up to float
+rounding of batched kernels): per-frame statistics (a colour map's min-max scaling) are taken per frame. Models
+batch for real, one forward for the whole batch, not a Python loop over frames, except where a part cannot:
+torchvision's proposal filtering and NMS in Faster R-CNN take lists with one entry per frame, and the ONNX backend
+runs its batch-of-one export once per frame (``backends/onnxrt.py``).
+``example_inputs(device, batch)`` makes such batched inputs; a single frame is a batch of one (``t.unsqueeze(0)``,
+a view). ``finalize`` sees one frame's host outputs, as read from a slot: no batch dimension.
 """
 
 from __future__ import annotations
@@ -142,22 +159,14 @@ class Model(nn.Module):
         raise NotImplementedError
 
     def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:
-        """Host-side view for users (e.g. trim fixed-capacity detections to their count). Default: unchanged."""
+        """Host-side view for users of ONE frame's outputs, without a batch dimension (e.g. trim fixed-capacity
+        detections to their count). Default: unchanged."""
         return outputs
 
-    def example_inputs(self, device: torch.device | str = "cpu") -> dict[str, torch.Tensor]:
-        """Inputs of the declared specs, for warm-up and export (random, never zeros: zeros hide bugs)."""
-        g = torch.Generator().manual_seed(0)
-        out = {}
-        for k, s in self.input_spec.items():
-            if s.torch_dtype.is_floating_point:
-                t = torch.rand(s.shape, generator=g, device="cpu").to(s.torch_dtype)
-            else:
-                t = torch.randint(0, 255 if s.dtype == "uint8" else 8, s.shape, generator=g, device="cpu").to(
-                    s.torch_dtype
-                )
-            out[k] = t.to(device)
-        return out
+    def example_inputs(self, device: torch.device | str = "cpu", batch: int = 1) -> dict[str, torch.Tensor]:
+        """A batch of ``batch`` inputs of the declared specs, for warm-up and export (random, never zeros: zeros
+        hide bugs; Note [Batched models])."""
+        return random_inputs(self.input_spec, 0, batch, device)
 
 
 class Pipeline(Model):
@@ -202,13 +211,46 @@ class Pipeline(Model):
         return self.stages[-1].finalize(outputs)  # type: ignore[operator]
 
 
-def check_outputs(name: str, spec: SpecDict, outputs: dict[str, torch.Tensor]) -> None:
-    """Raise naming the mismatch if a model's outputs differ from what it declared."""
+def random_inputs(
+    spec: SpecDict, seed: int, batch: int = 1, device: torch.device | str = "cpu"
+) -> dict[str, torch.Tensor]:
+    """A batch of ``batch`` random tensors of ``spec`` (``[batch, *shape]``, Note [Batched models]), drawn on the
+    CPU from ``seed`` so every device gets the same values: floats in [0, 1), integers in [0, 255) for uint8 and
+    [0, 8) otherwise."""
+    if batch < 1:
+        raise ValueError(f"batch must be at least 1, got {batch}")
+    g = torch.Generator().manual_seed(seed)
+    out = {}
+    for k, s in spec.items():
+        shape = (batch, *s.shape)
+        if s.torch_dtype.is_floating_point:
+            t = torch.rand(shape, generator=g, device="cpu").to(s.torch_dtype)
+        else:
+            high = 255 if s.dtype == "uint8" else 8
+            t = torch.randint(0, high, shape, generator=g, device="cpu").to(s.torch_dtype)
+        out[k] = t.to(device)
+    return out
+
+
+def check_outputs(
+    name: str, spec: SpecDict, outputs: dict[str, torch.Tensor], batch: int | None = None
+) -> None:
+    """Raise naming the mismatch if a model's batched outputs differ from what it declared: every output must be
+    ``[B, *shape]`` of its spec with one ``B`` for all (``batch``, when given; Note [Batched models])."""
     missing = [k for k in spec if k not in outputs]
+    if batch is None:
+        sizes = [outputs[k].shape[0] for k in spec if k in outputs and outputs[k].dim() > 0]
+        batch = sizes[0] if sizes else None
     bad = [
-        f"{k}: declared {spec[k]}, got {outputs[k].dtype}{list(outputs[k].shape)}"
+        f"{k}: declared {spec[k]} per frame, so {spec[k].dtype}{[batch, *spec[k].shape]} "
+        f"for a batch of {batch}; got {outputs[k].dtype}{list(outputs[k].shape)}"
         for k in spec
-        if k in outputs and not spec[k].matches(outputs[k])
+        if k in outputs
+        and not (
+            outputs[k].dim() == len(spec[k].shape) + 1
+            and outputs[k].shape[0] == batch
+            and spec[k].matches(outputs[k][0])
+        )
     ]
     if missing or bad:
         raise ModelBuildError(

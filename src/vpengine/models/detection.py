@@ -1,6 +1,6 @@
 """Faster R-CNN object detection on the foundation model's features (no image backbone of its own).
 
-The head reads one token layer (``patch.3`` by default: ``float[1, h*w, C]`` at stride 14), turns it into a small
+The head reads one token layer (``patch.3`` by default: ``float[h*w, C]`` at stride 14), turns it into a small
 feature pyramid the way ViTDet does for a plain ViT (transposed convolutions up, identity, max-pooling down, then a
 1x1 and a 3x3 projection per level), and runs torchvision's detection parts on it: ``AnchorGenerator`` + ``RPNHead``
 + ``RegionProposalNetwork`` for proposals, ``MultiScaleRoIAlign`` + ``TwoMLPHead`` + ``FastRCNNPredictor`` inside
@@ -11,7 +11,10 @@ model. The head knows that preprocessed size (``upstream_meta["image_size"]``) a
 (``ctx.input_hw``), works in preprocessed-image pixels inside, and maps boxes back to input-frame pixels on the way
 out (see :meth:`FasterRCNNHead.boxes_to_input`).
 
-Outputs are fixed-capacity so they fit preallocated mailbox slots (M = ``max_detections``)::
+Outputs are fixed-capacity so they fit preallocated mailbox slots (M = ``max_detections``), per frame of a batch
+(Note [Batched models] in base.py: the pyramid and the RPN and box heads' layers run on the whole batch at once;
+torchvision's proposal filtering, RoI sampling and NMS take lists with one entry per frame and treat each frame on
+its own, so a frame's detections never depend on the other frames)::
 
     boxes  float32[M, 4]   x1, y1, x2, y2 in input-frame pixels, best first; 0 past ``count``
     scores float32[M]      0 past ``count``
@@ -70,7 +73,7 @@ TOP_LEVEL = "pool"
 class FasterRCNNOptions(Options):
     """Options of the Faster R-CNN head. Sizes are in preprocessed-image pixels unless said otherwise."""
 
-    layer: str = Field("patch.3", description="Feature the head reads (float[1, h*w, C]).")
+    layer: str = Field("patch.3", description="Feature the head reads (float[h*w, C]).")
     num_classes: int | None = Field(
         None, ge=1, le=10000, description="Object classes (background excluded); or give class_names."
     )
@@ -374,12 +377,12 @@ class FasterRCNNHead(Model):
         self.layer = opts.layer
         self.grid = (int(meta["grid"][0]), int(meta["grid"][1]))
         spec = ctx.upstream[opts.layer]
-        if len(spec.shape) != 3 or spec.shape[0] != 1 or spec.shape[1] != self.grid[0] * self.grid[1]:
+        if len(spec.shape) != 2 or spec.shape[0] != self.grid[0] * self.grid[1]:
             raise ModelBuildError(
-                f"{ctx.name} ({ctx.cfg.model}) reads {opts.layer!r} as [1, h*w, C] with grid {self.grid}, "
+                f"{ctx.name} ({ctx.cfg.model}) reads {opts.layer!r} as [h*w, C] with grid {self.grid}, "
                 f"but it is {spec}"
             )
-        self.dim = spec.shape[2]
+        self.dim = spec.shape[1]
         patch = int(meta.get("patch_size", 14))
         gh, gw = self.grid
         ih, iw = meta.get("image_size") or (gh * patch, gw * patch)
@@ -581,7 +584,12 @@ class FasterRCNNHead(Model):
         return {**rpn_losses, **box_losses}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        det = self.predict(inputs[self.layer])[0]
+        dets = self.predict(inputs[self.layer])
+        fixed = [self._fixed_capacity(det) for det in dets]
+        return {k: torch.stack([f[k] for f in fixed]) for k in self.output_spec}
+
+    def _fixed_capacity(self, det: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """One frame's detections in the fixed-capacity output layout."""
         m = self.opts.max_detections
         # Fixed capacity M: the first M detections (RoIHeads already keeps at most M, so the slot never overflows),
         # padded by concatenation and gathered at indices 0..M-1, so the shape is M even to a graph's shape inference.

@@ -5,7 +5,8 @@ without weights. vpengine adds what timm does not do for us:
 
 * the engine's feature layout: four intermediate blocks, each after the final LayerNorm, exactly as DINOv2's
   ``get_intermediate_layers(x, n=layers, norm=True, return_class_token=True)``, as ``patch.0 .. patch.3``
-  (``float[1, h*w, C]``, register tokens dropped) and ``cls.0 .. cls.3`` (``float[1, C]``);
+  (``float[h*w, C]`` per frame, register tokens dropped) and ``cls.0 .. cls.3`` (``float[C]``), computed for a
+  batch of frames at once (Note [Batched models] in base.py);
 * position embeddings interpolated the way Hugging Face transformers does (see Note [position embedding
   interpolation]) and precomputed once for the engine's fixed input size;
 * checkpoint loading from the official files in every layout they ship in (facebookresearch ``*_pretrain.pth``,
@@ -348,8 +349,8 @@ def resample_patch_pos(
 
 
 class DinoV2(Model):
-    """DINOv2 backbone: ``image: float[1, 3, h, w]`` (normalised, h and w multiples of 14) -> ``patch.0..3``
-    ``float[1, (h/14)*(w/14), C]`` and ``cls.0..3`` ``float[1, C]``, in the model dtype.
+    """DINOv2 backbone: ``image: float[3, h, w]`` (normalised, h and w multiples of 14) -> ``patch.0..3``
+    ``float[(h/14)*(w/14), C]`` and ``cls.0..3`` ``float[C]``, in the model dtype, per frame of a batch.
 
     Build it through :meth:`from_config` (it prepends :class:`ImagePreprocess`). ``meta`` holds ``grid``,
     ``embed_dim``, ``patch_size``, ``layers``, ``backbone`` (the recipe name), ``image_size`` and ``registers``.
@@ -403,7 +404,7 @@ class DinoV2(Model):
         # A module-level hook that receives the module (not a closure over self): it stays right under deepcopy.
         self.register_load_state_dict_post_hook(_refresh_after_load)
 
-        self.input_spec = {"image": TensorSpec((1, 3, h, w), dtype)}
+        self.input_spec = {"image": TensorSpec((3, h, w), dtype)}
         self.output_spec = feature_specs(self.grid[0] * self.grid[1], self.embed_dim, dtype)
         self.meta = {
             "grid": self.grid,

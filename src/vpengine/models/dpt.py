@@ -2,7 +2,8 @@
 
 Depth-Anything-V2 (Yang et al., 2024) is a DINOv2 backbone fine-tuned together with a DPT decoder. This module is
 that decoder, ``DPTHead`` of ``depth_anything_v2/dpt.py`` in the DepthAnything/Depth-Anything-V2 repository, as a
-vpengine head: it reads ``patch.0 .. patch.3`` (and ``cls.0 .. cls.3`` only with ``use_clstoken``) and produces
+vpengine head: it reads ``patch.0 .. patch.3`` (and ``cls.0 .. cls.3`` only with ``use_clstoken``) of a batch of
+frames and produces, per frame (Note [Batched models] in base.py),
 
 * ``depth: float32[H, W]`` at input resolution: relative *inverse* depth (disparity-like: larger is nearer, known
   up to scale and shift), exactly as the reference ``infer_image`` produces it, never quantised.
@@ -25,12 +26,12 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-import numpy as np
 import torch
 import torch.nn.functional as F
 from pydantic import Field, field_validator
 from torch import nn
 
+from vpengine import colormaps
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options, Pipeline
 from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
@@ -89,8 +90,14 @@ class DepthPostprocessOptions(Options):
         description="raw: depth (float32); colormap: depth_color only (uint8 BGR); both: depth and depth_color.",
     )
     cmap: str = Field(
-        "Spectral_r", description="matplotlib colormap of depth_color (Depth-Anything-V2 uses Spectral_r)."
+        "Spectral_r", description="colormap of depth_color: a matplotlib name (Depth-Anything-V2 uses Spectral_r)."
     )
+
+    @field_validator("cmap")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        colormaps.lut(v)  # ValueError naming the accepted maps
+        return v
 
 
 # ----------------------------------------------------------------------------------------------- building blocks
@@ -250,7 +257,7 @@ class DPTDepthHead(Model):
         dtype = self.scratch.layer1_rn.weight.dtype
         layers = []
         for i in range(N_LAYERS):
-            x = inputs[f"patch.{i}"].to(dtype)  # [1, gh*gw, C]
+            x = inputs[f"patch.{i}"].to(dtype)  # [B, gh*gw, C]
             if self.use_clstoken:
                 cls_tok = inputs[f"cls.{i}"].to(dtype)[:, None].expand_as(x)
                 x = self.readout_projects[i](torch.cat((x, cls_tok), -1))
@@ -272,7 +279,7 @@ class DPTDepthHead(Model):
         out = s.output_conv2(out)
         if tuple(out.shape[-2:]) != self.out_hw:
             out = F.interpolate(out, self.out_hw, mode="bilinear", align_corners=True)
-        return {"depth": out[0, 0].float()}
+        return {"depth": out[:, 0].float()}
 
 
 @torch.no_grad()
@@ -305,12 +312,12 @@ def _upstream_geometry(ctx: BuildContext) -> tuple[tuple[int, int], int, int]:
     dims = set()
     for i in range(N_LAYERS):
         spec = ctx.upstream[f"patch.{i}"]
-        if len(spec.shape) != 3 or spec.shape[0] != 1 or spec.shape[1] != gh * gw:
+        if len(spec.shape) != 2 or spec.shape[0] != gh * gw:
             raise ModelBuildError(
-                f"{ctx.name} ({ctx.cfg.model}): patch.{i} is {spec}, expected [1, {gh * gw}, C] for the "
+                f"{ctx.name} ({ctx.cfg.model}): patch.{i} is {spec}, expected [{gh * gw}, C] for the "
                 f"{gh}x{gw} token grid"
             )
-        dims.add(spec.shape[2])
+        dims.add(spec.shape[1])
     if len(dims) != 1:
         raise ModelBuildError(
             f"{ctx.name} ({ctx.cfg.model}): patch.0..3 must share one width, got {sorted(dims)}"
@@ -319,36 +326,19 @@ def _upstream_geometry(ctx: BuildContext) -> tuple[tuple[int, int], int, int]:
 
 
 # ------------------------------------------------------------------------------------------- postprocessing
-def spectral_lut(name: str = "Spectral_r") -> np.ndarray:
-    """256x3 uint8 BGR table of a matplotlib colormap.
-
-    Same table as ``vpengine.io.visualize.colormap_lut`` (a test checks it), built here so that models/ does not
-    import io/ (layers only import downwards).
-    """
-    import matplotlib
-
-    try:
-        cmap = matplotlib.colormaps[name]
-    except KeyError:
-        raise ModelBuildError(
-            f"unknown colormap {name!r}; accepted: any matplotlib colormap name, e.g. Spectral_r, inferno, turbo"
-        ) from None
-    rgb = (cmap(np.linspace(0, 1, 256))[:, :3] * 255).round().astype(np.uint8)
-    return np.ascontiguousarray(rgb[:, ::-1])
-
-
 class DepthColormap(Model):
     """``depth: float32[H, W]`` -> ``depth_color: uint8[H, W, 3]`` (BGR), on the depth's device.
 
-    Per frame min-max scaling over the finite pixels, then a 256-entry colormap lookup: the same arithmetic as
-    ``vpengine.io.visualize.colorize_depth`` (non-finite pixels are black), without a trip through the host.
+    Per frame min-max scaling over the finite pixels (each frame of a batch by its own minimum and maximum), then
+    a 256-entry colormap lookup: the same arithmetic as ``vpengine.io.visualize.colorize_depth`` (non-finite pixels
+    are black), without a trip through the host.
     """
 
     def __init__(self, hw: tuple[int, int], cmap: str = "Spectral_r", keep_depth: bool = False) -> None:
         super().__init__()
         # torch.tensor (not from_numpy) so the table lands on the device the model is being built on.
         self.register_buffer(
-            "lut", torch.tensor(spectral_lut(cmap).tolist(), dtype=torch.uint8), persistent=False
+            "lut", torch.tensor(colormaps.lut(cmap).tolist(), dtype=torch.uint8), persistent=False
         )
         self.keep_depth = keep_depth
         depth = TensorSpec(hw, "float32")
@@ -358,10 +348,10 @@ class DepthColormap(Model):
         self.meta = {"output_grid": dict.fromkeys(self.output_spec, "map")}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        d = inputs["depth"].float()
+        d = inputs["depth"].float()  # B, H, W
         finite = torch.isfinite(d)
-        lo = torch.where(finite, d, torch.inf).amin()
-        hi = torch.where(finite, d, -torch.inf).amax()
+        lo = torch.where(finite, d, torch.inf).amin(dim=(1, 2), keepdim=True)
+        hi = torch.where(finite, d, -torch.inf).amax(dim=(1, 2), keepdim=True)
         scaled = (d - lo) / (hi - lo).clamp_min(1e-12)
         idx = torch.where(finite, (scaled.clamp(0, 1) * 255).round(), 0).long()
         color = self.lut[idx].masked_fill_(~finite[..., None], 0)

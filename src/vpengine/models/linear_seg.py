@@ -80,7 +80,7 @@ def checkpoint_name(size: str, dataset: str) -> str:
 
 
 class LinearSegHead(Model):
-    """DINOv2 linear head: ``patch.3: float[1, h*w, C]`` -> ``classes: uint8[H, W]`` (recipes
+    """DINOv2 linear head: ``patch.3: float[h*w, C]`` -> ``classes: uint8[H, W]``, per frame of a batch (recipes
     ``dinov2_linear_{ade20k,voc2012}_{s,b,l,g}``). ``state_dict`` keys: ``bn.*``, ``conv_seg.*``."""
 
     role = "head"
@@ -114,12 +114,12 @@ class LinearSegHead(Model):
             )
         self.grid = (int(grid[0]), int(grid[1]))
         spec = ctx.upstream[self.layer]
-        if len(spec.shape) != 3 or spec.shape[:2] != (1, self.grid[0] * self.grid[1]):
+        if len(spec.shape) != 2 or spec.shape[0] != self.grid[0] * self.grid[1]:
             raise ModelBuildError(
-                f"{where}: {self.layer} is {spec}, expected [1, {self.grid[0] * self.grid[1]}, C] for the "
+                f"{where}: {self.layer} is {spec}, expected [{self.grid[0] * self.grid[1]}, C] for the "
                 f"{self.grid[0]}x{self.grid[1]} token grid"
             )
-        dim = spec.shape[2]
+        dim = spec.shape[1]
         self.out_hw = ctx.input_hw
         self.num_classes = n
         size = SIZES[opts.size] if opts.size is not None else None
@@ -178,8 +178,8 @@ class LinearSegHead(Model):
         apply_state_dict(self, sd, str(path), expected, ignore=("backbone.", "auxiliary_head."))
 
     def logits(self, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
-        """Class logits on the token grid, ``[1, K, h, w]`` (before upsampling)."""
-        x = inputs[self.layer].to(self.conv_seg.weight.dtype)  # [1, h*w, C]
+        """Class logits on the token grid, ``[B, K, h, w]`` (before upsampling)."""
+        x = inputs[self.layer].to(self.conv_seg.weight.dtype)  # [B, h*w, C]
         x = x.transpose(1, 2).reshape(x.shape[0], x.shape[-1], *self.grid)
         return self.conv_seg(self.bn(x))
 

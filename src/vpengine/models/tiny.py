@@ -5,7 +5,8 @@ size that runs in a few milliseconds on one CPU core. Weights are seeded, so eve
 recipe gets the same weights: outputs can be recomputed in a test and compared bit for bit.
 
 Feature naming convention, shared with DINOv2: four intermediate layers, shallow to deep, as
-``patch.0 .. patch.3`` (``float[1, h*w, C]``, after the final norm) and ``cls.0 .. cls.3`` (``float[1, C]``).
+``patch.0 .. patch.3`` (``float[h*w, C]``, after the final norm) and ``cls.0 .. cls.3`` (``float[C]``), per frame:
+like every model they run on a batch of frames at once (Note [Batched models] in base.py).
 """
 
 from __future__ import annotations
@@ -27,8 +28,8 @@ N_LAYERS = 4
 def feature_specs(n_tokens: int, dim: int, dtype: str) -> dict[str, TensorSpec]:
     specs = {}
     for i in range(N_LAYERS):
-        specs[f"patch.{i}"] = TensorSpec((1, n_tokens, dim), dtype)
-        specs[f"cls.{i}"] = TensorSpec((1, dim), dtype)
+        specs[f"patch.{i}"] = TensorSpec((n_tokens, dim), dtype)
+        specs[f"cls.{i}"] = TensorSpec((dim,), dtype)
     return specs
 
 
@@ -60,7 +61,7 @@ class TinyViTOptions(Options):
 
 
 class TinyViT(Model):
-    """A 4-block ViT with DINOv2's output layout. ``image: float[1,3,h,w]`` -> ``patch.i``, ``cls.i``."""
+    """A 4-block ViT with DINOv2's output layout. ``image: float[3,h,w]`` -> ``patch.i``, ``cls.i``."""
 
     role = "foundation"
     options_type: type[TinyViTOptions] = TinyViTOptions  # a subclass may take more options
@@ -84,7 +85,7 @@ class TinyViT(Model):
             with torch.no_grad():
                 for prm in self.parameters():
                     prm.copy_(torch.randn(prm.shape, generator=g, device="cpu") * 0.2)
-        self.input_spec = {"image": TensorSpec((1, 3, *image_hw), dtype)}
+        self.input_spec = {"image": TensorSpec((3, *image_hw), dtype)}
         self.output_spec = feature_specs(n, c, dtype)
         self.meta = {
             "grid": self.grid,
@@ -156,8 +157,8 @@ class _TinyHead(Model):
     def from_config(cls, ctx: BuildContext) -> Model:
         return cls(ctx, ctx.options(TinyHeadOptions))
 
-    def _tokens_to_map(self, t: torch.Tensor) -> torch.Tensor:  # [1, N, K] -> [1, K, gh, gw]
-        return t.transpose(1, 2).reshape(1, t.shape[-1], *self.grid).float()
+    def _tokens_to_map(self, t: torch.Tensor) -> torch.Tensor:  # [B, N, K] -> [B, K, gh, gw]
+        return t.transpose(1, 2).reshape(t.shape[0], t.shape[-1], *self.grid).float()
 
 
 class TinyDepthHead(_TinyHead):
@@ -175,7 +176,7 @@ class TinyDepthHead(_TinyHead):
         # softplus before the upsampling: a bilinear mix of positive values stays positive, at 1/300 of the work
         # for a 1080p output (17 ms -> 4.5 ms on one CPU core)
         d = F.interpolate(F.softplus(m), size=self.out_hw, mode="bilinear", align_corners=False)
-        return {"depth": d[0, 0]}
+        return {"depth": d[:, 0]}
 
 
 class TinySegHead(_TinyHead):
@@ -195,7 +196,7 @@ class TinySegHead(_TinyHead):
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         # argmax per token, then nearest upsampling: cheap, which is all a plumbing-test model needs
         m = self._tokens_to_map(self.proj(inputs[self.layer].float())).argmax(1, keepdim=True).float()
-        return {"classes": F.interpolate(m, size=self.out_hw, mode="nearest")[0, 0].to(torch.uint8)}
+        return {"classes": F.interpolate(m, size=self.out_hw, mode="nearest")[:, 0].to(torch.uint8)}
 
 
 class TinyDetHead(_TinyHead):
@@ -228,20 +229,20 @@ class TinyDetHead(_TinyHead):
         }
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-        logits = self.proj(inputs[self.layer].float())[0]  # N, 1+K
-        scores = torch.sigmoid(logits[:, 0])
-        labels = logits[:, 1:].argmax(-1).to(torch.int32)
-        m = self.opts.max_detections
-        k = min(m, scores.numel())
-        top, idx = scores.topk(k)
+        logits = self.proj(inputs[self.layer].float())  # B, N, 1+K
+        scores = torch.sigmoid(logits[..., 0])
+        labels = logits[..., 1:].argmax(-1).to(torch.int32)
+        b, m = scores.shape[0], self.opts.max_detections
+        k = min(m, scores.shape[1])
+        top, idx = scores.topk(k, dim=1)
         keep = top >= self.opts.score_threshold
-        count = keep.sum().to(torch.int32)
-        boxes = torch.zeros(m, 4, device=scores.device)
-        out_scores = torch.zeros(m, device=scores.device)
-        out_labels = torch.full((m,), -1, dtype=torch.int32, device=scores.device)
-        boxes[:k] = torch.where(keep[:, None], self.cells[idx], 0.0)
-        out_scores[:k] = torch.where(keep, top, 0.0)
-        out_labels[:k] = torch.where(keep, labels[idx], -1)
+        count = keep.sum(1).to(torch.int32)
+        boxes = torch.zeros(b, m, 4, device=scores.device)
+        out_scores = torch.zeros(b, m, device=scores.device)
+        out_labels = torch.full((b, m), -1, dtype=torch.int32, device=scores.device)
+        boxes[:, :k] = torch.where(keep[..., None], self.cells[idx], 0.0)
+        out_scores[:, :k] = torch.where(keep, top, 0.0)
+        out_labels[:, :k] = torch.where(keep, labels.gather(1, idx), -1)
         return {"boxes": boxes, "scores": out_scores, "labels": out_labels, "count": count}
 
     def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -328,8 +328,8 @@ def _cache_features(
                 if flip:
                     f = np.ascontiguousarray(frame[:, ::-1])
                     b = np.stack([w - boxes[:, 2], boxes[:, 1], w - boxes[:, 0], boxes[:, 3]], 1)
-                feats = fm({"frame": torch.from_numpy(f).to(device)})
-                tokens.append(feats[layer].to("cpu", copy=True))
+                feats = fm({"frame": torch.from_numpy(f).to(device)[None]})  # a batch of one frame
+                tokens.append(feats[layer].to("cpu", copy=True))  # [1, h*w, C]: torch.cat makes batches
                 targets.append(
                     {
                         "boxes": torch.from_numpy(b.reshape(-1, 4).copy()),

@@ -2,7 +2,7 @@
 
 Note [Fused upsample + argmax]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
-A segmentation head's logits live on the token grid ([1, K, h, w], 150 classes for ADE20K) and its output is one
+A segmentation head's logits live on the token grid ([B, K, h, w], 150 classes for ADE20K) and its output is one
 class per frame pixel. Upsampling all classes first, as PyTorch does, writes and reads K full-resolution planes:
 1.2 GB in float32 at 1080p. The PyTorch path (``upsample_argmax``) bounds that memory by upsampling a few classes at
 a time, and ``torch.compile`` fuses the chunks into one kernel, but that kernel still took 0.82 ms on an H100, a
@@ -23,6 +23,10 @@ CUDA graphs capture:
    bilinear weights as PyTorch does (``align_corners=False``), and keeps the running maximum over its cell's
    candidates in registers; it writes the class index in the output's dtype (uint8 / int16), so no int64 map and no
    cast follow. The upsampled logits are never written.
+
+A batch of frames is one launch of each kernel: the frame is the last axis of both grids, and each program offsets
+its pointers to its own frame's logits, candidates and class map (not yet run on a GPU: the CPU tests run it under
+Triton's interpreter and compile it for an H100 without one).
 
 The result is the argmax of the float32 interpolation, the same with or without candidates (tested bit for bit): it
 equals the float64 argmax except at near-ties (1-4 pixels in 10^6 in the tests), and PyTorch's on float32 logits up
@@ -61,23 +65,24 @@ UPSAMPLE_BUDGET_BYTES = 64 * 2**20
 def upsample_argmax(
     logits: torch.Tensor, size: tuple[int, int], budget_bytes: int = UPSAMPLE_BUDGET_BYTES
 ) -> torch.Tensor:
-    """``argmax_k(bilinear_upsample(logits)[k])`` for ``logits: [1, K, h, w]`` -> int64 ``[H, W]``, in PyTorch.
+    """``argmax_k(bilinear_upsample(logits)[:, k])`` for ``logits: [B, K, h, w]`` -> int64 ``[B, H, W]``, in
+    PyTorch, for the whole batch at once.
 
     Upsampling is per channel, so a few classes at a time give exactly the values of one big resize; keeping the
     running maximum with a strict ``>`` keeps the first class on ties, like ``argmax`` over all classes.
     """
     h, w = size
-    k = logits.shape[1]
-    per_class = h * w * logits.element_size()
+    b, k = logits.shape[:2]
+    per_class = b * h * w * logits.element_size()
     chunk = max(1, budget_bytes // max(per_class, 1))
     if chunk >= k:
         up = F.interpolate(logits, size=size, mode="bilinear", align_corners=False)
-        return up[0].argmax(0)
+        return up.argmax(1)
     best_val: torch.Tensor | None = None
     best_idx = torch.empty(0)
     for c0 in range(0, k, chunk):
-        up = F.interpolate(logits[:, c0 : c0 + chunk], size=size, mode="bilinear", align_corners=False)[0]
-        val, idx = up.max(0)
+        up = F.interpolate(logits[:, c0 : c0 + chunk], size=size, mode="bilinear", align_corners=False)
+        val, idx = up.max(1)
         if best_val is None:
             best_val, best_idx = val, idx
             continue
@@ -126,5 +131,6 @@ def _probe(index: int) -> str | None:
 
 
 def fused_upsample_argmax(logits: torch.Tensor, size: tuple[int, int], dtype: torch.dtype) -> torch.Tensor:
-    """The fused kernel (Note [Fused upsample + argmax]); ``fused_unavailable(logits.device)`` must be None."""
+    """The fused kernel (Note [Fused upsample + argmax]) on ``logits: [B, K, h, w]`` -> ``[B, H, W]`` of ``dtype``;
+    it launches once per frame of the batch. ``fused_unavailable(logits.device)`` must be None."""
     return torch.ops.vpengine.upsample_argmax(logits, size[0], size[1], dtype)

@@ -181,11 +181,12 @@ class WorkerCore:
             }
 
     def _inputs(self, slot: SlotInfo) -> dict[str, torch.Tensor]:
+        """The slot's one frame as a batch of one (views; Note [Executor contract] in backends/base.py)."""
         if self._staging is None:
-            return {k: slot.tensors[k] for k in self._keys}
+            return {k: slot.tensors[k].unsqueeze(0) for k in self._keys}
         for k, t in self._staging.items():
             t.copy_(slot.tensors[k], non_blocking=True)
-        return self._staging
+        return {k: t.unsqueeze(0) for k, t in self._staging.items()}
 
     def run(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
@@ -379,7 +380,7 @@ class WorkerCore:
             check_outputs(self.name, self.output_spec, outputs)
             self._checked = True
         for k, t in out.tensors.items():
-            t.copy_(outputs[k], non_blocking=True)
+            t.copy_(outputs[k][0], non_blocking=True)
 
     def _finish(self, slot: SlotInfo, out: SlotInfo, t_start: float) -> None:
         """Count and publish a run whose work ``_launch`` queued; the caller then releases ``slot``."""

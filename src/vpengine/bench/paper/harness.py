@@ -265,7 +265,7 @@ class InProcess:
         memory), as plain PyTorch code does."""
         torch = self.torch
         with torch.inference_mode():
-            x = torch.from_numpy(img).to(self.device, non_blocking=True)
+            x = torch.from_numpy(img).to(self.device, non_blocking=True)[None]  # a batch of one frame
             feats = self.fm({"frame": x})
             outs = {}
             for name, (head, keys) in self.heads.items():
@@ -322,7 +322,7 @@ class InProcess:
             return self._frame_runs
         torch = self.torch
         with torch.inference_mode():
-            host = torch.from_numpy(img).pin_memory()
+            host = torch.from_numpy(img)[None].pin_memory()  # a batch of one frame
             x = torch.empty_like(host, device=self.device)
             x.copy_(host)
             feats = self.fm({"frame": x})

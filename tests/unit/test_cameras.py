@@ -83,3 +83,22 @@ def test_one_camera_engines_keep_their_names_and_layout():
         out = e.predict(frame(1))
         assert {r.camera for r in out.values()} == {"camera"}
         assert e.stats()["cameras"] == {}
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_frames_that_come_together_run_as_one_batch_and_give_what_they_give_alone(mode):
+    with Engine(tiny(mode, "cameras=[{name: front}, {name: rear}]", "runtime.batch_window_ms=100")) as e:
+        alone = [e.wait(e.submit(frame(i), camera="front"), timeout=30) for i in range(3)]
+        assert e.stats()["models"]["foundation"]["batched"] == 0  # one camera's frames: nothing to batch with
+        for _ in range(8):
+            for i in range(3):  # each picture from both cameras at once, the two frames' contents differing
+                ids = [e.submit(frame(i), camera="front"), e.submit(frame(i + 5), camera="rear")]
+                front, rear = (e.wait(f, timeout=30) for f in ids)
+                for head, key in (("depth", "depth"), ("seg", "classes"), ("det", "boxes")):
+                    np.testing.assert_allclose(front[head][key], alone[i][head][key], rtol=1e-4, atol=1e-5)
+                assert front["depth"].camera == "front" and rear["depth"].camera == "rear"
+        models = e.stats()["models"]
+        # after each camera's frame spacing is known, the backbone waits for the other camera's frame: one call
+        assert models["foundation"]["batched"] >= 24, models["foundation"]
+        assert models["depth"]["batched"] >= 24, models["depth"]
+        assert models["foundation"]["runs"] == 51 and models["foundation"]["dropped"] == 0

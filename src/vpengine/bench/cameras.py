@@ -110,7 +110,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "latency_all_heads_ms": pct(whole),
         "device_memory_bytes": memory,
         "counted": {
-            m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred")} for m, s in st["models"].items()
+            m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")} for m, s in st["models"].items()
         },
     }
     log(

@@ -52,9 +52,11 @@ _FIELDS = [
     ("decided", "q"),
     ("last_run", "q"),
     # Note [Cameras] in worker.py: frames that came after their batch's window (run in the next batch) and frames
-    # a lower-priority camera left for a later batch while the model could not keep up
+    # a lower-priority camera left for a later batch while the model could not keep up, and frames that ran in one
+    # model call with another camera's
     ("late", "q"),
     ("deferred", "q"),
+    ("batched", "q"),
     ("target_hz", "d"),  # NaN: unlimited
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
     ("started_at", "d"),
@@ -301,6 +303,7 @@ class ControlBlock:
             "dropped": total("dropped"),
             "late": total("late"),
             "deferred": total("deferred"),
+            "batched": total("batched"),
             "errors": self._get(i, "errors"),
             "restarts": self._get(i, "restarts"),
             "crashes": self._get(i, "crashes"),

@@ -31,8 +31,10 @@ camera's reader of its input ring, its rate gate, and its control-block entry (`
 latencies, answered frames), so rates, counts and Note [Answered frames] hold per camera. A model with several lanes
 takes its frames as one batch (``_take_batch``): it waits for the first frame of any camera, then at most
 ``runtime.batch_window_ms`` for the other cameras whose next frame is due by then; a camera whose frame comes later
-goes in the next batch, counted ``late``. The frames the gates admit run as one batch through the model and each
-output is published in its own slot with its camera's tag. When the model cannot keep up (its last batch took longer
+goes in the next batch, counted ``late``. The frames the gates admit are copied into preallocated batch buffers (one
+frame per lane) and run as one batch through the model (Note [Batched models] in models/base.py; a compiled model
+has a graph for every batch size up to its lanes), and each frame's outputs are copied into its own slot and published
+with its camera's tag. When the model cannot keep up (its last batch took longer
 than the cameras' frame interval), the camera last in the configured order leaves its frame for the next batch,
 counted ``deferred`` (never twice in a row, so no camera starves): the first cameras keep their rate and latency.
 With one camera nothing of this runs: the model takes its frames one by one as before (and may take them from the
@@ -173,6 +175,14 @@ class WorkerCore:
         self._batch_s = 0.0  # moving average of how long a batch takes (Note [Cameras])
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
+        # Note [Cameras]: the frames of a batch are copied into preallocated buffers of one frame per lane
+        self._batch_in: dict[str, torch.Tensor] | None = None
+        self._checked_batch = False
+        if len(self.lanes) > 1:
+            self._batch_in = {
+                k: in_ring.views[0][k].new_empty((len(self.lanes), *in_ring.views[0][k].shape), device=device.device)
+                for k in self._keys
+            }
         # Inputs live wherever their ring lives; a model on another device reads preallocated staging copies.
         self._staging: dict[str, torch.Tensor] | None = None
         if not bound and in_ring.data_region.device != device.device:
@@ -310,10 +320,62 @@ class WorkerCore:
         if not slots:
             return
         t0 = time.monotonic()
-        for slot in slots:  # one model run a frame until executors take batches
-            self._step(slot)
+        if len(slots) == 1:
+            self._step(slots[0])
+        else:
+            self._step_batch(slots, t0)
         took = time.monotonic() - t0
         self._batch_s = took if self._batch_s <= 0 else self._batch_s + 0.25 * (took - self._batch_s)
+
+    def _step_batch(self, slots: list[SlotInfo], t_start: float) -> None:
+        """One model call for the frames in ``slots`` (pinned, admitted, one per camera): each frame gets an output
+        slot (none free: that frame is dropped, counted and answered), the inputs are copied into the preallocated
+        batch buffers, and each frame's outputs into its own slot, published with its camera's tag. A run that
+        fails answers every frame of the batch and gives every output slot back."""
+        pairs: list[tuple[SlotInfo, SlotInfo]] = []
+        for slot in slots:
+            out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
+            if out is None:
+                entry = self._by_tag[slot.tag].entry
+                self.control.add(entry, "dropped")
+                self.control.decide(entry, slot.origin, ran=False)
+            else:
+                pairs.append((slot, out))
+        done, launched = 0, False
+        try:
+            if pairs:
+                self._launch_batch(pairs)
+                launched = True
+            for slot, out in pairs:
+                self._finish(slot, out, t_start)
+                done += 1
+                if len(pairs) > 1:
+                    self.control.add(self._by_tag[slot.tag].entry, "batched")
+        finally:
+            for i, (slot, out) in enumerate(pairs[done:], done):
+                if not launched or i > done:  # a _finish that raised gave its own slot back
+                    self.writer.abort(out)
+                self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
+
+    def _launch_batch(self, pairs: list[tuple[SlotInfo, SlotInfo]]) -> None:
+        """Queue the model's work on a batch of frames (on the CPU: do it), each into its output slot."""
+        assert self._batch_in is not None
+        n = len(pairs)
+        if self._in_events is not None:  # each input slot was published queued: read it only after that work
+            for slot, _ in pairs:
+                self.dev.wait_on(self._in_events.events[slot.index])
+        for k, buf in self._batch_in.items():
+            for i, (slot, _) in enumerate(pairs):
+                buf[i].copy_(slot.tensors[k], non_blocking=True)
+        outputs = self.model({k: buf[:n] for k, buf in self._batch_in.items()})
+        if not self._checked_batch:
+            check_outputs(self.name, self.output_spec, outputs, batch=n)
+            self._checked_batch = True
+        for i, (_, out) in enumerate(pairs):
+            for k, t in out.tensors.items():
+                t.copy_(outputs[k][i], non_blocking=True)
+            if self._out_events is not None:
+                self.dev.mark(self._out_events.events[out.index])
 
     def _admit(self, slot: SlotInfo, rate: float | None) -> bool:
         """Whether the frame in ``slot`` runs, by the rate gate on the frame's own timestamp (``rate.py``); frames
@@ -546,6 +608,7 @@ def prepare_worker(
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
                 cache_dir=cfg.weights.cache_dir,
+                max_batch=len(cfg.model_cameras(spec.name)),  # Note [Cameras]: a frame of each camera at once
             )
             # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,
             # so the steady state allocates nothing (Invariant: constant memory).

@@ -18,6 +18,9 @@ import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 Precision = Literal["fp32", "fp16", "bf16"]
+#: The one camera of an engine that configures none.
+DEFAULT_CAMERA = "camera"
+MAX_CAMERAS = 16
 Backend = Literal["eager", "compile", "onnx"]
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 _DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
@@ -155,11 +158,36 @@ class OutputConfig(_Strict):
     )
 
 
+class CameraConfig(_Strict):
+    """One of several cameras feeding the engine (Note [Cameras] in runtime/worker.py)."""
+
+    name: str = Field(..., description="Unique camera name (letters, digits, _ and -): submit(frame, camera=name).")
+    height: int | None = Field(
+        None,
+        ge=1,
+        le=65536,
+        description="Its frames' height, the size frame_slot(camera=...) lends (frames of any size are accepted).",
+    )
+    width: int | None = Field(None, ge=1, le=65536, description="Its frames' width (see height).")
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, v: str) -> str:
+        if not _NAME_RE.match(v):
+            raise ValueError(
+                f"camera name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)"
+            )
+        return v
+
+
 class HeadConfig(ModelConfig):
     """One task head reading the foundation model's features."""
 
     name: str = Field(
         ..., description="Unique head name (letters, digits, _ and -), used in results and topics."
+    )
+    cameras: list[str] | None = Field(
+        None, description="The cameras this head serves, by name; null: every camera. Its rate is per camera."
     )
     postprocess: dict[str, Any] = Field(
         default_factory=dict, description="Postprocessing options of the recipe."
@@ -199,6 +227,13 @@ class RuntimeConfig(_Strict):
     )
     restart_backoff_s: float = Field(
         0.5, ge=0, le=3600, description="First restart delay; doubles with each restart in the window."
+    )
+    batch_window_ms: float = Field(
+        2.0,
+        ge=0,
+        le=100,
+        description="With several cameras: how long a model waits, after the first camera's frame, for the others' "
+        "to run them as one batch; a frame later than that goes in the next batch (counted as late).",
     )
     hang_timeout_s: float | None = Field(
         60.0,
@@ -242,6 +277,12 @@ class EngineConfig(_Strict):
         description="CUDA MPS: use when a daemon is reachable (auto), insist (required), or not (off).",
     )
     input: InputConfig = Field(default_factory=InputConfig)  # type: ignore[arg-type]
+    cameras: list[CameraConfig] = Field(
+        default_factory=list,
+        max_length=MAX_CAMERAS,
+        description="Several cameras on one engine, in priority order (when the GPU cannot keep up, the first waits "
+        "least); empty: one camera. Every camera's frames fit input.height x width.",
+    )
     foundation_model: FoundationModelConfig = Field(default_factory=FoundationModelConfig)  # type: ignore[arg-type]
     heads: list[HeadConfig] = Field(default_factory=list)
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)  # type: ignore[arg-type]
@@ -263,7 +304,26 @@ class EngineConfig(_Strict):
             raise ValueError(f"head names must be unique; repeated: {dup}")
         if "foundation" in names:
             raise ValueError("'foundation' is reserved for the foundation model; rename that head")
+        cams = [c.name for c in self.cameras]
+        dup = sorted({n for n in cams if cams.count(n) > 1})
+        if dup:
+            raise ValueError(f"camera names must be unique; repeated: {dup}")
+        for h in self.heads:
+            unknown = [c for c in h.cameras or [] if c not in self.camera_names()]
+            if unknown or h.cameras == []:
+                raise ValueError(
+                    f"head {h.name!r}: cameras {h.cameras} must be some of the cameras {self.camera_names()}"
+                )
         return self
+
+    def camera_names(self) -> list[str]:
+        """The cameras, in priority order: the configured ones, or the one camera ``camera``."""
+        return [c.name for c in self.cameras] or [DEFAULT_CAMERA]
+
+    def model_cameras(self, model: str) -> list[str]:
+        """The cameras ``model`` (``foundation`` or a head) serves, in priority order."""
+        wanted = None if model == "foundation" else self.head(model).cameras
+        return [c for c in self.camera_names() if wanted is None or c in wanted]
 
     def head(self, name: str) -> HeadConfig:
         for h in self.heads:
@@ -273,6 +333,10 @@ class EngineConfig(_Strict):
 
     def model_names(self) -> list[str]:
         return ["foundation", *(h.name for h in self.heads)]
+
+    def model(self, name: str) -> ModelConfig:
+        """The foundation model's config (``foundation``) or a head's."""
+        return self.foundation_model if name == "foundation" else self.head(name)
 
 
 # ------------------------------------------------------------------------------------------------- loading

@@ -43,11 +43,11 @@ from vpengine.boundary import Boundary, Placement
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.results import Outbox, Result
-from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.control import ControlBlock, camera_entry, control_names
 from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.gpu import CudaSetup, prepare_cuda, worker_env
 from vpengine.runtime.handoff import Handoffs
-from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
+from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan, reader_name
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotInfo, SlotRing
@@ -116,9 +116,15 @@ class FrameSlot:
     """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
 
     def __init__(
-        self, engine: Engine, frame_id: int | None, timestamp: float | None, size: tuple[int, int] | None
+        self,
+        engine: Engine,
+        frame_id: int | None,
+        timestamp: float | None,
+        size: tuple[int, int] | None,
+        camera: int,
     ) -> None:
         self._engine = engine
+        self._camera = camera
         # capture time in seconds; may be set inside the block (default: when it ends)
         self.timestamp = timestamp
         self._frame_id_arg = frame_id
@@ -206,7 +212,9 @@ class FrameSlot:
                 except BaseException:
                     eng._input_writer.abort(slot)
                     raise
-            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit, placement)
+            self.frame_id = eng._publish_input(
+                slot, self._frame_id_arg, t_capture, t_submit, placement, self._camera
+            )
         finally:
             eng._filling = None
             eng._submit_lock.release()
@@ -231,7 +239,8 @@ class Engine:
         self._next_id = 0
         self._submitted = 0
         self._rejected = 0
-        self._origins: collections.OrderedDict[int, int] = collections.OrderedDict()
+        # frame id -> (its input seq, its camera's index)
+        self._origins: collections.OrderedDict[int, tuple[int, int]] = collections.OrderedDict()
         # input seq -> where the frame lies in the input canvas (Note [Frame grid] in boundary.py)
         self._placements: collections.OrderedDict[int, Placement] = collections.OrderedDict()
         self.boundary = Boundary(
@@ -264,10 +273,11 @@ class Engine:
                 res.rings[m["name"]] = SlotRing.create(**m)
             if cfg.logging.file:
                 res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
-            res.control = ControlBlock.create(cfg.model_names())
-            res.control.set_rate("foundation", cfg.foundation_model.rate_hz)
-            for h in cfg.heads:
-                res.control.set_rate(h.name, h.rate_hz)
+            served = {m: cfg.model_cameras(m) for m in cfg.model_names()}
+            res.control = ControlBlock.create(control_names(served, self.cameras))
+            for m, cams in served.items():
+                for c in cams:  # Note [Cameras]: a rate per camera
+                    res.control.set_rate(camera_entry(m, c, self.cameras), cfg.model(m).rate_hz)
             specs = self._worker_specs()
             if shared:
                 from vpengine.runtime.process import ProcessRunner
@@ -289,7 +299,16 @@ class Engine:
         self._input_writer = res.rings["input"].writer()
         self._frame_views = [v["frame"].numpy() for v in res.rings["input"].views]
         assert res.control is not None
-        self._outbox = Outbox(res.rings, plan.heads, res.control, self._handoffs, self.boundary, self._placements)
+        self._outbox = Outbox(
+            res.rings,
+            plan.heads,
+            res.control,
+            self._handoffs,
+            self.boundary,
+            self._placements,
+            self.cameras,
+            {m: cfg.model_cameras(m) for m in cfg.model_names()},
+        )
         self._t_start = time.monotonic()
         self._state = "running"
         self.memory_report = self._memory_report()
@@ -405,18 +424,22 @@ class Engine:
 
     # -------------------------------------------------------------------------------------------- input
     @_fenced
-    def submit(self, frame: Any, frame_id: int | None = None, timestamp: float | None = None) -> int:
+    def submit(
+        self, frame: Any, frame_id: int | None = None, timestamp: float | None = None, camera: str | None = None
+    ) -> int:
         """Hand a frame to the engine. Returns its frame id (``frame_id`` or the next integer).
 
         ``frame``: HxWx3 of the input dtype and colour order, of any size up to ``input.max_frame_side``; every
         output for it comes back in its pixel grid (Note [Frame grid] in boundary.py). ``timestamp`` is the capture
         time in seconds (e.g. the camera's stamp; default: now): rate limits run on these stamps, so a file's frames
         stamped by their position obey them however fast they are fed. Never blocks on the models: if the
-        foundation model is busy, the newest frame wins and the overwritten one is counted as skipped. Raises
-        ValueError naming what was expected if the frame is not an image.
+        foundation model is busy, the newest frame wins and the overwritten one is counted as skipped. ``camera``:
+        which of the configured cameras it comes from (Note [Cameras] in runtime/worker.py; None: the only one).
+        Raises ValueError naming what was expected if the frame is not an image.
         """
         self._require_running()
         try:
+            cam = self._camera(camera)
             arr = self.boundary.check(frame)
             frame_id, timestamp = checks.frame_id(frame_id), checks.timestamp(timestamp)
         except ValueError:
@@ -429,14 +452,18 @@ class Engine:
             slot = self._acquire_input()
             try:  # an error gives the slot back: a leaked slot is a frame the ring never gets again
                 placement = self.boundary.write(arr, self._frame_views[slot.index])
-                return self._publish_input(slot, frame_id, t_capture, t_submit, placement)
+                return self._publish_input(slot, frame_id, t_capture, t_submit, placement, cam)
             except BaseException:
                 self._input_writer.abort(slot)
                 raise
 
     @_fenced
     def frame_slot(
-        self, frame_id: int | None = None, timestamp: float | None = None, size: tuple[int, int] | None = None
+        self,
+        frame_id: int | None = None,
+        timestamp: float | None = None,
+        size: tuple[int, int] | None = None,
+        camera: str | None = None,
     ) -> FrameSlot:
         """The next input slot, to write a frame into in place: ``submit`` without its copy (Note [Frame slots]).
 
@@ -450,7 +477,8 @@ class Engine:
 
         ``slot.array`` is a writable ``(height, width, 3)`` array of the configured dtype: the input mailbox slot
         itself, or, with ``size=(height, width)`` other than the models' input size, a buffer kept for frames of that
-        size, fitted into the slot when the block ends (Note [Frame grid] in boundary.py). Its content is whatever
+        size, fitted into the slot when the block ends (Note [Frame grid] in boundary.py); ``camera``: as for
+        ``submit``, and its configured height and width are the default ``size``. Its content is whatever
         an earlier frame left there until you write it. Assign what a writer hands back to ``slot.array``
         (``ok, slot.array = cap.read(image=slot.array)``): a writer that allocated a new array instead of writing
         into it (OpenCV does when the sizes differ) raises ValueError naming both sizes. Leaving the block submits
@@ -461,6 +489,10 @@ class Engine:
         """
         self._require_running()
         self._refuse_inside_frame_slot()
+        cam = self._camera(camera)
+        cam_cfg = self.config.cameras[cam] if self.config.cameras else None
+        if size is None and cam_cfg is not None and cam_cfg.height and cam_cfg.width:
+            size = (cam_cfg.height, cam_cfg.width)
         if size is not None:
             h, w = (int(v) for v in size)
             if not (0 < h <= self.boundary.max_side and 0 < w <= self.boundary.max_side):
@@ -468,7 +500,23 @@ class Engine:
                     f"frame_slot size {size!r}: height and width must be 1..{self.boundary.max_side} (input.max_frame_side)"
                 )
             size = None if (h, w) == self.boundary.canvas_hw else (h, w)
-        return FrameSlot(self, checks.frame_id(frame_id), checks.timestamp(timestamp), size)
+        return FrameSlot(self, checks.frame_id(frame_id), checks.timestamp(timestamp), size, cam)
+
+    def _camera(self, camera: str | None) -> int:
+        """The index (slot tag) of ``camera``; None: the only camera. ValueError naming the cameras otherwise."""
+        names = self.cameras
+        if camera is None:
+            if len(names) > 1:
+                raise ValueError(f"this engine has cameras {names}: say which one with camera=")
+            return 0
+        if camera not in names:
+            raise ValueError(f"no camera named {camera!r}; cameras: {names}")
+        return names.index(camera)
+
+    @property
+    def cameras(self) -> list[str]:
+        """The cameras, in priority order (``cameras`` in the config; one named ``camera`` without)."""
+        return self.config.camera_names()
 
     def _staging(self, size: tuple[int, int]) -> np.ndarray:
         """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size, kept."""
@@ -488,7 +536,13 @@ class Engine:
         return slot
 
     def _publish_input(
-        self, slot: SlotInfo, frame_id: int | None, t_capture: float, t_submit: float, placement: Placement
+        self,
+        slot: SlotInfo,
+        frame_id: int | None,
+        t_capture: float,
+        t_submit: float,
+        placement: Placement,
+        camera: int,
     ) -> int:
         """Publish a filled input slot; the caller holds ``_submit_lock``."""
         fid = self._next_id if frame_id is None else int(frame_id)
@@ -499,11 +553,11 @@ class Engine:
             self._placements.popitem(last=False)
         inline = self._handoffs.inline
         if inline is not None:  # thread mode: queue the foundation's work from here (Note [Inline launch])
-            seq = inline.publish(self._input_writer, slot, fid, t_capture, t_submit)
+            seq = inline.publish(self._input_writer, slot, fid, t_capture, t_submit, camera)
         else:
-            seq = self._input_writer.publish(slot, fid, t_capture, t_submit)
+            seq = self._input_writer.publish(slot, fid, t_capture, t_submit, tag=camera)
         self._submitted += 1
-        self._origins[fid] = seq
+        self._origins[fid] = (seq, camera)
         if len(self._origins) > _ORIGINS_KEPT:
             self._origins.popitem(last=False)
         return fid
@@ -546,18 +600,21 @@ class Engine:
         """
         self._require_running()
         timeout = checks.timeout(timeout)
-        origin = self._origins.get(int(frame_id))
-        if origin is None:
+        known = self._origins.get(int(frame_id))
+        if known is None:
             raise ValueError(
                 f"frame id {frame_id} was not submitted (or is older than the last {_ORIGINS_KEPT})"
             )
-        return self._outbox.wait(origin, frame_id, heads, timeout, copy, lambda: self._state == "running")
+        origin, camera = known
+        return self._outbox.wait(origin, camera, frame_id, heads, timeout, copy, lambda: self._state == "running")
 
-    def predict(self, image: Any, timeout: float = 30.0, timestamp: float | None = None) -> dict[str, Result]:
+    def predict(
+        self, image: Any, timeout: float = 30.0, timestamp: float | None = None, camera: str | None = None
+    ) -> dict[str, Result]:
         """One frame through every head: ``submit`` then ``wait``; each result carries the frame (``image``) for
         ``Result.plot()``, and its outputs are in the frame's pixel grid, whatever its size. A head whose rate
         limit holds the frame back (on ``timestamp``, default now) is left out, as with ``wait``."""
-        fid = self.submit(image, timestamp=timestamp)
+        fid = self.submit(image, timestamp=timestamp, camera=camera)
         results = self.wait(fid, timeout=timeout)
         frame = self.boundary.check(image)
         for r in results.values():
@@ -566,20 +623,32 @@ class Engine:
 
     # ------------------------------------------------------------------------------------------ control
     @_fenced
-    def set_rate(self, model: str, hz: float | None) -> None:
-        """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause."""
+    def set_rate(self, model: str, hz: float | None, camera: str | None = None) -> None:
+        """Change a model's rate limit at run time (``"foundation"`` or a head name). None: unlimited; 0: pause.
+        With several cameras a model has a rate per camera: ``camera`` sets one, None all of the model's."""
         ctl = self._model_control(model)
-        ctl.set_rate(model, checks.rate(model, hz))
+        hz = checks.rate(model, hz)
+        for entry in self._entries(model, camera):
+            ctl.set_rate(entry, hz)
+        ctl.wake(model)
         inline = self._handoffs.inline
         if inline is not None and model == "foundation":
             inline.wake()  # an armed foundation worker disarms and applies the rate first (Note [Inline launch])
 
     @_fenced
-    def rate(self, model: str) -> float | None:
+    def rate(self, model: str, camera: str | None = None) -> float | None:
         """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
-        read of shared memory), unlike ``stats()``; for a loop that checks it every frame."""
+        read of shared memory), unlike ``stats()``; for a loop that checks it every frame. With several cameras,
+        ``camera`` names whose (None: the first the model serves)."""
         ctl = self._model_control(model)
-        return ctl.rate(model)
+        return ctl.rate(self._entries(model, camera)[0])
+
+    def _entries(self, model: str, camera: str | None) -> list[str]:
+        """The control-block entries holding ``model``'s rate for ``camera`` (None: all its cameras)."""
+        served = self.config.model_cameras(model)
+        if camera is not None and camera not in served:
+            raise ValueError(f"{model!r} serves cameras {served}, not {camera!r}")
+        return [camera_entry(model, c, self.cameras) for c in ([camera] if camera else served)]
 
     def _model_control(self, model: str) -> ControlBlock:
         """The running engine's control block, once ``model`` is known to be one of its models."""
@@ -603,14 +672,22 @@ class Engine:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None
-        models = {}
-        for name in ctl.names:
-            snap = ctl.snapshot(name)
-            ring = rings["input"] if name == "foundation" else rings["features"]
-            r = ring.stats()["readers"][name]  # type: ignore[index]
-            snap["frames_seen"] = r["reads"] + r["missed"]
-            snap["pending"] = r["pending"]
+        cams = self.cameras
+        models, per_camera = {}, {}
+        for name in self.config.model_names():
+            served = self.config.model_cameras(name)
+            entries = [camera_entry(name, c, cams) for c in served]
+            snap = ctl.snapshot(name, cameras=entries if len(cams) > 1 else None)
+            readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
+            mine = [readers[reader_name(name, c, cams)] for c in served]  # type: ignore[index]
+            snap["frames_seen"] = sum(r["reads"] + r["missed"] for r in mine)
+            snap["pending"] = sum(r["pending"] for r in mine)
             models[name] = snap
+            if len(cams) > 1:  # Note [Cameras]: each camera's rate, counters and latencies
+                for c, entry, r in zip(served, entries, mine):
+                    one = ctl.snapshot(entry)
+                    one["frames_seen"], one["pending"] = r["reads"] + r["missed"], r["pending"]
+                    per_camera.setdefault(c, {})[name] = one
         results = self._outbox.stats()
         return {
             "engine": {
@@ -629,6 +706,7 @@ class Engine:
                 },
             },
             "models": models,
+            "cameras": per_camera,
             "results": results,
             "mailboxes": {n: r.stats() for n, r in rings.items()},
             "memory": self.memory_report,
@@ -636,5 +714,7 @@ class Engine:
 
     def head_info(self, head: str) -> dict[str, Any]:
         """Output specs and metadata (labels, capacity, backbone it was trained on) of a head."""
-        model = self.plan.heads[self._outbox.head(head)]
+        if head not in self.plan.heads:
+            raise KeyError(f"no head named {head!r}; heads: {list(self.plan.heads)}")
+        model = self.plan.heads[head]
         return {"outputs": {k: str(v) for k, v in model.output_spec.items()}, **model.meta}

@@ -32,8 +32,9 @@ import numpy as np
 import torch
 
 from vpengine.boundary import Boundary, Placement
+from vpengine.config import DEFAULT_CAMERA
 from vpengine.models.base import Model
-from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock
+from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock, camera_entry
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.supervisor import EngineDeadError
 from vpengine.transport.ring import Accept, RingReader, SlotInfo, SlotRing
@@ -175,6 +176,8 @@ class Result:
     image: np.ndarray | None = None
     #: The head's metadata (kind, labels, palette), for drawing.
     info: dict[str, Any] = field(default_factory=dict, repr=False)
+    #: The camera the frame came from (Note [Cameras] in runtime/worker.py).
+    camera: str = DEFAULT_CAMERA
 
     def __getitem__(self, key: str) -> Any:
         return self.outputs[key]
@@ -204,12 +207,16 @@ class Outbox:
         handoffs: Handoffs,
         boundary: Boundary,
         placements: Mapping[int, Placement],
+        cameras: list[str],
+        camera_served: Mapping[str, list[str]],
     ) -> None:
         self.heads = heads
         self.control = control
         self.handoffs = handoffs
         self.boundary = boundary
         self.placements = placements
+        self.cameras = cameras
+        self.camera_served = camera_served  # model -> the cameras it serves
         self._results_readers = {h: rings[f"out.{h}"].reader("results") for h in heads}
         self._peek_readers = {h: rings[f"out.{h}"].reader("peek") for h in heads}
         self.leases = _Leases({h: [rings[f"out.{h}"].reader(f"lease{i}") for i in range(LEASES)] for h in heads})
@@ -272,6 +279,7 @@ class Outbox:
     def wait(
         self,
         origin: int,
+        camera: int,
         frame_id: int,
         heads: list[str] | None,
         timeout: float,
@@ -279,21 +287,27 @@ class Outbox:
         alive: Callable[[], bool],
     ) -> dict[str, Result]:
         ctl = self.control
+        cam = self.cameras[camera]
         pending = [self.head(h) for h in heads] if heads else list(self.heads)
+        pending = [h for h in pending if cam in self.camera_served[h]]  # a head that does not serve it: no output
+
+        def entry(model: str) -> str:
+            return camera_entry(model, cam, self.cameras)
+
         done: dict[str, Result] = {}
         deadline = time.monotonic() + timeout
         while True:
             word = ctl.output_word()
             # Note [Answered frames]: read before looking for outputs; a frame the foundation held back reaches no head
-            f_decided = ctl.get("foundation", "decided")  # before last_run, which decide() stores first
-            f_ran = ctl.get("foundation", "last_run") >= origin
-            held_back = not f_ran and (f_decided >= origin or ctl.rate("foundation") == 0)
+            f_decided = ctl.get(entry("foundation"), "decided")  # before last_run, which decide() stores first
+            f_ran = ctl.get(entry("foundation"), "last_run") >= origin
+            held_back = not f_ran and (f_decided >= origin or ctl.rate(entry("foundation")) == 0)
             with self._lock:
                 self.leases.drain()
                 found: list[tuple[str, SlotInfo]] = []
                 try:
                     for h in list(pending):
-                        answered = held_back or ctl.get(h, "decided") >= origin
+                        answered = held_back or ctl.get(entry(h), "decided") >= origin
                         reader = self._peek_readers[h]
                         slot, newest = reader.pin_origin(origin)
                         events = self.handoffs.results.get(h)
@@ -309,7 +323,7 @@ class Outbox:
                             or answered
                             or newest > origin
                             or ctl.state(h) in NOT_SERVING
-                            or ctl.rate(h) == 0  # paused: answers nothing (one already running still may)
+                            or ctl.rate(entry(h)) == 0  # paused: answers nothing (one already running still may)
                         ):
                             pending.remove(h)
                     done.update(self._copy_out(found, copy))
@@ -408,6 +422,7 @@ class Outbox:
             grid="native" if head in self.boundary.native else "frame",
             placement=p,
             info=self.heads[head].meta,
+            camera=self.cameras[slot.tag],
         )
 
     def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:

@@ -43,11 +43,11 @@ region.close()
 
 
 def _spawn(script: str):
-    from vpengine.runtime.process import _child_env
+    from vpengine.runtime.process import package_env
 
     ours, theirs = socket.socketpair()
     proc = subprocess.Popen(
-        [sys.executable, "-c", script, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=_child_env()
+        [sys.executable, "-c", script, str(theirs.fileno())], pass_fds=[theirs.fileno()], env=package_env()
     )
     theirs.close()
     return proc, Connection(ours.detach())

@@ -238,7 +238,7 @@ MUTEX_HOLDER = textwrap.dedent("""
 def test_a_process_dying_inside_the_ring_lock_does_not_hang_the_others(tmp_path):
     import socket
 
-    from vpengine.runtime.process import _child_env, send_fds
+    from vpengine.runtime.process import package_env, send_fds
     from vpengine.specs import TensorSpec
     from vpengine.transport.ring import latest_buffer
 
@@ -247,7 +247,7 @@ def test_a_process_dying_inside_the_ring_lock_does_not_hang_the_others(tmp_path)
     script.write_text(MUTEX_HOLDER)
     ours, theirs = socket.socketpair()
     proc = subprocess.Popen(
-        [sys.executable, str(script), str(theirs.fileno())], pass_fds=[theirs.fileno()], env=_child_env()
+        [sys.executable, str(script), str(theirs.fileno())], pass_fds=[theirs.fileno()], env=package_env()
     )
     theirs.close()
     from multiprocessing.connection import Connection

@@ -14,7 +14,7 @@ import torch
 
 from helpers.slow_reader import expected_value
 from tests_paths import DEVICE, ROOT
-from vpengine.runtime.process import _child_env, send_fds
+from vpengine.runtime.process import package_env, send_fds
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import latest_buffer
 
@@ -23,7 +23,7 @@ pytestmark = pytest.mark.timeout(120)
 
 def spawn_reader(ring, name, hold_s, duration):
     ours, theirs = socket.socketpair()
-    env = _child_env()
+    env = package_env()
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT / "tests"), env["PYTHONPATH"]])
     proc = subprocess.Popen(
         [sys.executable, "-m", "helpers.slow_reader", str(theirs.fileno())],

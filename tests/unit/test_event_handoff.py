@@ -73,7 +73,7 @@ def spec(
     return WorkerSpec(
         name=name,
         role=role,  # type: ignore[arg-type]
-        config={},
+        config={} if role == "foundation" else {"heads": [{"name": name, "model": "tiny_depth"}]},
         upstream=upstream,
         upstream_meta={},
         in_ring=in_ring.desc,

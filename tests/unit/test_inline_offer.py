@@ -39,12 +39,12 @@ class Writer:
     def __init__(self, log: list[str]) -> None:
         self.log, self.seq = log, 0
 
-    def publish(self, slot, frame_id, t_capture, t_submit) -> int:  # type: ignore[no-untyped-def]
+    def publish(self, slot, frame_id, t_capture, t_submit, tag=0) -> int:  # type: ignore[no-untyped-def]
         self.seq += 1
         self.log.append("publish")
         return self.seq
 
-    def publish_pinned(self, slot, frame_id, t_capture, t_submit, reader):  # type: ignore[no-untyped-def]
+    def publish_pinned(self, slot, frame_id, t_capture, t_submit, reader, tag=0):  # type: ignore[no-untyped-def]
         self.seq += 1
         self.log.append(f"publish pinned for {reader.name}")
         self.pinned = SimpleNamespace(seq=self.seq)  # the reader's pin of the frame

@@ -175,7 +175,7 @@ def test_writer_never_waits_with_readers_plus_two_slots():
 
 
 def test_too_few_slots_is_a_clear_error():
-    with pytest.raises(ValueError, match=r"n_slots=3 is too small for 2 readers; need at least 4"):
+    with pytest.raises(ValueError, match=r"n_slots=3 is too small for 2 readers and 1 tags; need at least 4"):
         SlotRing.create("t", SPECS, 3, [ReaderDecl("a"), ReaderDecl("b")])
     with pytest.raises(ValueError, match="unknown overflow policy 'spill'"):
         SlotRing.create("t", SPECS, 3, [ReaderDecl("a")], overflow="spill")  # type: ignore[arg-type]
@@ -352,5 +352,84 @@ def test_publish_can_pin_the_new_slot_for_a_reader_counting_the_read_as_a_pin_wo
         with pytest.raises(RuntimeError, match="already pins"):
             w.publish_pinned(slot2, 3, 0.0, time.monotonic(), a)
         a.release(pinned)
+    finally:
+        ring.close()
+
+
+# ------------------------------------------------------------------------------ Note [Tagged slots]: cameras
+def publish_tagged(ring: SlotRing, value: float, tag: int) -> int:
+    w = ring.writer()
+    slot = w.acquire(timeout=0)
+    assert slot is not None
+    slot.tensors["x"].fill_(value)
+    return w.publish(slot, int(value), 0.0, 0.0, tag=tag)
+
+
+def test_a_tagged_reader_sees_only_its_cameras_frames_and_counts_in_their_own_sequence():
+    ring = SlotRing.create(
+        "in", SPECS, 6, [ReaderDecl("fm@front", tag=0), ReaderDecl("fm@rear", tag=1), ReaderDecl("all")], n_tags=2
+    )
+    try:
+        front, rear, every = (ring.reader(n) for n in ("fm@front", "fm@rear", "all"))
+        publish_tagged(ring, 1.0, 0)
+        publish_tagged(ring, 2.0, 1)
+        publish_tagged(ring, 3.0, 0)  # front's second frame: front missed one of its own, not rear's
+        s = front.pin()
+        assert s is not None and s.tensors["x"][0, 0].item() == 3.0 and s.tag == 0 and s.tag_seq == 2
+        assert s.missed == 1
+        r = rear.pin()
+        assert r is not None and r.tensors["x"][0, 0].item() == 2.0 and r.missed == 0  # one reader each: both pinned
+        a = every.pin()
+        assert a is not None and a.tensors["x"][0, 0].item() == 3.0 and a.missed == 2  # untagged: every slot
+        for reader, slot in ((front, s), (rear, r), (every, a)):
+            reader.release(slot)
+        assert front.pin() is None  # nothing newer of its own
+        st = ring.stats()["readers"]
+        assert st["fm@front"]["missed"] == 1 and st["fm@rear"]["missed"] == 0 and st["fm@front"]["pending"] == 0
+    finally:
+        ring.close()
+
+
+def test_the_writer_keeps_each_cameras_newest_frame_for_its_reader():
+    # a busy camera must not push a quiet camera's newest frame out before its reader looked
+    ring = SlotRing.create("in", SPECS, 5, [ReaderDecl("fm@a", tag=0), ReaderDecl("fm@b", tag=1)], n_tags=2)
+    try:
+        publish_tagged(ring, 100.0, 1)  # camera b: one frame
+        for i in range(10):  # camera a: many
+            publish_tagged(ring, float(i), 0)
+        b = ring.reader("fm@b").pin()
+        assert b is not None and b.tensors["x"][0, 0].item() == 100.0
+        a = ring.reader("fm@a").pin()
+        assert a is not None and a.tensors["x"][0, 0].item() == 9.0 and a.missed == 9
+    finally:
+        ring.close()
+
+
+def test_a_tagged_fifo_reader_under_block_is_never_overwritten_by_another_cameras_frames():
+    ring = SlotRing.create(
+        "in", SPECS, 5, [ReaderDecl("fm@a", "fifo", tag=0), ReaderDecl("fm@b", "fifo", tag=1)], "cpu", n_tags=2,
+        overflow="drop_newest",
+    )  # fmt: skip
+    try:
+        publish_tagged(ring, 1.0, 0)
+        publish_tagged(ring, 2.0, 0)
+        publish_tagged(ring, 3.0, 1)
+        got = []
+        reader = ring.reader("fm@a")
+        while (s := reader.pin()) is not None:
+            got.append(s.tensors["x"][0, 0].item())
+            reader.release(s)
+        assert got == [1.0, 2.0]  # in order, none lost to camera b's frame
+    finally:
+        ring.close()
+
+
+def test_tags_out_of_range_are_refused():
+    with pytest.raises(ValueError, match=r"readers with a tag out of range: \['x'\]"):
+        SlotRing.create("t", SPECS, 6, [ReaderDecl("x", tag=2)], n_tags=2)
+    ring = SlotRing.create("t", SPECS, 4, [ReaderDecl("x")], n_tags=2)
+    try:
+        with pytest.raises(ValueError, match="has 2 tags; got tag 5"):
+            publish_tagged(ring, 1.0, 5)
     finally:
         ring.close()

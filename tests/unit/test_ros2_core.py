@@ -354,22 +354,23 @@ def test_outputs_that_waited_are_superseded_by_the_newest_unless_every_frame_is_
         assert values[f"outputs_superseded.{head}"] == ("0" if every_frame else "2")
 
 
-def test_core_resizes_or_rejects_frames_of_another_size_and_counts_them():
-    big = np.tile(frame(1)[:60, :80], (4, 4, 1))
-    for policy in ("resize", "reject"):
-        core = Ros2Core(tiny("thread"), on_size_mismatch=policy)
-        core.start()
-        try:
-            fid = core.handle_image(image_msg(big, "bgr8"))
-            assert (fid is None) == (policy == "reject")
-            key = "resized" if policy == "resize" else "rejected.size"
-            assert core.counters["received"] == 1
-            diag = {s.name: s for s in core.diagnostics().status}
-            iface = diag["vpengine: interface"]
-            assert dict(iface.values)[key] == "1"
-            assert iface.level == (WARN if policy == "reject" else OK)
-        finally:
-            core.stop()
+def test_frames_of_another_size_come_out_at_their_size_under_their_header():
+    # the models run at 160x120; a 640x480 camera's outputs are published at 640x480 (Note [Frame grid])
+    big = np.tile(frame(1)[:60, :80], (8, 8, 1))
+    core = Ros2Core(tiny("thread"))
+    core.start()
+    try:
+        assert core.handle_image(image_msg(big, "bgr8", stamp=SimpleNamespace(sec=7, nanosec=5))) is not None
+        out = _poll_until(core, 3)
+        depth = next(p for t, p in out if t.role == "depth")
+        classes = next(p for t, p in out if t.topic == "/vpengine/seg/classes")
+        dets = next(p for t, p in out if t.topic == "/vpengine/det/detections")
+        assert (depth.width, depth.height, classes.width, classes.height) == (640, 480, 640, 480)
+        assert (depth.header.sec, depth.header.nanosec) == (7, 5)
+        assert dets.detections and all(d.center_x <= 640 and d.center_y <= 480 for d in dets.detections)
+        assert max(d.center_x + d.size_x / 2 for d in dets.detections) > 160  # the camera's pixels, not the models'
+    finally:
+        core.stop()
 
 
 def test_first_message_size_mode_starts_the_engine_at_that_size():

@@ -67,7 +67,7 @@ def _reader(fd: int) -> None:
 
 
 def measure(n: int, mbytes: float, device: str = "cpu", layout: str = "flat") -> dict[str, Any]:
-    from vpengine.runtime.process import _child_env, send_fds
+    from vpengine.runtime.process import package_env, send_fds
     from vpengine.transport.ring import ReaderDecl, SlotRing
 
     specs = _specs(mbytes, layout)
@@ -76,7 +76,7 @@ def measure(n: int, mbytes: float, device: str = "cpu", layout: str = "flat") ->
     proc = subprocess.Popen(
         [sys.executable, "-m", "vpengine.bench.hop", "--child", str(theirs.fileno())],
         pass_fds=[theirs.fileno()],
-        env=_child_env(),
+        env=package_env(),
     )
     theirs.close()
     conn = Connection(ours.detach())

@@ -67,13 +67,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--input-size",
         choices=["config", "first"],
         default="config",
-        help="engine input size: from the config (default; the engine starts at once) or from the first message",
-    )
-    p.add_argument(
-        "--on-size-mismatch",
-        choices=["resize", "reject"],
-        default="resize",
-        help="frames of another size: resize them (default) or reject them (both counted in /diagnostics)",
+        help="the models' input size: the config's (default; the engine starts at once) or the first message's (the "
+        "camera's frames then need no resizing); outputs are at each message's own size either way",
     )
     p.add_argument(
         "--loopback",
@@ -110,7 +105,6 @@ def main(args: argparse.Namespace) -> int:
         args.config,
         namespace=args.namespace,
         input_size=args.input_size,
-        on_size_mismatch=args.on_size_mismatch,
         depth_color=args.depth_color,
         seg_overlay=args.seg_overlay,
         overrides=overrides,

@@ -69,7 +69,6 @@ OUTPUT_QOS = ("latest", "default")
 #: Rate values (case-insensitive) that mean "no limit", in rate commands.
 UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
 
-SizePolicy = Literal["resize", "reject"]
 
 
 class InputError(ValueError):
@@ -697,11 +696,10 @@ class Ros2Core:
     commands to :meth:`set_rate`, and publishes :meth:`diagnostics` about once a second. Uses the public Engine API
     only (submit, results, set_rate, stats, head_info).
 
-    Input size (the engine's is fixed at start): ``input_size="config"`` starts the engine at once with the
-    config's ``input.height/width``; ``"first"`` starts it when the first message arrives, at that message's size
-    (messages arriving during start-up are not seen). Frames of another size are resized
-    (``on_size_mismatch="resize"``) or rejected (``"reject"``); either way they are counted, and each new size is
-    logged once.
+    Frames of any size go to the engine as they come, and every output is published at the camera's size, in its
+    pixels, under its header (Note [Frame grid] in boundary.py). ``input_size="config"`` starts the engine at once
+    with the config's ``input.height/width``; ``"first"`` starts it when the first message arrives, with the models
+    at that message's size, so a camera's frames need no resizing (messages arriving during start-up are not seen).
     """
 
     def __init__(
@@ -710,7 +708,6 @@ class Ros2Core:
         *,
         namespace: str = "/vpengine",
         input_size: Literal["config", "first"] = "config",
-        on_size_mismatch: SizePolicy = "resize",
         depth_color: bool = False,
         seg_overlay: bool = False,
         overrides: Sequence[str] = (),
@@ -719,12 +716,9 @@ class Ros2Core:
 
         if input_size not in ("config", "first"):
             raise ValueError(f"input_size must be 'config' or 'first', got {input_size!r}")
-        if on_size_mismatch not in ("resize", "reject"):
-            raise ValueError(f"on_size_mismatch must be 'resize' or 'reject', got {on_size_mismatch!r}")
         self.config = load_config(config, list(overrides))
         self.namespace = normalize_namespace(namespace)
         self.input_size = input_size
-        self.on_size_mismatch = on_size_mismatch
         planner = self._new_engine(self.config)  # planned only: head metadata without starting anything
         self.model_names: list[str] = self.config.model_names()
         self.head_infos: dict[str, dict[str, Any]] = {
@@ -743,7 +737,6 @@ class Ros2Core:
         self.engine: Any = None
         self._engine_ready = threading.Event()
         self._start_lock = threading.Lock()
-        self._seen_sizes: set[tuple[int, int]] = set()
         self.counters: collections.Counter[str] = collections.Counter()
         self.published: collections.Counter[str] = collections.Counter()
         #: Note [Rejection log]: input messages and outputs that could not be used, per reason
@@ -758,7 +751,7 @@ class Ros2Core:
         self._largest_input = 0
         self._link_logged: set[str] = set()
         #: CPU seconds (of the calling thread: time.thread_time, so neither waiting for data nor for the GIL counts)
-        #: per stage: decode, resize, submit (per input frame); results, convert (per output); transports add
+        #: per stage: decode, submit (per input frame); results, convert (per output); transports add
         #: encode, write. Where the interface's time goes; reported in /diagnostics as busy_s.<stage>.
         self.busy: collections.Counter[str] = collections.Counter()
         self.hardware_id = f"vpengine {self.config.name} ({self.config.device})"
@@ -837,13 +830,6 @@ class Ros2Core:
         if eng is None:  # stopped meanwhile
             self.counters["not_ready"] += 1
             return None
-        want = (eng.config.input.height, eng.config.input.width)
-        if frame.shape[:2] != want:
-            t0 = time.thread_time()
-            frame = self._fit(frame, want)
-            self.busy["resize"] += time.thread_time() - t0
-            if frame is None:
-                return None
         # The header goes into the book *before* the frame goes into the engine: a fast head's output can reach
         # the output thread before submit() even returns here, and must find its header (Note [Output headers]).
         fid = self._next_fid
@@ -861,29 +847,6 @@ class Ros2Core:
         self.busy["submit"] += time.thread_time() - t0
         self.counters["submitted"] += 1
         return fid
-
-    def _fit(self, frame: np.ndarray, want: tuple[int, int]) -> np.ndarray | None:
-        h, w = frame.shape[:2]
-        first = (w, h) not in self._seen_sizes
-        self._seen_sizes.add((w, h))
-        if self.on_size_mismatch == "reject":
-            self._reject(
-                "size", f"{w}x{h} frame; the engine runs at {want[1]}x{want[0]} (on_size_mismatch=reject)"
-            )
-            return None
-        import cv2
-
-        self.counters["resized"] += 1
-        if first:
-            log.warning(
-                "resizing %dx%d frames to the engine's %dx%d (counted as resized in /diagnostics)",
-                w,
-                h,
-                want[1],
-                want[0],
-            )
-        interp = cv2.INTER_AREA if h > want[0] else cv2.INTER_LINEAR
-        return cv2.resize(frame, (want[1], want[0]), interpolation=interp)
 
     # -------------------------------------------------------------------------------------------- output
     def poll_outputs(self, timeout: float = 0.1) -> list[tuple[OutputTopic, Payload]]:
@@ -1036,7 +999,6 @@ class Ros2Core:
                 "submitted",
                 "superseded",
                 "rejected",
-                "resized",
                 "not_ready",
                 "header_fallbacks",
                 "overlays_skipped",

@@ -29,7 +29,7 @@ and the latched ``<ns>/model_names`` topic work in both cases.
 
 Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``compressed`` (false), ``input_qos``
 (sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in the core), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
-(config | first), ``on_size_mismatch`` (resize | reject), ``overrides`` (string array of KEY=VALUE).
+(config | first), ``overrides`` (string array of KEY=VALUE).
 """
 
 from __future__ import annotations
@@ -190,7 +190,6 @@ def build_node(argv: list[str] | None = None) -> Any:
                 config,
                 namespace=p("output_namespace", "/vpengine").value,
                 input_size=p("input_size", "config").value,
-                on_size_mismatch=p("on_size_mismatch", "resize").value,
                 depth_color=bool(p("depth_color", False).value),
                 seg_overlay=bool(p("seg_overlay", False).value),
                 # a STRING_ARRAY with no default: rclpy cannot infer the type of an empty list

@@ -29,7 +29,11 @@ def main(fd: int, parent_pid: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C belongs to the parent, which stops us in order
     conn = Connection(fd)
     try:
-        _kind, spec, log_level, log_file = conn.recv()
+        from vpengine.runtime.process import Init
+
+        init = conn.recv()
+        assert isinstance(init, Init), init
+        spec, log_level, log_file = init.spec, init.log_level, init.log_file
     except (EOFError, OSError):
         os._exit(2)
     logging.basicConfig(
@@ -37,7 +41,7 @@ def main(fd: int, parent_pid: int) -> None:
     )
 
     from vpengine.runtime.control import ControlBlock
-    from vpengine.runtime.process import recv_fds
+    from vpengine.runtime.process import Failed, Ready, Stop, recv_fds
     from vpengine.runtime.supervisor import log_to_file
     from vpengine.runtime.worker import describe_exception, prepare_worker
     from vpengine.transport.ring import SlotRing
@@ -47,7 +51,7 @@ def main(fd: int, parent_pid: int) -> None:
     def watch_parent() -> None:
         try:
             while True:
-                if conn.recv() == ("stop",):
+                if isinstance(conn.recv(), Stop):
                     stop.set()
         except (EOFError, OSError):
             pass
@@ -57,7 +61,7 @@ def main(fd: int, parent_pid: int) -> None:
     try:
         fds = recv_fds(conn)
     except BaseException as e:
-        conn.send(("error", describe_exception(spec.name, e)))
+        conn.send(Failed(describe_exception(spec.name, e)))
         os._exit(3)
     threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
     try:
@@ -65,14 +69,15 @@ def main(fd: int, parent_pid: int) -> None:
             log_to_file(log_file, log_level, spec.name)
         in_ring = SlotRing.attach(spec.in_ring, fds)
         out_ring = SlotRing.attach(spec.out_ring, fds)
+        assert spec.control is not None  # the runner gives every child spec its control block
         control = ControlBlock.attach(spec.control, fds)  # opening a region consumes (closes) its descriptor
         core = prepare_worker(spec, in_ring, out_ring, control, own_process=True)
     except BaseException as e:
         try:
-            conn.send(("error", describe_exception(spec.name, e)))
+            conn.send(Failed(describe_exception(spec.name, e)))
         finally:
             os._exit(3)
-    conn.send(("ready", {"pid": os.getpid()}))
+    conn.send(Ready(os.getpid()))
     try:
         core.run(lambda: stop.is_set() or control.stopping)
     except BaseException as e:
@@ -80,6 +85,6 @@ def main(fd: int, parent_pid: int) -> None:
         control.add(spec.name, "errors")
         control.set_error(spec.name, text)
         with contextlib.suppress(OSError):
-            conn.send(("error", text))
+            conn.send(Failed(text))
         os._exit(1)
     os._exit(0)

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from vpengine.transport import _linux
-from vpengine.transport.memory import HostRegion, RegionHandle
+from vpengine.transport.memory import HostRegion
+from vpengine.transport.region import RegionHandle
 
 LAT_N = 512
 #: Longest sleep of any wait in a worker or the engine: how soon a sleeper notices a stop and beats its heartbeat.
@@ -50,6 +51,12 @@ _FIELDS = [
     # skipped, and of the newest it ran
     ("decided", "q"),
     ("last_run", "q"),
+    # Note [Cameras] in worker.py: frames that came after their batch's window (run in the next batch) and frames
+    # a lower-priority camera left for a later batch while the model could not keep up, and frames that ran in one
+    # model call with another camera's
+    ("late", "q"),
+    ("deferred", "q"),
+    ("batched", "q"),
     ("target_hz", "d"),  # NaN: unlimited
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
     ("started_at", "d"),
@@ -61,6 +68,21 @@ _F = {
 _LAT0 = 1 + len(_FIELDS)
 ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
 ENTRY_BYTES = ENTRY_WORDS * 8
+
+def camera_entry(model: str, camera: str, cameras: list[str] | tuple[str, ...]) -> str:
+    """The control-block entry holding ``model``'s rate, counters and latencies for ``camera`` (Note [Cameras] in
+    worker.py): the model's own entry on a one-camera engine, ``model@camera`` with several."""
+    return model if len(cameras) == 1 else f"{model}@{camera}"
+
+
+def control_names(models: dict[str, list[str]], cameras: list[str]) -> list[str]:
+    """Every entry of a control block: each model's (process state, heartbeat, errors), then, with several cameras,
+    one per model and camera it serves. ``models``: model -> its cameras."""
+    names = list(models)
+    if len(cameras) > 1:
+        names += [camera_entry(m, c, cameras) for m, cams in models.items() for c in cams]
+    return names
+
 
 STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped", "hung"]
 STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED, HUNG = range(len(STATES))
@@ -168,6 +190,10 @@ class ControlBlock:
         self._set(i, "target_hz", math.nan if hz is None else hz)
         self._bump(_HEADER + i * ENTRY_BYTES)
 
+    def wake(self, name: str) -> None:
+        """Wake ``name``'s worker from ``wait_control`` (a rate of one of its cameras changed)."""
+        self._bump(_HEADER + self.index[name] * ENTRY_BYTES)
+
     def rate(self, name: str) -> float | None:
         v = self._get(self.index[name], "target_hz")
         return None if math.isnan(v) else v
@@ -241,14 +267,13 @@ class ControlBlock:
         return raw.split(b"\0", 1)[0].decode("utf-8", "replace")
 
     # -------------------------------------------------------------------------------------------- reading
-    def snapshot(self, name: str, window_s: float = 2.0) -> dict[str, Any]:
-        """Counters, achieved rate over the last ``window_s`` and latency percentiles (ms) for one model."""
+    def snapshot(self, name: str, window_s: float = 2.0, cameras: list[str] | None = None) -> dict[str, Any]:
+        """Counters, achieved rate over the last ``window_s`` and latency percentiles (ms) for one entry; with
+        ``cameras`` (a model's camera entries), the model's over all of them: counters summed, samples pooled."""
         i = self.index[name]
-        n = min(self._get(i, "lat_count"), LAT_N)
-        b = self._lat_base(i)
-        lat = np.asarray(self._d[b : b + n]) if n else np.empty(0)
-        e2e = np.asarray(self._d[b + LAT_N : b + LAT_N + n]) if n else np.empty(0)
-        starts = np.sort(np.asarray(self._d[b + 2 * LAT_N : b + 2 * LAT_N + n])) if n else np.empty(0)
+        parts = [name, *(cameras or [])]
+        lat, e2e, starts = (np.concatenate(a) for a in zip(*(self._samples(p) for p in parts)))
+        starts = np.sort(starts)
         now = time.monotonic()
         recent = starts[starts >= now - window_s]
         achieved = 0.0
@@ -262,15 +287,23 @@ class ControlBlock:
             p = np.percentile(a, [50, 90, 99]) * 1e3
             return {"p50": float(p[0]), "p90": float(p[1]), "p99": float(p[2]), "mean": float(a.mean() * 1e3)}
 
-        target = self._get(i, "target_hz")
+        targets = {self._get(self.index[p], "target_hz") for p in (cameras or [name])}
+        target = targets.pop() if len(targets) == 1 else math.nan  # several: stats()["cameras"] has each
+
+        def total(field: str) -> int:
+            return int(sum(self._get(self.index[p], field) for p in parts))
+
         return {
             "state": STATES[self._get(i, "state")],
             "pid": self._get(i, "pid"),
             "target_hz": None if math.isnan(target) else target,
             "achieved_hz": achieved,
-            "runs": self._get(i, "runs"),
-            "skipped": self._get(i, "skipped"),
-            "dropped": self._get(i, "dropped"),
+            "runs": total("runs"),
+            "skipped": total("skipped"),
+            "dropped": total("dropped"),
+            "late": total("late"),
+            "deferred": total("deferred"),
+            "batched": total("batched"),
             "errors": self._get(i, "errors"),
             "restarts": self._get(i, "restarts"),
             "crashes": self._get(i, "crashes"),
@@ -282,6 +315,17 @@ class ControlBlock:
             "device_mem_bytes": self._get(i, "device_mem_bytes"),
             "last_error": self.last_error(name) or None,
         }
+
+    def _samples(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """An entry's recent compute latencies, end-to-end latencies and run start times (copies)."""
+        i = self.index[name]
+        n = min(self._get(i, "lat_count"), LAT_N)
+        b = self._lat_base(i)
+        return (
+            np.array(self._d[b : b + n]),
+            np.array(self._d[b + LAT_N : b + LAT_N + n]),
+            np.array(self._d[b + 2 * LAT_N : b + 2 * LAT_N + n]),
+        )
 
     def recent_latencies(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         i = self.index[name]

@@ -192,7 +192,7 @@ class InlineLaunch:
 
     # submitting side
     def publish(
-        self, writer: RingWriter, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float
+        self, writer: RingWriter, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, tag: int = 0
     ) -> int:
         """Publish the frame filled in ``slot`` (the input ring's ``writer`` holds it); if a worker is armed, queue
         its work on the frame first, then publish the frame pinned for its reader and hand it over. The frame's seq.
@@ -201,7 +201,7 @@ class InlineLaunch:
             launch, reader, allowed = self._launch, self._reader, self._allowed
             if launch is None or reader is None or allowed is None or not allowed():
                 # no worker armed, or a rate set since (a pause, say): the worker's gate decides, once woken
-                return writer.publish(slot, frame_id, t_capture, t_submit)
+                return writer.publish(slot, frame_id, t_capture, t_submit, tag=tag)
             self.disarm()
             t_start = time.monotonic()
             error: BaseException | None = None
@@ -209,7 +209,7 @@ class InlineLaunch:
                 launch(slot)
             except Exception as e:  # raised in the worker, under its restart rules; never in submit
                 error = e
-            pinned = writer.publish_pinned(slot, frame_id, t_capture, t_submit, reader)
+            pinned = writer.publish_pinned(slot, frame_id, t_capture, t_submit, reader, tag)
             self._done = (pinned, t_start, error)
             self.launches += 1
             self.cond.notify_all()

@@ -92,30 +92,44 @@ FIFO_MARGIN = 4
 
 def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
     """``SlotRing.create``'s arguments for every mailbox: the input, the features, one output per head. Each is as
-    small as its readers allow (readers + 2: Note [Slot lifetime] in transport/ring.py), plus the margin a fifo
-    reader needs to catch up, plus the leases of each head's output."""
+    small as its readers allow (readers + tags + 1: Note [Slot lifetime], Note [Tagged slots] in
+    transport/ring.py), plus the margin a fifo reader needs to catch up, plus the leases of each head's output.
+    With several cameras, every slot is tagged with its frame's camera and each model reads with one reader per
+    camera it serves (``reader_name``); results are read untagged, every camera's in one stream."""
     cfg = plan.cfg
     device = torch.device(cfg.device)
     gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
+    cameras = cfg.camera_names()
+    tags = len(cameras)
+
+    def readers(model: str, mode: str) -> list[ReaderDecl]:
+        return [
+            ReaderDecl(reader_name(model, c, cameras), mode, tag=None if tags == 1 else cameras.index(c))  # type: ignore[arg-type]
+            for c in cfg.model_cameras(model)
+        ]
+
     fifo_fm = FIFO_MARGIN if cfg.foundation_model.input_mode == "fifo" else 0
     fifo_heads = FIFO_MARGIN if any(h.input_mode == "fifo" for h in cfg.heads) else 0
+    feature_readers = [r for h in cfg.heads for r in readers(h.name, h.input_mode)]
     boxes: list[dict[str, Any]] = [
         dict(
             name="input",
             specs=plan.frame_spec,
-            n_slots=3 + fifo_fm,
-            readers=[ReaderDecl("foundation", cfg.foundation_model.input_mode)],
+            n_slots=2 * tags + 1 + fifo_fm * tags,
+            readers=readers("foundation", cfg.foundation_model.input_mode),
             device="cpu",
             shared=shared,
             pinned=gpu,
+            n_tags=tags,
         ),
         dict(
             name="features",
             specs=plan.features,
-            n_slots=max(3, len(cfg.heads) + 2 + fifo_heads),
-            readers=[ReaderDecl(h.name, h.input_mode) for h in cfg.heads],
+            n_slots=max(3, len(feature_readers) + tags + 1 + fifo_heads * tags),
+            readers=feature_readers,
             device=device,
             shared=shared,
+            n_tags=tags,
         ),
     ]
     for h in cfg.heads:
@@ -124,15 +138,22 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
             dict(
                 name=f"out.{h.name}",
                 specs=plan.heads[h.name].output_spec,
-                n_slots=h.output.slots + LEASES,
+                # kept for results(): output.slots a camera, plus the leases (and room for each camera's newest)
+                n_slots=h.output.slots * len(cfg.model_cameras(h.name)) + LEASES + tags - 1,
                 readers=[ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
                 device=device if h.output.location == "device" else "cpu",
                 shared=shared,
                 overflow=h.output.overflow,
                 pinned=gpu,
+                n_tags=tags,
             )
         )
     return boxes
+
+
+def reader_name(model: str, camera: str, cameras: list[str]) -> str:
+    """The name of ``model``'s reader of its input ring for ``camera``: the model's own with one camera."""
+    return model if len(cameras) == 1 else f"{model}@{camera}"
 
 
 def check_preallocation(boxes: list[dict[str, Any]]) -> None:

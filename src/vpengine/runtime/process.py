@@ -46,13 +46,14 @@ import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
 from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.supervisor import EngineStartError, Runner
+from vpengine.runtime.worker import WorkerSpec
 
 log = logging.getLogger("vpengine.process")
 
@@ -92,11 +93,43 @@ def recv_fds(conn: Connection) -> list[int]:
     return fds
 
 
-def _child_env() -> dict[str, str]:
+def package_env() -> dict[str, str]:
+    """The environment of a helper process (a tool's, a test's) that imports this package from wherever this one is:
+    this environment with the folder holding ``vpengine`` first on PYTHONPATH. Workers do not use it: they start
+    isolated, with an explicit path (Note [Child lifecycle])."""
     env = dict(os.environ)
-    src = str(Path(__file__).resolve().parents[2])  # the folder holding the vpengine package
+    src = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join([src, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
     return env
+
+
+# ----------------------------------------------------------------------------------- messages on the socket
+@dataclass(frozen=True)
+class Init:
+    """Parent -> worker, first: what to run (the fds of its rings follow, Note [Child lifecycle])."""
+
+    spec: WorkerSpec
+    log_level: str
+    log_file: str | None
+
+
+@dataclass(frozen=True)
+class Ready:
+    """Worker -> parent: loaded, warmed up and serving."""
+
+    pid: int
+
+
+@dataclass(frozen=True)
+class Failed:
+    """Worker -> parent: it could not start, or its loop raised; its traceback."""
+
+    text: str
+
+
+@dataclass(frozen=True)
+class Stop:
+    """Parent -> worker: leave the loop."""
 
 
 # A worker's interpreter: isolated (-I), with the import path given on its command line (Note [Child lifecycle]).
@@ -196,10 +229,10 @@ class _Child:
         try:
             while not self.eof and self.conn.poll():
                 msg = self.conn.recv()
-                if msg[0] == "ready":
+                if isinstance(msg, Ready):
                     self.ready = True
-                elif msg[0] == "error":
-                    self.error = str(msg[1])
+                elif isinstance(msg, Failed):
+                    self.error = msg.text
         except (EOFError, OSError):
             self.eof = True
 
@@ -262,7 +295,7 @@ class ProcessRunner(Runner):
         if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
             proc.kill()
             raise PermissionError(f"worker {name}: socket peer has uid {uid}")
-        conn.send(("init", child_spec, self.cfg.logging.level, self.cfg.logging.file))
+        conn.send(Init(child_spec, self.cfg.logging.level, self.cfg.logging.file))
         send_fds(conn, fds)
         self._children[name] = _Child(proc, conn)
         os.write(self._wake_w, b"x")
@@ -387,7 +420,7 @@ class ProcessRunner(Runner):
         children = list(self._children.items())
         for _, ch in children:
             with contextlib.suppress(OSError, ValueError):
-                ch.conn.send(("stop",))
+                ch.conn.send(Stop())
         # Each phase waits for all children at once, against one deadline: nine hung workers take one grace time,
         # not nine.
         _join_all([ch for _, ch in children], self.cfg.runtime.stop_timeout_s)

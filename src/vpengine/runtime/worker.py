@@ -23,6 +23,23 @@ coming. A frame the foundation model held back reaches no head: ``wait`` sees th
 at or past the frame with its ``last_run`` before it. Frames a model missed because it was busy (newest wins) are
 answered by the newer frame it took.
 
+Note [Cameras]
+~~~~~~~~~~~~~~
+Several cameras feed one engine: one backbone's weights, one set of workers and mailboxes. Every frame is tagged with
+its camera (Note [Tagged slots] in transport/ring.py) and a model keeps one *lane* per camera it serves: that
+camera's reader of its input ring, its rate gate, and its control-block entry (``model@camera``: rate, counters,
+latencies, answered frames), so rates, counts and Note [Answered frames] hold per camera. A model with several lanes
+takes its frames as one batch (``_take_batch``): it waits for the first frame of any camera, then at most
+``runtime.batch_window_ms`` for the other cameras whose next frame is due by then; a camera whose frame comes later
+goes in the next batch, counted ``late``. The frames the gates admit are copied into preallocated batch buffers (one
+frame per lane) and run as one batch through the model (Note [Batched models] in models/base.py; a compiled model
+has a graph for every batch size up to its lanes), and each frame's outputs are copied into its own slot and published
+with its camera's tag. When the model cannot keep up (its last batch took longer
+than the cameras' frame interval), the camera last in the configured order leaves its frame for the next batch,
+counted ``deferred`` (never twice in a row, so no camera starves): the first cameras keep their rate and latency.
+With one camera nothing of this runs: the model takes its frames one by one as before (and may take them from the
+submitting thread, Note [Inline launch]).
+
 The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
 launching the foundation's work) live in handoff.py.
 """
@@ -30,6 +47,7 @@ launching the foundation's work) live in handoff.py.
 from __future__ import annotations
 
 import logging
+import math
 import os
 import threading
 import time
@@ -43,12 +61,12 @@ import torch
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.base import Role, check_outputs
 from vpengine.models.build import build_lock, build_model, model_config
-from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
+from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc, camera_entry
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
 from vpengine.runtime.rate import RateGate
 from vpengine.specs import SpecDict
-from vpengine.transport.ring import RingDesc, SlotInfo, SlotRing
+from vpengine.transport.ring import RingDesc, RingReader, SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine.worker")
 
@@ -73,6 +91,33 @@ class WorkerSpec:
         return load_config(self.config)
 
 
+@dataclass
+class _Lane:
+    """One camera's share of a model's work (Note [Cameras])."""
+
+    camera: str
+    tag: int
+    reader: RingReader
+    gate: RateGate
+    entry: str  # its control-block entry
+    last_arrival: float = -math.inf  # when its last frame reached the engine (monotonic)
+    interval: float = 0.0  # moving average of its frames' spacing (0: not known yet)
+    deferred: bool = False  # its last frame was left for a later batch (Note [Cameras])
+
+    def arrived(self, t: float) -> None:
+        if self.last_arrival > -math.inf and t > self.last_arrival:
+            step = t - self.last_arrival
+            self.interval = step if self.interval <= 0 else self.interval + 0.125 * (step - self.interval)
+        self.last_arrival = t
+
+    def due_by(self, deadline: float, now: float) -> bool:
+        """Whether its next frame should come by ``deadline``: it delivers frames, and the next is due then."""
+        if self.interval <= 0:
+            return False
+        live = now - self.last_arrival < 3 * self.interval
+        return live and self.last_arrival + self.interval <= deadline
+
+
 class WorkerCore:
     """The loop of one model. Construct with mapped rings; ``run`` until ``should_stop`` says so."""
 
@@ -93,12 +138,27 @@ class WorkerCore:
         self.name = spec.name
         self.model = model
         self.output_spec = output_spec
-        self.reader = in_ring.reader(spec.in_reader)
+        cfg = spec.engine_config()
+        cameras = cfg.camera_names()
+        # Note [Cameras]: one lane per camera this model serves; a one-camera engine has one lane, named after the
+        # model, with the model's own reader and control-block entry
+        self.lanes = [
+            _Lane(
+                camera=c,
+                tag=cameras.index(c),
+                reader=in_ring.reader(spec.in_reader if len(cameras) == 1 else f"{spec.name}@{c}"),
+                gate=RateGate(),
+                entry=camera_entry(spec.name, c, cameras),
+            )
+            for c in cfg.model_cameras(spec.name)
+        ]
+        self._by_tag = {lane.tag: lane for lane in self.lanes}
+        self.window = cfg.runtime.batch_window_ms * 1e-3
+        self.reader, self.gate = self.lanes[0].reader, self.lanes[0].gate  # the one-camera path
         self.writer = out_ring.writer()
         self.control = control
         self.dev = device
         self.poll_s = poll_s
-        self.gate = RateGate()
         self._checked = False
         self._should_stop: Callable[[], bool] = lambda: False
         self._keys = input_keys(spec, in_ring)
@@ -112,8 +172,17 @@ class WorkerCore:
         self._inline = handoff.inline
         self._thread: int | None = None  # the thread running the loop (Note [Launch path])
         self._spare: SlotInfo | None = None  # the output slot an armed worker offers
+        self._batch_s = 0.0  # moving average of how long a batch takes (Note [Cameras])
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
+        # Note [Cameras]: the frames of a batch are copied into preallocated buffers of one frame per lane
+        self._batch_in: dict[str, torch.Tensor] | None = None
+        self._checked_batch = False
+        if len(self.lanes) > 1:
+            self._batch_in = {
+                k: in_ring.views[0][k].new_empty((len(self.lanes), *in_ring.views[0][k].shape), device=device.device)
+                for k in self._keys
+            }
         # Inputs live wherever their ring lives; a model on another device reads preallocated staging copies.
         self._staging: dict[str, torch.Tensor] | None = None
         if not bound and in_ring.data_region.device != device.device:
@@ -143,9 +212,13 @@ class WorkerCore:
 
     def _loop(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
+        entry = self.lanes[0].entry
         while not should_stop():
             ctl.heartbeat(name)
-            rate = ctl.rate(name)
+            if len(self.lanes) > 1:
+                self._take_batch()
+                continue
+            rate = ctl.rate(entry)
             self.gate.update(rate)
             if self.gate.paused:
                 self._drop_spare()  # not armed while paused: takes no frames from submit
@@ -170,40 +243,176 @@ class WorkerCore:
         finally:
             self.reader.release(slot)
 
+    # ------------------------------------------------------------------------------- Note [Cameras]: batches
+    def _take_batch(self) -> None:
+        """The frames of every camera that come together (within the batch window), run as one batch; or none
+        within ``poll_s``."""
+        ctl = self.control
+        active = []
+        for lane in self.lanes:
+            lane.gate.update(ctl.rate(lane.entry))
+            if not lane.gate.paused:
+                active.append(lane)
+        if not active:
+            ctl.set_state(self.name, PAUSED)
+            ctl.wait_control(self.name, self.poll_s)
+            return
+        ctl.set_state(self.name, RUNNING)
+        pins: dict[int, SlotInfo] = {}
+        try:
+            if not self._pin_ready(active, pins):
+                self._in_ring.wait_any([lane.reader for lane in active], self.poll_s, self._should_stop)
+                if not self._pin_ready(active, pins):
+                    return
+            deadline = time.monotonic() + self.window
+            while True:
+                now = time.monotonic()
+                due = [lane for lane in active if lane.tag not in pins and lane.due_by(deadline, now)]
+                if not due:
+                    break
+                if now >= deadline:
+                    for lane in due:  # its frame goes in the next batch
+                        ctl.add(lane.entry, "late")
+                    break
+                self._in_ring.wait_any([lane.reader for lane in due], deadline - now, self._should_stop)
+                self._pin_ready(due, pins)
+            admitted = []
+            for lane in self.lanes:  # in priority order
+                slot = pins.get(lane.tag)
+                if slot is not None:
+                    lane.arrived(slot.t_submit)
+                    if self._admit(slot, lane.gate.hz):  # a rate set while it waited decides
+                        admitted.append(slot)
+            self._run_batch(self._defer(admitted))
+        finally:
+            for tag, slot in pins.items():
+                self._by_tag[tag].reader.release(slot)
+
+    def _pin_ready(self, lanes: list[_Lane], pins: dict[int, SlotInfo]) -> bool:
+        """Pin each lane's next frame that is there; whether any is pinned."""
+        for lane in lanes:
+            if lane.tag not in pins:
+                slot = lane.reader.pin(timeout=0)
+                if slot is not None:
+                    pins[lane.tag] = slot
+        return bool(pins)
+
+    def _defer(self, admitted: list[SlotInfo]) -> list[SlotInfo]:
+        """Note [Cameras]: while the model cannot keep up, the last camera in priority order leaves its frame for
+        the next batch (counted skipped and deferred, answered at once), never twice in a row."""
+        if len(admitted) < 2 or self._batch_s <= 0:
+            return admitted
+        intervals = [lane.interval for lane in self.lanes if lane.interval > 0]
+        if not intervals or self._batch_s <= min(intervals):
+            return admitted
+        last = self._by_tag[admitted[-1].tag]
+        if last.deferred:
+            last.deferred = False
+            return admitted
+        last.deferred = True
+        self.control.add(last.entry, "deferred")
+        self.control.add(last.entry, "skipped")
+        self.control.decide(last.entry, admitted[-1].origin, ran=False)
+        return admitted[:-1]
+
+    def _run_batch(self, slots: list[SlotInfo]) -> None:
+        """Run admitted frames of several cameras as one batch and publish each output in its own slot."""
+        if not slots:
+            return
+        t0 = time.monotonic()
+        if len(slots) == 1:
+            self._step(slots[0])
+        else:
+            self._step_batch(slots, t0)
+        took = time.monotonic() - t0
+        self._batch_s = took if self._batch_s <= 0 else self._batch_s + 0.25 * (took - self._batch_s)
+
+    def _step_batch(self, slots: list[SlotInfo], t_start: float) -> None:
+        """One model call for the frames in ``slots`` (pinned, admitted, one per camera): each frame gets an output
+        slot (none free: that frame is dropped, counted and answered), the inputs are copied into the preallocated
+        batch buffers, and each frame's outputs into its own slot, published with its camera's tag. A run that
+        fails answers every frame of the batch and gives every output slot back."""
+        pairs: list[tuple[SlotInfo, SlotInfo]] = []
+        for slot in slots:
+            out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
+            if out is None:
+                entry = self._by_tag[slot.tag].entry
+                self.control.add(entry, "dropped")
+                self.control.decide(entry, slot.origin, ran=False)
+            else:
+                pairs.append((slot, out))
+        done, launched = 0, False
+        try:
+            if pairs:
+                self._launch_batch(pairs)
+                launched = True
+            for slot, out in pairs:
+                self._finish(slot, out, t_start)
+                done += 1
+                if len(pairs) > 1:
+                    self.control.add(self._by_tag[slot.tag].entry, "batched")
+        finally:
+            for i, (slot, out) in enumerate(pairs[done:], done):
+                if not launched or i > done:  # a _finish that raised gave its own slot back
+                    self.writer.abort(out)
+                self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
+
+    def _launch_batch(self, pairs: list[tuple[SlotInfo, SlotInfo]]) -> None:
+        """Queue the model's work on a batch of frames (on the CPU: do it), each into its output slot."""
+        assert self._batch_in is not None
+        n = len(pairs)
+        if self._in_events is not None:  # each input slot was published queued: read it only after that work
+            for slot, _ in pairs:
+                self.dev.wait_on(self._in_events.events[slot.index])
+        for k, buf in self._batch_in.items():
+            for i, (slot, _) in enumerate(pairs):
+                buf[i].copy_(slot.tensors[k], non_blocking=True)
+        outputs = self.model({k: buf[:n] for k, buf in self._batch_in.items()})
+        if not self._checked_batch:
+            check_outputs(self.name, self.output_spec, outputs, batch=n)
+            self._checked_batch = True
+        for i, (_, out) in enumerate(pairs):
+            for k, t in out.tensors.items():
+                t.copy_(outputs[k][i], non_blocking=True)
+            if self._out_events is not None:
+                self.dev.mark(self._out_events.events[out.index])
+
     def _admit(self, slot: SlotInfo, rate: float | None) -> bool:
         """Whether the frame in ``slot`` runs, by the rate gate on the frame's own timestamp (``rate.py``); frames
         this model never saw (it was busy) and a frame the gate holds back are counted skipped, and a held-back
         frame is answered (Note [Answered frames]). A rate set while this worker waited for the frame (a pause,
         say) decides: ``Engine.set_rate`` stores the rate before it returns, and a frame published after that is
         seen only after the store, so a pause stops every frame submitted after it."""
-        now_rate = self.control.rate(self.name)
+        lane = self._by_tag[slot.tag]
+        now_rate = self.control.rate(lane.entry)
         if now_rate != rate:
-            self.gate.update(now_rate)
-        if self.gate.admit(slot.t_capture, slot.t_submit, slot.missed):
+            lane.gate.update(now_rate)
+        if lane.gate.admit(slot.t_capture, slot.t_submit, slot.missed):
             if slot.missed:
-                self.control.add(self.name, "skipped", slot.missed)
+                self.control.add(lane.entry, "skipped", slot.missed)
             return True
-        self.control.add(self.name, "skipped", 1 + slot.missed)
-        self.control.decide(self.name, slot.origin, ran=False)
+        self.control.add(lane.entry, "skipped", 1 + slot.missed)
+        self.control.decide(lane.entry, slot.origin, ran=False)
         return False
 
     def _step(self, slot: SlotInfo, out: SlotInfo | None = None) -> None:
         """One run on a pinned, admitted ``slot``, into ``out`` (an output slot already acquired) or one it
         acquires. A run that publishes nothing (no output slot, or the model raised) still answers the frame."""
         t_start = time.monotonic()
+        entry = self._by_tag[slot.tag].entry
         ran = False
         try:
             if out is None:
                 out = self.writer.acquire(timeout=None, should_stop=self._should_stop)
             if out is None:
-                self.control.add(self.name, "dropped")
+                self.control.add(entry, "dropped")
                 return
             self._launch(slot, out)
             self._finish(slot, out, t_start)
             ran = True
         finally:
             if not ran:
-                self.control.decide(self.name, slot.origin, ran=False)
+                self.control.decide(entry, slot.origin, ran=False)
 
     def _launch(self, slot: SlotInfo, out: SlotInfo) -> None:
         """Queue the model's work from ``slot`` into ``out`` (on the CPU: do it). Gives ``out`` back if that raises.
@@ -237,7 +446,7 @@ class WorkerCore:
 
     def _finish(self, slot: SlotInfo, out: SlotInfo, t_start: float) -> None:
         """Count and publish a run whose work ``_launch`` queued; the caller then releases ``slot``."""
-        ctl, name = self.control, self.name
+        ctl, name = self.control, self._by_tag[slot.tag].entry
         handoff = self._out_events
         if handoff is None:
             try:
@@ -248,7 +457,7 @@ class WorkerCore:
         # Counters first, then publish: whoever sees the output also sees it counted.
         t_end = time.monotonic()
         ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
-        self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin)
+        self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin, tag=slot.tag)
         ctl.decide(name, slot.origin, ran=True, wake=self.spec.notify_output)
         if handoff is not None:
             # The input slot is released (by run) only after the work that read it is done; the run's times
@@ -399,6 +608,7 @@ def prepare_worker(
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
                 cache_dir=cfg.weights.cache_dir,
+                max_batch=len(cfg.model_cameras(spec.name)),  # Note [Cameras]: a frame of each camera at once
             )
             # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,
             # so the steady state allocates nothing (Invariant: constant memory).

@@ -1,7 +1,8 @@
 """Preallocated slot pools and mailboxes. Knows tensors, slots, sequence numbers, pins and wake-ups; no models."""
 
 from vpengine.transport.layout import SlotLayout
-from vpengine.transport.memory import HostRegion, LocalRegion, Region, RegionHandle, allocate, open_region
+from vpengine.transport.memory import HostRegion, LocalRegion, allocate, open_region
+from vpengine.transport.region import Region, RegionHandle
 from vpengine.transport.ring import (
     ReaderDecl,
     RingClosedError,

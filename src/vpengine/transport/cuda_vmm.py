@@ -25,7 +25,7 @@ from typing import Any
 
 import torch
 
-from vpengine.transport.memory import Region, RegionHandle
+from vpengine.transport.region import Region, RegionHandle
 
 _lock = threading.Lock()
 

@@ -1,6 +1,6 @@
 """Memory backends: where a slot pool lives, and how another process maps the same bytes.
 
-A :class:`Region` is one contiguous allocation (one per pool, carved into slots and keys by ``layout.py``) that can
+A :class:`~vpengine.transport.region.Region` is one contiguous allocation (one per pool, carved into slots and keys by ``layout.py``) that can
 be viewed as a flat ``uint8`` torch tensor without a copy. Process mode needs regions that other processes can map:
 ``export`` appends the file descriptors that stand for the region to a list (sent later over a UNIX socket with
 SCM_RIGHTS) and returns a small picklable :class:`RegionHandle`; ``open_region`` in the child turns both back into a
@@ -19,52 +19,11 @@ from __future__ import annotations
 
 import mmap
 import os
-from abc import ABC, abstractmethod
-from dataclasses import dataclass
 
 import torch
 
 from vpengine.transport import _linux
-
-
-@dataclass(frozen=True)
-class RegionHandle:
-    """Picklable description of an exported region; the fd it needs travels separately at ``fd_index``."""
-
-    kind: str
-    name: str
-    nbytes: int
-    fd_index: int
-    device: int = -1
-    #: Backend-specific extras (the CUDA backend records its allocation granularity here).
-    alloc_bytes: int = 0
-
-
-class Region(ABC):
-    """One allocation, viewable as a flat uint8 tensor on ``device``."""
-
-    kind: str = ""
-
-    def __init__(self, name: str, nbytes: int, device: torch.device) -> None:
-        self.name = name
-        self.nbytes = nbytes
-        self.device = device
-
-    @abstractmethod
-    def tensor(self) -> torch.Tensor:
-        """The whole region as a flat uint8 tensor (zero-copy)."""
-
-    def export(self, fds: list[int]) -> RegionHandle:
-        raise TypeError(f"region {self.name!r} ({self.kind}) cannot be shared with another process")
-
-    @abstractmethod
-    def close(self) -> None:
-        """Unmap and free this process's references. Safe to call twice."""
-
-    def keep_mapped(self) -> object:
-        """An object that keeps this process's mapping of the region valid for as long as it lives, even past
-        ``close()``: what arrays handed to a caller hold (Note [Borrowed results] in engine.py)."""
-        raise TypeError(f"region {self.name!r} ({self.kind}) cannot outlive close()")
+from vpengine.transport.region import Region, RegionHandle
 
 
 class HostRegion(Region):

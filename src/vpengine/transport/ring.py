@@ -19,9 +19,11 @@ The metadata lives in a small host region shared by every process that uses the 
     [64, 68)    u32 futex word ``publish_word``: bumped on every publish, readers sleep on it
     [68, 72)    u32 futex word ``release_word``: bumped when a blocked writer must look again
     [72, 128)   header, i64 x 7: last_seq, n_slots, n_readers, writer_waiting, published, dropped_newest, reserved
-    [128, ...)  slot table, n_slots x 8 i64: state, seq, frame_id, t_capture*, t_submit*, t_publish*, writer_pid,
-                origin (the input-ring seq of the frame this slot derives from: frame identity across the pipeline)
+    [128, ...)  slot table, n_slots x 10 i64: state, seq, frame_id, t_capture*, t_submit*, t_publish*, writer_pid,
+                origin (the input-ring seq of the frame this slot derives from: frame identity across the pipeline),
+                tag, tag_seq (Note [Tagged slots])
     [...]       reader table, n_readers x 8 i64: active, mode, cursor, reads, missed, pinned_slot, pid, -
+    [...]       tag table, n_tags x i64: the last tag_seq published with each tag
                 (* stored as float64 in the same 8 bytes)
 
 Note [Slot lifetime]
@@ -34,6 +36,15 @@ A reader only pins PUBLISHED slots, uses the tensors in place, and releases afte
 complete. Hence a pinned slot is never written and a published slot is always whole: no torn reads, no copies.
 With ``n_slots >= n_readers + 2`` the writer always finds a slot (each reader pins at most one, plus the newest),
 so ``LatestBuffer`` writers never wait; ``create`` enforces this.
+
+Note [Tagged slots]
+~~~~~~~~~~~~~~~~~~~
+Frames of several cameras share one ring (one writer, one order of publication, frame identity by origin as ever),
+each slot published with its camera's index as its *tag*. A reader declared with a tag sees only that tag's slots,
+as if the ring held that camera's frames alone: its cursor, the frames it missed and what is pending count in the
+tag's own sequence (``tag_seq``), so a model that reads every camera holds one such reader per camera and pins at
+most one slot per camera. A reader without a tag sees every slot, as before. The writer keeps the newest slot of
+each tag for readers that have not looked yet, so a ring needs readers + tags + 1 slots (with one tag: readers + 2).
 
 Crash safety: each critical section writes its fields in an order where any prefix is harmless. If a process dies
 holding the mutex, the next locker gets EOWNERDEAD and carries on; the supervisor then calls
@@ -54,7 +65,8 @@ import torch
 from vpengine.specs import SpecDict
 from vpengine.transport import _linux
 from vpengine.transport.layout import SlotLayout
-from vpengine.transport.memory import HostRegion, Region, RegionHandle, allocate, open_region
+from vpengine.transport.memory import HostRegion, allocate, open_region
+from vpengine.transport.region import Region, RegionHandle
 
 Overflow = Literal["drop_oldest", "drop_newest", "block"]
 #: A reader's pin filter: (slot index, seq) -> whether it may take that slot now.
@@ -70,8 +82,8 @@ _PUBLISH_WORD_OFF, _RELEASE_WORD_OFF = 64, 68
 _H = 9  # header starts at byte 72
 _H_LAST_SEQ, _H_N_SLOTS, _H_N_READERS, _H_WRITER_WAITING, _H_PUBLISHED, _H_DROPPED_NEWEST = range(_H, _H + 6)
 _SLOTS = 16  # slot table starts at byte 128
-_SF = 8  # fields per slot
-_S_STATE, _S_SEQ, _S_FRAME, _S_TCAP, _S_TSUB, _S_TPUB, _S_PID, _S_ORIGIN = range(8)
+_SF = 10  # fields per slot
+_S_STATE, _S_SEQ, _S_FRAME, _S_TCAP, _S_TSUB, _S_TPUB, _S_PID, _S_ORIGIN, _S_TAG, _S_TAG_SEQ = range(10)
 _RF = 8  # fields per reader
 _R_ACTIVE, _R_MODE, _R_CURSOR, _R_READS, _R_MISSED, _R_PINNED, _R_PID = range(7)
 
@@ -90,6 +102,8 @@ class ReaderDecl:
     mode: ReaderMode = "latest"
     #: Active readers count what they miss from the first publish on; inactive ones start counting at activate().
     active: bool = True
+    #: Only slots published with this tag (a camera's index), Note [Tagged slots]; None: every slot.
+    tag: int | None = None
 
 
 @dataclass(frozen=True)
@@ -102,6 +116,7 @@ class RingDesc:
     overflow: Overflow
     meta: RegionHandle
     data: RegionHandle
+    n_tags: int = 1
 
 
 @dataclass
@@ -119,11 +134,14 @@ class SlotInfo:
     origin: int = 0
     #: Frames published between the previous read of this reader and this one that it never saw.
     missed: int = 0
+    #: The tag it was published with (a camera's index, Note [Tagged slots]) and its place in that tag's sequence.
+    tag: int = 0
+    tag_seq: int = 0
     extra: dict[str, object] = field(default_factory=dict)
 
 
-def _meta_bytes(n_slots: int, n_readers: int) -> int:
-    return _SLOTS * 8 + n_slots * _SF * 8 + n_readers * _RF * 8
+def _meta_bytes(n_slots: int, n_readers: int, n_tags: int) -> int:
+    return _SLOTS * 8 + n_slots * _SF * 8 + n_readers * _RF * 8 + n_tags * 8
 
 
 class SlotRing:
@@ -146,6 +164,8 @@ class SlotRing:
         self._release_addr = meta.address() + _RELEASE_WORD_OFF
         self._reader_index = {r.name: i for i, r in enumerate(desc.readers)}
         self._r0 = _SLOTS + self.n_slots * _SF
+        self.n_tags = desc.n_tags
+        self._t0 = self._r0 + len(desc.readers) * _RF  # the tag table
         self._policy = _OVERFLOW_CODE[desc.overflow]
         self.views = desc.layout.views(data.tensor())
         self._pid = os.getpid()
@@ -162,6 +182,7 @@ class SlotRing:
         shared: bool = True,
         overflow: Overflow = "drop_oldest",
         pinned: bool = False,
+        n_tags: int = 1,
     ) -> SlotRing:
         """Allocate a ring: one data region for all slots and one metadata region.
 
@@ -174,13 +195,17 @@ class SlotRing:
         names = [r.name for r in readers]
         if len(set(names)) != len(names):
             raise ValueError(f"ring {name!r}: reader names must be unique, got {names}")
-        if n_slots < len(readers) + 2:
+        bad_tags = [r.name for r in readers if r.tag is not None and not 0 <= r.tag < n_tags]
+        if n_tags < 1 or bad_tags:
+            raise ValueError(f"ring {name!r}: {n_tags} tags; readers with a tag out of range: {bad_tags}")
+        if n_slots < len(readers) + n_tags + 1:
             raise ValueError(
-                f"ring {name!r}: n_slots={n_slots} is too small for {len(readers)} readers; need at least "
-                f"{len(readers) + 2} (readers + 2) so the writer never waits and pinned slots are never overwritten"
+                f"ring {name!r}: n_slots={n_slots} is too small for {len(readers)} readers and {n_tags} tags; need at "
+                f"least {len(readers) + n_tags + 1} (readers + tags + 1) so the writer never waits and pinned slots "
+                "are never overwritten"
             )
         layout = SlotLayout.from_specs(specs, n_slots)
-        meta = HostRegion(f"{name}.meta", _meta_bytes(n_slots, len(readers)))
+        meta = HostRegion(f"{name}.meta", _meta_bytes(n_slots, len(readers), n_tags))
         try:
             data = allocate(f"{name}.data", layout.total_bytes, device, shared, pinned)
         except (OSError, RuntimeError) as e:  # ENOMEM from mmap, a CUDA out-of-memory error
@@ -211,6 +236,7 @@ class SlotRing:
             overflow,
             meta.export(handles) if shared else RegionHandle("host", meta.name, meta.nbytes, -1),
             data.export(handles) if shared else RegionHandle(data.kind, data.name, data.nbytes, -1),
+            n_tags,
         )
         return cls(desc, meta, data, owner=True)
 
@@ -219,7 +245,7 @@ class SlotRing:
         meta = self._meta.export(fds)
         data = self._data.export(fds)
         d = self.desc
-        return RingDesc(d.name, d.layout, d.readers, d.overflow, meta, data)
+        return RingDesc(d.name, d.layout, d.readers, d.overflow, meta, data, d.n_tags)
 
     @classmethod
     def attach(cls, desc: RingDesc, fds: list[int]) -> SlotRing:
@@ -270,6 +296,8 @@ class SlotRing:
             d[b + _S_TSUB],
             d[b + _S_TPUB],
             q[b + _S_ORIGIN],
+            tag=q[b + _S_TAG],
+            tag_seq=q[b + _S_TAG_SEQ],
         )
 
     def _wake_publish(self) -> None:
@@ -282,6 +310,24 @@ class SlotRing:
             self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
         _linux.futex_wake(self._publish_addr)
         _linux.futex_wake(self._release_addr)
+
+    def wait_any(
+        self, readers: list[RingReader], timeout: float, should_stop: Callable[[], bool] | None = None
+    ) -> bool:
+        """Sleep until one of ``readers`` (readers of this ring, e.g. one per camera: Note [Tagged slots]) has a slot
+        to pin, or ``timeout`` passes; pins nothing. Whether one has."""
+        deadline = time.monotonic() + timeout
+        while True:
+            with self._mutex:
+                if any(r._find(False) is not None for r in readers):
+                    return True
+                word = self._u[_PUBLISH_WORD_OFF // 4]
+            if should_stop is not None and should_stop():
+                return False
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return False
+            _linux.futex_wait(self._publish_addr, word, min(remaining, _MAX_SLEEP))
 
     def notify_readers(self) -> None:
         """Wake readers waiting to pin, without a publish: what they may take has changed (a pin filter that
@@ -336,11 +382,13 @@ class SlotRing:
             for n, i in self._reader_index.items():
                 b = self._reader(i)
                 active = bool(q[b + _R_ACTIVE])
+                tag = self.desc.readers[i].tag
+                newest = last if tag is None else q[self._t0 + tag]  # in the reader's own sequence
                 readers[n] = {
                     "active": active,
                     "reads": q[b + _R_READS],
                     "missed": q[b + _R_MISSED],
-                    "pending": (last - q[b + _R_CURSOR]) if active else 0,
+                    "pending": (newest - q[b + _R_CURSOR]) if active else 0,
                     "pinned": q[b + _R_PINNED] >= 0,
                 }
             return {
@@ -363,16 +411,21 @@ class RingWriter:
 
     def _choose(self) -> int | None:
         ring, q = self.ring, self.ring._q
-        last = q[_H_LAST_SEQ]
         pinned = set()
-        fifo_cursor = None
-        for r in range(len(ring.desc.readers)):
+        unread: dict[int | None, int] = {}  # tag (None: any) -> the oldest seq some FIFO reader has not read
+        for r, decl in enumerate(ring.desc.readers):
             b = ring._reader(r)
             if q[b + _R_PINNED] >= 0:
                 pinned.add(q[b + _R_PINNED])
             if ring._policy != 0 and q[b + _R_ACTIVE] and q[b + _R_MODE] == _MODE_CODE["fifo"]:
                 c = q[b + _R_CURSOR]
-                fifo_cursor = c if fifo_cursor is None else min(fifo_cursor, c)
+                unread[decl.tag] = min(unread.get(decl.tag, c), c)
+        newest: dict[int, int] = {}  # tag -> its newest published seq, kept for readers that have not looked yet
+        for i in range(ring.n_slots):
+            b = ring._slot(i)
+            if q[b + _S_STATE] == _PUBLISHED:
+                t = q[b + _S_TAG]
+                newest[t] = max(newest.get(t, 0), q[b + _S_SEQ])
         best, best_seq = None, None
         for i in range(ring.n_slots):
             b = ring._slot(i)
@@ -380,9 +433,12 @@ class RingWriter:
             if state == _WRITING or i in pinned:
                 continue
             if state == _PUBLISHED:
-                if seq == last:
-                    continue  # keep the newest for readers that have not looked yet
-                if fifo_cursor is not None and seq > fifo_cursor:
+                tag = q[b + _S_TAG]
+                if seq == newest[tag]:
+                    continue
+                if unread and (
+                    seq > unread.get(None, seq) or q[b + _S_TAG_SEQ] > unread.get(tag, q[b + _S_TAG_SEQ])
+                ):
                     continue  # unread by a FIFO reader and the policy forbids overwriting it
             if best_seq is None or seq < best_seq:
                 best, best_seq = i, seq
@@ -419,23 +475,29 @@ class RingWriter:
             _linux.futex_wait(ring._release_addr, word, min(remaining, _MAX_SLEEP))
 
     def publish(
-        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, origin: int | None = None
+        self,
+        slot: SlotInfo,
+        frame_id: int,
+        t_capture: float,
+        t_submit: float,
+        origin: int | None = None,
+        tag: int = 0,
     ) -> int:
         """Make a filled slot visible to readers and wake them. The slot's content must be complete, or its device
         work queued before an event its readers wait on (Note [Event hand-off] in runtime/handoff.py).
 
         ``origin`` carries the frame's identity down the pipeline; None means this ring is the input ring and
-        the new slot's own seq is the origin.
+        the new slot's own seq is the origin. ``tag``: the frame's camera (Note [Tagged slots]).
         """
-        return self._publish(slot, frame_id, t_capture, t_submit, origin, None)[0]
+        return self._publish(slot, frame_id, t_capture, t_submit, origin, None, tag)[0]
 
     def publish_pinned(
-        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, reader: RingReader
+        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, reader: RingReader, tag: int = 0
     ) -> SlotInfo:
         """``publish`` an input-ring slot already pinned for ``reader`` (which must pin nothing), the read counted,
         in the same critical section, before any other reader can see it: how a reader whose work on the slot was
-        queued before it was published keeps it (Note [Inline launch] in runtime/worker.py). Returns the pin."""
-        pinned = self._publish(slot, frame_id, t_capture, t_submit, None, reader)[1]
+        queued before it was published keeps it (Note [Inline launch] in runtime/handoff.py). Returns the pin."""
+        pinned = self._publish(slot, frame_id, t_capture, t_submit, None, reader, tag)[1]
         assert pinned is not None
         return pinned
 
@@ -447,15 +509,21 @@ class RingWriter:
         t_submit: float,
         origin: int | None,
         pin_for: RingReader | None,
+        tag: int = 0,
     ) -> tuple[int, SlotInfo | None]:
         ring, q, d, u = self.ring, self.ring._q, self.ring._d, self.ring._u
         b = ring._slot(slot.index)
         now = time.monotonic()
         pinned = None
+        if not 0 <= tag < ring.n_tags:
+            raise ValueError(f"ring {ring.name!r} has {ring.n_tags} tags; got tag {tag}")
         with ring._mutex:
             if pin_for is not None and q[pin_for._b + _R_PINNED] >= 0:
                 raise RuntimeError(f"reader {pin_for.name!r} of ring {ring.name!r} already pins a slot")
             seq = q[_H_LAST_SEQ] + 1
+            tag_seq = q[ring._t0 + tag] + 1
+            q[b + _S_TAG] = tag
+            q[b + _S_TAG_SEQ] = tag_seq
             q[b + _S_SEQ] = seq
             q[b + _S_FRAME] = frame_id
             q[b + _S_ORIGIN] = seq if origin is None else origin
@@ -464,6 +532,7 @@ class RingWriter:
             d[b + _S_TPUB] = now
             q[b + _S_STATE] = _PUBLISHED  # last: a reader never sees a published slot with stale metadata
             q[_H_LAST_SEQ] = seq
+            q[ring._t0 + tag] = tag_seq
             q[_H_PUBLISHED] += 1
             u[_PUBLISH_WORD_OFF // 4] = (u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
             if pin_for is not None:
@@ -477,6 +546,7 @@ class RingWriter:
             now,
         )
         slot.origin = seq if origin is None else origin
+        slot.tag, slot.tag_seq = tag, tag_seq
         return seq, pinned
 
     def abort(self, slot: SlotInfo) -> None:
@@ -495,6 +565,8 @@ class RingReader:
         self.ring = ring
         self.index = index
         self.name = ring.desc.readers[index].name
+        #: The tag this reader sees (Note [Tagged slots]); None: every slot. Its cursor counts in that tag's sequence.
+        self.tag = ring.desc.readers[index].tag
         self._b = ring._reader(index)
         self._mode = ring._q[self._b + _R_MODE]
 
@@ -505,7 +577,7 @@ class RingReader:
         with ring._mutex:
             if not q[self._b + _R_ACTIVE]:
                 if from_now:
-                    q[self._b + _R_CURSOR] = q[_H_LAST_SEQ]
+                    q[self._b + _R_CURSOR] = q[_H_LAST_SEQ] if self.tag is None else q[ring._t0 + self.tag]
                 q[self._b + _R_ACTIVE] = 1
 
     def deactivate(self) -> None:
@@ -518,7 +590,7 @@ class RingReader:
 
     @property
     def cursor(self) -> int:
-        """Sequence number of the last slot this reader read (0: none)."""
+        """Sequence number of the last slot this reader read (0: none); a tagged reader's, in its tag's sequence."""
         return self.ring._q[self._b + _R_CURSOR]
 
     # -------------------------------------------------------------------------------------------- reading
@@ -528,13 +600,14 @@ class RingReader:
         ring, q = self.ring, self.ring._q
         cursor = q[self._b + _R_CURSOR]
         fifo = self._mode == _MODE_CODE["fifo"] and not peek
+        tag = self.tag
         best, best_seq = None, None
         for i in range(ring.n_slots):
             b = ring._slot(i)
-            if q[b + _S_STATE] != _PUBLISHED:
+            if q[b + _S_STATE] != _PUBLISHED or (tag is not None and q[b + _S_TAG] != tag):
                 continue
             seq = q[b + _S_SEQ]
-            if not peek and seq <= cursor:
+            if not peek and (seq if tag is None else q[b + _S_TAG_SEQ]) <= cursor:
                 continue
             if peek and accept is not None and not accept(i, seq):
                 continue
@@ -637,11 +710,12 @@ class RingReader:
         info = ring._slot_info(i)
         if not peek:
             cursor = q[b + _R_CURSOR]
+            mine = info.seq if self.tag is None else info.tag_seq  # Note [Tagged slots]
             if q[b + _R_ACTIVE]:
-                info.missed = info.seq - cursor - 1
+                info.missed = mine - cursor - 1
                 q[b + _R_MISSED] += info.missed
                 q[b + _R_READS] += 1
-            q[b + _R_CURSOR] = info.seq
+            q[b + _R_CURSOR] = mine
         return info
 
     def release(self, slot: SlotInfo | None = None) -> None:

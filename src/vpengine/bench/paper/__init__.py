@@ -112,7 +112,7 @@ def main(args: argparse.Namespace) -> int:
     log(f"machine: {machine_info()}")
     with contextlib.ExitStack() as stack:
         if b.base.mps == "required":  # a daemon this run can reach, started for it if none is
-            b.mps_pipe_directory = stack.enter_context(mps_daemon())
+            stack.enter_context(mps_daemon())
         for key in want:
             t = time.monotonic()
             res[key] = runs[key](imgs)

@@ -26,7 +26,7 @@ def run(b: Bench, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> dict[
                 heads = [b.head(kind, f"{kind}{i}") for i in range(n)]
                 res = {}
                 for setting in ("off", "required"):
-                    cfg = b.config(heads, mode="process", mps=setting, mps_pipe_directory=daemon)
+                    cfg = b.config(heads, mode="process", mps=setting)
                     with engines([cfg]) as (eng,):
                         res[setting] = lockstep(eng, imgs, b)
                         res[setting]["workers_on_mps"] = len(eng.stats()["engine"]["mps"]["workers_on_mps"])

@@ -45,8 +45,6 @@ class Bench:
     copy: bool = True
     config_path: str = ""
     overrides: list[str] = field(default_factory=list)
-    #: pipe directory of the MPS daemon this run uses (see mps_daemon), set by the CLI
-    mps_pipe_directory: str | None = None
 
     @classmethod
     def load(
@@ -84,10 +82,7 @@ class Bench:
         """The base config with ``heads`` instead of its own and the top-level fields in ``top`` (mode, mps)."""
         from vpengine.config import load_config
 
-        data = self.base.model_dump()
-        if self.mps_pipe_directory is not None and "mps_pipe_directory" not in top:
-            data["mps_pipe_directory"] = self.mps_pipe_directory
-        return load_config({**data, "heads": heads, **top})
+        return load_config({**self.base.model_dump(), "heads": heads, **top})
 
     def setup(self) -> dict[str, Any]:
         """What ran, for the results file: the config as given and as resolved, and a digest the report labels."""
@@ -120,7 +115,10 @@ class Bench:
 
 @contextlib.contextmanager
 def mps_daemon() -> Iterator[str]:
-    """The pipe directory of a reachable MPS daemon, or of a private one started here and stopped on exit."""
+    """The pipe directory of a reachable MPS daemon, or of a private one started here and stopped on exit; engines
+    find it through $CUDA_MPS_PIPE_DIRECTORY meanwhile."""
+    import os
+
     from vpengine.runtime import mps
 
     daemon = mps.find_daemon()
@@ -129,9 +127,15 @@ def mps_daemon() -> Iterator[str]:
         started = mps.start()
         daemon = started["pipe_directory"]
     log(f"MPS daemon at {daemon} ({'started for this run' if started else 'already running'})")
+    before = os.environ.get("CUDA_MPS_PIPE_DIRECTORY")
+    os.environ["CUDA_MPS_PIPE_DIRECTORY"] = daemon
     try:
         yield daemon
     finally:
+        if before is None:
+            os.environ.pop("CUDA_MPS_PIPE_DIRECTORY", None)
+        else:
+            os.environ["CUDA_MPS_PIPE_DIRECTORY"] = before
         if started and started.get("started"):
             mps.stop(daemon)
 

@@ -1,0 +1,167 @@
+"""Several cameras on one engine (Note [Cameras] in runtime/worker.py) against one engine a camera.
+
+Two measurements, on the config's models (``configs/bench.yaml`` by default: DINOv2 ViT-S/14 + depth, segmentation
+and detection heads at 1080p; ``--set`` as everywhere), in thread mode:
+
+* ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
+  synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
+  the host (p50, p99), frames some head never answered (each is counted by the engine too: skipped, late, deferred),
+  and the device memory in use (NVML, else PyTorch's reserved bytes).
+* ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
+  a frame of every camera in flight at a time: one engine with N cameras (batched) against N engines of one camera
+  each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching buys.
+
+::
+
+    vpengine bench cameras --set device=cpu -c configs/tiny.yaml --cameras 1,2 --seconds 3   # anywhere
+    vpengine bench cameras                                                                     # a GPU machine
+"""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from vpengine.cli import add_overrides_argument
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", "-c", default="bench", help="engine config (default: the shipped bench config)")
+    add_overrides_argument(p, "heads.det.backend=eager")
+    p.add_argument("--stream-cameras", type=int, default=4, help="cameras of the stream run (default 4; 0: skip)")
+    p.add_argument("--fps", type=float, default=30.0, help="each camera's rate in the stream run (default 30 Hz)")
+    p.add_argument("--seconds", type=float, default=10.0, help="length of the stream run (default 10 s)")
+    p.add_argument("--cameras", default="1,2,4,8", help="camera counts of the throughput sweep (default 1,2,4,8)")
+    p.add_argument("--rounds", type=int, default=60, help="frames a camera in each throughput point (default 60)")
+    p.add_argument("--name", default=None, help="results file name (default: cameras_<device>)")
+
+
+def _config(base: Any, cameras: int) -> Any:
+    from vpengine.config import load_config
+
+    data = base.model_dump()
+    data["mode"] = "thread"
+    data["cameras"] = [{"name": f"cam{i}"} for i in range(cameras)] if cameras > 1 else []
+    return load_config(data)
+
+
+def _device_memory(engine: Any) -> int | None:
+    """Device memory this process uses (the engine and its workers are threads of it)."""
+    import os
+
+    import torch
+
+    if not str(engine.config.device).startswith("cuda"):
+        return None
+    from vpengine.runtime.gpu import process_memory
+
+    by_pid = process_memory(torch.device(engine.config.device).index or 0)
+    if by_pid:
+        return by_pid.get(os.getpid())
+    return int(torch.cuda.memory_reserved())
+
+
+def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]) -> dict[str, Any]:
+    from vpengine.bench.paper.harness import log, pct
+    from vpengine.engine import Engine
+
+    with Engine(_config(base, n)) as eng:
+        cams = eng.cameras
+        heads = list(eng.plan.heads)
+        for i in range(10):  # warm-up, every camera
+            for c in cams:
+                eng.wait(eng.submit(imgs[i % len(imgs)], camera=c), timeout=120)
+        eng.results()
+        frames: dict[int, dict[str, float]] = {}
+        submitted = 0
+        t0 = time.monotonic()
+        k = 0
+        while time.monotonic() - t0 < seconds:
+            t = t0 + k / fps
+            while (now := time.monotonic()) < t:
+                for r in eng.results(timeout=t - now):
+                    frames.setdefault(r.frame_id, {})[r.head] = r.latency
+            stamp = time.time()
+            for c in cams:  # synchronised cameras: every frame of a tick at once, one capture stamp
+                frames.setdefault(eng.submit(imgs[(k + cams.index(c)) % len(imgs)], timestamp=stamp, camera=c), {})
+                submitted += 1
+            k += 1
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline:
+            rs = eng.results(timeout=0.5)
+            if not rs:
+                break
+            for r in rs:
+                frames.setdefault(r.frame_id, {})[r.head] = r.latency
+        memory = _device_memory(eng)
+        st = eng.stats()
+    whole = [max(v.values()) for v in frames.values() if len(v) == len(heads)]
+    out = {
+        "cameras": n,
+        "fps_per_camera": fps,
+        "seconds": seconds,
+        "frames_submitted": submitted,
+        "frames_all_heads": len(whole),
+        "frames_not_all_heads": submitted - len(whole),
+        "latency_all_heads_ms": pct(whole),
+        "device_memory_bytes": memory,
+        "counted": {
+            m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")} for m, s in st["models"].items()
+        },
+    }
+    log(
+        f"stream: {n} cameras at {fps:g} Hz, {len(whole)}/{submitted} frames through every head, "
+        f"p50 {out['latency_all_heads_ms']['p50']:.1f} ms, p99 {out['latency_all_heads_ms']['p99']:.1f} ms, "
+        f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB"
+    )
+    return out
+
+
+def _pump(eng: Any, cams: list[str], imgs: list[np.ndarray], rounds: int) -> None:
+    """Every camera's frame in flight at once, ``rounds`` times: submit one a camera, then wait for them all."""
+    for k in range(rounds):
+        fids = [eng.submit(imgs[(k + i) % len(imgs)], camera=c) for i, c in enumerate(cams)]
+        for f in fids:
+            eng.wait(f, timeout=120)
+
+
+def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray]) -> dict[str, Any]:
+    from vpengine.bench.paper.harness import engines, log
+
+    with engines([_config(base, n)]) as (eng,):
+        _pump(eng, eng.cameras, imgs, 5)
+        t = time.monotonic()
+        _pump(eng, eng.cameras, imgs, rounds)
+        batched = n * rounds / (time.monotonic() - t)
+    with engines([_config(base, 1) for _ in range(n)]) as es:
+        for e in es:
+            _pump(e, e.cameras, imgs, 5)
+        threads = [threading.Thread(target=_pump, args=(e, e.cameras, imgs, rounds)) for e in es]
+        t = time.monotonic()
+        for th in threads:
+            th.start()
+        for th in threads:
+            th.join()
+        separate = n * rounds / (time.monotonic() - t)
+    log(f"throughput, {n} cameras: one engine {batched:.1f} frames/s, {n} engines {separate:.1f} frames/s")
+    return {"cameras": n, "batched_fps": batched, "separate_fps": separate, "ratio": batched / separate}
+
+
+def main(args: argparse.Namespace) -> int:
+    from vpengine.bench.common import write_results
+    from vpengine.bench.paper.harness import Bench
+    from vpengine.config import load_config
+
+    base = load_config(args.config, list(args.overrides))
+    imgs = Bench(base).images()
+    res: dict[str, Any] = {"config": args.config, "overrides": list(args.overrides)}
+    if args.stream_cameras:
+        res["stream"] = stream(base, args.stream_cameras, args.fps, args.seconds, imgs)
+    res["throughput"] = [throughput(base, int(n), args.rounds, imgs) for n in args.cameras.split(",") if n]
+    name = args.name or f"cameras_{str(base.device).split(':')[0]}"
+    print(write_results(args.out, name, res))
+    return 0

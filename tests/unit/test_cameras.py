@@ -1,0 +1,104 @@
+"""Several cameras on one engine (Note [Cameras] in runtime/worker.py), thread mode on the CPU: frames tagged with
+their camera, outputs in each camera's own grid, a head limited to one camera, rates and counters per camera."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.engine import Engine
+
+CAMERAS = ["cameras=[{name: front}, {name: rear, height: 90, width: 200}]", "heads.seg.cameras=[rear]"]
+
+
+@pytest.fixture(scope="module", params=["thread", "process"])
+def engine(request):
+    with Engine(tiny(request.param, *CAMERAS)) as e:
+        yield e
+
+
+def test_each_frame_comes_back_tagged_with_its_camera_in_its_own_grid(engine):
+    assert engine.cameras == ["front", "rear"]
+    f = engine.submit(frame(1, 240, 320), camera="front")
+    r = engine.submit(frame(2, 90, 200), camera="rear")
+    front, rear = engine.wait(f, timeout=30), engine.wait(r, timeout=30)
+    assert set(front) == {"depth", "det"}  # seg serves the rear camera only
+    assert set(rear) == {"depth", "seg", "det"}
+    assert {x.camera for x in front.values()} == {"front"} and {x.camera for x in rear.values()} == {"rear"}
+    assert front["depth"]["depth"].shape == (240, 320) and rear["depth"]["depth"].shape == (90, 200)
+    assert rear["seg"]["classes"].shape == (90, 200)
+    assert (rear["det"]["boxes"][:, [0, 2]] <= 200).all() and (rear["det"]["boxes"][:, [1, 3]] <= 90).all()
+
+
+def test_the_same_picture_gives_the_same_outputs_from_either_camera(engine):
+    img = frame(7)
+    a = engine.wait(engine.submit(img, camera="front"), timeout=30)
+    b = engine.wait(engine.submit(img, camera="rear"), timeout=30)
+    np.testing.assert_allclose(a["depth"]["depth"], b["depth"]["depth"], rtol=1e-5, atol=1e-6)
+
+
+def test_a_camera_must_be_named_and_known():
+    with Engine(tiny("thread", *CAMERAS)) as e:
+        with pytest.raises(ValueError, match=r"this engine has cameras \['front', 'rear'\]: say which one"):
+            e.submit(frame(0))
+        with pytest.raises(ValueError, match=r"no camera named 'side'; cameras: \['front', 'rear'\]"):
+            e.submit(frame(0), camera="side")
+        with pytest.raises(ValueError, match=r"'seg' serves cameras \['rear'\], not 'front'"):
+            e.set_rate("seg", 1, camera="front")
+
+
+def test_rates_and_counters_are_per_camera():
+    with Engine(tiny("thread", *CAMERAS)) as e:
+        e.set_rate("depth", 0, camera="front")  # paused on one camera only
+        assert e.rate("depth", "front") == 0 and e.rate("depth", "rear") is None
+        for i in range(6):
+            fa = e.submit(frame(i, 240, 320), camera="front")
+            fb = e.submit(frame(i, 90, 200), camera="rear")
+            assert "depth" not in e.wait(fa, timeout=30)
+            assert "depth" in e.wait(fb, timeout=30)
+        st = e.stats()
+        cams = st["cameras"]
+        assert cams["front"]["depth"]["runs"] == 0 and cams["rear"]["depth"]["runs"] == 6
+        assert cams["front"]["depth"]["target_hz"] == 0 and cams["rear"]["depth"]["target_hz"] is None
+        assert "seg" not in cams["front"] and cams["rear"]["seg"]["runs"] == 6
+        assert cams["front"]["foundation"]["runs"] == 6 and cams["rear"]["foundation"]["runs"] == 6
+        assert st["models"]["foundation"]["runs"] == 12 and st["models"]["depth"]["runs"] == 6
+        assert st["models"]["depth"]["target_hz"] is None  # the rates differ: stats()["cameras"] says each
+
+
+def test_frame_slot_lends_the_cameras_own_size():
+    with Engine(tiny("thread", *CAMERAS)) as e:
+        with e.frame_slot(camera="rear") as slot:
+            assert slot.array.shape == (90, 200, 3)
+            slot.array[...] = frame(3, 90, 200)
+        out = e.wait(slot.frame_id, timeout=30)
+        assert out["seg"].camera == "rear" and out["seg"]["classes"].shape == (90, 200)
+
+
+def test_one_camera_engines_keep_their_names_and_layout():
+    with Engine(tiny("thread")) as e:
+        assert e.cameras == ["camera"]
+        out = e.predict(frame(1))
+        assert {r.camera for r in out.values()} == {"camera"}
+        assert e.stats()["cameras"] == {}
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_frames_that_come_together_run_as_one_batch_and_give_what_they_give_alone(mode):
+    with Engine(tiny(mode, "cameras=[{name: front}, {name: rear}]", "runtime.batch_window_ms=100")) as e:
+        alone = [e.wait(e.submit(frame(i), camera="front"), timeout=30) for i in range(3)]
+        assert e.stats()["models"]["foundation"]["batched"] == 0  # one camera's frames: nothing to batch with
+        for _ in range(8):
+            for i in range(3):  # each picture from both cameras at once, the two frames' contents differing
+                ids = [e.submit(frame(i), camera="front"), e.submit(frame(i + 5), camera="rear")]
+                front, rear = (e.wait(f, timeout=30) for f in ids)
+                for head, key in (("depth", "depth"), ("seg", "classes"), ("det", "boxes")):
+                    np.testing.assert_allclose(front[head][key], alone[i][head][key], rtol=1e-4, atol=1e-5)
+                assert front["depth"].camera == "front" and rear["depth"].camera == "rear"
+        models = e.stats()["models"]
+        # after each camera's frame spacing is known, the backbone waits for the other camera's frame: one call
+        assert models["foundation"]["batched"] >= 24, models["foundation"]
+        assert models["depth"]["batched"] >= 24, models["depth"]
+        assert models["foundation"]["runs"] == 51 and models["foundation"]["dropped"] == 0

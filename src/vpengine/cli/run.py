@@ -579,21 +579,20 @@ def engine_overrides(args: argparse.Namespace) -> list[str]:
 
 def parse_sources(sources: Sequence[str], topics: Sequence[str]) -> dict[str | None, tuple[str, str | None]]:
     """``--source`` and ``--topic`` values -> camera name -> (source spec, bag topic); the key None is the one
-    unnamed source of a one-camera run. ``NAME=SPEC`` names a source's camera (a path that exists is never read
-    as a name); ``--topic NAME=TOPIC`` gives camera NAME's bag topic, and with one unnamed bag source, several of
+    unnamed source of a one-camera run (of several unnamed ones, the last, as an option given twice).
+    ``NAME=SPEC`` names a source's camera (a path that exists is never read as a name); ``--topic NAME=TOPIC`` gives camera NAME's bag topic, and with one unnamed bag source, several of
     them make one camera of each topic. ValueError naming what does not fit."""
     from vpengine.config import split_camera
 
     named = [(None, s) if Path(s).exists() else split_camera(s) for s in sources]
+    if not any(n for n, _ in named):
+        named = named[-1:]  # unnamed, a later --source replaces an earlier one, as any option's value
     tops = [split_camera(t) for t in topics]
+    if not any(n for n, _ in tops):
+        tops = tops[-1:]
     if len(named) == 1 and named[0][0] is None:
         spec = named[0][1]
         if not any(n for n, _ in tops):  # today's one camera
-            if len(tops) > 1:
-                raise ValueError(
-                    f"--topic given {len(tops)} times for one source: give it once, or name a camera for each "
-                    "(--topic NAME=TOPIC)"
-                )
             return {None: (spec, tops[0][1] if tops else None)}
         if not all(n for n, _ in tops):
             raise ValueError(f"--topic {[t for t in topics]}: name the camera of every topic, NAME=TOPIC, or of none")
@@ -601,8 +600,8 @@ def parse_sources(sources: Sequence[str], topics: Sequence[str]) -> dict[str | N
         return {n: (spec, t) for n, t in tops}  # one bag, a camera per topic
     if not all(n for n, _ in named):
         raise ValueError(
-            f"--source {list(sources)}: with several sources, name each one's camera: --source NAME=SPEC (e.g. "
-            "--source front=camera:0 --source rear=camera:1)"
+            f"--source {list(sources)}: with several cameras, name each source's camera: --source NAME=SPEC "
+            "(e.g. --source front=camera:0 --source rear=camera:1)"
         )
     _unique([n for n, _ in named], "--source")
     topic_of: dict[str, str] = {}

@@ -1038,7 +1038,7 @@ class Ros2Core:
             self.engine.set_rate(model, hz, camera=camera)
         except (ValueError, KeyError) as e:
             self.counters["rate_commands_rejected"] += 1
-            raise ValueError(str(e).strip("'\"")) from None
+            raise ValueError(str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)) from None
         self.counters["rate_commands"] += 1
         log.info("rate of %s set to %s", key, "unlimited" if hz is None else f"{hz:g} Hz")
         return key, hz

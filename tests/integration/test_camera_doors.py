@@ -202,3 +202,44 @@ def test_the_dds_bridge_takes_a_topic_per_camera_and_publishes_under_each_camera
         "/vp/rear/seg/classes": (Header(20, 2, "r"), 200, 90),
     }
     assert core.camera_counters["front"]["submitted"] == core.camera_counters["rear"]["submitted"] == 1
+
+
+# ------------------------------------------------------------------------------------------------------ live view
+def test_the_live_view_serves_pictures_and_per_camera_stats_of_a_two_camera_run():
+    """``--serve`` on a run of two cameras: each head's newest picture, drawn on its own camera's frame."""
+    import re
+    import shutil
+    import subprocess
+    import sys
+    import urllib.request
+
+    from tests_paths import ROOT
+
+    exe = shutil.which("vpengine", path=str(ROOT / ".venv" / "bin")) or shutil.which("vpengine")
+    cmd = [exe] if exe else [sys.executable, "-m", "vpengine.cli.main"]
+    cmd += ["run", "-c", "tiny", "--mode", "thread", "--no-progress", "--serve", "0",
+            "-s", "front=synthetic:160x120@30:300", "-s", "rear=synthetic:160x120@15:150"]  # fmt: skip
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        url = None
+        while url is None and (line := proc.stderr.readline()):
+            m = re.search(r"live view at (http://\S+)", line)
+            url = m and m.group(1)
+        assert url, "no live view line"
+        deadline = time.monotonic() + 60
+        while True:
+            try:
+                with urllib.request.urlopen(url + "api/stats", timeout=10) as r:
+                    stats = json.loads(r.read())
+                with urllib.request.urlopen(url + "api/latest/seg.jpg", timeout=10) as r:
+                    if r.status == 200:
+                        on_frame = r.headers["X-On-Frame"]
+                        break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline, "no seg picture within 60 s"
+            time.sleep(0.2)
+        assert on_frame == "1" and set(stats["cameras"]) == {"front", "rear"}
+    finally:
+        proc.kill()
+        proc.wait()

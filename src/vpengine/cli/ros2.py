@@ -128,7 +128,7 @@ def main(args: argparse.Namespace) -> int:
     if serve is not None:  # the view draws overlays and boxes on the input frames
         from vpengine.ros2.core import FrameBook
 
-        core.book = FrameBook(frames=16)
+        core.book = FrameBook(frames=16 * len(core.cameras))
     bridge = Ros2Bridge(core, opts)
     view = contextlib.ExitStack()
     stop = threading.Event()

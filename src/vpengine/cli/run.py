@@ -464,7 +464,7 @@ def _realtime(
             stop.set()  # one failed source ends the run, as it did alone
 
     threads = [
-        threading.Thread(target=feed_loop, args=(f,), name=f"vpengine-feed-{f.camera}", daemon=True)
+        threading.Thread(target=feed_loop, args=(f,), name=f"vpengine-feed-{f.camera or 'camera'}", daemon=True)
         for f in feeds
     ]
     for t in threads:

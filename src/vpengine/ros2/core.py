@@ -788,7 +788,7 @@ class Ros2Core:
         self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
         for t in self.topics:
             self._by_head[(t.camera, t.head)].append(t)
-        self.book = FrameBook(frames=16 if seg_overlay else 0)
+        self.book = FrameBook(frames=16 * len(self.cameras) if seg_overlay else 0)
         self._next_fid = 0  # engine frame ids are ours, so a header is booked before its frame is submitted
         self.engine: Any = None
         self._engine_ready = threading.Event()

@@ -304,7 +304,8 @@ def run_pipeline(
         for f in feeds:
             close = getattr(f.frames, "close", None)  # a generator's clean-up (a camera's reader thread)
             if close is not None:
-                close()
+                with contextlib.suppress(ValueError):  # still running in a feed that did not end in time
+                    close()
         bar.close()
         view.close()
         engine.stop()
@@ -469,11 +470,16 @@ def _realtime(
     ]
     for t in threads:
         t.start()
-    while any(t.is_alive() for t in threads):
-        handle(engine.results(timeout=0.05))
-        progressed(sum(f.submitted for f in feeds))
-    for t in threads:
-        t.join()
+    try:
+        while any(t.is_alive() for t in threads):
+            handle(engine.results(timeout=0.05))
+            progressed(sum(f.submitted for f in feeds))
+    except BaseException:
+        stop.set()  # a second Ctrl-C, a failed writer: the feeds end at their next frame
+        raise
+    finally:
+        for t in threads:
+            t.join(timeout=2.0)
     handle(engine.results(0))
     progressed(sum(f.submitted for f in feeds))
     if errors:

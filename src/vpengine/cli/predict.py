@@ -4,7 +4,8 @@ camera or a shipped sample, with a config that runs anywhere (``tiny``) unless t
 Every head runs on every frame: the config's rate limits are switched off (and the command says so), because a
 picture per frame with some heads missing is not what this command is for; ``vpengine run`` honours them. Each frame
 goes in once the previous one is answered by every head (lockstep). Pictures go to a new folder each time,
-``runs/predict``, ``runs/predict2``, ... (never into an earlier run's), with ``summary.json`` beside them.
+``runs/predict``, ``runs/predict2``, ... (never into an earlier run's), with ``summary.json`` beside them; with
+several cameras (``NAME=SOURCE`` each) every camera's pictures are in a folder of its own, ``<out>/<camera>/``.
 """
 
 from __future__ import annotations
@@ -19,11 +20,21 @@ from vpengine.cli import (
     positive_int,
     prepare_out_dir,
 )
-from vpengine.cli.run import SOURCE_HELP
+from vpengine.cli.run import SOURCE_HELP, SOURCES_HELP
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("source", help=SOURCE_HELP)
+    p.add_argument("sources", nargs="*", metavar="[NAME=]SOURCE", help=SOURCE_HELP + ". " + SOURCES_HELP)
+    p.add_argument(
+        "--source", "-s", action="append", default=[], metavar="[NAME=]SPEC", help="a source, as SOURCE (repeatable)"
+    )
+    p.add_argument(
+        "--topic",
+        action="append",
+        default=[],
+        metavar="[NAME=]TOPIC",
+        help="image topic of a bag source; NAME=TOPIC per camera (see vpengine run --help)",
+    )
     add_config_argument(p, default="tiny")
     p.add_argument(
         "--out",
@@ -58,12 +69,16 @@ def next_run_dir(base: str | Path = "runs/predict") -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    from vpengine.cli.run import engine_overrides, format_summary, run_pipeline
-    from vpengine.config import load_config
-    from vpengine.io.sinks import AnnotatedSink
-    from vpengine.io.sources import open_source
+    from vpengine.cli.run import engine_overrides, format_summary, open_sources, parse_sources, run_pipeline
+    from vpengine.config import config_for_cameras, load_config
+    from vpengine.io.sinks import AnnotatedSink, per_camera
 
-    cfg = load_config(args.config, engine_overrides(args))
+    given = [*args.sources, *args.source]
+    if not given:
+        raise ValueError("give a source: an image, a folder, a glob, a video, camera:N or sample:NAME")
+    wanted = parse_sources(given, args.topic)
+    cameras = [c for c in wanted if c is not None]
+    cfg = config_for_cameras(args.config, cameras or None, engine_overrides(args))
     # every head on every frame: one picture per frame with every head in it
     rates = {"foundation": cfg.foundation_model.rate_hz, **{h.name: h.rate_hz for h in cfg.heads}}
     limited = ", ".join(f"{n} to {hz:g} Hz" for n, hz in rates.items() if hz is not None)
@@ -71,20 +86,23 @@ def main(args: argparse.Namespace) -> int:
         cfg, ["foundation_model.rate_hz=null", *(f"heads.{h.name}.rate_hz=null" for h in cfg.heads)]
     )
     out = prepare_out_dir(args.out, args.exist_ok) if args.out else None  # checked before a camera opens
-    with open_source(args.source) as source:
-        out = out or next_run_dir()  # made once the source opened: a bad one leaves no empty run folder
+    with open_sources(wanted) as sources:
+        out = out or next_run_dir()  # made once the sources opened: a bad one leaves no empty run folder
         print(
             "rate limits off: every head runs on every frame"
             + (f" (the config limits {limited})" if limited else ""),
             flush=True,
         )
 
-        def pictures(heads: dict[str, dict[str, Any]]) -> AnnotatedSink:
-            return AnnotatedSink(heads, pictures=out)
+        def pictures(heads: dict[str, dict[str, Any]], served: dict[str, list[str]]) -> Any:
+            # several cameras: one folder of pictures each, out/<camera>/
+            return per_camera(
+                served, heads, lambda camera, infos: AnnotatedSink(infos, pictures=out / (camera or ""))
+            )
 
         summary = run_pipeline(
             cfg,
-            source,
+            sources if cameras else sources[None],
             out,
             pace="lockstep",
             max_frames=args.max_frames,

@@ -3,6 +3,7 @@
 ::
 
     vpengine ros2 --config configs/tiny.yaml --input-topic /camera/image_raw [--namespace /vpengine]
+                  (several cameras: --input-topic front=/front/image_raw --input-topic rear=/rear/image_raw)
                   [--input-qos sensor|default] [--output-qos latest|default] [--compressed] [--depth-color] [--seg-overlay] [--domain-id N]
 
 Topics, types and QoS: see ``docs/ros2.md`` (and :mod:`vpengine.ros2.bridge`). Prints one ``ready`` line when the
@@ -28,7 +29,12 @@ from vpengine.cli.serve import add_serve_arguments, serve_options, serving
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", "-c", required=True, help="engine config (YAML or JSON)")
     p.add_argument(
-        "--input-topic", required=True, help="camera topic, sensor_msgs/Image (e.g. /camera/image_raw)"
+        "--input-topic",
+        required=True,
+        action="append",
+        metavar="[NAME=]TOPIC",
+        help="camera topic, sensor_msgs/Image (e.g. /camera/image_raw); several cameras: NAME=TOPIC for each, "
+        "repeated (each camera's outputs then go under <namespace>/<NAME>/)",
     )
     p.add_argument(
         "--namespace", default="/vpengine", help="prefix of every output topic (default: /vpengine)"
@@ -94,13 +100,14 @@ def _domain_id(arg: int | None) -> int:
 
 def main(args: argparse.Namespace) -> int:
     from vpengine.ros2.bridge import BridgeOptions, Ros2Bridge
-    from vpengine.ros2.core import Ros2Core
+    from vpengine.ros2.core import Ros2Core, input_topics
     from vpengine.ros2.dds import loopback_config
 
     serve = serve_options(args)
     overrides = list(args.overrides)
     if args.mode:
         overrides.append(f"mode={args.mode}")
+    topics = input_topics(args.input_topic)
     core = Ros2Core(
         args.config,
         namespace=args.namespace,
@@ -108,9 +115,10 @@ def main(args: argparse.Namespace) -> int:
         depth_color=args.depth_color,
         seg_overlay=args.seg_overlay,
         overrides=overrides,
+        cameras=list(topics) if isinstance(topics, dict) else None,
     )
     opts = BridgeOptions(
-        input_topic=args.input_topic,
+        input_topic=topics,
         compressed=args.compressed,
         input_qos=args.input_qos,
         output_qos=args.output_qos,
@@ -120,7 +128,7 @@ def main(args: argparse.Namespace) -> int:
     if serve is not None:  # the view draws overlays and boxes on the input frames
         from vpengine.ros2.core import FrameBook
 
-        core.book = FrameBook(frames=16)
+        core.book = FrameBook(frames=16 * len(core.cameras))
     bridge = Ros2Bridge(core, opts)
     view = contextlib.ExitStack()
     stop = threading.Event()

@@ -11,7 +11,9 @@ as a sink that records every head's outputs with the same message types and head
   recording; ``strict=True`` stops at the first one instead, with that line as the error.
 * the sink writes ``<ns>/<head>/depth`` (32FC1), ``<ns>/<head>/classes`` (mono8), ``<ns>/<head>/detections``
   (vision_msgs/Detection2DArray 4.x) and, with ``viz``, ``depth_color`` / ``overlay`` (bgr8); every output's
-  header (stamp and frame_id) is its input message's header, and its log time is that stamp.
+  header (stamp and frame_id) is its input message's header, and its log time is that stamp. With several cameras
+  (``vpengine run --source BAG --topic front=T1 --topic rear=T2``: a camera per topic) each camera's outputs are
+  under ``<ns>/<camera>/<head>/...``.
   ``distro="humble"`` writes Humble message definitions in a version-8 bag, ``"jazzy"`` Jazzy's in a version-9 bag
   (rosbags writes no older versions).
 """
@@ -20,7 +22,7 @@ from __future__ import annotations
 
 import collections
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -272,6 +274,8 @@ def default_qos() -> list[Any]:
 
 class BagSink(Sink):
     """Every head's outputs into a new rosbag2 bag (see the module docstring for topics and header rules).
+    ``cameras`` (several cameras: camera -> the heads that serve it) puts each camera's outputs under its own
+    namespace, ``<ns>/<camera>/<head>/...``.
 
     ``header_for(result, frame_name)`` gives each output's header; by default the result's capture time (from the
     source's timestamps) and ``frame_id``. With a :class:`BagSource`, pass its ``header_for`` to keep the input
@@ -290,6 +294,7 @@ class BagSink(Sink):
         seg_overlay: bool = False,
         header_for: Callable[[Result, str], Header] | None = None,
         frame_id: str = "camera",
+        cameras: Mapping[str, Sequence[str]] | None = None,
     ) -> None:
         from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -306,13 +311,16 @@ class BagSink(Sink):
             raise ValueError(f"output bag {str(self.path)!r} exists already; bags are never overwritten")
         self.heads = heads
         self.ts = typestore(distro)
-        self.topics, unmapped = plan_outputs(heads, namespace, depth_color, seg_overlay)
+        self.topics, unmapped = plan_outputs(heads, namespace, depth_color, seg_overlay, cameras)
         for h in unmapped:
             log.warning("head %r has no ROS 2 message mapping (kind 'generic'); not written to the bag", h)
-        self._by_head: dict[str, list[OutputTopic]] = collections.defaultdict(list)
+        self._per_camera = cameras is not None
+        self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
         for t in self.topics:
-            self._by_head[t.head].append(t)
-        self._header_for = header_for or (lambda r, _n: Header.from_seconds(r.capture_time, frame_id))
+            self._by_head[(t.camera, t.head)].append(t)
+        self._header_for = header_for or (
+            lambda r, _n: Header.from_seconds(r.capture_time, r.camera if self._per_camera else frame_id)
+        )
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
         self._writer = Writer(self.path, version=DISTROS[distro][1], storage_plugin=plugin)  # type: ignore[arg-type]
         self._writer.open()
@@ -330,7 +338,7 @@ class BagSink(Sink):
         self.skipped: collections.Counter[str] = collections.Counter()
 
     def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
-        topics = self._by_head.get(result.head)
+        topics = self._by_head.get((result.camera if self._per_camera else None, result.head))
         if not topics:
             return
         header = self._header_for(result, name)

@@ -1,6 +1,7 @@
 """Sinks: where results go. A folder of files per head, annotated pictures or an annotated video, or a callback.
 
-Folder layout (``vpengine run --out DIR``)::
+Folder layout (``vpengine run --out DIR``; with several cameras each camera's head folders are in ``DIR/<camera>/``
+instead, and the summary covers them all)::
 
     DIR/summary.json            achieved rates, skipped/dropped frames, latency percentiles per model, results
                                 left unwritten (Note [Sink thread]), camera frames replaced (Note [Live capture]),
@@ -91,7 +92,8 @@ class SinkThread:
             self._closed = True
             raise self._error
 
-    def put(self, result: Result, frame: np.ndarray | None, name: str) -> None:
+    def put(self, result: Result, frame: np.ndarray | None, name: str) -> bool:
+        """Queue a result for the sinks; False when it is left unwritten (``block=False`` and the queue full)."""
         self.check()
         item = (result, frame, name)
         if not self._block:
@@ -99,11 +101,12 @@ class SinkThread:
                 self._q.put_nowait(item)
             except queue.Full:
                 self.unwritten[result.head] += 1
-            return
+                return False
+            return True
         while True:
             try:
                 self._q.put(item, timeout=0.5)
-                return
+                return True
             except queue.Full:
                 self.check()
 
@@ -151,6 +154,42 @@ class SinkThread:
                 sink.close()
             except Exception as e:
                 self._close_error = self._close_error or e
+
+
+class CameraSinks(Sink):
+    """Each result to the sink of its camera (``Result.camera``): with several cameras every camera's outputs have
+    a sink of their own (``DIR/<camera>/<head>/...``, one video per camera). Results of a camera without a sink are
+    dropped. ``close`` closes every sink, then raises the first error."""
+
+    def __init__(self, sinks: Mapping[str, Sink]) -> None:
+        self.sinks = dict(sinks)
+
+    def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
+        sink = self.sinks.get(result.camera)
+        if sink is not None:
+            sink.write(result, frame, name)
+
+    def close(self) -> None:
+        error: Exception | None = None
+        for sink in self.sinks.values():
+            try:
+                sink.close()
+            except Exception as e:
+                error = error or e
+        if error is not None:
+            raise error
+
+
+def per_camera(
+    served: Mapping[str, Sequence[str]],
+    heads: Mapping[str, dict[str, Any]],
+    make: Callable[[str | None, dict[str, dict[str, Any]]], Sink],
+) -> Sink:
+    """``make(camera, heads)`` for each camera (``served``: camera -> the heads that serve it) under a
+    :class:`CameraSinks`; with one camera the one sink ``make(None, heads)``, laid out as always."""
+    if len(served) <= 1:
+        return make(None, dict(heads))
+    return CameraSinks({c: make(c, {h: heads[h] for h in hs}) for c, hs in served.items()})
 
 
 def encode_depth_png(depth: np.ndarray) -> tuple[np.ndarray, float, float]:

@@ -21,10 +21,14 @@ input topic (``--input-topic``)     sensor_msgs/Image                  sensor da
 ``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, 1 Hz
 ==================================  =================================  =========================================
 
+Several cameras (``--input-topic NAME=TOPIC`` for each; ``BridgeOptions.input_topic`` camera -> topic): each
+camera's outputs are under ``<ns>/<camera>/<head>/...`` with that camera's input headers, and each input topic has
+a thread of its own. Rate commands may name ``head@camera``.
+
 Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
 "{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit).
 
-Three threads: one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
+Three threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
 the results (``Engine.results``; each head's newest, Note [Output QoS] in :mod:`vpengine.ros2.core`), and one applies rate commands and publishes diagnostics (Note [Control path] in
 :mod:`vpengine.ros2.core`), so neither waits behind the writes of big images. All decisions about content live in
 :class:`vpengine.ros2.core.Ros2Core`.
@@ -32,9 +36,11 @@ the results (``Engine.results``; each head's newest, Note [Output QoS] in :mod:`
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -63,8 +69,9 @@ log = logging.getLogger("vpengine.ros2.bridge")
 class BridgeOptions:
     """Where the bridge listens and publishes."""
 
-    #: The camera topic, e.g. /camera/image_raw.
-    input_topic: str
+    #: The camera topic, e.g. /camera/image_raw; with several cameras, camera name -> its topic (each camera's
+    #: outputs then go under ``<ns>/<camera>/``).
+    input_topic: str | Mapping[str, str]
     #: Read sensor_msgs/CompressedImage (jpeg/png) from ``<input_topic>/compressed`` (image_transport's name; a
     #: topic already ending in /compressed is used as is).
     compressed: bool = False
@@ -82,10 +89,21 @@ class BridgeOptions:
     diagnostics_period_s: float = 1.0
 
     @property
+    def inputs(self) -> dict[str | None, str]:
+        """Camera (None: the one camera) -> the topic subscribed for it."""
+        topics = {None: self.input_topic} if isinstance(self.input_topic, str) else dict(self.input_topic)
+        return {c: self._subscribed(t) for c, t in topics.items()}
+
+    @property
     def subscribed_topic(self) -> str:
-        if self.compressed and not self.input_topic.rstrip("/").endswith("/compressed"):
-            return self.input_topic.rstrip("/") + "/compressed"
-        return self.input_topic
+        """The topic subscribed (several cameras: ``camera=topic`` each, comma separated)."""
+        inputs = self.inputs
+        return ", ".join(t if c is None else f"{c}={t}" for c, t in inputs.items())
+
+    def _subscribed(self, topic: str) -> str:
+        if self.compressed and not topic.rstrip("/").endswith("/compressed"):
+            return topic.rstrip("/") + "/compressed"
+        return topic
 
 
 def _header(h: Header) -> T.Header_:
@@ -136,8 +154,18 @@ class Ros2Bridge:
 
     def __init__(self, core: Ros2Core, options: BridgeOptions) -> None:
         # bad names and domains fail here, before an engine is started
-        dds_topic(options.subscribed_topic)
+        inputs = options.inputs
+        for topic in inputs.values():
+            dds_topic(topic)
         dds_topic(options.diagnostics_topic)
+        if len(set(inputs.values())) != len(inputs):
+            raise ValueError(f"every camera needs an input topic of its own, got {options.subscribed_topic}")
+        named = [c for c in inputs if c is not None]
+        if (core.several or named) and (sorted(named) != sorted(core.cameras) or len(named) != len(inputs)):
+            raise ValueError(
+                f"input topics for cameras {named or '(one, unnamed)'} but the engine's cameras are "
+                f"{core.cameras}: give one input topic per camera, NAME=TOPIC"
+            )
         if not 0 <= options.domain_id <= 232:
             raise ValueError(f"DDS domain id must be 0..232 (the RTPS port mapping), got {options.domain_id}")
         if options.input_qos not in ("sensor", "default"):
@@ -178,7 +206,10 @@ class Ros2Bridge:
         self._names.write(T.String_(model_names_text(self.core.model_names)))
         self._rates: Reader = ctx.reader(f"{self.ns}/set_rate", T.KeyValue_, "default")
         in_type = T.CompressedImage_ if o.compressed else T.Image_
-        self._input: Reader = ctx.reader(o.subscribed_topic, in_type, o.input_qos)
+        #: camera (None: the one camera) -> its input reader
+        self._inputs: dict[str | None, Reader] = {
+            camera: ctx.reader(topic, in_type, o.input_qos) for camera, topic in o.inputs.items()
+        }
         if not o.compressed:  # a compressed frame is a fraction of the raw one: no buffer advice for it
             self.core.note_receive_buffer(receive_buffer_granted(receive_buffer_limit()))
             self.core.link_warnings()  # logged now, before the "ready" line, not in the middle of it
@@ -187,10 +218,19 @@ class Ros2Bridge:
             self._publish_diagnostics,
             self._wait_rate_commands,
             period_s=o.diagnostics_period_s,
-            before_diagnostics=lambda: self.core.note_publishers(self._input.matched()),
+            before_diagnostics=lambda: self.core.note_publishers(sum(r.matched() for r in self._inputs.values())),
         )
+        # one input thread per camera: a camera's decode never holds another camera's frames back
         self._threads = [
-            threading.Thread(target=self._guard, args=(self._input_loop,), name="ros2-input", daemon=True),
+            threading.Thread(
+                target=self._guard,
+                args=(functools.partial(self._input_loop, reader, camera),),
+                name="ros2-input" if camera is None else f"ros2-input-{camera}",
+                daemon=True,
+            )
+            for camera, reader in self._inputs.items()
+        ]
+        self._threads += [
             threading.Thread(target=self._guard, args=(self._output_loop,), name="ros2-output", daemon=True),
             threading.Thread(
                 target=self._guard, args=(lambda: control.run(self._stop),), name="ros2-control", daemon=True
@@ -239,7 +279,7 @@ class Ros2Bridge:
         self.stop()
 
     # ---------------------------------------------------------------------------------------------- loops
-    def _input_loop(self) -> None:
+    def _input_loop(self, reader: Reader, camera: str | None) -> None:
         compressed = self.opts.compressed
         decode = cdr.decode_compressed_image if compressed else cdr.decode_image
         handle = self.core.handle_compressed if compressed else self.core.handle_image
@@ -248,18 +288,18 @@ class Ros2Bridge:
         # input_mode: fifo the engine takes every frame in order, so every queued frame is submitted.
         every_frame = self.core.config.foundation_model.input_mode == "fifo"
         while not self._stop.is_set():
-            if not self._input.wait(0.2):
+            if not reader.wait(0.2):
                 continue
-            raws, superseded = frames_to_submit(self._input.take_raw(64), every_frame)
+            raws, superseded = frames_to_submit(reader.take_raw(64), every_frame)
             if superseded:
-                self.core.count_superseded(superseded)
+                self.core.count_superseded(superseded, camera)
             for raw in raws:
                 try:
                     msg = decode(raw)
                 except cdr.CdrError as e:
-                    self.core.reject_message("malformed", str(e))
+                    self.core.reject_message("malformed", str(e), camera)
                     continue
-                handle(msg)
+                handle(msg, camera)
 
     def _output_loop(self) -> None:
         while not self._stop.is_set():

@@ -271,6 +271,8 @@ class OutputTopic:
     role: str
     topic: str
     msgtype: str
+    #: the camera whose outputs it carries, with several cameras (None: the one camera)
+    camera: str | None = None
 
 
 @dataclass
@@ -355,34 +357,39 @@ def plan_outputs(
     namespace: str = "/vpengine",
     depth_color: bool = False,
     seg_overlay: bool = False,
+    cameras: Mapping[str, Sequence[str]] | None = None,
 ) -> tuple[list[OutputTopic], list[str]]:
     """The topics every head publishes on, by its kind; and the heads that have no ROS mapping (kind "generic").
 
     ``<ns>/<head>/depth`` (32FC1) [+ ``depth_color`` (bgr8)], ``<ns>/<head>/classes`` (mono8) [+ ``overlay``
-    (bgr8)], ``<ns>/<head>/detections`` (vision_msgs/Detection2DArray).
+    (bgr8)], ``<ns>/<head>/detections`` (vision_msgs/Detection2DArray). ``cameras`` (several cameras: camera -> the
+    heads that serve it): each camera's outputs under its own namespace instead, ``<ns>/<camera>/<head>/...``.
     """
     ns = normalize_namespace(namespace)
     topics: list[OutputTopic] = []
     unmapped: list[str] = []
     seen: dict[str, str] = {}
-    for head, info in heads.items():
-        base = f"{ns}/{ros_name(head)}"
-        if base in seen:
-            raise ValueError(f"heads {seen[base]!r} and {head!r} map to the same ROS topic prefix {base!r}")
-        seen[base] = head
-        kind = head_kind(info)
-        if kind == "depth":
-            topics.append(OutputTopic(head, "depth", f"{base}/depth", IMAGE_TYPE))
-            if depth_color:
-                topics.append(OutputTopic(head, "depth_color", f"{base}/depth_color", IMAGE_TYPE))
-        elif kind == "segmentation":
-            topics.append(OutputTopic(head, "classes", f"{base}/classes", IMAGE_TYPE))
-            if seg_overlay:
-                topics.append(OutputTopic(head, "overlay", f"{base}/overlay", IMAGE_TYPE))
-        elif kind == "detection":
-            topics.append(OutputTopic(head, "detections", f"{base}/detections", DETECTIONS_TYPE))
-        else:
-            unmapped.append(head)
+    layout = {None: list(heads)} if cameras is None else dict(cameras)
+    for camera, served in layout.items():
+        for head in served:
+            base = f"{ns}/{ros_name(head)}" if camera is None else f"{ns}/{ros_name(camera)}/{ros_name(head)}"
+            what = head if camera is None else f"{head}@{camera}"
+            if base in seen:
+                raise ValueError(f"heads {seen[base]!r} and {what!r} map to the same ROS topic prefix {base!r}")
+            seen[base] = what
+            kind = head_kind(heads[head])
+            if kind == "depth":
+                topics.append(OutputTopic(head, "depth", f"{base}/depth", IMAGE_TYPE, camera))
+                if depth_color:
+                    topics.append(OutputTopic(head, "depth_color", f"{base}/depth_color", IMAGE_TYPE, camera))
+            elif kind == "segmentation":
+                topics.append(OutputTopic(head, "classes", f"{base}/classes", IMAGE_TYPE, camera))
+                if seg_overlay:
+                    topics.append(OutputTopic(head, "overlay", f"{base}/overlay", IMAGE_TYPE, camera))
+            elif kind == "detection":
+                topics.append(OutputTopic(head, "detections", f"{base}/detections", DETECTIONS_TYPE, camera))
+            elif head not in unmapped:
+                unmapped.append(head)
     return topics, unmapped
 
 
@@ -457,6 +464,29 @@ def payload_for(
     raise ValueError(f"unknown output role {role!r}")
 
 
+# --------------------------------------------------------------------------------------------------- input
+def input_topics(given: Sequence[str]) -> str | dict[str, str]:
+    """Input topics as given (``--input-topic``, the node's ``input_topics``) -> the one camera's topic, or camera
+    name -> topic (``NAME=TOPIC`` each, several cameras). ValueError for a mix, a camera named twice or several
+    unnamed topics."""
+    from vpengine.config import split_camera
+
+    named = [split_camera(str(t)) for t in given]
+    if not named:
+        raise ValueError("no input topic given")
+    if len(named) == 1 and named[0][0] is None:
+        return named[0][1]
+    if any(n is None for n, _ in named):
+        raise ValueError(
+            f"input topics {list(given)}: with several, name each one's camera: NAME=TOPIC (e.g. front=/front/image)"
+        )
+    names = [n for n, _ in named]
+    dup = sorted({n for n in names if names.count(n) > 1})  # type: ignore[type-var]
+    if dup:
+        raise ValueError(f"input topics: each camera once; repeated: {dup}")
+    return {n: t for n, t in named if n is not None}
+
+
 # ------------------------------------------------------------------------------------------------- control
 def parse_rate(text: str) -> float | None:
     """A rate from a command: Hz as a number >= 0 (``"5"``, ``"2.5"``; ``"0"`` pauses), or ``max`` / ``none`` /
@@ -476,12 +506,26 @@ def parse_rate(text: str) -> float | None:
     return hz
 
 
-def parse_rate_command(key: str, value: str, models: Sequence[str]) -> tuple[str, float | None]:
-    """A rate command (diagnostic_msgs/KeyValue ``{key: model, value: rate}``) -> (model, Hz or None)."""
-    model = str(key).strip()
+def parse_rate_command(
+    key: str, value: str, models: Sequence[str], cameras: Sequence[str] = ()
+) -> tuple[str, float | None]:
+    """A rate command (diagnostic_msgs/KeyValue ``{key: model, value: rate}``) -> (model, Hz or None). ``key`` may
+    be ``model@camera``: that model's rate for one of ``cameras`` alone (:func:`model_at` splits it)."""
+    model_at(key, models, cameras)
+    return str(key).strip(), parse_rate(value)
+
+
+def model_at(key: str, models: Sequence[str], cameras: Sequence[str] = ()) -> tuple[str, str | None]:
+    """``model`` or ``model@camera`` -> (model, camera or None: all its cameras); ValueError naming the models or
+    cameras when either is unknown."""
+    model, at, camera = str(key).strip().partition("@")
     if model not in models:
         raise ValueError(f"rate command for unknown model {key!r}; models: {', '.join(models)}")
-    return model, parse_rate(value)
+    if at and camera not in cameras:
+        raise ValueError(
+            f"rate command {key!r} names no camera of this engine; cameras: {', '.join(cameras) or '(none)'}"
+        )
+    return model, camera if at else None
 
 
 def model_names_text(names: Iterable[str]) -> str:
@@ -700,6 +744,11 @@ class Ros2Core:
     pixels, under its header (Note [Frame grid] in boundary.py). ``input_size="config"`` starts the engine at once
     with the config's ``input.height/width``; ``"first"`` starts it when the first message arrives, with the models
     at that message's size, so a camera's frames need no resizing (messages arriving during start-up are not seen).
+
+    Several cameras (``cameras``: their names, one input topic each; or a config with ``cameras``): every message
+    is handed in with its camera (``handle_image(msg, camera)``, from one thread per topic if need be), and each
+    camera's outputs go out under its own namespace, ``<ns>/<camera>/<head>/...``, with that camera's input header.
+    Rate commands may name ``head@camera``; /diagnostics has a status per camera.
     """
 
     def __init__(
@@ -711,12 +760,13 @@ class Ros2Core:
         depth_color: bool = False,
         seg_overlay: bool = False,
         overrides: Sequence[str] = (),
+        cameras: Sequence[str] | None = None,
     ) -> None:
-        from vpengine.config import load_config
+        from vpengine.config import config_for_cameras
 
         if input_size not in ("config", "first"):
             raise ValueError(f"input_size must be 'config' or 'first', got {input_size!r}")
-        self.config = load_config(config, list(overrides))
+        self.config = config_for_cameras(config, list(cameras) if cameras else None, list(overrides), "input topics")
         self.namespace = normalize_namespace(namespace)
         self.input_size = input_size
         planner = self._new_engine(self.config)  # planned only: head metadata without starting anything
@@ -724,20 +774,32 @@ class Ros2Core:
         self.head_infos: dict[str, dict[str, Any]] = {
             h.name: planner.head_info(h.name) for h in self.config.heads
         }
-        self.topics, self.unmapped = plan_outputs(self.head_infos, self.namespace, depth_color, seg_overlay)
+        #: the engine's cameras, in priority order; with several, each has its own input topic and namespace
+        self.cameras: list[str] = self.config.camera_names()
+        self.several = len(self.cameras) > 1
+        served = {c: [h for h in self.head_infos if c in self.config.model_cameras(h)] for c in self.cameras}
+        self.topics, self.unmapped = plan_outputs(
+            self.head_infos, self.namespace, depth_color, seg_overlay, served if self.several else None
+        )
         for h in self.unmapped:
             log.warning(
                 "head %r has no ROS 2 message mapping (kind 'generic'); its outputs are not published", h
             )
-        self._by_head: dict[str, list[OutputTopic]] = collections.defaultdict(list)
+        self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
         for t in self.topics:
-            self._by_head[t.head].append(t)
-        self.book = FrameBook(frames=16 if seg_overlay else 0)
+            self._by_head[(t.camera, t.head)].append(t)
+        self.book = FrameBook(frames=16 * len(self.cameras) if seg_overlay else 0)
         self._next_fid = 0  # engine frame ids are ours, so a header is booked before its frame is submitted
         self.engine: Any = None
         self._engine_ready = threading.Event()
         self._start_lock = threading.Lock()
         self.counters: collections.Counter[str] = collections.Counter()
+        #: with several cameras, each camera's input counters (received, submitted, superseded, rejected, not_ready)
+        self.camera_counters: dict[str, collections.Counter[str]] = (
+            {c: collections.Counter() for c in self.cameras} if self.several else {}
+        )
+        # input threads (one per camera's topic) count and submit under it; frame ids are allotted under it
+        self._input_lock = threading.Lock()
         self.published: collections.Counter[str] = collections.Counter()
         #: Note [Rejection log]: input messages and outputs that could not be used, per reason
         self.rejected = Rejections("input message rejected")
@@ -795,26 +857,33 @@ class Ros2Core:
             eng.stop()
 
     # --------------------------------------------------------------------------------------------- input
-    def handle_image(self, msg: Any) -> int | None:
-        """Submit a sensor_msgs/Image. Returns the engine frame id, or None when rejected (counted and logged)."""
-        return self._handle(msg, image_to_frame)
+    def handle_image(self, msg: Any, camera: str | None = None) -> int | None:
+        """Submit a sensor_msgs/Image from ``camera`` (None: the one camera). Returns the engine frame id, or None
+        when rejected (counted and logged). Safe to call from one thread per camera."""
+        return self._handle(msg, image_to_frame, camera)
 
-    def handle_compressed(self, msg: Any) -> int | None:
+    def handle_compressed(self, msg: Any, camera: str | None = None) -> int | None:
         """Submit a sensor_msgs/CompressedImage (jpeg/png). Returns the frame id, or None when rejected."""
-        return self._handle(msg, compressed_to_frame)
+        return self._handle(msg, compressed_to_frame, camera)
 
-    def _handle(self, msg: Any, decode: Callable[[Any, str], np.ndarray]) -> int | None:
-        self.counters["received"] += 1
+    def _count(self, key: str, camera: str | None, n: int = 1) -> None:
+        with self._input_lock:
+            self.counters[key] += n
+            if camera in self.camera_counters:
+                self.camera_counters[camera][key] += n  # type: ignore[index]
+
+    def _handle(self, msg: Any, decode: Callable[[Any, str], np.ndarray], camera: str | None) -> int | None:
+        self._count("received", camera)
         t0 = time.thread_time()
         try:
             header = Header.of(msg.header)
             frame = decode(msg, self.config.input.color)
             self.busy["decode"] += time.thread_time() - t0
         except InputError as e:
-            self._reject(e.reason, str(e))
+            self._reject(e.reason, str(e), camera)
             return None
         except (ValueError, AttributeError, TypeError) as e:  # not shaped like the message type at all
-            self._reject("malformed", f"{type(e).__name__}: {e}")
+            self._reject("malformed", f"{type(e).__name__}: {e}", camera)
             return None
         self._largest_input = max(self._largest_input, as_uint8(msg.data).size)
         if self.engine is None:
@@ -824,28 +893,33 @@ class Ros2Core:
                 h, w = frame.shape[:2]
                 self._start_engine(load_config(self.config, [f"input.height={h}", f"input.width={w}"]))
             else:
-                self.counters["not_ready"] += 1
+                self._count("not_ready", camera)
                 return None
         eng = self.engine
         if eng is None:  # stopped meanwhile
-            self.counters["not_ready"] += 1
+            self._count("not_ready", camera)
             return None
-        # The header goes into the book *before* the frame goes into the engine: a fast head's output can reach
-        # the output thread before submit() even returns here, and must find its header (Note [Output headers]).
-        fid = self._next_fid
-        self._next_fid += 1
         bgr = None
         if self.book.keeps_frames:
             bgr = frame if eng.config.input.color == "bgr" else frame[..., ::-1]
-        self.book.add(fid, header, bgr)
-        t0 = time.thread_time()
-        try:
-            eng.submit(frame, frame_id=fid, timestamp=header.seconds)
-        except ValueError as e:
-            self._reject("engine", str(e))
+        with self._input_lock:
+            # The header goes into the book *before* the frame goes into the engine: a fast head's output can reach
+            # the output thread before submit() even returns here, and must find its header (Note [Output headers]).
+            fid = self._next_fid
+            self._next_fid += 1
+            self.book.add(fid, header, bgr)
+            t0 = time.thread_time()
+            try:
+                eng.submit(frame, frame_id=fid, timestamp=header.seconds, camera=camera)
+            except ValueError as e:
+                error: ValueError | None = e
+            else:
+                error = None
+                self.busy["submit"] += time.thread_time() - t0
+        if error is not None:
+            self._reject("engine", str(error), camera)
             return None
-        self.busy["submit"] += time.thread_time() - t0
-        self.counters["submitted"] += 1
+        self._count("submitted", camera)
         return fid
 
     # -------------------------------------------------------------------------------------------- output
@@ -865,13 +939,13 @@ class Ros2Core:
         results = eng.results(timeout=timeout)
         self.busy["results"] += time.thread_time() - t0  # the engine API's copies out of its mailboxes
         if self.config.foundation_model.input_mode != "fifo":
-            newest = {r.head: r for r in results}  # results are oldest first
+            newest = {(r.camera, r.head): r for r in results}  # results are oldest first
             for r in results:
-                if newest[r.head] is not r:
+                if newest[(r.camera, r.head)] is not r:
                     self.outputs_superseded[r.head] += 1
-            results = [r for r in results if newest[r.head] is r]
+            results = [r for r in results if newest[(r.camera, r.head)] is r]
         for r in results:
-            topics = self._by_head.get(r.head)
+            topics = self._by_head.get((r.camera if self.several else None, r.head))
             if not topics:
                 continue
             header = self.book.header(r.frame_id)
@@ -894,15 +968,15 @@ class Ros2Core:
             self.busy["convert"] += time.thread_time() - t0
         return out
 
-    def _reject(self, reason: str, text: str) -> None:
-        self.counters["rejected"] += 1
-        self.rejected.add(reason, text)
+    def _reject(self, reason: str, text: str, camera: str | None = None) -> None:
+        self._count("rejected", camera)
+        self.rejected.add(reason, text if camera is None else f"camera {camera!r}: {text}")
 
-    def reject_message(self, reason: str, text: str) -> None:
+    def reject_message(self, reason: str, text: str, camera: str | None = None) -> None:
         """A transport received a message it could not even parse (e.g. malformed CDR): counted as received and
         rejected, and logged per Note [Rejection log]."""
-        self.counters["received"] += 1
-        self._reject(reason, text)
+        self._count("received", camera)
+        self._reject(reason, text, camera)
 
     def note_publishers(self, n: int) -> None:
         """The transport's count of publishers matched on the input topic (Note [Input link])."""
@@ -944,28 +1018,30 @@ class Ros2Core:
                 log.warning("input link: %s", text)
         return list(found.values())
 
-    def count_superseded(self, n: int) -> None:
+    def count_superseded(self, n: int, camera: str | None = None) -> None:
         """``n`` input messages were received but not submitted because a newer one was already waiting."""
-        self.counters["received"] += n
-        self.counters["superseded"] += n
+        self._count("received", camera, n)
+        self._count("superseded", camera, n)
 
     def count_published(self, topic: OutputTopic) -> None:
         self.published[topic.topic] += 1
 
     # ------------------------------------------------------------------------------------------- control
     def set_rate(self, key: str, value: str) -> tuple[str, float | None]:
-        """Apply a rate command (model name, rate text). Raises ValueError naming what is wrong; counted."""
+        """Apply a rate command (model name, or ``model@camera`` for one camera's rate; rate text). Raises ValueError
+        naming what is wrong; counted."""
         try:
-            model, hz = parse_rate_command(key, value, self.model_names)
+            key, hz = parse_rate_command(key, value, self.model_names, self.cameras)
+            model, camera = model_at(key, self.model_names, self.cameras)
             if self.engine is None:
                 raise ValueError("the engine has not started yet (it starts on the first input message)")
-            self.engine.set_rate(model, hz)
+            self.engine.set_rate(model, hz, camera=camera)
         except (ValueError, KeyError) as e:
             self.counters["rate_commands_rejected"] += 1
-            raise ValueError(str(e).strip("'\"")) from None
+            raise ValueError(str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)) from None
         self.counters["rate_commands"] += 1
-        log.info("rate of %s set to %s", model, "unlimited" if hz is None else f"{hz:g} Hz")
-        return model, hz
+        log.info("rate of %s set to %s", key, "unlimited" if hz is None else f"{hz:g} Hz")
+        return key, hz
 
     def set_rate_hz(self, model: str, hz: float | None) -> tuple[str, float | None]:
         """Apply a numeric rate (services): Hz >= 0 (0 pauses); None, a negative number or inf = unlimited."""
@@ -976,7 +1052,8 @@ class Ros2Core:
         return self.set_rate(model, "max" if unlimited else repr(float(hz)))  # type: ignore[arg-type]
 
     def diagnostics(self, now: float | None = None) -> DiagnosticsOut:
-        """One status per model (see :func:`model_status`) and one for the interface itself."""
+        """One status per model (see :func:`model_status`), one for the interface itself and, with several cameras,
+        one per camera (``<prefix>: camera <name>``: its input counters and its models' rates and counts)."""
         t = time.time() if now is None else now
         header = Header.from_seconds(t)  # diagnostics describe "now", not an input frame
         status: list[Status] = []
@@ -1029,4 +1106,23 @@ class Ros2Core:
                 WARN if problems else OK, f"{self.status_prefix}: interface", msg, self.hardware_id, values
             )
         )
+        per_camera = stats.get("cameras", {})
+        for camera, counts in self.camera_counters.items():  # several cameras: each one's input and models
+            values = [(k, str(counts[k])) for k in ("received", "submitted", "superseded", "rejected", "not_ready")]
+            for model, m in per_camera.get(camera, {}).items():
+                target = m.get("target_hz")
+                values += [
+                    (f"{model}.target_hz", "unlimited" if target is None else _fmt(float(target))),
+                    (f"{model}.achieved_hz", _fmt(float(m.get("achieved_hz") or 0.0))),
+                    *((f"{model}.{k}", _fmt(m.get(k, 0))) for k in ("runs", "skipped", "late", "deferred")),
+                ]
+            status.append(
+                Status(
+                    OK,
+                    f"{self.status_prefix}: camera {camera}",
+                    f"{counts['submitted']} frames in of {counts['received']} received",
+                    self.hardware_id,
+                    values,
+                )
+            )
         return DiagnosticsOut(header, status)

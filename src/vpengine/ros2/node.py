@@ -27,7 +27,8 @@ names as a JSON list in ``message``) and one ROS parameter per model, ``rate.<mo
 limit), set with ``ros2 param set /vpengine rate.depth 5``. The ``<ns>/set_rate`` topic (diagnostic_msgs/KeyValue)
 and the latched ``<ns>/model_names`` topic work in both cases.
 
-Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``compressed`` (false), ``input_qos``
+Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``input_topics`` (several cameras: a string
+array of NAME=TOPIC, each camera's outputs under ``<output_namespace>/<NAME>/``), ``compressed`` (false), ``input_qos``
 (sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in the core), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
 (config | first), ``overrides`` (string array of KEY=VALUE).
 """
@@ -52,6 +53,7 @@ from vpengine.ros2.core import (
     Header,
     ImageOut,
     Ros2Core,
+    input_topics,
     model_names_text,
 )
 
@@ -179,6 +181,9 @@ def build_node(argv: list[str] | None = None) -> Any:
             if not config:
                 raise RuntimeError("parameter 'config' (an engine config file) is required")
             input_topic = p("input_topic", "/camera/image_raw").value
+            # several cameras: NAME=TOPIC each (a STRING_ARRAY with no default, as overrides below)
+            given = [str(t) for t in (p("input_topics", Parameter.Type.STRING_ARRAY).value or []) if t]
+            topics = input_topics(given) if given else input_topic
             compressed = bool(p("compressed", False).value)
             input_qos = p("input_qos", "sensor").value
             if input_qos not in ("sensor", "default"):
@@ -194,6 +199,7 @@ def build_node(argv: list[str] | None = None) -> Any:
                 seg_overlay=bool(p("seg_overlay", False).value),
                 # a STRING_ARRAY with no default: rclpy cannot infer the type of an empty list
                 overrides=[str(o) for o in (p("overrides", Parameter.Type.STRING_ARRAY).value or []) if o],
+                cameras=list(topics) if isinstance(topics, dict) else None,
             )
             core = self.core
             core.start()
@@ -224,24 +230,20 @@ def build_node(argv: list[str] | None = None) -> Any:
                 callback_group=control_group,
             )
             in_qos = qos_profile_sensor_data if input_qos == "sensor" else default_qos
-            self._input_topic = input_topic
-            input_group = MutuallyExclusiveCallbackGroup()
-            if compressed:
-                self._input_topic = (
-                    input_topic
-                    if input_topic.rstrip("/").endswith("/compressed")
-                    else f"{input_topic}/compressed"
-                )
+            self._input_topics: list[str] = []
+            inputs: dict[str | None, str] = {None: topics} if isinstance(topics, str) else dict(topics)
+            for camera, topic in inputs.items():
+                if compressed and not topic.rstrip("/").endswith("/compressed"):
+                    topic = f"{topic.rstrip('/')}/compressed"
+                self._input_topics.append(topic)
+                handle = core.handle_compressed if compressed else core.handle_image
+                # a group per camera: one camera's decode never holds another's frames back
                 self.create_subscription(
-                    CompressedImage,
-                    self._input_topic,
-                    core.handle_compressed,
+                    CompressedImage if compressed else Image,
+                    topic,
+                    lambda m, h=handle, c=camera: h(m, c),
                     in_qos,
-                    callback_group=input_group,
-                )
-            else:
-                self.create_subscription(
-                    Image, input_topic, core.handle_image, in_qos, callback_group=input_group
+                    callback_group=MutuallyExclusiveCallbackGroup(),
                 )
             self._services(control_group)
             self._stop = threading.Event()
@@ -249,7 +251,9 @@ def build_node(argv: list[str] | None = None) -> Any:
                 core,
                 lambda d: self._diag.publish(ros_diagnostics(d)),
                 self._wait_commands,
-                before_diagnostics=lambda: core.note_publishers(self.count_publishers(self._input_topic)),
+                before_diagnostics=lambda: core.note_publishers(
+                    sum(self.count_publishers(t) for t in self._input_topics)
+                ),
             )
             self._threads = [
                 threading.Thread(target=self._output_loop, name="vpengine-outputs", daemon=True),

@@ -3,7 +3,7 @@
 #
 #   bash benchmarks/gpu/release.sh [STAGE...] [-- ARGS...]
 #
-# STAGE, in this order by default: tests integration e1 e2 e3 e4 e5 floor report (resources and hop on request).
+# STAGE, in this order by default: tests integration e1 e2 e3 e4 e5 floor report (the others on request).
 #   tests        every gpu-marked test                               env.txt, gpu_tests.log
 #   integration  the core integration tests on CUDA                  integration_tests_on_cuda.log
 #   e1           E1 at 8 heads                                       paper_cuda_e1.json
@@ -14,6 +14,11 @@
 #   floor        the floor of depth + seg and of depth + seg + det   paper_cuda_floor_depth_seg{,_det}.json
 #   resources    device memory per extra head, CPU idle and at 30 Hz resources_gpu.json
 #   hop          one mailbox hop of ViT-S features in device memory   hop_cuda_vits-1080p.json
+#   boundary     E5 with 1080p frames into a 1280x720 canvas (E5_FRAMES)  paper_cuda_e5_boundary.json
+#   cameras      4 cameras at 30 Hz; 1, 2, 4, 8 cameras batched vs apart  cameras_cuda.json
+#   web          E5's heads at 30 Hz with the live view open and not   web_overhead_cuda.json
+#   street       the README's GPU command on the street video, with its rate limits and without
+#                                                                     run_street_{limits,unlimited}.json
 #   report       vpengine bench report on $OUT                       summary.md, summary.png
 # ARGS go to every `vpengine bench paper` after the stage's own, so they win (e.g. -- --set mode=thread, or
 # -- --heads 8 for a shorter E2); CONFIG is its config (configs/bench.yaml).
@@ -71,7 +76,30 @@ for stage in "${stages[@]}"; do
     hop)
       timeout "${T_HOP:-120}" "$PYTHON" -m vpengine.cli.main bench hop --device cuda --layout vits-1080p --out "$OUT" \
         2>&1 | tee -a "$OUT/release.log" | tail -2 ;;
+    boundary) paper "${T_BOUNDARY:-560}" e5_boundary --experiments E5 --e5-frames "${E5_FRAMES:-10000}" \
+      --set input.height=720 --set input.width=1280 --frame-size 1920x1080 ;;
+    cameras)
+      timeout "${T_CAMERAS:-560}" "$PYTHON" -m vpengine.cli.main bench cameras --cameras "${CAMERA_COUNTS:-1,2,4,8}" \
+        --out "$OUT" --name cameras_cuda 2>&1 | tee -a "$OUT/release.log" | grep "stream\|throughput\|rror\|json" ;;
+    web)
+      timeout "${T_WEB:-300}" "$PYTHON" -m vpengine.cli.main bench web -c configs/dinov2s_depth_seg_det.yaml \
+        --random-weights --device cuda --set heads.seg.rate_hz=null --set heads.det.rate_hz=null --seconds 15 \
+        --rounds 2 --out "$OUT" --name web_overhead_cuda 2>&1 | tee -a "$OUT/release.log" | tail -4 ;;
+    street)
+      # the street video from ../shared/data/media, carried in .media/ (cp ../shared/data/media/vtest.avi .media/)
+      video=.media/vtest.avi
+      [ -f "$video" ] || video=sample:street
+      for variant in limits unlimited; do
+        extra=()
+        [ $variant = limits ] || extra=(--set heads.seg.rate_hz=null --set heads.det.rate_hz=null)
+        rm -rf "/tmp/street_$variant"
+        timeout "${T_STREET:-200}" "$PYTHON" -m vpengine.cli.main run -c dinov2s_depth_seg_det -s "$video" \
+          --random-weights --out "/tmp/street_$variant" --save-every 100000 "${extra[@]}" 2>&1 \
+          | tee -a "$OUT/release.log" | tail -7
+        cp "/tmp/street_$variant/summary.json" "$OUT/run_street_$variant.json"
+      done ;;
     report) vpengine bench report --results "$OUT" ;;
-    *) echo "unknown stage $stage; accepted: tests integration e1 e2 e3 e4 e5 floor resources hop report"; exit 2 ;;
+    *) echo "unknown stage $stage; accepted: tests integration e1 e2 e3 e4 e5 floor resources hop boundary cameras" \
+      "web street report"; exit 2 ;;
   esac
 done

@@ -49,6 +49,8 @@ def test_paper_runs_every_cpu_experiment_and_the_report_reads_them(tmp_path):
     e5 = res["E5"]
     assert e5["frames"] == 60 and set(e5["per_head_latency_ms"]) == {"depth", "seg", "det"}
     assert e5["all_three_latency_ms"]["n"] > 0 and e5["memory_flat"] is None  # no device memory on the CPU
+    assert 0 < e5["cpu_cores"] < 4 and 0 < res["E1"]["rows"][0]["engine"]["cpu_cores"] < 4
+    assert res["setup"]["frame_size"] == [160, 120]  # the config's input size
     floor = res["floor"]
     assert floor["heads"] == ["depth", "seg"] and floor["device_ms"] == {} and "floor_sum_ms" not in floor
     for key in ("thread", "process", "thread_frame_slot", "process_frame_slot"):
@@ -70,16 +72,19 @@ def test_set_reaches_the_engine_and_the_report_labels_it(tmp_path):
     p = vpengine(
         "bench", "paper", "--config", "configs/tiny.yaml", "--set", "mode=thread", "--experiments", "E2",
         "--heads", "2", "--frames", "3", "--results", "borrow", "--tag", "thread", "--out", str(tmp_path),
+        "--frame-size", "200x90",
         timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     assert "E2 N=2: engine (thread mode, MPS auto, results borrow)" in p.stdout
     res = json.loads((tmp_path / "paper_cpu_thread.json").read_text())
     assert res["setup"]["mode"] == "thread" and res["setup"]["overrides"] == ["mode=thread"]
+    assert res["setup"]["frame_size"] == [200, 90]  # frames of another size than the 160x120 canvas
     r = vpengine("bench", "report", "--results", str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
     md = (tmp_path / "summary.md").read_text()
-    assert "| E2 2 detection heads (tiny_vit, eager, 120x160, thread mode, borrowed results) |" in md, md
+    label = "(tiny_vit, eager, 120x160, 200x90 frames (boundary), thread mode, borrowed results)"
+    assert f"| E2 2 detection heads {label} |" in md, md
 
 
 def test_a_bad_override_is_named(tmp_path):

@@ -88,6 +88,12 @@ _LABELLED = {
 }
 
 
+def _cores(run: dict[str, Any]) -> str:
+    """The engine's CPU over a run, where the run measured it (older results did not)."""
+    cores = run.get("cpu_cores")
+    return "" if cores is None else f", CPU {100 * cores:.0f}% of a core"
+
+
 def setup_label(setup: dict[str, Any], det: bool = False) -> str:
     """What ran, in a few words: backbone and backend, then only what differs from the usual (1080p, process mode,
     no MPS, results copied), then any other ``--set`` override as given."""
@@ -98,6 +104,9 @@ def setup_label(setup: dict[str, Any], det: bool = False) -> str:
     size = (setup.get("height", 1080), setup.get("width", 1920))
     if size != (1080, 1920):
         label += f", {size[0]}x{size[1]}"
+    frames = setup.get("frame_size")  # [width, height] of the frames submitted, when not the canvas
+    if frames and tuple(frames) != size[::-1]:
+        label += f", {frames[0]}x{frames[1]} frames (boundary)"
     if setup.get("mode", "process") != "process":
         label += f", {setup['mode']} mode"
     if setup.get("mps") == "required":
@@ -131,7 +140,8 @@ def table(r: dict[str, Any]) -> str:
         )
         rows.append(
             f"| E1 shared backbone + {last['heads']} depth heads ({setup_label(e1['setup'])}) | "
-            f"engine {last['engine']['mean']:.1f} ms: {last['speedup_vs_independent']:.2f}x vs independent models"
+            f"engine {last['engine']['mean']:.1f} ms{_cores(last['engine'])}: {last['speedup_vs_independent']:.2f}x "
+            "vs independent models"
             f"{ideal}, {last['speedup_vs_sequential']:.2f}x vs sequential | 2.3x vs independent | {e1['file']} |"
         )
     for e2 in r.get("E2_all", []):
@@ -162,7 +172,7 @@ def table(r: dict[str, Any]) -> str:
         rows.append(
             f"| E5 {e['frames']} frames at 30 Hz, depth+seg+det ({setup_label(e['setup'], det=True)}) | submit -> all "
             f"three on host: p50 {a['p50']:.1f} ms, p99 {a['p99']:.1f} ms; lost {max(e['loss_pct'].values()):.2f}%; "
-            f"{_memory(e['memory_flat'])} | ~0.02% lost | {e['file']} |"
+            f"{_memory(e['memory_flat'])}{_cores(e)} | ~0.02% lost | {e['file']} |"
         )
     for f in r.get("floor_all", []):
         rows.append(_floor_row(f))

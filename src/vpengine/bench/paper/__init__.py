@@ -53,6 +53,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="how the caller takes results: its own copies, or read-only views of the output mailboxes "
         "(Engine.wait(copy=False)); the sequential baseline copies with .cpu() either way",
     )
+    p.add_argument(
+        "--frame-size",
+        default=None,
+        metavar="WxH",
+        help="size of the frames submitted (default: the config's input size); another size measures the boundary "
+        "that fits each frame into the engine's canvas and its outputs back into the frame's grid",
+    )
     p.add_argument("--tag", default="", help="suffix of the results file name")
 
 
@@ -64,6 +71,15 @@ def _counts(text: str) -> list[int]:
     if not ns or min(ns) < 1:
         raise ValueError(f"--heads {text!r}: expected head counts of at least 1, like 1,2,4,8")
     return ns
+
+
+def _frame_size(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    w, sep, h = text.lower().partition("x")
+    if not sep or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+        raise ValueError(f"--frame-size {text!r}: expected WIDTHxHEIGHT in pixels, e.g. 1920x1080")
+    return int(w), int(h)
 
 
 def main(args: argparse.Namespace) -> int:
@@ -106,9 +122,9 @@ def main(args: argparse.Namespace) -> int:
         "E5": lambda imgs: e5_stream.run(b, imgs, args.e5_frames),
         "floor": lambda imgs: floor.run(b, imgs, kinds),
     }
-    imgs = b.images()
+    imgs = b.images(size=_frame_size(args.frame_size))
     name = f"paper_{b.device.split(':')[0]}{'_' + args.tag if args.tag else ''}"
-    res: dict[str, Any] = {"setup": b.setup()}
+    res: dict[str, Any] = {"setup": {**b.setup(), "frame_size": [imgs[0].shape[1], imgs[0].shape[0]]}}
     log(f"machine: {machine_info()}")
     with contextlib.ExitStack() as stack:
         if b.base.mps == "required":  # a daemon this run can reach, started for it if none is

@@ -49,7 +49,7 @@ def run(b: Bench, imgs: list[np.ndarray], ns: list[int]) -> dict[str, Any]:
             row["ideal_vs_independent"] = n * (bb + h) / (bb + n * h)
         rows.append(row)
         log(
-            f"E1 N={n}: engine ({b.label}) {shared['mean']:.1f} ms, independent {indep['mean']:.1f} ms "
+            f"E1 N={n}: engine ({b.label}) {shared['mean']:.1f} ms on {shared['cpu_cores']:.2f} cores, independent {indep['mean']:.1f} ms "
             f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
             f"({row['speedup_vs_sequential']:.2f}x)"
             + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")

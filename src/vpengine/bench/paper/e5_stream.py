@@ -9,7 +9,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.bench.paper.harness import Bench, engines, log, pct
+from vpengine.bench.paper.harness import Bench, EngineCpu, engines, log, pct
 
 HEADS = ("depth", "seg", "det")
 
@@ -35,6 +35,7 @@ def run(b: Bench, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
             eng.wait(eng.submit(imgs[i % len(imgs)]), timeout=120)
         eng.results()
         pids = [m["pid"] for m in eng.stats()["models"].values()]
+        cpu = EngineCpu(eng)
         t0 = time.monotonic()
         next_mem = t0
         for k in range(n_frames):
@@ -55,6 +56,7 @@ def run(b: Bench, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
                 next_mem += 1.0
             if k and k % 1000 == 0:
                 log(f"E5 {k}/{n_frames} frames")
+        cpu_cores = cpu.cores()  # over the stream, before the drain below
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
             rs = eng.results(timeout=0.5, copy=b.copy)
@@ -70,6 +72,7 @@ def run(b: Bench, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
         "frames": n_frames,
         "per_head_latency_ms": {h: pct(v) for h, v in lat.items()},
         "all_three_latency_ms": pct(complete),
+        "cpu_cores": cpu_cores,
         "frames_lost": lost,
         "loss_pct": {h: 100.0 * v / n_frames for h, v in lost.items()},
         "results_missed": {h: st["results"][h]["missed"] for h in HEADS},
@@ -82,6 +85,6 @@ def run(b: Bench, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
     a3 = out["all_three_latency_ms"]
     log(
         f"E5 {n_frames} frames at 30 Hz: all three heads p50 {a3['p50']:.1f} ms p99 {a3['p99']:.1f} ms; "
-        f"lost {out['loss_pct']}; memory flat: {out['memory_flat']}"
+        f"lost {out['loss_pct']}; memory flat: {out['memory_flat']}; CPU {100 * cpu_cores:.0f}% of a core"
     )
     return out

@@ -104,11 +104,11 @@ class Bench:
             "engine_config": b.model_dump(mode="json"),
         }
 
-    def images(self, n: int = 8) -> list[np.ndarray]:
-        """``n`` synthetic frames of the config's input size."""
+    def images(self, n: int = 8, size: tuple[int, int] | None = None) -> list[np.ndarray]:
+        """``n`` synthetic frames of ``size`` (width, height; default: the config's input size)."""
         from vpengine.io.sources import SyntheticSource
 
-        h, w = self.base.input.height, self.base.input.width
+        w, h = size or (self.base.input.width, self.base.input.height)
         src = SyntheticSource(w, h, 30.0, n)
         return [src.render(i * 3) for i in range(n)]
 
@@ -192,7 +192,39 @@ def lockstep(
         engine.wait(s.frame_id, timeout=120, copy=b.copy)
         return t0
 
-    return timed(step, b.frames, warmup)
+    for i in range(warmup):
+        step(i)
+    cpu = EngineCpu(engine)
+    out = timed(step, b.frames, 0)
+    out["cpu_cores"] = cpu.cores()
+    return out
+
+
+class EngineCpu:
+    """CPU time of an engine's processes (this one and, in process mode, its workers) from construction to
+    ``cores()``, in cores: CPU seconds per second of wall time."""
+
+    def __init__(self, engine: Any) -> None:
+        import os
+
+        import psutil
+
+        pids = {m["pid"] for m in engine.stats()["models"].values() if m.get("pid")} | {os.getpid()}
+        self._procs = [psutil.Process(p) for p in pids]
+        self._t0, self._c0 = time.monotonic(), self._seconds()
+
+    def _seconds(self) -> float:
+        total = 0.0
+        for p in self._procs:
+            try:
+                t = p.cpu_times()
+                total += t.user + t.system
+            except Exception:  # a worker that restarted: its time is lost, not the run
+                pass
+        return total
+
+    def cores(self) -> float:
+        return (self._seconds() - self._c0) / max(time.monotonic() - self._t0, 1e-9)
 
 
 @contextlib.contextmanager

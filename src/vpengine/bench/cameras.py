@@ -110,7 +110,8 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "latency_all_heads_ms": pct(whole),
         "device_memory_bytes": memory,
         "counted": {
-            m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")} for m, s in st["models"].items()
+            m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")}
+            for m, s in st["models"].items()
         },
     }
     log(
@@ -158,10 +159,14 @@ def main(args: argparse.Namespace) -> int:
 
     base = load_config(args.config, list(args.overrides))
     imgs = Bench(base).images()
-    res: dict[str, Any] = {"config": args.config, "overrides": list(args.overrides)}
+    res: dict[str, Any] = {"config": args.config, "overrides": list(args.overrides), "throughput": []}
+    name = args.name or f"cameras_{str(base.device).split(':')[0]}"
+    # the file is rewritten after each measurement: a run cut short keeps what it measured
     if args.stream_cameras:
         res["stream"] = stream(base, args.stream_cameras, args.fps, args.seconds, imgs)
-    res["throughput"] = [throughput(base, int(n), args.rounds, imgs) for n in args.cameras.split(",") if n]
-    name = args.name or f"cameras_{str(base.device).split(':')[0]}"
-    print(write_results(args.out, name, res))
+        write_results(args.out, name, res)
+    for n in (int(x) for x in args.cameras.split(",") if x.strip()):
+        res["throughput"].append(throughput(base, n, args.rounds, imgs))
+        path = write_results(args.out, name, res)
+    print(path if res["throughput"] else write_results(args.out, name, res))
     return 0

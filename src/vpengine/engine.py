@@ -43,11 +43,11 @@ from vpengine.boundary import Boundary, Placement
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.results import Outbox, Result
-from vpengine.runtime.control import ControlBlock, camera_entry, control_names
+from vpengine.runtime.control import ControlBlock, camera_entry, control_names, reader_name
 from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.gpu import CudaSetup, prepare_cuda, worker_env
 from vpengine.runtime.handoff import Handoffs
-from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan, reader_name
+from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotInfo, SlotRing

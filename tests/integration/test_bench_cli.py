@@ -128,3 +128,21 @@ def test_compare_script_runs_both_trees_and_reports_after_against_before(tmp_pat
     assert line.endswith("| paper_cpu_after_e1.json |")
     bad = _script("compare.sh", "no-such-tree", OUT=str(tmp_path))
     assert bad.returncode != 0 and "neither a folder with src/vpengine nor a commit" in bad.stderr
+
+
+def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_path):
+    p = vpengine(
+        "bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--stream-cameras", "2", "--seconds", "1",
+        "--cameras", "1,2", "--rounds", "3", "--heads", "depth,seg", "--out", str(tmp_path), "--name", "cams",
+        timeout=300,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    res = json.loads((tmp_path / "cams.json").read_text())
+    s = res["stream"]
+    assert res["heads"] == ["depth", "seg"] and set(s["counted"]) == {"foundation", "depth", "seg"}
+    assert s["cameras"] == 2 and 0 < s["frames_all_heads"] <= s["frames_submitted"]
+    assert s["counted"]["foundation"]["batched"] > 0  # two synchronised cameras: the backbone ran them together
+    assert [t["cameras"] for t in res["throughput"]] == [1, 2]
+    assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
+    bad = vpengine("bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--heads", "nope", "--out", str(tmp_path))
+    assert bad.returncode != 0 and "--heads 'nope': the config's heads are depth, seg, det" in bad.stderr

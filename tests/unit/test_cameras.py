@@ -3,6 +3,8 @@ their camera, outputs in each camera's own grid, a head limited to one camera, r
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -102,3 +104,33 @@ def test_frames_that_come_together_run_as_one_batch_and_give_what_they_give_alon
         assert models["foundation"]["batched"] >= 24, models["foundation"]
         assert models["depth"]["batched"] >= 24, models["depth"]
         assert models["foundation"]["runs"] == 51 and models["foundation"]["dropped"] == 0
+
+
+def test_a_batch_that_fails_answers_every_camera_and_the_head_comes_back(tmp_path):
+    cfg = tiny(
+        "thread",
+        "cameras=[{name: front}, {name: rear}]",
+        "runtime.batch_window_ms=100",
+        "runtime.restart_backoff_s=0.2",
+        "heads.seg.model=helpers.faulty:FaultyHead",
+        f'heads.seg.options={{"raise_at_run": 4, "once_marker": "{tmp_path / "raised"}"}}',
+    )
+    with Engine(cfg) as e:
+        missing = []
+        for i in range(12):
+            ids = [e.submit(frame(i), camera="front"), e.submit(frame(i + 3), camera="rear")]
+            for f in ids:
+                t0 = time.monotonic()
+                out = e.wait(f, timeout=30)
+                assert time.monotonic() - t0 < 5  # answered, never waited out
+                assert {"depth", "det"} <= set(out)
+                if "seg" not in out:
+                    missing.append(f)
+        seg = e.stats()["models"]["seg"]
+        assert seg["errors"] == 1 and "injected failure at run 4" in seg["last_error"]
+        assert 1 <= len(missing) <= 6, missing  # the failed batch's frames (and any while it restarted)
+        for i in range(20):  # serving both cameras again, every frame
+            ids = [e.submit(frame(i), camera="front"), e.submit(frame(i + 3), camera="rear")]
+            assert all("seg" in e.wait(f, timeout=30) for f in ids)
+        st = e.stats()["cameras"]
+        assert st["front"]["seg"]["runs"] + st["rear"]["seg"]["runs"] >= 40 + 24 - len(missing)

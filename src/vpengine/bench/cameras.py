@@ -37,6 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=float, default=10.0, help="length of the stream run (default 10 s)")
     p.add_argument("--cameras", default="1,2,4,8", help="camera counts of the throughput sweep (default 1,2,4,8)")
     p.add_argument("--rounds", type=int, default=60, help="frames a camera in each throughput point (default 60)")
+    p.add_argument("--heads", default=None, help="the config's heads to run, comma separated (default: all)")
     p.add_argument("--name", default=None, help="results file name (default: cameras_<device>)")
 
 
@@ -158,8 +159,20 @@ def main(args: argparse.Namespace) -> int:
     from vpengine.config import load_config
 
     base = load_config(args.config, list(args.overrides))
+    if args.heads:
+        wanted = [h.strip() for h in args.heads.split(",") if h.strip()]
+        names = [h.name for h in base.heads]
+        unknown = [h for h in wanted if h not in names]
+        if unknown or not wanted:
+            raise ValueError(f"--heads {args.heads!r}: the config's heads are {', '.join(names)}")
+        base = load_config(base.model_dump() | {"heads": [h.model_dump() for h in base.heads if h.name in wanted]})
     imgs = Bench(base).images()
-    res: dict[str, Any] = {"config": args.config, "overrides": list(args.overrides), "throughput": []}
+    res: dict[str, Any] = {
+        "config": args.config,
+        "overrides": list(args.overrides),
+        "heads": [h.name for h in base.heads],
+        "throughput": [],
+    }
     name = args.name or f"cameras_{str(base.device).split(':')[0]}"
     # the file is rewritten after each measurement: a run cut short keeps what it measured
     if args.stream_cameras:

@@ -69,6 +69,11 @@ _LAT0 = 1 + len(_FIELDS)
 ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
 ENTRY_BYTES = ENTRY_WORDS * 8
 
+def reader_name(model: str, camera: str, cameras: list[str]) -> str:
+    """The name of ``model``'s reader of its input ring for ``camera``: the model's own with one camera."""
+    return model if len(cameras) == 1 else f"{model}@{camera}"
+
+
 def camera_entry(model: str, camera: str, cameras: list[str] | tuple[str, ...]) -> str:
     """The control-block entry holding ``model``'s rate, counters and latencies for ``camera`` (Note [Cameras] in
     worker.py): the model's own entry on a one-camera engine, ``model@camera`` with several."""

@@ -12,6 +12,7 @@ import torch
 from vpengine.config import EngineConfig
 from vpengine.models.base import Model, ModelBuildError
 from vpengine.models.build import build_model
+from vpengine.runtime.control import reader_name
 from vpengine.runtime.supervisor import EngineStartError
 from vpengine.specs import SpecDict, TensorSpec, format_specs, specs_nbytes
 from vpengine.transport.layout import SlotLayout
@@ -149,11 +150,6 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
             )
         )
     return boxes
-
-
-def reader_name(model: str, camera: str, cameras: list[str]) -> str:
-    """The name of ``model``'s reader of its input ring for ``camera``: the model's own with one camera."""
-    return model if len(cameras) == 1 else f"{model}@{camera}"
 
 
 def check_preallocation(boxes: list[dict[str, Any]]) -> None:

@@ -341,21 +341,22 @@ class WorkerCore:
                 self.control.decide(entry, slot.origin, ran=False)
             else:
                 pairs.append((slot, out))
-        done, launched = 0, False
+        launched = published = False
         try:
             if pairs:
                 self._launch_batch(pairs)
                 launched = True
-            for slot, out in pairs:
-                self._finish(slot, out, t_start)
-                done += 1
+                self._finish_all(pairs, t_start)  # gives every slot back if the device work failed
+                published = True
                 if len(pairs) > 1:
-                    self.control.add(self._by_tag[slot.tag].entry, "batched")
+                    for slot, _ in pairs:
+                        self.control.add(self._by_tag[slot.tag].entry, "batched")
         finally:
-            for i, (slot, out) in enumerate(pairs[done:], done):
-                if not launched or i > done:  # a _finish that raised gave its own slot back
-                    self.writer.abort(out)
-                self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
+            if not published:
+                for slot, out in pairs:
+                    if not launched:
+                        self.writer.abort(out)
+                    self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
 
     def _launch_batch(self, pairs: list[tuple[SlotInfo, SlotInfo]]) -> None:
         """Queue the model's work on a batch of frames (on the CPU: do it), each into its output slot."""
@@ -446,28 +447,38 @@ class WorkerCore:
 
     def _finish(self, slot: SlotInfo, out: SlotInfo, t_start: float) -> None:
         """Count and publish a run whose work ``_launch`` queued; the caller then releases ``slot``."""
-        ctl, name = self.control, self._by_tag[slot.tag].entry
+        self._finish_all([(slot, out)], t_start)
+
+    def _finish_all(self, pairs: list[tuple[SlotInfo, SlotInfo]], t_start: float) -> None:
+        """Count and publish the outputs of one model call (a frame, or a batch of the cameras' frames): all of
+        them before any wait for the device, so a batch's frames reach the next models together."""
+        ctl = self.control
         handoff = self._out_events
         if handoff is None:
             try:
                 self.dev.complete()  # Note [Device sync]: publish only what is complete
             except BaseException:
-                self.writer.abort(out)
+                for _, out in pairs:
+                    self.writer.abort(out)
                 raise
         # Counters first, then publish: whoever sees the output also sees it counted.
         t_end = time.monotonic()
-        ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
-        self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin, tag=slot.tag)
-        ctl.decide(name, slot.origin, ran=True, wake=self.spec.notify_output)
+        for slot, out in pairs:
+            name = self._by_tag[slot.tag].entry
+            ctl.record_run(name, t_start, t_end - t_start, t_end - slot.t_submit, slot.frame_id)
+            self.writer.publish(out, slot.frame_id, slot.t_capture, slot.t_submit, slot.origin, tag=slot.tag)
+            ctl.decide(name, slot.origin, ran=True, wake=self.spec.notify_output)
         if handoff is not None:
             # The input slot is released (by run) only after the work that read it is done; the run's times
             # are the device's, not the queueing's.
             self.dev.complete()
             t_end = time.monotonic()
-            ctl.amend_last_run(name, t_end - t_start, t_end - slot.t_submit)
+            for slot, out in pairs:
+                ctl.amend_last_run(self._by_tag[slot.tag].entry, t_end - t_start, t_end - slot.t_submit)
+                if self.spec.notify_output:
+                    # Note [Result hand-off]: when it was there; wakes readers waiting for done results
+                    handoff.mark_done(self.writer.ring, out, t_end)
             if self.spec.notify_output:
-                # Note [Result hand-off]: when it was there; wakes readers waiting for done results
-                handoff.mark_done(self.writer.ring, out, t_end)
                 ctl.notify_output()
 
     # ---------------------------------------------------------------------- Note [Inline launch], worker side

@@ -8,8 +8,9 @@ and detection heads at 1080p; ``--set`` as everywhere), in thread mode:
   the host (p50, p99), frames some head never answered (each is counted by the engine too: skipped, late, deferred),
   and the device memory in use (NVML, else PyTorch's reserved bytes).
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
-  a frame of every camera in flight at a time: one engine with N cameras (batched) against N engines of one camera
-  each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching buys.
+  each camera pumped by its own thread with one frame in flight (submit, wait for every head), as each camera's
+  driver would: one engine with N cameras (batched) against N engines of one camera each running side by side in
+  this process (the GPU overlaps their streams). Their ratio is what batching buys.
 
 ::
 
@@ -123,32 +124,35 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     return out
 
 
-def _pump(eng: Any, cams: list[str], imgs: list[np.ndarray], rounds: int) -> None:
-    """Every camera's frame in flight at once, ``rounds`` times: submit one a camera, then wait for them all."""
+def _pump(eng: Any, camera: str | None, imgs: list[np.ndarray], rounds: int) -> None:
+    """One camera's frames, one in flight: submit, wait for every head, ``rounds`` times."""
     for k in range(rounds):
-        fids = [eng.submit(imgs[(k + i) % len(imgs)], camera=c) for i, c in enumerate(cams)]
-        for f in fids:
-            eng.wait(f, timeout=120)
+        eng.wait(eng.submit(imgs[k % len(imgs)], camera=camera), timeout=120)
+
+
+def _all_cameras(pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], rounds: int) -> float:
+    """Every camera pumped by its own thread, as each camera's driver would; frames per second over them all."""
+    threads = [threading.Thread(target=_pump, args=(e, c, imgs, rounds)) for e, c in pairs]
+    t = time.monotonic()
+    for th in threads:
+        th.start()
+    for th in threads:
+        th.join()
+    return len(pairs) * rounds / (time.monotonic() - t)
 
 
 def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray]) -> dict[str, Any]:
+    """Frames per second through every head with a thread per camera, each with one frame in flight: one engine
+    with ``n`` cameras (batched) against ``n`` one-camera engines side by side."""
     from vpengine.bench.paper.harness import engines, log
 
     with engines([_config(base, n)]) as (eng,):
-        _pump(eng, eng.cameras, imgs, 5)
-        t = time.monotonic()
-        _pump(eng, eng.cameras, imgs, rounds)
-        batched = n * rounds / (time.monotonic() - t)
+        cams = eng.cameras if n > 1 else [None]
+        _all_cameras([(eng, c) for c in cams], imgs, 5)
+        batched = _all_cameras([(eng, c) for c in cams], imgs, rounds)
     with engines([_config(base, 1) for _ in range(n)]) as es:
-        for e in es:
-            _pump(e, e.cameras, imgs, 5)
-        threads = [threading.Thread(target=_pump, args=(e, e.cameras, imgs, rounds)) for e in es]
-        t = time.monotonic()
-        for th in threads:
-            th.start()
-        for th in threads:
-            th.join()
-        separate = n * rounds / (time.monotonic() - t)
+        _all_cameras([(e, None) for e in es], imgs, 5)
+        separate = _all_cameras([(e, None) for e in es], imgs, rounds)
     log(f"throughput, {n} cameras: one engine {batched:.1f} frames/s, {n} engines {separate:.1f} frames/s")
     return {"cameras": n, "batched_fps": batched, "separate_fps": separate, "ratio": batched / separate}
 

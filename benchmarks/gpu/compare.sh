@@ -59,7 +59,9 @@ run() {
     [ -z "${MODE:-}" ] || args+=(--mode "$MODE")
   fi
   echo "-- $side $exp"
-  PYTHONPATH=$path timeout "${T:-290}" "$PYTHON" -m vpengine.cli.main bench paper "${args[@]}" 2>&1 \
+  # each tree compiles into its own caches: a kernel or graph cached by the other tree must never be reused
+  PYTHONPATH=$path TORCHINDUCTOR_CACHE_DIR=/tmp/inductor-$side TRITON_CACHE_DIR=/tmp/triton-$side \
+    timeout "${T:-290}" "$PYTHON" -m vpengine.cli.main bench paper "${args[@]}" 2>&1 \
     | grep "E1 N=\|E5 [0-9]* frames at\|floor\|Error\|error"
 }
 

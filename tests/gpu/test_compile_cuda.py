@@ -112,9 +112,13 @@ def test_compiled_cuda_graph_at_low_precision_stays_close_to_fp32(precision):
 
 
 @pytest.mark.parametrize("name", ["foundation", "seg"])
-def test_one_cuda_graph_per_batch_size_each_frame_as_if_alone(name):
+def test_one_cuda_graph_per_batch_size_each_frame_as_if_alone(name, monkeypatch):
     """A graph per batch size 1..max_batch, captured at warm-up: a batch of B frames gives each frame what a batch of
-    one gives it and what eager gives, in any order of sizes, and no replay allocates (one pool for all sizes)."""
+    one gives it and what eager gives, in any order of sizes, and no replay allocates (one pool for all sizes).
+    cuDNN may pick a TF32 algorithm for the patch embedding's convolution at one batch size and not at another
+    (PyTorch allows TF32 convolutions by default), a difference of about 3e-4 of the features' scale that has
+    nothing to do with batching: the comparison runs with TF32 off."""
+    monkeypatch.setattr(torch.backends.cudnn, "allow_tf32", False)
     cfg = tiny("thread", "device=cuda")
     worker = torch.cuda.Stream()
     with torch.cuda.stream(worker):
@@ -155,7 +159,7 @@ def test_replays_allocate_no_device_memory():
     # Three preallocated input slots and one output slot per model, as the mailboxes hold them.
     slots = {n: [inputs_for(cfg, n, i) for i in range(3)] for n in TINY_MODELS}
     outs = {
-        n: {k: torch.empty(s.shape, dtype=s.torch_dtype, device=CUDA) for k, s in ex.output_spec.items()}
+        n: {k: torch.empty((1, *s.shape), dtype=s.torch_dtype, device=CUDA) for k, s in ex.output_spec.items()}
         for n, ex in executors.items()
     }
     with torch.cuda.stream(worker):
@@ -337,7 +341,7 @@ class _HostSync(SmallHead):
 
 def test_a_model_that_cannot_be_captured_fails_at_warm_up_with_the_fix():
     opts = {"fullgraph": False}
-    with pytest.raises(BackendError, match=r"(?s)user: CUDA graph capture failed.*cudagraphs: false"):
+    with pytest.raises(BackendError, match=r"(?s)user: CUDA graph capture \(batch of 1\) failed.*cudagraphs: false"):
         make_executor(_HostSync().to(CUDA), "compile", CUDA, "user", options=opts)
     ex = make_executor(_HostSync().to(CUDA), "compile", CUDA, "user", options={**opts, "cudagraphs": False})
     assert ex.describe()["cudagraphs"] is False

@@ -25,8 +25,7 @@ def direct_counts(cfg) -> dict[str, int]:
         head = build_model(cfg, h.name, "head", fm.output_spec, fm.meta, cpu, plan_only=False)
         assert all(p.device.type == "cpu" for p in head.parameters())
         counts[h.name] = sum(p.numel() for p in head.parameters())
-    counts["_tokens"] = fm.output_spec["patch.0"].shape[1]
-    counts["_dim"] = fm.output_spec["patch.0"].shape[2]
+    counts["_tokens"], counts["_dim"] = fm.output_spec["patch.0"].shape[-2:]  # specs are per frame: [N, C]
     return counts
 
 

@@ -344,13 +344,14 @@ def test_a_polling_wait_offers_the_interpreter_lock_to_other_threads(handed_off_
 
     interval = sys.getswitchinterval()
     try:
-        ev.publish_to_done_s = 0.3
-        _, event = publish_due(ring, ev, 1.0, 0.5)
+        # Generous times so that a stall of a loaded CI machine before the wait still leaves a long poll.
+        ev.publish_to_done_s = 0.8
+        _, event = publish_due(ring, ev, 1.0, 1.0)
         slot = r.pin()
         sys.setswitchinterval(0.05)
         other = threading.Thread(target=wake_up_often)
         other.start()
-        ev.wait_done(slot, spin_s=0.3)  # polls from publish to 0.5 s
+        ev.wait_done(slot, spin_s=0.8)  # polls from publish to 1 s
         stop.set()
         other.join()
         assert event.syncs == 0 and event.polls > 100

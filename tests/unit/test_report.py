@@ -267,3 +267,37 @@ def test_main_writes_the_summary_naming_the_machine_and_the_figure(tmp_path, cap
     assert (tmp_path / "summary.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(ValueError, match="is not a folder"):
         report.main(argparse.Namespace(results=str(tmp_path / "nothing"), baseline=None))
+
+
+def test_a_cameras_file_gives_its_stream_and_throughput_rows_against_the_targets(tmp_path):
+    counted = {"foundation": {"skipped": 0}, "det": {"skipped": 3}}
+    data = {
+        "date": "2026-01-01T00:00:00",
+        "machine": H100,
+        "heads": ["depth", "det"],
+        "stream": {
+            "cameras": 4,
+            "fps_per_camera": 30.0,
+            "frames_submitted": 100,
+            "frames_all_heads": 97,
+            "latency_all_heads_ms": _lat(40.0, 20.0),
+            "device_memory_bytes": 3 * 2**30,
+            "counted": counted,
+        },
+        "throughput": [
+            {"cameras": 1, "batched_fps": 70.0, "separate_fps": 70.0, "ratio": 1.0},
+            {"cameras": 4, "batched_fps": 120.0, "separate_fps": 80.0, "ratio": 1.5},
+        ],
+    }
+    (tmp_path / "cameras_cuda.json").write_text(json.dumps(data))
+    rows = table(collect(tmp_path)).splitlines()[2:]
+    assert rows == [
+        "| 4 cameras at 30 Hz each, depth+det (thread mode) | submit -> every head: p50 20.0 ms, p99 40.0 ms; 97 of "
+        "100 frames through every head (skipped, counted: det 3); device memory 3.00 GiB | target: p99 <= 33 ms, "
+        "<= 2.5 GiB | cameras_cuda.json |",
+        "| cameras: one engine batched vs separate engines, frames/s (depth+det) | 1: 70 vs 70 (1.00x), 4: 120 vs 80 "
+        "(1.50x) | target: >= 1.5x at 4 cameras | cameras_cuda.json |",
+    ]
+    assert report.main(argparse.Namespace(results=str(tmp_path), baseline=None)) == 0
+    assert "Machine: NVIDIA H100 80GB HBM3" in (tmp_path / "summary.md").read_text()
+    assert [d.__name__ for d in report._panels(collect(tmp_path))] == ["_cameras"]

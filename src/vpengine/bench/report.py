@@ -73,6 +73,9 @@ def collect(folder: Path) -> dict[str, Any]:
         path = folder / name
         if path.exists():
             out[name] = json.loads(path.read_text())
+    out["cameras_all"] = [
+        {"file": p.name, **json.loads(p.read_text())} for p in sorted(folder.glob("cameras_*.json"))
+    ]
     return out
 
 
@@ -190,6 +193,8 @@ def table(r: dict[str, Any]) -> str:
             f"{cpu['thread']['cpu_idle_pct']:.1f}%, at 30 Hz {cpu['process']['cpu_30hz_pct']:.0f}% / "
             f"{cpu['thread']['cpu_30hz_pct']:.0f}% of one core (process / thread mode) | 440-465% | resources_gpu.json |"
         )
+    for c in r.get("cameras_all", []):
+        rows += _camera_rows(c)
     hop = r.get("hop_cuda_vits-1080p.json")
     if hop:
         rows.append(
@@ -197,6 +202,32 @@ def table(r: dict[str, Any]) -> str:
             f"{hop['median_us']:.1f} us, p99 {hop['p99_us']:.1f} us | ~2 ms | hop_cuda_vits-1080p.json |"
         )
     return "\n".join(rows)
+
+
+def _camera_rows(c: dict[str, Any]) -> list[str]:
+    """`vpengine bench cameras`: the stream of several cameras at their rate, and batched vs separate engines."""
+    heads = "+".join(c.get("heads", []))
+    rows = []
+    s = c.get("stream")
+    if s:
+        lat = s["latency_all_heads_ms"]
+        skipped = ", ".join(f"{m} {n['skipped']}" for m, n in s["counted"].items() if n["skipped"])
+        rows.append(
+            f"| {s['cameras']} cameras at {s['fps_per_camera']:g} Hz each, {heads} (thread mode) | submit -> every "
+            f"head: p50 {lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms; {s['frames_all_heads']} of "
+            f"{s['frames_submitted']} frames through every head (skipped, counted: {skipped or 'none'}); device "
+            f"memory {s['device_memory_bytes'] / 2**30:.2f} GiB | target: p99 <= 33 ms, <= 2.5 GiB | {c['file']} |"
+        )
+    if c.get("throughput"):
+        points = ", ".join(
+            f"{t['cameras']}: {t['batched_fps']:.0f} vs {t['separate_fps']:.0f} ({t['ratio']:.2f}x)"
+            for t in c["throughput"]
+        )
+        rows.append(
+            f"| cameras: one engine batched vs separate engines, frames/s ({heads}) | {points} | target: >= 1.5x "
+            f"at 4 cameras | {c['file']} |"
+        )
+    return rows
 
 
 def _memory(flat: bool | None) -> str:
@@ -380,6 +411,20 @@ def _floor(ax: Any, r: dict[str, Any]) -> None:
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.18), ncol=1, frameon=False)
 
 
+def _cameras(ax: Any, r: dict[str, Any]) -> None:
+    c = [x for x in r["cameras_all"] if x.get("throughput")][-1]
+    n = [t["cameras"] for t in c["throughput"]]
+    x = list(range(len(n)))
+    ax.bar([i - 0.2 for i in x], [t["batched_fps"] for t in c["throughput"]], 0.4, label="one engine, batched")
+    ax.bar([i + 0.2 for i in x], [t["separate_fps"] for t in c["throughput"]], 0.4, label="one engine per camera")
+    for i, t in zip(x, c["throughput"]):
+        ax.text(i, max(t["batched_fps"], t["separate_fps"]), f"{t['ratio']:.2f}x", ha="center", va="bottom")
+    ax.set_xticks(x, [str(k) for k in n])
+    ax.margins(y=0.12)
+    ax.set(xlabel="cameras", ylabel="frames/s through every head", title="several cameras: batched vs apart")
+    ax.legend(fontsize=7)
+
+
 def _panels(r: dict[str, Any]) -> list[Any]:
     """The figure's panels that ``r`` has data for, in order."""
     mem = r.get("E5", {}).get("memory")
@@ -391,12 +436,13 @@ def _panels(r: dict[str, Any]) -> list[Any]:
         _e5_latency: "E5" in r,
         _e5_memory: bool(mem) and mem[0]["device_used"] is not None,
         _floor: bool(floor_panel_rows(r)),
+        _cameras: any(x.get("throughput") for x in r.get("cameras_all", [])),
     }
     return [draw for draw, present in have.items() if present]
 
 
 def _newest_machine(r: dict[str, Any]) -> dict[str, Any]:
-    runs = [run for key in PAPER for run in r.get(f"{key}_all", [])]
+    runs = [run for key in PAPER for run in r.get(f"{key}_all", [])] + r.get("cameras_all", [])
     return max(runs, key=lambda x: x["date"])["machine"] if runs else {}
 
 
@@ -429,10 +475,10 @@ def main(args: argparse.Namespace) -> int:
     if not folder.is_dir():
         raise ValueError(f"--results {args.results!r} is not a folder")
     r = collect(folder)
-    runs = [run for key in PAPER for run in r[f"{key}_all"]]
+    runs = [run for key in PAPER for run in r[f"{key}_all"]] + r["cameras_all"]
     machines = sorted({machine_label(run["machine"]) for run in runs})
     md = [f"# vpengine benchmarks: {folder.name}", ""]
-    md += [f"Machine: {m}" for m in machines] or ["No paper results in this folder."]
+    md += [f"Machine: {m}" for m in machines] or ["No results in this folder."]
     md += ["", table(r)]
     if args.baseline:
         md += [

@@ -21,10 +21,13 @@ from tests_paths import ROOT
 pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
 
 
-def _bench(tmp_path, size: str, config: str = "configs/tiny.yaml", output_qos: str = "latest") -> dict:
+def _bench(
+    tmp_path, size: str, config: str = "configs/tiny.yaml", output_qos: str = "latest", input_qos: str = "sensor"
+) -> dict:
     p = subprocess.run(
         [sys.executable, "-m", "vpengine.cli.main", "bench", "ros2-bridge", "--out", str(tmp_path),
-         "--sizes", size, "--seconds", "10", "--rate", "30", "--config", config, "--output-qos", output_qos],
+         "--sizes", size, "--seconds", "10", "--rate", "30", "--config", config, "--output-qos", output_qos,
+         "--input-qos", input_qos],
         cwd=ROOT, capture_output=True, text=True, timeout=540,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout + p.stderr
@@ -37,8 +40,9 @@ def _bench(tmp_path, size: str, config: str = "configs/tiny.yaml", output_qos: s
 def test_bridge_at_640x480_30_hz_is_lossless_end_to_end(tmp_path):
     # every frame in order (input_mode: fifo): a moment's stall is caught up, not skipped to the newest, so the claim
     # does not depend on the bridge never being descheduled; every output kept for the subscriber (ROS 2's default
-    # keep last 10, where the bridge's default keeps only the newest)
-    run = _bench(tmp_path, "640x480", "configs/tiny_every_frame.yaml", "default")
+    # keep last 10, where the bridge's default keeps only the newest); frames in over reliable transport (ROS 2's
+    # default QoS), since best effort loses a frame whenever a fragment is dropped (a loaded CI machine: 299 of 300)
+    run = _bench(tmp_path, "640x480", "configs/tiny_every_frame.yaml", "default", input_qos="default")
     n = run["frames_published"]
     assert n == 300 and run["frame"] == "640x480 bgr8"
     assert run["bridge_received"] == n and run["bridge_superseded"] == 0

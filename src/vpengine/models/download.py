@@ -196,7 +196,7 @@ def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: f
     """Fetch a Hub file into ``dest``'s directory through huggingface_hub; returns where it landed."""
     from huggingface_hub import hf_hub_download
 
-    from vpengine import __version__
+    from vpengine._version import __version__
 
     try:
         with _hub_progress(progress):
@@ -242,7 +242,7 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
     An interrupted transfer keeps what arrived and says so; a server that ignores the Range request sends the
     whole file, which replaces the partial one.
     """
-    from vpengine import __version__
+    from vpengine._version import __version__
 
     part = dest.with_name(dest.name + ".part")
     offset = part.stat().st_size if part.is_file() else 0

@@ -371,7 +371,7 @@ def checkpoints(cfg: Any) -> list[tuple[str, Entry]]:
     """
     if cfg.weights.random_weights:
         return []
-    cache = catalog.cache_dir(cfg.weights.cache_dir)
+    cache = catalog.cache_dir()
     found = []
     for name, mcfg in [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)]:
         if mcfg.checkpoint and Path(mcfg.checkpoint).expanduser().is_file():
@@ -388,7 +388,7 @@ def prefetch(cfg: Any, progress: bool = True) -> list[Path]:
     The explicit way to get a config's files from Python before ``Engine(cfg)`` starts, which never downloads.
     Offline (``weights.offline``, $VPENGINE_OFFLINE) a missing file raises the error that names where to put it.
     """
-    cache = catalog.cache_dir(cfg.weights.cache_dir)
+    cache = catalog.cache_dir()
     paths = []
     for name, entry in checkpoints(cfg):
         if offline(cfg.weights.offline):

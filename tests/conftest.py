@@ -25,3 +25,15 @@ def no_leaks():
     assert not alive, f"child processes left alive: {[psutil.Process(p).cmdline() for p in alive]}"
     new_shm = set(os.listdir("/dev/shm")) - shm_before
     assert not new_shm, f"/dev/shm entries left behind: {sorted(new_shm)}"
+
+
+@pytest.fixture
+def restart_backoff(monkeypatch):
+    """``restart_backoff(seconds)``: the first restart delay for this test, in place of the supervisor's
+    ``RESTART_BACKOFF_S``. The supervisor runs in the engine's own process, so this holds in process mode too."""
+    from vpengine.runtime import supervisor
+
+    def set_delay(seconds: float) -> None:
+        monkeypatch.setattr(supervisor, "RESTART_BACKOFF_S", seconds)
+
+    return set_delay

@@ -1,5 +1,5 @@
 """Colour tables for depth pictures: 256x3 uint8 BGR, the same on the GPU (``models/dpt.py``) and on the host
-(``io/visualize.py``).
+(``visualize.py``).
 
 The common matplotlib maps ship with the package (``colormaps.npz``, made from matplotlib's own tables), so drawing
 depth needs no matplotlib; any other matplotlib name works where matplotlib is installed.

@@ -216,17 +216,8 @@ class RuntimeConfig(_Strict):
     max_restarts: int = Field(
         5,
         ge=0,
-        description="Restarts of one crashed worker within restart_window_s before it is marked failed for good.",
-    )
-    restart_window_s: float = Field(
-        60.0,
-        gt=0,
-        le=86400,
-        description="How long a restart counts against max_restarts (and doubles the next backoff): a worker that "
-        "fails now and then is restarted every time, one in a crash loop is marked failed.",
-    )
-    restart_backoff_s: float = Field(
-        0.5, ge=0, le=3600, description="First restart delay; doubles with each restart in the window."
+        description="Restarts of one crashed worker within a minute before it is marked failed for good: a worker "
+        "that fails now and then is restarted every time, one in a crash loop is marked failed.",
     )
     batch_window_ms: float = Field(
         5.0,
@@ -248,7 +239,9 @@ class RuntimeConfig(_Strict):
 
 
 class LoggingConfig(_Strict):
-    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        "INFO", description="The least severe log messages written: DEBUG, INFO, WARNING or ERROR."
+    )
     file: str | None = Field(None, description="Also log to this file.")
 
 
@@ -261,7 +254,6 @@ class WeightsConfig(_Strict):
     random_weights: bool = Field(
         False, description="Use random weights instead of checkpoints (tests, benchmarks). Loudly logged."
     )
-    cache_dir: str | None = Field(None, description="Checkpoint cache; null: $VPENGINE_CACHE or XDG cache.")
 
 
 class EngineConfig(_Strict):

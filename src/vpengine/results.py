@@ -185,7 +185,7 @@ class Result:
     def plot(self, image: np.ndarray | None = None) -> np.ndarray:
         """This result drawn as a BGR uint8 picture at its frame's size: on ``image`` (or the predicted frame,
         ``self.image``) when given, else on its own (depth colours with a bar, class colours, boxes on black)."""
-        from vpengine.io.visualize import draw_result
+        from vpengine.visualize import draw_result
 
         frame = self.image if image is None else image
         if frame is None and self.info.get("kind") == "detection":

@@ -149,7 +149,7 @@ def test_stop_leaves_no_process_and_gives_the_device_memory_back():
 
 
 def test_sigkilled_head_on_gpu_restarts_and_the_others_stay_correct():
-    cfg = tiny("process", "device=cuda", "runtime.restart_backoff_s=0.5")
+    cfg = tiny("process", "device=cuda")  # the default first restart delay, 0.5 s
     with Engine(cfg) as e:
         ref = {}
         for i in range(5):
@@ -182,8 +182,10 @@ def _mps_processes() -> list[psutil.Process]:
     return out
 
 
-def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path, monkeypatch):
+def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path, monkeypatch, restart_backoff):
     from vpengine.runtime import mps
+
+    restart_backoff(0.2)
 
     if not __import__("shutil").which(mps.CONTROL):
         pytest.fail("nvidia-cuda-mps-control is not installed on this GPU machine")
@@ -197,7 +199,6 @@ def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path, monkeypatch
             "process",
             "device=cuda",
             "mps=required",
-            "runtime.restart_backoff_s=0.2",
             "runtime.hang_timeout_s=5",
         )
         with Engine(cfg) as e:

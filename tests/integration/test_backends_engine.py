@@ -40,7 +40,7 @@ def confident(det: dict, margin: float = 1e-3) -> list[tuple]:
 
 
 @pytest.mark.parametrize("mode", ["thread", "process"])
-def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, tmp_path):
+def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, tmp_path, monkeypatch):
     # cropped, not resized: the CPU's fast 8-bit resize and an ONNX export's float resize differ by a grey level
     exact = "foundation_model.preprocess.resize=none"
     want = run_lockstep(tiny(mode, exact), N_FRAMES)
@@ -49,14 +49,14 @@ def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, tmp_p
         exact,
         "foundation_model.backend=onnx",
         "heads.depth.backend=compile",
-        f"weights.cache_dir={tmp_path}",
     )
+    monkeypatch.setenv("VPENGINE_CACHE", str(tmp_path))  # the workers (children in process mode) inherit it
     got = run_lockstep(cfg, N_FRAMES)
 
     entries = list((tmp_path / "onnx").glob("*/model.onnx"))
     assert (
         len(entries) == 1 and "TinyViT" in entries[0].parent.name
-    )  # exported once, into the configured cache
+    )  # exported once, into the cache $VPENGINE_CACHE names
     for i in range(N_FRAMES):
         g, w = got[i], want[i]
         # ORT's features differ from PyTorch's by ~1e-5 of their scale (antialiased resize, reassociation).

@@ -25,9 +25,7 @@ FAULTY = "helpers.faulty:FaultyHead"
 
 def faulty_cfg(tmp_path, mode="process", **options):
     opts = json.dumps(options)
-    return tiny(
-        mode, f"heads.seg.model={FAULTY}", f"heads.seg.options={opts}", "runtime.restart_backoff_s=0.2"
-    )
+    return tiny(mode, f"heads.seg.model={FAULTY}", f"heads.seg.options={opts}")
 
 
 def pump(e: Engine, n: int, heads=("depth", "det"), start: int = 0) -> list[dict]:
@@ -48,7 +46,8 @@ def wait_for(cond, timeout=15.0, what="condition", show=None):
 
 
 @pytest.mark.parametrize("mode", ["process", "thread"])
-def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, mode):
+def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, mode, restart_backoff):
+    restart_backoff(0.2)
     cfg = faulty_cfg(tmp_path, mode, raise_at_run=5, once_marker=str(tmp_path / "raised"))
     with Engine(cfg) as e:
         got = pump(e, 30)
@@ -70,7 +69,7 @@ def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, 
 
 @pytest.mark.parametrize("mode,inline", [("process", False), ("thread", False), ("thread", True)])
 def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_features_as_before(
-    tmp_path, mode, inline
+    tmp_path, mode, inline, restart_backoff
 ):
     """On CUDA in thread mode the restarted foundation hands features off by event again (Note [Event hand-off]).
     With the inline launch on (``helpers.inline``) the failing run is launched by ``submit``, which must not
@@ -80,8 +79,8 @@ def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_feature
         mode,
         "foundation_model.model=helpers.faulty:FaultyViT",
         f"foundation_model.options={opts}",
-        "runtime.restart_backoff_s=0.2",
     )
+    restart_backoff(0.2)
     heads = ["depth", "seg", "det"]
     with inline_launch(inline), Engine(cfg) as e:
         before = e.wait(e.submit(frame(99)), timeout=10)  # run 1
@@ -107,9 +106,9 @@ def test_foundation_raising_is_restarted_and_the_heads_then_get_the_same_feature
                 assert np.array_equal(after[h].outputs[k], v), (h, k)
 
 
-def test_sigkill_of_a_head_restarts_it_releases_its_pins_and_never_blocks_the_backbone(tmp_path):
+def test_sigkill_of_a_head_restarts_it_releases_its_pins_and_never_blocks_the_backbone(tmp_path, restart_backoff):
     cfg = faulty_cfg(tmp_path, sleep_ms=150)  # slow: it holds a feature slot most of the time
-    cfg = cfg.model_copy(update={"runtime": cfg.runtime.model_copy(update={"restart_backoff_s": 2.0})})
+    restart_backoff(2.0)
     with Engine(cfg) as e:
         features = e._res.rings["features"]
         pump(e, 5)
@@ -130,11 +129,10 @@ def test_sigkill_of_a_head_restarts_it_releases_its_pins_and_never_blocks_the_ba
         assert set(r) == {"depth", "seg", "det"} and r["seg"].frame_id == fid
 
 
-def test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on(tmp_path):
+def test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on(tmp_path, restart_backoff):
     cfg = faulty_cfg(tmp_path, raise_at_run=1)  # raises on its first frame, every time
-    cfg = cfg.model_copy(
-        update={"runtime": cfg.runtime.model_copy(update={"max_restarts": 2, "restart_backoff_s": 0.05})}
-    )
+    cfg = cfg.model_copy(update={"runtime": cfg.runtime.model_copy(update={"max_restarts": 2})})
+    restart_backoff(0.05)
     with Engine(cfg) as e:
         deadline = time.monotonic() + 40  # each restart is a fresh interpreter: ~1-2 s
         i = 0
@@ -148,8 +146,9 @@ def test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on(tm
         assert set(e.wait(fid, timeout=10)) == {"depth", "det"}  # a failed head is not waited for
 
 
-def test_hung_head_is_killed_and_restarted_by_the_hang_timeout(tmp_path):
+def test_hung_head_is_killed_and_restarted_by_the_hang_timeout(tmp_path, restart_backoff):
     cfg = faulty_cfg(tmp_path, hang_at_run=2, once_marker=None)
+    restart_backoff(0.2)
     cfg = cfg.model_copy(
         update={"runtime": cfg.runtime.model_copy(update={"hang_timeout_s": 1.5, "max_restarts": 1})}
     )

@@ -24,6 +24,7 @@ import pytest
 from helpers.frames import frame
 from tests_paths import ROOT, tiny
 from vpengine.engine import Engine
+from vpengine.runtime import supervisor
 
 pytestmark = pytest.mark.timeout(120)
 FAULTY = "helpers.faulty:FaultyHead"
@@ -268,17 +269,17 @@ def test_stop_gives_hung_workers_one_grace_period_together():
 
 
 # ------------------------------------------------------------------------------------- 7: restart budget
-def test_a_head_that_fails_now_and_then_is_restarted_every_time():
-    """max_restarts counts restarts within restart_window_s: a head that raises on every 10th frame of each life
+def test_a_head_that_fails_now_and_then_is_restarted_every_time(monkeypatch, restart_backoff):
+    """max_restarts counts restarts within the supervisor's RESTART_WINDOW_S: a head that raises on every 10th frame of each life
     (every ~0.5 s here) is restarted again and again, never marked failed; one in a crash loop still is
     (test_faults.py::test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on)."""
     cfg = tiny(
         "thread",
         heads("depth", 'seg:{"raise_at_run": 10}'),
         "runtime.max_restarts=1",
-        "runtime.restart_window_s=0.3",
-        "runtime.restart_backoff_s=0.05",
     )
+    monkeypatch.setattr(supervisor, "RESTART_WINDOW_S", 0.3)
+    restart_backoff(0.05)
     with Engine(cfg) as e:
 
         def restarted_4_times() -> bool:
@@ -292,12 +293,13 @@ def test_a_head_that_fails_now_and_then_is_restarted_every_time():
 
 
 # ------------------------------------------------------------------------------------- 8: hangs in threads
-def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_when_it_returns(tmp_path):
+def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_when_it_returns(
+    tmp_path, restart_backoff
+):
     marker = tmp_path / "hung-once"
     opts = json.dumps({"hang_at_run": 2, "hang_s": 4.0, "once_marker": str(marker)})
-    cfg = tiny(
-        "thread", heads("depth", f"seg:{opts}"), "runtime.hang_timeout_s=1.0", "runtime.restart_backoff_s=0.1"
-    )
+    cfg = tiny("thread", heads("depth", f"seg:{opts}"), "runtime.hang_timeout_s=1.0")
+    restart_backoff(0.1)
     with Engine(cfg) as e:
         pump_until(e, lambda: e.stats()["models"]["seg"]["state"] == "hung", "hang reported", every=0.2)
         seg = e.stats()["models"]["seg"]
@@ -326,9 +328,12 @@ def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_wh
     [("process", "exit_at_run"), ("thread", "raise_at_run")],
     ids=["process-os._exit(0)", "thread-raise"],
 )
-def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(tmp_path, mode, fault):
+def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(
+    tmp_path, mode, fault, restart_backoff
+):
     opts = json.dumps({fault: 3, "once_marker": str(tmp_path / "once"), "sleep_ms": 20})
-    with Engine(tiny(mode, heads("depth", f"seg:{opts}"), "runtime.restart_backoff_s=0.1")) as e:
+    restart_backoff(0.1)
+    with Engine(tiny(mode, heads("depth", f"seg:{opts}"))) as e:
         pump_until(e, lambda: e.stats()["models"]["seg"]["restarts"] == 1, "seg died and was restarted")
         wait_for(
             lambda: (

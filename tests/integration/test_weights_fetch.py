@@ -246,27 +246,24 @@ def test_verify_detects_a_corrupted_cached_file(server, env, capsys):
 
 def test_loading_never_downloads_and_finds_the_fetched_file_by_catalog_name(server, env, capsys):
     entry = make_entry(server)
-    configured = env / "configured"
-    cfg = load_config(
-        "configs/tiny.yaml", [f"foundation_model.checkpoint={entry.name}", f"weights.cache_dir={configured}"]
-    )
+    cfg = load_config("configs/tiny.yaml", [f"foundation_model.checkpoint={entry.name}"])
     ctx = BuildContext("foundation", "foundation", cfg.foundation_model, cfg, {})
     with catalog.use(Catalog([entry])):
         # Not cached: the error says where to put the file and what fetches it, and nothing is requested.
         with pytest.raises(CheckpointError) as e:
             resolve_checkpoint(ctx, None)
         msg = str(e.value)
-        assert msg.startswith("foundation: ") and str(entry.path(configured)) in msg and entry.url in msg
+        assert msg.startswith("foundation: ") and str(entry.path(env)) in msg and entry.url in msg
         assert f"vpengine weights fetch {entry.name}" in msg and "--config" in msg
         assert server.requests == []
 
-        # `weights fetch --config` gets what the config loads, into the config's cache.
+        # `weights fetch --config` gets what the config loads, into the cache.
         cfg_file = env.parent / "engine.json"
         cfg_file.write_text(cfg.model_dump_json())
         assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 0
         assert f"{entry.name}: downloaded" in capsys.readouterr().out
         path = resolve_checkpoint(ctx, None)
-        assert path == entry.path(configured) and path.read_bytes() == PAYLOAD
+        assert path == entry.path(env) and path.read_bytes() == PAYLOAD
         assert resolve_checkpoint(ctx, None) == path
         assert len(server.requests) == 1
 
@@ -347,6 +344,17 @@ def test_path_of_an_uncached_entry_prints_it_and_fails(server, env, capsys):
         assert cli(["weights", "path", entry.name]) == 1
     out = capsys.readouterr()
     assert out.out.strip() == str(entry.path(env)) and "not cached yet" in out.err
+
+
+def test_cache_flag_sets_vpengine_cache_for_that_command_only(server, env, capsys):
+    entry = make_entry(server)
+    other = env.parent / "other"
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "path", entry.name, "--cache", str(other)]) == 1
+        assert capsys.readouterr().out.strip() == str(entry.path(other))
+        assert os.environ["VPENGINE_CACHE"] == str(env)  # restored once the command is done
+        assert cli(["weights", "path", entry.name]) == 1
+        assert capsys.readouterr().out.strip() == str(entry.path(env))
 
 
 def test_two_fetches_of_the_same_file_at_once_download_it_once(server, env):

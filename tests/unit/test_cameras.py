@@ -106,12 +106,12 @@ def test_frames_that_come_together_run_as_one_batch_and_give_what_they_give_alon
         assert models["foundation"]["runs"] == 51 and models["foundation"]["dropped"] == 0
 
 
-def test_a_batch_that_fails_answers_every_camera_and_the_head_comes_back(tmp_path):
+def test_a_batch_that_fails_answers_every_camera_and_the_head_comes_back(tmp_path, restart_backoff):
+    restart_backoff(0.2)
     cfg = tiny(
         "thread",
         "cameras=[{name: front}, {name: rear}]",
         "runtime.batch_window_ms=100",
-        "runtime.restart_backoff_s=0.2",
         "heads.seg.model=helpers.faulty:FaultyHead",
         f'heads.seg.options={{"raise_at_run": 4, "once_marker": "{tmp_path / "raised"}"}}',
     )

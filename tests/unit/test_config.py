@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import json
+import typing
 
 import pytest
+from pydantic import BaseModel
 
 from tests_paths import ROOT
 from vpengine.config import ConfigError, EngineConfig, dump_config, load_config
@@ -99,3 +101,47 @@ def test_dump_is_loadable(tmp_path):
     cfg = load_config(ROOT / "configs" / "tiny.yaml")
     (tmp_path / "d.yaml").write_text(dump_config(cfg))
     assert load_config(tmp_path / "d.yaml") == cfg
+
+
+def leaf_fields() -> dict[str, str | None]:
+    """Every leaf field of EngineConfig as its dotted path -> description; a field that several models share by
+    inheritance (ModelConfig's, in the foundation model and every head) counts once, as its first path."""
+    found: dict[tuple[type, str], tuple[str, str | None]] = {}
+
+    def models_in(annotation: object) -> list[type[BaseModel]]:
+        if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+            return [annotation]
+        return [m for a in typing.get_args(annotation) for m in models_in(a)]
+
+    def walk(model: type[BaseModel], prefix: str) -> None:
+        for name, field in model.model_fields.items():
+            inner = models_in(field.annotation)
+            for sub in inner:
+                walk(sub, f"{prefix}{name}.")
+            if not inner:
+                owner = next(c for c in reversed(model.__mro__) if name in getattr(c, "model_fields", {}))
+                found.setdefault((owner, name), (prefix + name, field.description))
+
+    walk(EngineConfig, "")
+    return dict(found.values())
+
+
+# The number of settings a user can meet. Each one is a question the user must understand; a new one replaces an
+# old one or comes with a reason to raise this bound (issue 21).
+MAX_LEAF_FIELDS = 41
+
+
+def test_every_config_field_has_a_description_of_at_least_one_sentence():
+    bare = [
+        f"{path}: {text!r}"
+        for path, text in leaf_fields().items()
+        if not text or len(text.split()) < 3 or not text.rstrip().endswith(".")
+    ]
+    assert not bare, "fields without a one-sentence description:\n" + "\n".join(bare)
+
+
+def test_the_config_has_at_most_max_leaf_fields():
+    fields = leaf_fields()
+    assert len(fields) <= MAX_LEAF_FIELDS, f"{len(fields)} leaf fields (at most {MAX_LEAF_FIELDS}):\n" + "\n".join(
+        fields
+    )

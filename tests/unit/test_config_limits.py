@@ -101,10 +101,10 @@ BAD = [
     ({"foundation_model": {"rate_hz": ".nan"}}, "finite number"),
     ({"runtime": {"stop_timeout_s": ".inf"}}, "finite number"),
     ({"runtime": {"ready_timeout_s": ".inf"}}, "finite number"),
-    ({"runtime": {"restart_backoff_s": ".inf"}}, "finite number"),
+    ({"runtime": {"batch_window_ms": ".inf"}}, "finite number"),
     ({"runtime": {"hang_timeout_s": ".nan"}}, "finite number"),
     ({"runtime": {"stop_timeout_s": 1e9}}, "less than or equal to 600"),
-    ({"runtime": {"restart_window_s": 0}}, "greater than 0"),
+    ({"runtime": {"hang_timeout_s": 0}}, "greater than 0"),
 ]
 
 

@@ -13,12 +13,12 @@ from transformers import DepthAnythingConfig, DepthAnythingForDepthEstimation, D
 from helpers import heads
 from helpers.heads import upstream
 from vpengine.config import load_config
-from vpengine.io.visualize import colorize_depth
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.build import build_model
 from vpengine.models.dpt import SIZES, DepthColormap, DPTDepthHead
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
+from vpengine.visualize import colorize_depth
 
 TINY_WIDTHS = {"features": 16, "out_channels": [8, 16, 32, 32]}
 

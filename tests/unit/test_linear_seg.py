@@ -14,13 +14,13 @@ from transformers import Dinov2Config, Dinov2Model
 from helpers import heads
 from helpers.heads import upstream
 from vpengine.config import load_config
-from vpengine.io.visualize import overlay_segmentation
 from vpengine.models import palettes
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.build import build_model
 from vpengine.models.linear_seg import SIZES, LinearSegHead, checkpoint_name
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
+from vpengine.visualize import overlay_segmentation
 
 EMBED = {"s": 384, "b": 768, "l": 1024, "g": 1536}
 N_CLASSES = {"ade20k": 150, "voc2012": 21}

@@ -1,4 +1,4 @@
-"""Pictures of outputs (``vpengine.io.visualize``), against plain NumPy written the obvious way."""
+"""Pictures of outputs (``vpengine.visualize``), against plain NumPy written the obvious way."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from vpengine.colormaps import lut as colormap_lut
-from vpengine.io.visualize import (
+from vpengine.visualize import (
     caption,
     colorize_depth,
     default_palette,

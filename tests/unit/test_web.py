@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from vpengine.cli.serve import parse_address
-from vpengine.io.visualize import colorize_depth, overlay_segmentation
 from vpengine.results import Result
+from vpengine.visualize import colorize_depth, overlay_segmentation
 from vpengine.web import WebServer
 from vpengine.web.pictures import Pictures, render
 from vpengine.web.server import is_loopback, parse_rate

@@ -40,8 +40,8 @@ def make_executor(
 ) -> Executor:
     """The executor that runs ``model`` (built on ``device``, in eval mode) with ``backend``.
 
-    ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` the
-    configured ``weights.cache_dir`` (ONNX exports go to its ``onnx`` subfolder; None: the default cache),
+    ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` a
+    cache folder (ONNX exports go to its ``onnx`` subfolder; None: the checkpoint cache, ``catalog.cache_dir()``),
     ``max_batch`` the most frames one call computes (Note [Executor contract] in ``base.py``).
     Compilation, export and CUDA graph capture (for every batch size up to ``max_batch``) happen here. The eager
     and compile backends cast ``model`` to the precision in place and keep it; the onnx backend leaves it untouched
@@ -68,6 +68,6 @@ def make_executor(
         precision,
         name,
         opts,
-        vpengine_cache(str(cache_dir) if cache_dir else None) / "onnx",
+        (Path(cache_dir).expanduser() if cache_dir else vpengine_cache()) / "onnx",
         max_batch,
     )

@@ -1,6 +1,6 @@
 """``vpengine bench report``: a folder of results files (one folder per GPU kind) -> summary.md and summary.png.
 
-    vpengine bench report --results benchmarks/results/h100
+    vpengine bench report --results benchmarks/results/<GPU kind>
     vpengine bench report --results DIR --baseline before   # each run against the runs of files named *before*
 
 Every number it writes is read from a results file in that folder, and every row names its file; nothing is typed in
@@ -23,7 +23,7 @@ FLOOR_RUNS_DRAWN = 8
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--results", required=True, help="folder of results files, e.g. benchmarks/results/h100")
+    p.add_argument("--results", required=True, help="folder of results files, e.g. benchmarks/results/<GPU kind>")
     p.add_argument(
         "--baseline",
         metavar="NAME",

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     common.add_argument(
         "--cache",
         metavar="DIR",
-        help="checkpoint cache (default: $VPENGINE_CACHE, else $XDG_CACHE_HOME/vpengine)",
+        help="checkpoint cache: sets $VPENGINE_CACHE for this command (default: $VPENGINE_CACHE, else "
+        "$XDG_CACHE_HOME/vpengine)",
     )
     common.add_argument("--no-progress", action="store_true", help="no progress bars")
     sub = p.add_subparsers(dest="weights_command", metavar="ACTION")
@@ -40,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--config",
         "-c",
         metavar="FILE",
-        help="also every catalog checkpoint this engine config loads (its weights.cache_dir and offline apply)",
+        help="also every catalog checkpoint this engine config loads (its weights.offline applies)",
     )
     f.add_argument(
         "--sha256",
@@ -74,10 +76,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.set_defaults(weights_help=p.format_help)
 
 
-def _cache(args: argparse.Namespace, configured: str | None = None) -> Path:
+def _cache() -> Path:
     from vpengine.models.catalog import cache_dir
 
-    return cache_dir(args.cache or configured)
+    return cache_dir()
 
 
 def _entries(cache: Path) -> list[Any]:
@@ -128,7 +130,7 @@ def _digest_kind(entry: Any, cache: Path) -> str:
 def cmd_list(args: argparse.Namespace) -> int:
     from vpengine.models import catalog
 
-    cache = _cache(args)
+    cache = _cache()
     rows = []
     for e in _entries(cache):
         eff = catalog.effective(e, cache)
@@ -179,13 +181,12 @@ def cmd_fetch(args: argparse.Namespace) -> int:
     if args.file and not args.url:
         return usage("--file only applies to a custom --url entry")
     is_offline = download.offline(args.offline)
-    cache = _cache(args)
+    cache = _cache()
     wanted: list[tuple[str, Any]] = [(name, None) for name in args.names]
     if args.config:
         from vpengine.config import load_config
 
         cfg = load_config(args.config)
-        cache = _cache(args, cfg.weights.cache_dir)
         is_offline = is_offline or cfg.weights.offline
         names = set(args.names)
         for _model, entry in download.checkpoints(cfg):
@@ -236,7 +237,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
     from vpengine.models.download import cache_status, verify
     from vpengine.models.weights import CheckpointError
 
-    cache = _cache(args)
+    cache = _cache()
     named = bool(args.names)
     problems = 0
     if named:
@@ -279,7 +280,7 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_path(args: argparse.Namespace) -> int:
-    cache = _cache(args)
+    cache = _cache()
     entry = _lookup(args.name, cache)
     path = entry.path(cache)
     print(path)
@@ -298,4 +299,14 @@ def main(args: argparse.Namespace) -> int:
     if not getattr(args, "weights_command", None):
         print(args.weights_help())
         return 2
-    return commands[args.weights_command](args)
+    if not args.cache:
+        return commands[args.weights_command](args)
+    before = os.environ.get("VPENGINE_CACHE")
+    os.environ["VPENGINE_CACHE"] = args.cache  # the one way to choose the cache, for this command only
+    try:
+        return commands[args.weights_command](args)
+    finally:
+        if before is None:
+            del os.environ["VPENGINE_CACHE"]
+        else:
+            os.environ["VPENGINE_CACHE"] = before

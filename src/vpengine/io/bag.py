@@ -28,8 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import Sink
-from vpengine.io.sources import Frame, Source
 from vpengine.results import Result
 from vpengine.ros2.core import (
     COMPRESSED_TYPE,

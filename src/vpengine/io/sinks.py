@@ -28,8 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.io import visualize
-from vpengine.io.visualize import head_kind
+from vpengine import visualize
 from vpengine.results import Result
 
 DEPTH_FORMATS = ("png16", "npy")
@@ -285,7 +284,7 @@ class FolderSink(Sink):
     def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
         h = result.head
         info = self.heads[h]
-        kind = head_kind(info)
+        kind = visualize.head_kind(info)
         out = result.outputs
         if kind == "detection":  # one small line per frame: always written, whatever save_every says
             names = info.get("labels")

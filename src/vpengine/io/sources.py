@@ -1,10 +1,10 @@
 """Frame sources: a built-in synthetic scene, images (a file, a folder, a glob), video files, cameras, rosbag2 bags
 (io/bag.py) and the samples that ship with the package (``sample:street``, ``sample:cheetah``).
 
-Every source yields :class:`Frame` objects: an HxWx3 uint8 image in the source's channel order (OpenCV order, BGR,
-for everything here) at its own size, and a capture timestamp in seconds. Files are stamped on their own timeline
-(a video by each frame's position, images at ``i / fps``), so rate limits are judged by the source's clock, not by
-how fast the files are read; cameras by the time a frame arrived.
+Every source yields :class:`~vpengine.io.base.Frame` objects: an HxWx3 uint8 image in the source's channel order
+(OpenCV order, BGR, for everything here) at its own size, and a capture timestamp in seconds. Files are stamped on
+their own timeline (a video by each frame's position, images at ``i / fps``), so rate limits are judged by the
+source's clock, not by how fast the files are read; cameras by the time a frame arrived.
 """
 
 from __future__ import annotations
@@ -16,11 +16,12 @@ import re
 import threading
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from vpengine.io.base import Frame, Source
 
 log = logging.getLogger("vpengine.sources")
 
@@ -29,40 +30,6 @@ SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 VIDEO_EXTS = {".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"}
-
-
-@dataclass
-class Frame:
-    image: np.ndarray
-    timestamp: float | None = None
-    #: Where it came from (file name, frame index) for output naming.
-    name: str = ""
-
-
-class Source:
-    """Iterable of frames. ``height``/``width``: the (first) frame's size; ``fps`` is None when the source has no
-    natural rate."""
-
-    color = "bgr"
-    height: int
-    width: int
-    fps: float | None = None
-
-    def __iter__(self) -> Iterator[Frame]:  # pragma: no cover - abstract
-        raise NotImplementedError
-
-    def __len__(self) -> int:
-        """Number of frames, or 0 when unknown (live sources)."""
-        return 0
-
-    def close(self) -> None:
-        pass
-
-    def __enter__(self) -> Source:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
 
 class SyntheticSource(Source):

@@ -10,7 +10,7 @@ An entry whose URL is a top-level file of a Hugging Face Hub repository
 (``https://huggingface.co/<org>/<repo>/resolve/<revision>/<file>``) is fetched through ``huggingface_hub``
 (:attr:`Entry.hub`); any other URL over plain HTTP(S). ``download.py`` fetches, ``weights.py`` loads.
 
-Cache layout (:func:`cache_dir`: config ``weights.cache_dir``, $VPENGINE_CACHE, $XDG_CACHE_HOME/vpengine)::
+Cache layout (:func:`cache_dir`: $VPENGINE_CACHE, else $XDG_CACHE_HOME/vpengine)::
 
     <cache>/weights/<name>/<file>              the checkpoint ("/" in a name becomes "--")
     <cache>/weights/<name>/<file>.part         an interrupted plain-HTTP download, resumed with a Range request
@@ -277,10 +277,8 @@ def use(catalog: Catalog) -> Iterator[Catalog]:
 
 
 # ----------------------------------------------------------------------------- the cache, user pins, custom entries
-def cache_dir(configured: str | None = None) -> Path:
-    """The checkpoint cache: config ``weights.cache_dir``, else $VPENGINE_CACHE, else $XDG_CACHE_HOME/vpengine."""
-    if configured:
-        return Path(configured).expanduser()
+def cache_dir() -> Path:
+    """The checkpoint cache: $VPENGINE_CACHE, else $XDG_CACHE_HOME/vpengine (the one way to choose it)."""
     if os.environ.get("VPENGINE_CACHE"):
         return Path(os.environ["VPENGINE_CACHE"]).expanduser()
     xdg = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")

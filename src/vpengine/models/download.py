@@ -196,7 +196,7 @@ def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: f
     """Fetch a Hub file into ``dest``'s directory through huggingface_hub; returns where it landed."""
     from huggingface_hub import hf_hub_download
 
-    from vpengine import __version__
+    from vpengine._version import __version__
 
     try:
         with _hub_progress(progress):
@@ -242,7 +242,7 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
     An interrupted transfer keeps what arrived and says so; a server that ignores the Range request sends the
     whole file, which replaces the partial one.
     """
-    from vpengine import __version__
+    from vpengine._version import __version__
 
     part = dest.with_name(dest.name + ".part")
     offset = part.stat().st_size if part.is_file() else 0
@@ -371,7 +371,7 @@ def checkpoints(cfg: Any) -> list[tuple[str, Entry]]:
     """
     if cfg.weights.random_weights:
         return []
-    cache = catalog.cache_dir(cfg.weights.cache_dir)
+    cache = catalog.cache_dir()
     found = []
     for name, mcfg in [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)]:
         if mcfg.checkpoint and Path(mcfg.checkpoint).expanduser().is_file():
@@ -388,7 +388,7 @@ def prefetch(cfg: Any, progress: bool = True) -> list[Path]:
     The explicit way to get a config's files from Python before ``Engine(cfg)`` starts, which never downloads.
     Offline (``weights.offline``, $VPENGINE_OFFLINE) a missing file raises the error that names where to put it.
     """
-    cache = catalog.cache_dir(cfg.weights.cache_dir)
+    cache = catalog.cache_dir()
     paths = []
     for name, entry in checkpoints(cfg):
         if offline(cfg.weights.offline):

@@ -8,7 +8,7 @@ frames and produces, per frame (Note [Batched models] in base.py),
 * ``depth: float32[H, W]`` at input resolution: relative *inverse* depth (disparity-like: larger is nearer, known
   up to scale and shift), exactly as the reference ``infer_image`` produces it, never quantised.
 * with ``postprocess: {output: colormap | both}`` also (or only) ``depth_color: uint8[H, W, 3]``, BGR, min-max
-  scaled per frame and colour-mapped on the model's device (the colours of ``vpengine.io.visualize.colorize_depth``).
+  scaled per frame and colour-mapped on the model's device (the colours of ``vpengine.visualize.colorize_depth``).
 
 The forward pass follows the reference step by step: per layer a 1x1 projection and a resize (4x and 2x transposed
 convs, identity, a stride-2 conv), 3x3 ``layerN_rn`` convs to a common width, four fusion blocks (two pre-activation
@@ -330,7 +330,7 @@ class DepthColormap(Model):
     """``depth: float32[H, W]`` -> ``depth_color: uint8[H, W, 3]`` (BGR), on the depth's device.
 
     Per frame min-max scaling over the finite pixels (each frame of a batch by its own minimum and maximum), then
-    a 256-entry colormap lookup: the same arithmetic as ``vpengine.io.visualize.colorize_depth`` (non-finite pixels
+    a 256-entry colormap lookup: the same arithmetic as ``vpengine.visualize.colorize_depth`` (non-finite pixels
     are black), without a trip through the host.
     """
 

@@ -11,7 +11,7 @@ Both tables are in the order of the heads' output channels, so ``labels[i]`` and
   palette (background black).
 
 Colours are written below as the datasets publish them, RGB; the ``*_palette_bgr`` functions give them in OpenCV's
-BGR order, which is what ``vpengine.io.visualize`` and head metadata use.
+BGR order, which is what ``vpengine.visualize`` and head metadata use.
 """
 
 from __future__ import annotations

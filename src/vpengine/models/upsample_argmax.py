@@ -5,9 +5,9 @@ Note [Fused upsample + argmax]
 A segmentation head's logits live on the token grid ([B, K, h, w], 150 classes for ADE20K) and its output is one
 class per frame pixel. Upsampling all classes first, as PyTorch does, writes and reads K full-resolution planes:
 1.2 GB in float32 at 1080p. The PyTorch path (``upsample_argmax``) bounds that memory by upsampling a few classes at
-a time, and ``torch.compile`` fuses the chunks into one kernel, but that kernel still took 0.82 ms on an H100, a
-quarter of a depth + seg frame, and it filled the whole GPU, so the depth head's short kernels waited behind it
-(benchmarks/results/h100/profile_steps_trace_depth_seg.json.gz).
+a time, and ``torch.compile`` fuses the chunks into one kernel, but that kernel still interpolates every class at
+every frame pixel, a large part of a depth + seg frame, and it fills the whole GPU, so the depth head's short
+kernels wait behind it.
 
 On CUDA with Triton installed, ``LinearSegHead`` (``options.upsample: auto``) runs two Triton kernels instead
 (``_triton_upsample_argmax.py``), as the custom op ``vpengine::upsample_argmax``, which ``torch.compile`` traces and
@@ -38,15 +38,12 @@ torch``) the PyTorch path runs, and so it does, with a warning that says why, on
 GPU session's time was spent. Any other failure of the kernels (a broken toolchain, say) stops the head at warm-up
 with the error, and ``upsample: torch`` is the way round it.
 
-Measured on an H100 at 1080p, 150 classes, float16 (benchmarks/results/h100/upsample_argmax_candidates.json):
-logits that change slowly from token to token, as a trained head's do, keep a median of 2 candidates a cell and take
-0.07 ms, against 0.68 ms searching every class; the random-weight seg head of the floor benchmark took 0.22 ms of
-device time, against 0.91-0.96 ms with PyTorch's path (paper_cuda_floor_fused_*depth_seg*.json). Logits that are
-noise from token to token are the worst case: 96% of cells have more than 32 candidates and the kernels take 0.67
-ms, more than the first version of this kernel, which searched every class one class at a time for a whole row
-(0.47 ms; upsample_argmax_sweep.json) where the second kernel follows a class list per pixel. A block whose
-pixels all search every class could take that single-class loop again; that is written and passes the CPU tests, but
-no GPU time was left to measure it, so it is not in.
+Why candidates: logits that change slowly from token to token, as a trained head's do, leave a cell few
+candidates, so the class map reads a small fraction of the classes. Logits that are noise from token to token are
+the worst case: most cells keep more than ``MAX_CANDIDATES`` and search every class through a class list per pixel,
+which is slower than searching every class one class at a time for a whole row (this kernel's first version). A
+block whose pixels all search every class could take that single-class loop again; that is written and passes the
+CPU tests, but it is not in until a GPU has measured it.
 """
 
 from __future__ import annotations

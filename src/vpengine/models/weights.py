@@ -68,7 +68,7 @@ def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
     path = Path(name).expanduser()
     if path.is_file():
         return path
-    cache = catalog.cache_dir(wcfg.cache_dir)
+    cache = catalog.cache_dir()
     entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
     if entry is None:
         raise CheckpointError(

@@ -32,6 +32,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from vpengine.visualize import head_kind
+
 log = logging.getLogger("vpengine.ros2")
 
 # Input frames are zero-copy, read-only views of received message bytes; Engine.submit only copies *from* them, so
@@ -345,13 +347,6 @@ def normalize_namespace(ns: str) -> str:
     return "".join(f"/{p}" for p in parts)
 
 
-def head_kind(info: Mapping[str, Any]) -> str:
-    """depth | segmentation | detection | generic, from a head's meta (see vpengine.io.sinks.head_kind)."""
-    from vpengine.io.sinks import head_kind as kind
-
-    return kind(dict(info))
-
-
 def plan_outputs(
     heads: Mapping[str, Mapping[str, Any]],
     namespace: str = "/vpengine",
@@ -434,7 +429,7 @@ def payload_for(
     frame_bgr: np.ndarray | None,
 ) -> Payload | None:
     """The message of one output topic for one result (None: an overlay whose input frame is gone)."""
-    from vpengine.io import visualize
+    from vpengine import visualize
 
     role = topic.role
     if role == "depth":

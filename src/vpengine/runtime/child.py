@@ -15,7 +15,7 @@ _PR_SET_PDEATHSIG = 1
 
 def _die_with_parent(parent_pid: int) -> None:
     """Have the kernel SIGKILL us when the parent dies (Note [Child lifecycle]), however we are doing then:
-    stopped, or hung in C code that holds the GIL. Plain libc through ctypes, not vpengine.transport._linux, whose
+    stopped, or hung in C code that holds the GIL. Plain libc through ctypes, not vpengine.transport.linux, whose
     package imports torch: this runs before anything slow."""
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.transport import _linux
+from vpengine.transport import linux
 from vpengine.transport.memory import HostRegion
 from vpengine.transport.region import RegionHandle
 
@@ -168,7 +168,7 @@ class ControlBlock:
 
     def _bump(self, byte_off: int) -> None:
         self._u[byte_off // 4] = (self._u[byte_off // 4] + 1) & 0xFFFFFFFF
-        _linux.futex_wake(self._base + byte_off)
+        linux.futex_wake(self._base + byte_off)
 
     def wait_control(self, name: str, timeout: float) -> None:
         """Sleep up to ``timeout`` s or until this model's rate changes or the engine stops."""
@@ -177,14 +177,14 @@ class ControlBlock:
         word = self._u[off // 4]
         if self.stopping:
             return
-        _linux.futex_wait(self._control_addr(i), word, timeout)
+        linux.futex_wait(self._control_addr(i), word, timeout)
 
     def output_word(self) -> int:
         return self._u[1]
 
     def wait_output(self, word: int, timeout: float) -> None:
         """Sleep until any head publishes (the output word moves away from ``word``) or ``timeout``."""
-        _linux.futex_wait(self._base + 4, word, timeout)
+        linux.futex_wait(self._base + 4, word, timeout)
 
     def notify_output(self) -> None:
         self._bump(4)

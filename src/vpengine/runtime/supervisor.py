@@ -4,7 +4,7 @@ A runner owns one worker per model. When a worker dies (an exception in its mode
 runner killed, an exit nobody asked for), the runner releases the pins it held in its input ring, forgets any slot
 it left half-written in its output ring, so the models next to it never block, and counts the frames it took but
 never finished as dropped; then it restarts the worker after a backoff that doubles with each restart in the last
-``runtime.restart_window_s``. A worker restarted ``runtime.max_restarts`` times within that window is in a crash
+``RESTART_WINDOW_S`` (a minute). A worker restarted ``runtime.max_restarts`` times within that window is in a crash
 loop: it is marked ``failed`` in ``stats()`` and the rest of the engine goes on without it.
 """
 
@@ -25,8 +25,13 @@ from vpengine.transport.ring import SlotRing
 
 log = logging.getLogger("vpengine.supervisor")
 
-#: The longest wait before a restart: the delay doubles from runtime.restart_backoff_s up to this.
+#: The first restart delay; it doubles with each restart in the window, up to RESTART_BACKOFF_MAX_S.
+RESTART_BACKOFF_S = 0.5
+#: The longest wait before a restart.
 RESTART_BACKOFF_MAX_S = 10.0
+#: How long a restart counts against ``runtime.max_restarts`` (and doubles the next delay): a worker that fails now
+#: and then is restarted every time, one in a crash loop is marked failed.
+RESTART_WINDOW_S = 60.0
 
 
 class EngineStartError(RuntimeError):
@@ -135,23 +140,22 @@ class Runner(ABC):
                 return
             if crashed:
                 self.control.add(name, "crashes")
-            rt = self.cfg.runtime
             now = time.monotonic()
             recent = self._restarted_at[name]
-            while recent and recent[0] < now - rt.restart_window_s:  # older restarts no longer count
+            while recent and recent[0] < now - RESTART_WINDOW_S:  # older restarts no longer count
                 recent.popleft()
-            n, limit = len(recent), rt.max_restarts
+            n, limit = len(recent), self.cfg.runtime.max_restarts
             if n >= limit:
                 self.control.set_state(name, FAILED)
                 log.error(
                     "%s failed for good after %d restarts within %.0f s: %s",
                     name,
                     n,
-                    rt.restart_window_s,
+                    RESTART_WINDOW_S,
                     reason,
                 )
                 return
-            delay = min(rt.restart_backoff_s * 2 ** min(n, 32), RESTART_BACKOFF_MAX_S)
+            delay = min(RESTART_BACKOFF_S * 2 ** min(n, 32), RESTART_BACKOFF_MAX_S)
             self._pending[name] = _Restart(now + delay)
             self.control.set_state(name, RESTARTING)
             log.warning(
@@ -160,7 +164,7 @@ class Runner(ABC):
                 reason,
                 n + 1,
                 limit,
-                rt.restart_window_s,
+                RESTART_WINDOW_S,
                 delay,
             )
 

@@ -618,7 +618,6 @@ def prepare_worker(
                 spec.name,
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
-                cache_dir=cfg.weights.cache_dir,
                 max_batch=len(cfg.model_cameras(spec.name)),  # Note [Cameras]: a frame of each camera at once
             )
             # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,

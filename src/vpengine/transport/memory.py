@@ -22,7 +22,7 @@ import os
 
 import torch
 
-from vpengine.transport import _linux
+from vpengine.transport import linux
 from vpengine.transport.region import Region, RegionHandle
 
 
@@ -34,7 +34,7 @@ class HostRegion(Region):
     def __init__(self, name: str, nbytes: int, fd: int | None = None, keep_fd: bool = True) -> None:
         super().__init__(name, nbytes, torch.device("cpu"))
         owns = fd is None
-        self._fd: int | None = _linux.memfd(name, max(nbytes, 1)) if fd is None else fd
+        self._fd: int | None = linux.memfd(name, max(nbytes, 1)) if fd is None else fd
         try:
             self._mm: mmap.mmap | None = mmap.mmap(self._fd, max(nbytes, 1))
         except BaseException:
@@ -59,7 +59,7 @@ class HostRegion(Region):
         return self._tensor
 
     def address(self) -> int:
-        return _linux.address_of(self.mm, 0)
+        return linux.address_of(self.mm, 0)
 
     def keep_mapped(self) -> object:
         # A buffer export: while it lives, mmap.close() refuses (BufferError) and the mapping goes with the last

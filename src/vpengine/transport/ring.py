@@ -63,7 +63,7 @@ from typing import Literal
 import torch
 
 from vpengine.specs import SpecDict
-from vpengine.transport import _linux
+from vpengine.transport import linux
 from vpengine.transport.layout import SlotLayout
 from vpengine.transport.memory import HostRegion, allocate, open_region
 from vpengine.transport.region import Region, RegionHandle
@@ -159,7 +159,7 @@ class SlotRing:
         self._q = mv.cast("q")
         self._d = mv.cast("d")
         self._u = mv.cast("I")
-        self._mutex = _linux.RobustMutex(meta.address())
+        self._mutex = linux.RobustMutex(meta.address())
         self._publish_addr = meta.address() + _PUBLISH_WORD_OFF
         self._release_addr = meta.address() + _RELEASE_WORD_OFF
         self._reader_index = {r.name: i for i, r in enumerate(desc.readers)}
@@ -217,7 +217,7 @@ class SlotRing:
         except BaseException:
             meta.close()
             raise
-        _linux.mutex_init(meta.address())
+        linux.mutex_init(meta.address())
         q = memoryview(meta.mm).cast("q")
         q[_H_N_SLOTS] = n_slots
         q[_H_N_READERS] = len(readers)
@@ -301,15 +301,15 @@ class SlotRing:
         )
 
     def _wake_publish(self) -> None:
-        _linux.futex_wake(self._publish_addr)
+        linux.futex_wake(self._publish_addr)
 
     def wake_all(self) -> None:
         """Wake every sleeper on this ring (used at stop so waits end at once)."""
         with self._mutex:
             self._u[_PUBLISH_WORD_OFF // 4] = (self._u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
             self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-        _linux.futex_wake(self._publish_addr)
-        _linux.futex_wake(self._release_addr)
+        linux.futex_wake(self._publish_addr)
+        linux.futex_wake(self._release_addr)
 
     def wait_any(
         self, readers: list[RingReader], timeout: float, should_stop: Callable[[], bool] | None = None
@@ -327,7 +327,7 @@ class SlotRing:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return False
-            _linux.futex_wait(self._publish_addr, word, min(remaining, _MAX_SLEEP))
+            linux.futex_wait(self._publish_addr, word, min(remaining, _MAX_SLEEP))
 
     def notify_readers(self) -> None:
         """Wake readers waiting to pin, without a publish: what they may take has changed (a pin filter that
@@ -347,7 +347,7 @@ class SlotRing:
             if waiting:
                 self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
         if waiting:
-            _linux.futex_wake(self._release_addr)
+            linux.futex_wake(self._release_addr)
         return held
 
     def reset_writer(self) -> int:
@@ -472,7 +472,7 @@ class RingWriter:
             remaining = _MAX_SLEEP if deadline is None else deadline - time.monotonic()
             if remaining <= 0:
                 return None
-            _linux.futex_wait(ring._release_addr, word, min(remaining, _MAX_SLEEP))
+            linux.futex_wait(ring._release_addr, word, min(remaining, _MAX_SLEEP))
 
     def publish(
         self,
@@ -700,7 +700,7 @@ class RingReader:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return None
-            _linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
+            linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
 
     def _pin_locked(self, i: int, peek: bool = False) -> SlotInfo:
         """Pin published slot ``i`` and count the read (not a peek); the caller holds the ring's mutex."""
@@ -731,7 +731,7 @@ class RingReader:
             if waiting:
                 u[_RELEASE_WORD_OFF // 4] = (u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
         if waiting:
-            _linux.futex_wake(ring._release_addr)
+            linux.futex_wake(ring._release_addr)
 
     def wait(self, timeout: float, should_stop: Callable[[], bool] | None = None) -> bool:
         """Sleep until something is there to pin (without pinning it) or the timeout passes."""
@@ -747,7 +747,7 @@ class RingReader:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return False
-            _linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
+            linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
 
     @contextmanager
     def read(self, timeout: float = 0.0, peek: bool = False) -> Iterator[SlotInfo | None]:

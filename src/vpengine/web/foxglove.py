@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.io.sinks import head_kind
+from vpengine.visualize import head_kind
 from vpengine.web.pictures import FrameLookup, Pictures
 from vpengine.web.server import is_loopback
 
@@ -45,7 +45,7 @@ def image_annotations(outputs: dict[str, Any], labels: list[str] | None, scale: 
         TextAnnotation,
     )
 
-    from vpengine.io.visualize import default_palette
+    from vpengine.visualize import default_palette
 
     pal = default_palette(256)
     stamp = _stamp(t)

@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.io import visualize
-from vpengine.io.sinks import head_kind
+from vpengine import visualize
+from vpengine.visualize import head_kind
 
 #: frame id -> the input frame it names (HxWx3 uint8), or None once it is forgotten
 FrameLookup = Callable[[int], "np.ndarray | None"]

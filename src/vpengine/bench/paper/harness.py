@@ -278,7 +278,6 @@ class InProcess:
                 name,
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
-                cache_dir=cfg.weights.cache_dir,
             )
 
         fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)

@@ -87,6 +87,21 @@ def test_run_serves_the_view_while_it_runs_and_rates_set_there_reach_the_engine(
         get(url + "api/stats")
 
 
+def test_predict_serves_the_view_too(tmp_path):
+    proc = start(
+        "predict", "synthetic:160x120@30:600", "-o", str(tmp_path / "pred"), "--no-progress", "--mode", "thread",
+        "--serve", "0",
+    )  # fmt: skip
+    try:
+        url = view_url(proc)
+        stats = json.loads(eventually(lambda: (s := get(url + "api/stats"))[0] == 200 and s[2], 60, "stats"))
+        assert set(stats["models"]) == {"foundation", "depth", "seg", "det"}
+        eventually(lambda: get(url + "api/latest/depth.jpg")[0] == 200, 30, "a depth picture")
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.communicate(timeout=120)
+
+
 def test_serving_beyond_loopback_needs_a_token_and_then_every_request_carries_it():
     proc = start("run", "-c", "configs/tiny.yaml", "-s", "synthetic:160x120@30:30", "--serve", "0.0.0.0:0")
     _out, err = proc.communicate(timeout=120)

@@ -21,6 +21,7 @@ from vpengine.cli import (
     prepare_out_dir,
 )
 from vpengine.cli.run import SOURCE_HELP, SOURCES_HELP
+from vpengine.cli.serve import add_serve_arguments, serve_options
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -51,6 +52,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
     )
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_serve_arguments(p)
 
 
 def next_run_dir(base: str | Path = "runs/predict") -> Path:
@@ -85,6 +87,7 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(
         cfg, ["foundation_model.rate_hz=null", *(f"heads.{h.name}.rate_hz=null" for h in cfg.heads)]
     )
+    serve = serve_options(args)
     out = prepare_out_dir(args.out, args.exist_ok) if args.out else None  # checked before a camera opens
     with open_sources(wanted) as sources:
         out = out or next_run_dir()  # made once the sources opened: a bad one leaves no empty run folder
@@ -109,6 +112,7 @@ def main(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             sink_factories=[pictures],
             folder=False,
+            serve=serve,
         )
     print(format_summary(summary))
     print(f"annotated pictures and summary.json in {out}")

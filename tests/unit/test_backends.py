@@ -140,6 +140,24 @@ def test_compile_matches_eager_on_new_input_tensors_without_recompiling(name):
             )
 
 
+@pytest.mark.slow
+def test_compiled_faster_rcnn_never_recompiles_once_warm_whatever_the_batch_and_box_count():
+    """Faster R-CNN compiled without graphs (what several cameras on a GPU run): its box counts change every frame
+    and its anchor cache fills on the first call; once warm-up is over no frame may recompile, since a recompilation
+    stalls the stream for a long time (Note [RoIAlign runs eagerly])."""
+    cfg = tiny(
+        "thread", "heads.det.model=frcnn_dinov2_lite", "heads.det.options={num_classes: 3}", "weights.random_weights=true"
+    )
+    model = build(cfg, "det")
+    ex = make_executor(model, "compile", CPU, "det", options={"fullgraph": False}, max_batch=2)
+    g = torch.Generator().manual_seed(0)
+    with torch.compiler.set_stance("fail_on_recompile"):
+        for i, (b, scale) in enumerate([(1, 1.0), (2, 4.0), (1, 0.1), (2, 0.5), (1, 8.0), (2, 2.0)]):
+            x = {k: torch.randn((b, *s.shape), generator=g) * scale for k, s in model.input_spec.items()}
+            out = ex(x)
+            assert out["count"].shape == (b,), f"frame {i}"
+
+
 class _GraphBreak(SmallHead):
     """A user head whose forward breaks the graph (a Python-side print of a tensor value)."""
 

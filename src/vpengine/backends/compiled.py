@@ -136,13 +136,16 @@ class CompiledExecutor(Executor):
 
     def _compile(self) -> None:
         # Each batch size is a recompilation of the same forward (dynamic=False); dynamo would fall back to eager
-        # past its recompile limit (8 by default), so while they compile the limit grows by one per size. (Entries
+        # past its recompile limit (8 by default), so while they compile the limit grows by two per size (each runs twice, below). (Entries
         # of earlier, dead instances of the model may count too, when a new one reuses their id.)
-        limit = torch._dynamo.config.recompile_limit + self.max_batch
+        # Every size runs twice: a model that fills a cache on its first call (torchvision's anchor generator) is
+        # compiled for the filled cache here too, not in the middle of a stream.
+        limit = torch._dynamo.config.recompile_limit + 2 * self.max_batch
         try:
             with torch._dynamo.config.patch(recompile_limit=limit), torch.inference_mode():
-                for static in self._static.values():
-                    self._run(static)
+                for _ in range(2):
+                    for static in self._static.values():
+                        self._run(static)
         except Exception as e:
             hint = (
                 "; backend_options.fullgraph: false runs graph breaks eagerly"

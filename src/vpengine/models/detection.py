@@ -356,6 +356,18 @@ def input_box_scale(ctx: BuildContext, image_hw: tuple[int, int]) -> tuple[float
     return w / iw, h / ih
 
 
+class _EagerRoIAlign(MultiScaleRoIAlign):
+    """Note [RoIAlign runs eagerly]: under torch.compile, RoIAlign would be specialised for every pyramid level's
+    feature size times every batch size and number of boxes it meets, and the boxes' number depends on the frame: new
+    combinations keep coming after warm-up, each a recompilation of hundreds of milliseconds in the middle of a stream
+    until dynamo's recompile limit is hit (seen with four cameras on an H100). It is one kernel per level either way,
+    so compiling it gains nothing: it always runs as the plain torchvision op, a graph break in a compiled head."""
+
+    @torch.compiler.disable
+    def forward(self, *args: Any, **kwargs: Any) -> torch.Tensor:
+        return super().forward(*args, **kwargs)
+
+
 class FasterRCNNHead(Model):
     """Faster R-CNN on ``patch.3``: fixed-capacity detections in input-frame pixels (see the module docstring)."""
 
@@ -423,7 +435,7 @@ class FasterRCNNHead(Model):
         )
         # Level assignment in "stride 16" units (Note [Strides that are not powers of two]).
         canonical_scale = round(224 * patch / 16)
-        pooler = MultiScaleRoIAlign(
+        pooler = _EagerRoIAlign(
             self.pyramid.level_names,
             opts.roi_output_size,
             opts.sampling_ratio,

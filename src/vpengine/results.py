@@ -309,7 +309,7 @@ class Outbox:
                     for h in list(pending):
                         answered = held_back or ctl.get(entry(h), "decided") >= origin
                         reader = self._peek_readers[h]
-                        slot, newest = reader.pin_origin(origin)
+                        slot, newest = reader.pin_origin(origin, tag=camera)  # Note [Tagged slots]
                         events = self.handoffs.results.get(h)
                         if slot is not None and events is not None and events.done_after(slot, deadline):
                             # Note [Result hand-off]: its queued work is not expected to be done in time; leave

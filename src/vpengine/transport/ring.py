@@ -617,11 +617,13 @@ class RingReader:
             return None
         return best
 
-    def pin_origin(self, origin: int) -> tuple[SlotInfo | None, int]:
+    def pin_origin(self, origin: int, tag: int | None = None) -> tuple[SlotInfo | None, int]:
         """Pin (peek, no accounting) the published slot derived from input ``origin``, if still there.
 
         Returns ``(slot or None, newest origin published so far)``; a newest origin past ``origin`` with no slot
-        means the frame was skipped or already overwritten.
+        means the frame was skipped or already overwritten. ``tag``: the newest among that camera's slots only
+        (Note [Tagged slots]): the cameras' frames are published each in its own order, not in one, so another
+        camera's newer frame says nothing about this one.
         """
         ring, q = self.ring, self.ring._q
         b = self._b
@@ -635,7 +637,8 @@ class RingReader:
                 if q[sb + _S_STATE] != _PUBLISHED:
                     continue
                 o = q[sb + _S_ORIGIN]
-                newest = max(newest, o)
+                if tag is None or q[sb + _S_TAG] == tag:
+                    newest = max(newest, o)
                 if o == origin:
                     found = i
             if found is None:

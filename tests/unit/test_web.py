@@ -89,8 +89,8 @@ class StandIn:
         return self.results[head]
 
 
-def result(head: str, frame_id: int, seq: int, outputs: dict) -> Result:
-    return Result(head, frame_id, 1.7e9 + frame_id, 0.012, outputs, seq)
+def result(head: str, frame_id: int, seq: int, outputs: dict, frame_size: tuple[int, int] = (H, W)) -> Result:
+    return Result(head, frame_id, 1.7e9 + frame_id, 0.012, outputs, seq, frame_size=frame_size)
 
 
 def seg_result(frame_id: int = 7, seq: int = 1) -> Result:
@@ -238,6 +238,52 @@ def test_without_its_frame_a_picture_shows_the_outputs_alone(engine):
     img = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR)
     assert img.shape == (H, W, 3)
     assert np.abs(img.astype(int)[40:, 50:] - 24).max() < 12  # the dark canvas, not frame 8 (value 30 + boxes)
+
+
+def test_a_picture_is_drawn_at_the_results_frame_size_not_the_inputs():
+    """Note [Pictures and frames]: a camera of another size than the config's input gets its overlay on its frame."""
+    import cv2
+
+    fh, fw = 90, 200  # the frame's size; the stand-in engine's input is H x W
+    big = np.full((fh, fw, 3), 200, np.uint8)
+    pictures = Pictures({7: big}.get)
+    classes = np.zeros((fh, fw), np.uint8)
+    classes[:, fw // 2 :] = 2
+    engine = StandIn()
+    engine.results["seg"] = result("seg", 7, 1, {"classes": classes}, frame_size=(fh, fw))
+    pic = pictures.latest(engine, "seg", width=fw)
+    assert pic is not None and pic.on_frame and pic.width == fw
+    got = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    assert np.abs(got - overlay_segmentation(big, classes).astype(int)).mean() < 3
+    boxes = np.array([[150, 60, 190, 85]], np.float32)  # beyond the input's 80 x 60: in the frame's pixels
+    engine.results["det"] = result("det", 7, 1, {"boxes": boxes, "scores": np.array([0.9], np.float32),
+                                                  "labels": np.array([1], np.int32)}, frame_size=(fh, fw))  # fmt: skip
+    pic = pictures.latest(engine, "det", width=fw)
+    assert pic is not None and pic.on_frame
+    got = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    assert np.abs(got[62:84, 152:188] - 200).mean() < 3  # inside the box: the frame
+    assert np.abs(got[60, 152:188] - 200).max() > 60  # its top edge drawn where the box is
+
+
+def test_a_native_grid_picture_is_mapped_to_its_frame():
+    from vpengine.boundary import Placement
+
+    fh, fw = 30, 80  # letterboxed into the 60 x 80 canvas: rows 15..45
+    placement = Placement.fit((fh, fw), (H, W))
+    classes = np.zeros((H, W), np.uint8)
+    classes[placement.y0 : placement.y0 + fh] = 2  # the frame's region is class 2, the bands class 0
+    r = result("seg", 7, 1, {"classes": classes}, frame_size=(fh, fw))
+    r.grid, r.placement = "native", placement
+    engine = StandIn()
+    engine.results["seg"] = r
+    frame = np.full((fh, fw, 3), 100, np.uint8)
+    pic = Pictures({7: frame}.get).latest(engine, "seg", width=fw)
+    assert pic is not None and pic.on_frame and pic.width == fw
+    import cv2
+
+    got = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    want = overlay_segmentation(frame, np.full((fh, fw), 2, np.uint8)).astype(int)
+    assert got.shape == (fh, fw, 3) and np.abs(got - want).mean() < 3
 
 
 def test_pictures_of_every_kind_render_at_the_width_asked():

@@ -47,13 +47,17 @@ def model_stats(runs: int, target: float | None) -> dict:
 
 
 class StandIn:
-    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, config.input, running."""
+    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, running.
+    ``results``: head -> its newest result; ``camera_results``, with several ``cameras``: (camera, head) -> it."""
 
-    def __init__(self) -> None:
+    def __init__(self, cameras: tuple[str, ...] = ("camera",), served: dict[str, list[str]] | None = None) -> None:
         self.running = True
-        self.config = SimpleNamespace(input=SimpleNamespace(height=H, width=W))
+        self.cameras = list(cameras)
+        served = served or {}
+        self.config = SimpleNamespace(model_cameras=lambda head: served.get(head, self.cameras))
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)
+        self.camera_results: dict[tuple[str, str], Result] = {}
         self.latest_calls = 0
         self.lock = threading.Lock()
 
@@ -82,10 +86,12 @@ class StandIn:
             raise KeyError(f"no head named {head!r}; heads: {list(INFOS)}")
         return dict(INFOS[head])
 
-    def latest(self, head: str, copy: bool = True) -> Result | None:
+    def latest(self, head: str, copy: bool = True, camera: str | None = None) -> Result | None:
         with self.lock:
             self.latest_calls += 1
         self.head_info(head)
+        if len(self.cameras) > 1 and camera is not None:
+            return self.camera_results.get((camera, head))
         return self.results[head]
 
 
@@ -296,6 +302,27 @@ def test_pictures_of_every_kind_render_at_the_width_asked():
     assert render(info, det_result().outputs, frame, 40).shape == (30, 40, 3)
     assert render(info, det_result().outputs, None, 200).shape == (H, W, 3)  # never enlarged
     assert render({"kind": "generic"}, {"x": depth}, frame) is None
+
+
+def test_with_several_cameras_each_camera_has_its_own_picture_of_each_head():
+    """The newest picture per (camera, head), not the newest of any camera's: ?camera= picks, default the first
+    camera the head serves; an unknown camera is a 400 naming the cameras."""
+    engine = StandIn(("front", "rear"), served={"det": ["rear"]})
+    frames = {7: frame_of(200), 8: frame_of(30)}
+    engine.camera_results[("front", "seg")] = seg_result(frame_id=7, seq=1)
+    engine.camera_results[("rear", "seg")] = seg_result(frame_id=8, seq=2)  # the newest of any camera's
+    engine.camera_results[("rear", "det")] = det_result(frame_id=8, seq=1)
+    with WebServer(engine, "127.0.0.1", 0, frames=frames.get) as v:
+        for query, camera, fid in (("", "front", "7"), ("?camera=front", "front", "7"), ("?camera=rear", "rear", "8")):
+            status, headers, _ = request(v.url + "api/latest/seg.jpg" + query)
+            assert status == 200 and (headers["X-Camera"], headers["X-Frame-Id"]) == (camera, fid), query
+        status, headers, _ = request(v.url + "api/latest/det.jpg")  # det serves the rear camera alone
+        assert status == 200 and (headers["X-Camera"], headers["X-Frame-Id"]) == ("rear", "8")
+        status, _, body = request(v.url + "api/latest/seg.jpg?camera=side")
+        assert status == 400 and json.loads(body)["error"] == "no camera named 'side'; cameras: ['front', 'rear']"
+        status, _, body = request(v.url + "api/latest/det.jpg?camera=front")
+        assert status == 404 and "'det' serves cameras ['rear'], not 'front'" in json.loads(body)["error"]
+        assert request(v.url + "api/latest/depth.jpg?camera=rear")[0] == 204
 
 
 def test_no_result_yet_is_204_and_an_unknown_head_404(view, engine):

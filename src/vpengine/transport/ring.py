@@ -277,6 +277,11 @@ class SlotRing:
             raise KeyError(f"ring {self.name!r} has no reader {name!r}; readers: {list(self._reader_index)}")
         return RingReader(self, self._reader_index[name])
 
+    def slot_tag(self, i: int) -> int:
+        """The tag slot ``i`` was last published with (Note [Tagged slots]); for a pin filter (``Accept``), which
+        runs under the ring's lock."""
+        return self._q[self._slot(i) + _S_TAG]
+
     # ------------------------------------------------------------------------------------------- internals
     def _slot(self, i: int) -> int:
         return _SLOTS + i * _SF

@@ -53,6 +53,7 @@ class Picture:
     width: int  # of the picture, in pixels
     asked: int  # the width asked for (the picture is narrower when the frame is)
     made_at: float  # time.monotonic()
+    camera: str | None = None  # the camera asked for (None: the newest of any camera's)
 
 
 def _host(value: Any) -> Any:
@@ -140,7 +141,8 @@ class Pictures:
         self.frame_color = frame_color
         self.min_interval = 1.0 / max_hz
         self._lock = threading.Lock()
-        self._cache: dict[str, Picture] = {}  # head -> its newest picture (at the width asked for last)
+        # (camera, head) -> its newest picture (at the width asked for last); camera None: of any camera
+        self._cache: dict[tuple[str | None, str], Picture] = {}
         self._infos: dict[str, dict[str, Any]] = {}
         self.made = 0  # pictures drawn and encoded (not served from the cache)
 
@@ -161,19 +163,24 @@ class Pictures:
             return None
         return frame[..., ::-1] if self.frame_color == "rgb" else frame
 
-    def latest(self, engine: Any, head: str, width: int = DEFAULT_WIDTH) -> Picture | None:
+    def latest(
+        self, engine: Any, head: str, width: int = DEFAULT_WIDTH, camera: str | None = None
+    ) -> Picture | None:
         """The newest picture of ``head`` at most ``width`` pixels wide (KeyError for an unknown head), or None while
-        it has no result (or no picture: a ``generic`` head). A picture younger than ``1 / max_hz`` comes back as it
-        is, whatever its width."""
+        it has no result (or no picture: a ``generic`` head). ``camera``: of that camera's frames (ValueError for one
+        the head does not serve); None: the newest of any camera's. A picture younger than ``1 / max_hz`` comes
+        back as it is, whatever its width."""
         import cv2
 
+        key = (camera, head)
         with self._lock:
-            cached = self._cache.get(head)
+            cached = self._cache.get(key)
             now = time.monotonic()
             if cached is not None and now - cached.made_at < self.min_interval:
                 return cached
             info = self._info(engine, head)
-            result = engine.latest(head, copy=False)  # borrowed: nothing copied (Note [Borrowed results])
+            # borrowed: nothing copied (Note [Borrowed results])
+            result = engine.latest(head, copy=False, camera=camera)
             if result is None:
                 return None
             if cached is not None and cached.seq == result.seq and cached.asked == width:
@@ -200,8 +207,9 @@ class Pictures:
                 image.shape[1],
                 width,
                 time.monotonic(),
+                camera,
             )
             del result  # the borrowed slot goes back to the engine
-            self._cache[head] = pic
+            self._cache[key] = pic
             self.made += 1
             return pic

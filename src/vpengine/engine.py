@@ -563,11 +563,18 @@ class Engine:
         return fid
 
     @_fenced
-    def latest(self, head: str, copy: bool = True) -> Result | None:
+    def latest(self, head: str, copy: bool = True, camera: str | None = None) -> Result | None:
         """The newest output of ``head``, or None if it has produced nothing yet. ``copy=False``: borrowed, not
-        copied, while a lease is free (Note [Borrowed results] in results.py)."""
+        copied, while a lease is free (Note [Borrowed results] in results.py). ``camera``: the newest of that
+        camera's frames (ValueError for a camera the head does not serve); None: of any camera's."""
         self._require_running()
-        return self._outbox.latest(head, copy)
+        tag = None
+        if camera is not None:
+            tag = self._camera(camera)
+            served = self.config.model_cameras(self._outbox.head(head))
+            if camera not in served:
+                raise ValueError(f"{head!r} serves cameras {served}, not {camera!r}")
+        return self._outbox.latest(head, copy, tag)
 
     @_fenced
     def results(

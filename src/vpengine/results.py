@@ -233,11 +233,16 @@ class Outbox:
         return head
 
     # ------------------------------------------------------------------------------------------ the API
-    def latest(self, head: str, copy: bool) -> Result | None:
+    def latest(self, head: str, copy: bool, camera: int | None = None) -> Result | None:
+        """``head``'s newest result, of camera (slot tag) ``camera`` only unless None."""
         reader = self._peek_readers[self.head(head)]
+        accept = self._done_filter(head)
+        if camera is not None:
+            ring, done = self._rings[f"out.{head}"], accept
+            accept = lambda i, seq: ring.slot_tag(i) == camera and (done is None or done(i, seq))  # noqa: E731
         with self._lock:
             self.leases.drain()
-            slot = reader.pin(peek=True, accept=self._done_filter(head))
+            slot = reader.pin(peek=True, accept=accept)
             if slot is None:
                 return None
             try:
@@ -309,7 +314,7 @@ class Outbox:
                     for h in list(pending):
                         answered = held_back or ctl.get(entry(h), "decided") >= origin
                         reader = self._peek_readers[h]
-                        slot, newest = reader.pin_origin(origin)
+                        slot, newest = reader.pin_origin(origin, tag=camera)  # Note [Tagged slots]
                         events = self.handoffs.results.get(h)
                         if slot is not None and events is not None and events.done_after(slot, deadline):
                             # Note [Result hand-off]: its queued work is not expected to be done in time; leave

@@ -39,7 +39,9 @@ def write_bag(
     extra_topic: bool = True,
     corrupt: tuple[int, ...] = (),
     frames: int = N,
+    sizes: list[tuple[int, int]] | None = None,
 ) -> None:
+    """``sizes``: each frame's (height, width) (raw images only); default 120x160 for all."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     ts = typestore(distro)
@@ -54,7 +56,8 @@ def write_bag(
             header = T["std_msgs/msg/Header"](
                 stamp=T["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=FRAME_ID
             )
-            img = frame(i)
+            h, wd = sizes[i] if sizes else (120, 160)
+            img = frame(i, h, wd)
             if compressed:
                 import cv2
 
@@ -64,11 +67,11 @@ def write_bag(
                 pixels = img if encoding != "rgb8" else np.ascontiguousarray(img[..., ::-1])
                 msg = T[msgtype](
                     header=header,
-                    height=120,
-                    width=160,
+                    height=h,
+                    width=wd,
                     encoding=encoding,
                     is_bigendian=0,
-                    step=480,
+                    step=wd * 3,
                     data=pixels.reshape(-1),
                 )
             raw = ts.serialize_cdr(msg, msgtype)
@@ -157,6 +160,22 @@ def test_bag_round_trip(tmp_path, storage, distro):
     check_outputs(read_bag(out, distro))
     if storage == "mcap":
         check_mcap(out)
+
+
+def test_a_bag_whose_image_size_changes_gives_outputs_at_each_frames_own_size(tmp_path, caplog):
+    """Note [Frame grid]: the bag passes each frame as it is, the engine's boundary scales it; nothing is resized
+    to the first frame's size."""
+    src, out = tmp_path / "in", tmp_path / "out"
+    sizes = [(120, 160), (120, 160), (90, 200), (90, 200)]
+    write_bag(src, "sqlite3", "jazzy", sizes=sizes, extra_topic=False)
+    assert run("-s", str(src), "--out-bag", str(out), "--mode", "thread") == 0
+    topics = read_bag(out, "jazzy")
+    for topic in ("/vpengine/depth/depth", "/vpengine/seg/classes"):
+        assert [(m.height, m.width) for _, _, m in topics[topic]] == sizes, topic
+    boxes = [[(d.bbox.center.position.x, d.bbox.center.position.y) for d in m.detections]
+             for _, _, m in topics["/vpengine/det/detections"]]  # fmt: skip
+    assert all(0 <= x <= w and 0 <= y <= h for bs, (h, w) in zip(boxes, sizes, strict=True) for x, y in bs)
+    assert "resized" not in caplog.text
 
 
 def check_mcap(bag: Path) -> None:

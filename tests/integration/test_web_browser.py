@@ -220,3 +220,53 @@ def test_with_a_token_the_page_works_from_its_address_and_says_so_without_it(bro
         )
         click(browser, "det", "pause")
         eventually(lambda: engine.rate("det") == 0.0, 1.0, "det paused with the token")
+
+
+def test_with_several_cameras_the_page_shows_a_picture_per_camera_and_head(browser):
+    """Each camera's own newest picture of each head it is served by (Note [Pictures and frames])."""
+    from selenium.webdriver.common.by import By
+
+    from vpengine.engine import Engine
+    from vpengine.io.sources import SyntheticSource
+    from vpengine.web import serve
+
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear, height: 90, width: 200}]", "heads.seg.cameras=[rear]")
+    sources = {"front": SyntheticSource(320, 240, 30.0, 1 << 30), "rear": SyntheticSource(200, 90, 30.0, 1 << 30)}
+    recent: dict[int, object] = {}
+    ids: dict[str, set[str]] = {"front": set(), "rear": set()}
+    stop = threading.Event()
+    with Engine(cfg) as engine:
+
+        def feed() -> None:
+            i = 0
+            while not stop.is_set():
+                for camera, source in sources.items():
+                    frame = source.render(i)
+                    fid = engine.submit(frame, camera=camera)
+                    recent[fid] = frame
+                    ids[camera].add(str(fid))
+                    if len(recent) > 64:
+                        recent.pop(next(iter(recent)))
+                i += 1
+                stop.wait(1 / 30)
+
+        feeder = threading.Thread(target=feed, daemon=True)
+        feeder.start()
+        try:
+            with serve(engine, port=0, frames=recent.get) as view:
+                browser.get(view.url)
+
+                def shown() -> dict[tuple[str, str], str]:
+                    return {
+                        (i.get_attribute("data-camera"), i.get_attribute("data-head")): i.get_attribute("data-frame")
+                        for i in browser.find_elements(By.CSS_SELECTOR, "img[data-head]")
+                        if browser.execute_script("return arguments[0].naturalWidth", i) > 0
+                    }
+
+                got = eventually(lambda: len(s := shown()) == 5 and s, 30, "five pictures")
+                assert set(got) == {("front", "depth"), ("front", "det"), ("rear", "depth"), ("rear", "seg"),
+                                    ("rear", "det")}  # fmt: skip
+                assert all(fid in ids[camera] for (camera, _), fid in got.items()), got  # each its camera's frame
+        finally:
+            stop.set()
+            feeder.join(10)

@@ -41,6 +41,19 @@ def test_the_same_picture_gives_the_same_outputs_from_either_camera(engine):
     np.testing.assert_allclose(a["depth"]["depth"], b["depth"]["depth"], rtol=1e-5, atol=1e-6)
 
 
+def test_latest_of_a_camera_is_its_own_newest_not_the_newest_of_any_cameras(engine):
+    f = engine.wait(engine.submit(frame(1, 240, 320), camera="front"), timeout=30)["depth"]
+    r = engine.wait(engine.submit(frame(2, 90, 200), camera="rear"), timeout=30)["depth"]
+    assert engine.latest("depth").frame_id == r.frame_id  # of any camera's: the rear frame came last
+    front, rear = engine.latest("depth", camera="front"), engine.latest("depth", camera="rear")
+    assert (front.frame_id, front.camera, front["depth"].shape) == (f.frame_id, "front", (240, 320))
+    assert (rear.frame_id, rear.camera) == (r.frame_id, "rear")
+    with pytest.raises(ValueError, match=r"'seg' serves cameras \['rear'\], not 'front'"):
+        engine.latest("seg", camera="front")
+    with pytest.raises(ValueError, match=r"no camera named 'side'; cameras: \['front', 'rear'\]"):
+        engine.latest("depth", camera="side")
+
+
 def test_a_camera_must_be_named_and_known():
     with Engine(tiny("thread", *CAMERAS)) as e:
         with pytest.raises(ValueError, match=r"this engine has cameras \['front', 'rear'\]: say which one"):

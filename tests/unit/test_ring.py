@@ -238,6 +238,21 @@ def test_origin_carries_frame_identity_and_pin_origin_finds_it():
         dst.close()
 
 
+def test_pin_origin_reads_newest_among_the_frames_camera_only():
+    ring = SlotRing.create("out", SPECS, 5, [ReaderDecl("peek")], n_tags=2)
+    try:
+        w = ring.writer()
+        for origin, tag in ((1, 1), (3, 0)):  # rear's frame 1 waits for its output; front's frame 3 is out
+            w.publish(w.acquire(), origin, 0.0, 0.0, origin, tag=tag)
+        peek = ring.reader("peek")
+        slot, newest = peek.pin_origin(2, tag=1)  # rear's frame 2: not out yet, and not passed by rear's frames
+        assert slot is None and newest == 1
+        slot, newest = peek.pin_origin(2)  # every camera's: front's frame 3 is past it
+        assert slot is None and newest == 3
+    finally:
+        ring.close()
+
+
 def test_release_reader_and_reset_writer_repair_a_dead_process():
     ring = latest_buffer("t", SPECS, ["a"])  # 3 slots
     try:

@@ -47,13 +47,17 @@ def model_stats(runs: int, target: float | None) -> dict:
 
 
 class StandIn:
-    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, config.input, running."""
+    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, running.
+    ``results``: head -> its newest result; ``camera_results``, with several ``cameras``: (camera, head) -> it."""
 
-    def __init__(self) -> None:
+    def __init__(self, cameras: tuple[str, ...] = ("camera",), served: dict[str, list[str]] | None = None) -> None:
         self.running = True
-        self.config = SimpleNamespace(input=SimpleNamespace(height=H, width=W))
+        self.cameras = list(cameras)
+        served = served or {}
+        self.config = SimpleNamespace(model_cameras=lambda head: served.get(head, self.cameras))
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)
+        self.camera_results: dict[tuple[str, str], Result] = {}
         self.latest_calls = 0
         self.lock = threading.Lock()
 
@@ -82,15 +86,17 @@ class StandIn:
             raise KeyError(f"no head named {head!r}; heads: {list(INFOS)}")
         return dict(INFOS[head])
 
-    def latest(self, head: str, copy: bool = True) -> Result | None:
+    def latest(self, head: str, copy: bool = True, camera: str | None = None) -> Result | None:
         with self.lock:
             self.latest_calls += 1
         self.head_info(head)
+        if len(self.cameras) > 1 and camera is not None:
+            return self.camera_results.get((camera, head))
         return self.results[head]
 
 
-def result(head: str, frame_id: int, seq: int, outputs: dict) -> Result:
-    return Result(head, frame_id, 1.7e9 + frame_id, 0.012, outputs, seq)
+def result(head: str, frame_id: int, seq: int, outputs: dict, frame_size: tuple[int, int] = (H, W)) -> Result:
+    return Result(head, frame_id, 1.7e9 + frame_id, 0.012, outputs, seq, frame_size=frame_size)
 
 
 def seg_result(frame_id: int = 7, seq: int = 1) -> Result:
@@ -240,6 +246,52 @@ def test_without_its_frame_a_picture_shows_the_outputs_alone(engine):
     assert np.abs(img.astype(int)[40:, 50:] - 24).max() < 12  # the dark canvas, not frame 8 (value 30 + boxes)
 
 
+def test_a_picture_is_drawn_at_the_results_frame_size_not_the_inputs():
+    """Note [Pictures and frames]: a camera of another size than the config's input gets its overlay on its frame."""
+    import cv2
+
+    fh, fw = 90, 200  # the frame's size; the stand-in engine's input is H x W
+    big = np.full((fh, fw, 3), 200, np.uint8)
+    pictures = Pictures({7: big}.get)
+    classes = np.zeros((fh, fw), np.uint8)
+    classes[:, fw // 2 :] = 2
+    engine = StandIn()
+    engine.results["seg"] = result("seg", 7, 1, {"classes": classes}, frame_size=(fh, fw))
+    pic = pictures.latest(engine, "seg", width=fw)
+    assert pic is not None and pic.on_frame and pic.width == fw
+    got = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    assert np.abs(got - overlay_segmentation(big, classes).astype(int)).mean() < 3
+    boxes = np.array([[150, 60, 190, 85]], np.float32)  # beyond the input's 80 x 60: in the frame's pixels
+    engine.results["det"] = result("det", 7, 1, {"boxes": boxes, "scores": np.array([0.9], np.float32),
+                                                  "labels": np.array([1], np.int32)}, frame_size=(fh, fw))  # fmt: skip
+    pic = pictures.latest(engine, "det", width=fw)
+    assert pic is not None and pic.on_frame
+    got = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    assert np.abs(got[62:84, 152:188] - 200).mean() < 3  # inside the box: the frame
+    assert np.abs(got[60, 152:188] - 200).max() > 60  # its top edge drawn where the box is
+
+
+def test_a_native_grid_picture_is_mapped_to_its_frame():
+    from vpengine.boundary import Placement
+
+    fh, fw = 30, 80  # letterboxed into the 60 x 80 canvas: rows 15..45
+    placement = Placement.fit((fh, fw), (H, W))
+    classes = np.zeros((H, W), np.uint8)
+    classes[placement.y0 : placement.y0 + fh] = 2  # the frame's region is class 2, the bands class 0
+    r = result("seg", 7, 1, {"classes": classes}, frame_size=(fh, fw))
+    r.grid, r.placement = "native", placement
+    engine = StandIn()
+    engine.results["seg"] = r
+    frame = np.full((fh, fw, 3), 100, np.uint8)
+    pic = Pictures({7: frame}.get).latest(engine, "seg", width=fw)
+    assert pic is not None and pic.on_frame and pic.width == fw
+    import cv2
+
+    got = cv2.imdecode(np.frombuffer(pic.jpeg, np.uint8), cv2.IMREAD_COLOR).astype(int)
+    want = overlay_segmentation(frame, np.full((fh, fw), 2, np.uint8)).astype(int)
+    assert got.shape == (fh, fw, 3) and np.abs(got - want).mean() < 3
+
+
 def test_pictures_of_every_kind_render_at_the_width_asked():
     frame = frame_of(90)
     depth = np.linspace(0, 1, H * W, dtype=np.float32).reshape(H, W)
@@ -250,6 +302,27 @@ def test_pictures_of_every_kind_render_at_the_width_asked():
     assert render(info, det_result().outputs, frame, 40).shape == (30, 40, 3)
     assert render(info, det_result().outputs, None, 200).shape == (H, W, 3)  # never enlarged
     assert render({"kind": "generic"}, {"x": depth}, frame) is None
+
+
+def test_with_several_cameras_each_camera_has_its_own_picture_of_each_head():
+    """The newest picture per (camera, head), not the newest of any camera's: ?camera= picks, default the first
+    camera the head serves; an unknown camera is a 400 naming the cameras."""
+    engine = StandIn(("front", "rear"), served={"det": ["rear"]})
+    frames = {7: frame_of(200), 8: frame_of(30)}
+    engine.camera_results[("front", "seg")] = seg_result(frame_id=7, seq=1)
+    engine.camera_results[("rear", "seg")] = seg_result(frame_id=8, seq=2)  # the newest of any camera's
+    engine.camera_results[("rear", "det")] = det_result(frame_id=8, seq=1)
+    with WebServer(engine, "127.0.0.1", 0, frames=frames.get) as v:
+        for query, camera, fid in (("", "front", "7"), ("?camera=front", "front", "7"), ("?camera=rear", "rear", "8")):
+            status, headers, _ = request(v.url + "api/latest/seg.jpg" + query)
+            assert status == 200 and (headers["X-Camera"], headers["X-Frame-Id"]) == (camera, fid), query
+        status, headers, _ = request(v.url + "api/latest/det.jpg")  # det serves the rear camera alone
+        assert status == 200 and (headers["X-Camera"], headers["X-Frame-Id"]) == ("rear", "8")
+        status, _, body = request(v.url + "api/latest/seg.jpg?camera=side")
+        assert status == 400 and json.loads(body)["error"] == "no camera named 'side'; cameras: ['front', 'rear']"
+        status, _, body = request(v.url + "api/latest/det.jpg?camera=front")
+        assert status == 404 and "'det' serves cameras ['rear'], not 'front'" in json.loads(body)["error"]
+        assert request(v.url + "api/latest/depth.jpg?camera=rear")[0] == 204
 
 
 def test_no_result_yet_is_204_and_an_unknown_head_404(view, engine):

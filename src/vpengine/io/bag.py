@@ -77,10 +77,11 @@ class BagSource(Source):
     """Camera frames from one Image or CompressedImage topic of a rosbag2 bag.
 
     ``topic`` may be omitted when the bag has exactly one image topic. Frames are in ``color`` order (the engine's
-    ``input.color``); a frame whose size differs from the first one is resized to it (counted in ``resized`` and
-    logged once per size). The exact input header of each frame is kept by its frame name (the message index) for
-    the bag sink (:meth:`header_for`). Bad messages are skipped and counted in ``bad`` (or, ``strict``, raised as
-    :class:`BadMessage`), see the module docstring.
+    ``input.color``), each at its own size (``height``/``width`` are the first frame's): the engine's boundary
+    scales every frame, so outputs come back at each frame's size (Note [Frame grid] in boundary.py). The exact
+    input header of each frame is kept by its frame name (the message index) for the bag sink (:meth:`header_for`).
+    Bad messages are skipped and counted in ``bad`` (or, ``strict``, raised as :class:`BadMessage`), see the module
+    docstring.
     """
 
     def __init__(
@@ -131,11 +132,9 @@ class BagSource(Source):
         except BaseException:
             self._reader.close()
             raise
-        self.resized = 0
         #: the messages skipped as bad, as every source lists what it skipped (``vpengine run`` puts the list in
         #: summary.json): bag, topic, message index and why; logged per Note [Rejection log]
         self.skipped: list[dict[str, Any]] = []
-        self._sizes: set[tuple[int, int]] = set()
         self._headers: collections.OrderedDict[str, Header] = collections.OrderedDict()
 
     def _first_size(self) -> tuple[int, int]:
@@ -199,29 +198,12 @@ class BagSource(Source):
         return self._n
 
     def __iter__(self) -> Iterator[Frame]:
-        import cv2
-
         for i, raw in enumerate(self._messages()):
             try:
                 header, img = self._decode(raw, i)
             except BadMessage as e:
                 self._bad(e, i)
                 continue
-            if img.shape[:2] != (self.height, self.width):
-                h, w = img.shape[:2]
-                if (w, h) not in self._sizes:
-                    self._sizes.add((w, h))
-                    log.warning(
-                        "bag %s: %dx%d frames on %s are resized to the first frame's %dx%d",
-                        self.path,
-                        w,
-                        h,
-                        self.topic,
-                        self.width,
-                        self.height,
-                    )
-                self.resized += 1
-                img = cv2.resize(img, (self.width, self.height), interpolation=cv2.INTER_AREA)
             name = f"{i:06d}"
             self._headers[name] = header
             if len(self._headers) > _HEADERS_KEPT:

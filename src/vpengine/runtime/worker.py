@@ -37,6 +37,10 @@ has a graph for every batch size up to its lanes), and each frame's outputs are 
 with its camera's tag. When the model cannot keep up (its last batch took longer
 than the cameras' frame interval), the camera last in the configured order leaves its frame for the next batch,
 counted ``deferred`` (never twice in a row, so no camera starves): the first cameras keep their rate and latency.
+The deferred frame stays pinned and unanswered, and runs in the next batch unless a newer frame of its camera is
+there by then (newest wins: the deferred one is then skipped and answered). A deferral is a guess from wall-clock
+averages and may be wrong (one slow batch under load is enough), so it must never cost a frame on its own: a caller
+that waits for every frame (lockstep pacing) gets every output, only a batch later.
 With one camera nothing of this runs: the model takes its frames one by one as before (and may take them from the
 submitting thread, Note [Inline launch]).
 
@@ -173,6 +177,7 @@ class WorkerCore:
         self._thread: int | None = None  # the thread running the loop (Note [Launch path])
         self._spare: SlotInfo | None = None  # the output slot an armed worker offers
         self._batch_s = 0.0  # moving average of how long a batch takes (Note [Cameras])
+        self._held: dict[int, SlotInfo] = {}  # lane tag -> its deferred frame, pinned, admitted (Note [Cameras])
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
         # Note [Cameras]: the frames of a batch are copied into preallocated buffers of one frame per lane
@@ -209,6 +214,8 @@ class WorkerCore:
                 self._loop(should_stop)
         finally:
             self._drop_spare()
+            for tag in list(self._held):
+                self._drop_held(tag)
 
     def _loop(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
@@ -253,12 +260,15 @@ class WorkerCore:
             lane.gate.update(ctl.rate(lane.entry))
             if not lane.gate.paused:
                 active.append(lane)
+            if lane.tag in self._held and (lane.gate.paused or lane.reader.available()):
+                self._drop_held(lane.tag)  # paused since, or a newer frame of its camera came: newest wins
         if not active:
             ctl.set_state(self.name, PAUSED)
             ctl.wait_control(self.name, self.poll_s)
             return
         ctl.set_state(self.name, RUNNING)
-        pins: dict[int, SlotInfo] = {}
+        held, self._held = self._held, {}
+        pins: dict[int, SlotInfo] = dict(held)
         try:
             if not self._pin_ready(active, pins):
                 self._in_ring.wait_any([lane.reader for lane in active], self.poll_s, self._should_stop)
@@ -279,14 +289,27 @@ class WorkerCore:
             admitted = []
             for lane in self.lanes:  # in priority order
                 slot = pins.get(lane.tag)
-                if slot is not None:
+                if slot is not None and lane.tag in held:  # deferred by the last batch: admitted then
+                    admitted.append(slot)
+                elif slot is not None:
                     lane.arrived(slot.t_submit)
                     if self._admit(slot, lane.gate.hz):  # a rate set while it waited decides
                         admitted.append(slot)
             self._run_batch(self._defer(admitted))
         finally:
             for tag, slot in pins.items():
-                self._by_tag[tag].reader.release(slot)
+                if tag not in self._held:
+                    self._by_tag[tag].reader.release(slot)
+
+    def _drop_held(self, tag: int) -> None:
+        """Give up lane ``tag``'s deferred frame: counted skipped, answered, unpinned."""
+        slot = self._held.pop(tag)
+        lane = self._by_tag[tag]
+        try:
+            self.control.add(lane.entry, "skipped")
+            self.control.decide(lane.entry, slot.origin, ran=False)
+        finally:
+            lane.reader.release(slot)
 
     def _pin_ready(self, lanes: list[_Lane], pins: dict[int, SlotInfo]) -> bool:
         """Pin each lane's next frame that is there; whether any is pinned."""
@@ -299,7 +322,7 @@ class WorkerCore:
 
     def _defer(self, admitted: list[SlotInfo]) -> list[SlotInfo]:
         """Note [Cameras]: while the model cannot keep up, the last camera in priority order leaves its frame for
-        the next batch (counted skipped and deferred, answered at once), never twice in a row."""
+        the next batch (counted deferred, kept pinned in ``_held``, not answered), never twice in a row."""
         if len(admitted) < 2 or self._batch_s <= 0:
             return admitted
         intervals = [lane.interval for lane in self.lanes if lane.interval > 0]
@@ -311,8 +334,7 @@ class WorkerCore:
             return admitted
         last.deferred = True
         self.control.add(last.entry, "deferred")
-        self.control.add(last.entry, "skipped")
-        self.control.decide(last.entry, admitted[-1].origin, ran=False)
+        self._held[last.tag] = admitted[-1]
         return admitted[:-1]
 
     def _run_batch(self, slots: list[SlotInfo]) -> None:

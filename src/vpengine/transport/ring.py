@@ -277,6 +277,11 @@ class SlotRing:
             raise KeyError(f"ring {self.name!r} has no reader {name!r}; readers: {list(self._reader_index)}")
         return RingReader(self, self._reader_index[name])
 
+    def slot_tag(self, i: int) -> int:
+        """The tag slot ``i`` was last published with (Note [Tagged slots]); for a pin filter (``Accept``), which
+        runs under the ring's lock."""
+        return self._q[self._slot(i) + _S_TAG]
+
     # ------------------------------------------------------------------------------------------- internals
     def _slot(self, i: int) -> int:
         return _SLOTS + i * _SF
@@ -617,11 +622,13 @@ class RingReader:
             return None
         return best
 
-    def pin_origin(self, origin: int) -> tuple[SlotInfo | None, int]:
+    def pin_origin(self, origin: int, tag: int | None = None) -> tuple[SlotInfo | None, int]:
         """Pin (peek, no accounting) the published slot derived from input ``origin``, if still there.
 
         Returns ``(slot or None, newest origin published so far)``; a newest origin past ``origin`` with no slot
-        means the frame was skipped or already overwritten.
+        means the frame was skipped or already overwritten. ``tag``: the newest among that camera's slots only
+        (Note [Tagged slots]): the cameras' frames are published each in its own order, not in one, so another
+        camera's newer frame says nothing about this one.
         """
         ring, q = self.ring, self.ring._q
         b = self._b
@@ -635,7 +642,8 @@ class RingReader:
                 if q[sb + _S_STATE] != _PUBLISHED:
                     continue
                 o = q[sb + _S_ORIGIN]
-                newest = max(newest, o)
+                if tag is None or q[sb + _S_TAG] == tag:
+                    newest = max(newest, o)
                 if o == origin:
                     found = i
             if found is None:

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from vpengine.visualize import head_kind
-from vpengine.web.pictures import FrameLookup, Pictures
+from vpengine.web.pictures import FrameLookup, Pictures, in_frame_grid
 from vpengine.web.server import is_loopback
 
 log = logging.getLogger("vpengine.web")
@@ -175,9 +175,10 @@ class FoxgloveView:
             if boxes is not None and boxes.has_sinks():
                 result = engine.latest(head)
                 if result is not None and result.seq == pic.seq:  # the boxes of the picture's own result
-                    scale = pic.width / engine.config.input.width
+                    scale = pic.width / result.frame_size[1]  # the picture's frame grid (Note [Pictures and frames])
                     labels = engine.head_info(head).get("labels")
-                    boxes.log(image_annotations(result.outputs, labels, scale, pic.capture_time), log_time=t_ns)
+                    outputs = in_frame_grid(result, dict(result.outputs))
+                    boxes.log(image_annotations(outputs, labels, scale, pic.capture_time), log_time=t_ns)
                     self.sent += 1
 
     def stop(self) -> None:

@@ -8,6 +8,11 @@ feeds the engine (``vpengine run``'s loop, the ROS 2 core) keeps recent frames b
 nothing (a dark canvas of the frame's size): never on the newest frame, which would pair a result with a frame it
 was not computed from. ``Picture.on_frame`` says which it was.
 
+The picture is drawn in the result's frame's own grid (``Result.frame_size``, Note [Frame grid] in boundary.py),
+never in the config's input size: a frame of another size than the input gets its overlays at its own size, and a
+head that keeps the native grid (``Result.grid == "native"``) has its outputs mapped to the frame by
+``Result.placement`` first. A kept frame of another size than the result's is not its frame.
+
 Cost: nothing runs until a picture is requested. A request takes the head's newest result borrowed (no copy of
 its outputs, Note [Borrowed results] in ``engine.py``), draws at the requested width (shrinking first, so a 1080p
 overlay costs what a 640-pixel one does) and encodes. One lock serialises the drawing, so any number of viewers use
@@ -48,6 +53,7 @@ class Picture:
     width: int  # of the picture, in pixels
     asked: int  # the width asked for (the picture is narrower when the frame is)
     made_at: float  # time.monotonic()
+    camera: str | None = None  # the camera asked for (None: the newest of any camera's)
 
 
 def _host(value: Any) -> Any:
@@ -110,6 +116,19 @@ def render(
     return None
 
 
+#: How each output ``render`` draws lies in the canvas grid (Note [Frame grid] in boundary.py)
+_GRID_KINDS = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
+
+
+def in_frame_grid(result: Any, outputs: dict[str, Any]) -> dict[str, Any]:
+    """``outputs`` (host arrays) of ``result`` in its frame's grid: those of a head that keeps the native grid are
+    mapped by the result's placement (Note [Pictures and frames])."""
+    placement = result.placement
+    if result.grid != "native" or placement is None or placement.identity:
+        return outputs
+    return {k: placement.to_frame(_GRID_KINDS[k], v) if k in _GRID_KINDS else v for k, v in outputs.items()}
+
+
 class Pictures:
     """JPEGs of heads' newest results for a running engine (Note [Pictures and frames])."""
 
@@ -122,15 +141,15 @@ class Pictures:
         self.frame_color = frame_color
         self.min_interval = 1.0 / max_hz
         self._lock = threading.Lock()
-        self._cache: dict[str, Picture] = {}  # head -> its newest picture (at the width asked for last)
+        # (camera, head) -> its newest picture (at the width asked for last); camera None: of any camera
+        self._cache: dict[tuple[str | None, str], Picture] = {}
         self._infos: dict[str, dict[str, Any]] = {}
         self.made = 0  # pictures drawn and encoded (not served from the cache)
 
     def _info(self, engine: Any, head: str) -> dict[str, Any]:
         info = self._infos.get(head)
         if info is None:
-            inp = engine.config.input
-            info = self._infos[head] = {**engine.head_info(head), "frame_size": (inp.height, inp.width)}
+            info = self._infos[head] = engine.head_info(head)
         return info
 
     def _frame(self, frame_id: int) -> np.ndarray | None:
@@ -144,27 +163,34 @@ class Pictures:
             return None
         return frame[..., ::-1] if self.frame_color == "rgb" else frame
 
-    def latest(self, engine: Any, head: str, width: int = DEFAULT_WIDTH) -> Picture | None:
+    def latest(
+        self, engine: Any, head: str, width: int = DEFAULT_WIDTH, camera: str | None = None
+    ) -> Picture | None:
         """The newest picture of ``head`` at most ``width`` pixels wide (KeyError for an unknown head), or None while
-        it has no result (or no picture: a ``generic`` head). A picture younger than ``1 / max_hz`` comes back as it
-        is, whatever its width."""
+        it has no result (or no picture: a ``generic`` head). ``camera``: of that camera's frames (ValueError for one
+        the head does not serve); None: the newest of any camera's. A picture younger than ``1 / max_hz`` comes
+        back as it is, whatever its width."""
         import cv2
 
+        key = (camera, head)
         with self._lock:
-            cached = self._cache.get(head)
+            cached = self._cache.get(key)
             now = time.monotonic()
             if cached is not None and now - cached.made_at < self.min_interval:
                 return cached
             info = self._info(engine, head)
-            result = engine.latest(head, copy=False)  # borrowed: nothing copied (Note [Borrowed results])
+            # borrowed: nothing copied (Note [Borrowed results])
+            result = engine.latest(head, copy=False, camera=camera)
             if result is None:
                 return None
             if cached is not None and cached.seq == result.seq and cached.asked == width:
                 return cached
+            size = tuple(result.frame_size)
             frame = self._frame(result.frame_id)
-            if frame is not None and frame.shape[:2] != tuple(info["frame_size"]):
-                frame = None  # not the frame these outputs were mapped to
-            image = render(info, {k: _host(v) for k, v in result.outputs.items()}, frame, width)
+            if frame is not None and frame.shape[:2] != size:
+                frame = None  # not the frame these outputs were computed from
+            outputs = in_frame_grid(result, {k: _host(v) for k, v in result.outputs.items()})
+            image = render({**info, "frame_size": size}, outputs, frame, width)
             if image is None:
                 return None
             ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])
@@ -181,8 +207,9 @@ class Pictures:
                 image.shape[1],
                 width,
                 time.monotonic(),
+                camera,
             )
             del result  # the borrowed slot goes back to the engine
-            self._cache[head] = pic
+            self._cache[key] = pic
             self.made += 1
             return pic

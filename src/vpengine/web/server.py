@@ -5,7 +5,9 @@
     GET  /                       the page (no build step, nothing from the internet)
     GET  /api/stats              Engine.stats() as JSON (NaN as null)
     PUT  /api/rate/<model>       {"hz": 5} | {"hz": null} (unlimited) | {"hz": 0} (pause); 400 with the reason
-    GET  /api/latest/<head>.jpg  the head's newest result as a picture (?width=N, default 640); 204 before its first
+    GET  /api/latest/<head>.jpg  the head's newest result as a picture (?width=N, default 640; ?camera=NAME, default
+                                 the first camera the head serves; 400 naming the cameras for an unknown one); 204
+                                 before its first
     GET  /metrics                Prometheus text format (``vpengine_*``)
 
 The stack is the standard library's threading HTTP server: five routes and a thread per connection need no
@@ -351,9 +353,17 @@ class _Handler(BaseHTTPRequestHandler):
             if not 16 <= width <= 8192:
                 raise _HttpError(HTTPStatus.BAD_REQUEST, f"width must be an integer in 16..8192, got {query['width'][0]!r}")
         try:
-            pic = self.view.pictures.latest(eng, head, width)
+            eng.head_info(head)  # KeyError for an unknown head
+            served = eng.config.model_cameras(head)
         except KeyError as e:
             raise _HttpError(HTTPStatus.NOT_FOUND, str(e.args[0])) from None
+        # Note [Pictures and frames]: one picture per camera and head, never the newest of any camera's
+        camera = query["camera"][0] if "camera" in query else served[0]
+        if camera not in eng.cameras:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, f"no camera named {camera!r}; cameras: {eng.cameras}")
+        if camera not in served:
+            raise _HttpError(HTTPStatus.NOT_FOUND, f"{head!r} serves cameras {served}, not {camera!r}")
+        pic = self.view.pictures.latest(eng, head, width, camera)
         if pic is None:
             self._send(HTTPStatus.NO_CONTENT, b"", "image/jpeg")
             return
@@ -363,6 +373,7 @@ class _Handler(BaseHTTPRequestHandler):
             "image/jpeg",
             extra={
                 "X-Frame-Id": str(pic.frame_id),
+                "X-Camera": camera,
                 "X-Capture-Time": f"{pic.capture_time:.6f}",
                 "X-Latency-Ms": f"{pic.latency * 1e3:.2f}",
                 "X-On-Frame": "1" if pic.on_frame else "0",

@@ -1,0 +1,112 @@
+"""Note [Cameras], the worker side: a frame the model leaves for the next batch (it guessed it cannot keep up) is
+kept, runs in the next batch and is answered then; only a newer frame of its camera replaces it. Driven one batch
+at a time on real rings, the guess forced, so nothing depends on timing."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+
+from tests_paths import tiny
+from vpengine.runtime.control import ControlBlock, camera_entry, control_names
+from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.worker import WorkerCore, WorkerSpec
+from vpengine.specs import TensorSpec
+from vpengine.transport.ring import ReaderDecl, SlotRing
+
+CAMERAS = ["front", "rear"]
+X, F = {"x": TensorSpec((4,), "float32")}, {"f": TensorSpec((4,), "float32")}
+
+
+@pytest.fixture()
+def worker():
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]")
+    readers = [ReaderDecl(f"foundation@{c}", tag=i) for i, c in enumerate(CAMERAS)]
+    in_ring = SlotRing.create("input", X, 5, readers, n_tags=2)
+    out_ring = SlotRing.create("features", F, 5, [ReaderDecl("peek")], n_tags=2)
+    control = ControlBlock.create(control_names({"foundation": CAMERAS}, CAMERAS))
+    spec = WorkerSpec(
+        name="foundation",
+        role="foundation",
+        config=cfg.model_dump(mode="json"),
+        upstream={},
+        upstream_meta={},
+        in_ring=in_ring.desc,
+        in_reader="foundation",
+        out_ring=out_ring.desc,
+        notify_output=False,
+    )
+    core = WorkerCore(spec, lambda inputs: {"f": inputs["x"] * 2}, F, in_ring, out_ring, control, DeviceContext("cpu"))
+    writer = in_ring.writer()
+
+    def submit(camera: str, value: float) -> int:
+        slot = writer.acquire(timeout=1.0)
+        assert slot is not None
+        slot.tensors["x"].fill_(value)
+        now = time.monotonic()
+        return writer.publish(slot, int(value), now, now, tag=CAMERAS.index(camera))
+
+    def overloaded() -> None:
+        """The model's last batches took longer than the cameras' frames come: it defers the last camera."""
+        core._batch_s = 1.0
+        for lane in core.lanes:
+            lane.interval = 0.01
+
+    def outputs() -> dict[int, float]:
+        """origin -> the value the model wrote for it, of every output in the ring."""
+        peek = out_ring.reader("peek")
+        found = {}
+        for origin in range(1, in_ring.last_seq + 1):
+            slot, _ = peek.pin_origin(origin)
+            if slot is not None:
+                found[origin] = slot.tensors["f"][0].item()
+                peek.release(slot)
+        return found
+
+    def entry(camera: str, key: str) -> int:
+        return control.get(camera_entry("foundation", camera, CAMERAS), key)
+
+    yield core, submit, overloaded, outputs, entry
+    core.run(lambda: True)  # leaves at once, letting go of what it holds
+    assert set(in_ring.pins().values()) == {-1}, in_ring.pins()  # -1: pins nothing
+    in_ring.close()
+    out_ring.close()
+
+
+def test_a_deferred_frame_is_not_answered_and_runs_in_the_next_batch(worker):
+    core, submit, overloaded, outputs, entry = worker
+    front, rear = submit("front", 1.0), submit("rear", 2.0)
+    overloaded()
+    core._take_batch()
+    assert outputs() == {front: 2.0} and entry("rear", "deferred") == 1
+    assert entry("rear", "decided") < rear  # not answered: a caller waiting for it keeps waiting
+    core._take_batch()  # nothing new came: the next batch is the deferred frame
+    assert outputs() == {front: 2.0, rear: 4.0}
+    assert entry("rear", "decided") == entry("rear", "last_run") == rear
+    assert entry("rear", "runs") == 1 and entry("rear", "skipped") == 0
+
+
+def test_a_newer_frame_of_its_camera_replaces_a_deferred_one_which_is_answered_skipped(worker):
+    core, submit, overloaded, outputs, entry = worker
+    submit("front", 1.0)
+    old = submit("rear", 2.0)
+    overloaded()
+    core._take_batch()
+    new = submit("rear", 3.0)  # newest wins
+    core._take_batch()
+    assert old not in outputs() and outputs()[new] == 6.0
+    assert entry("rear", "skipped") == 1 and entry("rear", "runs") == 1
+    assert entry("rear", "decided") == entry("rear", "last_run") == new
+
+
+def test_a_deferred_frame_of_a_camera_paused_since_is_answered_and_let_go(worker):
+    core, submit, overloaded, outputs, entry = worker
+    submit("front", 1.0)
+    rear = submit("rear", 2.0)
+    overloaded()
+    core._take_batch()
+    core.control.set_rate(camera_entry("foundation", "rear", CAMERAS), 0.0)
+    core.poll_s = 0.01
+    core._take_batch()
+    assert rear not in outputs() and entry("rear", "decided") == rear and entry("rear", "skipped") == 1

@@ -176,9 +176,7 @@ class Boundary:
         if inp.color == "bgr":
             mean = mean[::-1]
         # the padding is the normalisation mean: zero once normalised
-        self.pad = (
-            (mean * 255).round().astype(self.dtype) if self.dtype == np.uint8 else mean.astype(self.dtype)
-        )
+        self.pad = (mean * 255).round().astype(self.dtype) if self.dtype == np.uint8 else mean.astype(self.dtype)
         self.kinds = {h: output_kinds(meta, spec, self.canvas_hw) for h, (meta, spec) in heads.items()}
         self.native = {h.name for h in cfg.heads if h.output.grid == "native"}
         self._placements: dict[tuple[int, int], Placement] = {}

@@ -33,9 +33,7 @@ class ConfigError(ValueError):
 class _Strict(BaseModel):
     # NaN and infinity are refused in every number field: a NaN normalisation ruins every output, an infinite
     # timeout makes stop() unbounded.
-    model_config = ConfigDict(
-        extra="forbid", validate_assignment=True, protected_namespaces=(), allow_inf_nan=False
-    )
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, protected_namespaces=(), allow_inf_nan=False)
 
 
 class InputConfig(_Strict):
@@ -53,9 +51,7 @@ class InputConfig(_Strict):
     max_frame_side: int = Field(
         8192, ge=14, le=65536, description="Largest frame height or width accepted; larger frames are refused."
     )
-    color: Literal["bgr", "rgb"] = Field(
-        "bgr", description="Channel order of submitted frames (OpenCV gives BGR)."
-    )
+    color: Literal["bgr", "rgb"] = Field("bgr", description="Channel order of submitted frames (OpenCV gives BGR).")
     dtype: Literal["uint8", "float32"] = Field(
         "uint8", description="Pixel type: uint8 0..255, or float32 0..1 (checked for NaN/inf at submit)."
     )
@@ -69,9 +65,7 @@ class PreprocessConfig(_Strict):
         description="aspect: short side to `size`, long side scaled and rounded to the patch multiple (1920x1080 -> "
         "924x518); square: `size` x `size` (the paper's setting, distorts the image); none: crop to the patch multiple.",
     )
-    size: int = Field(
-        518, ge=14, le=8192, description="Target short side (aspect) or side (square) in pixels."
-    )
+    size: int = Field(518, ge=14, le=8192, description="Target short side (aspect) or side (square) in pixels.")
 
 
 class ModelConfig(_Strict):
@@ -81,16 +75,12 @@ class ModelConfig(_Strict):
     checkpoint: str | None = Field(
         None, description="Checkpoint file path or catalog weight name; null: the recipe's default weights."
     )
-    options: dict[str, Any] = Field(
-        default_factory=dict, description="Recipe options (validated by the recipe)."
-    )
+    options: dict[str, Any] = Field(default_factory=dict, description="Recipe options (validated by the recipe).")
     rate_hz: float | None = Field(
         None,
         description="Rate limit in Hz; null: as fast as new data arrives; 0: paused. Changeable at run time.",
     )
-    backend: Backend = Field(
-        "eager", description="Execution backend: eager PyTorch, torch.compile, ONNX Runtime."
-    )
+    backend: Backend = Field("eager", description="Execution backend: eager PyTorch, torch.compile, ONNX Runtime.")
     backend_options: dict[str, Any] = Field(
         default_factory=dict,
         description="Options of the backend (validated by it, see vpengine/backends/options.py), e.g. compile: "
@@ -174,45 +164,33 @@ class CameraConfig(_Strict):
     @classmethod
     def _name(cls, v: str) -> str:
         if not _NAME_RE.match(v):
-            raise ValueError(
-                f"camera name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)"
-            )
+            raise ValueError(f"camera name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)")
         return v
 
 
 class HeadConfig(ModelConfig):
     """One task head reading the foundation model's features."""
 
-    name: str = Field(
-        ..., description="Unique head name (letters, digits, _ and -), used in results and topics."
-    )
+    name: str = Field(..., description="Unique head name (letters, digits, _ and -), used in results and topics.")
     cameras: list[str] | None = Field(
         None, description="The cameras this head serves, by name; null: every camera. Its rate is per camera."
     )
-    postprocess: dict[str, Any] = Field(
-        default_factory=dict, description="Postprocessing options of the recipe."
-    )
+    postprocess: dict[str, Any] = Field(default_factory=dict, description="Postprocessing options of the recipe.")
     output: OutputConfig = Field(default_factory=OutputConfig)  # type: ignore[arg-type]
 
     @field_validator("name")
     @classmethod
     def _name(cls, v: str) -> str:
         if not _NAME_RE.match(v):
-            raise ValueError(
-                f"head name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)"
-            )
+            raise ValueError(f"head name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)")
         return v
 
 
 class RuntimeConfig(_Strict):
     """Supervision and timing."""
 
-    ready_timeout_s: float = Field(
-        300.0, gt=0, le=86400, description="How long a worker may take to load and warm up."
-    )
-    stop_timeout_s: float = Field(
-        3.0, gt=0, le=600, description="Grace time at stop before workers are terminated."
-    )
+    ready_timeout_s: float = Field(300.0, gt=0, le=86400, description="How long a worker may take to load and warm up.")
+    stop_timeout_s: float = Field(3.0, gt=0, le=600, description="Grace time at stop before workers are terminated.")
     max_restarts: int = Field(
         5,
         ge=0,
@@ -248,9 +226,7 @@ class LoggingConfig(_Strict):
 class WeightsConfig(_Strict):
     """Where checkpoints come from. Nothing is downloaded unless the catalog names it and offline is false."""
 
-    offline: bool = Field(
-        False, description="Never download; a missing checkpoint is an error naming its path."
-    )
+    offline: bool = Field(False, description="Never download; a missing checkpoint is an error naming its path.")
     random_weights: bool = Field(
         False, description="Use random weights instead of checkpoints (tests, benchmarks). Loudly logged."
     )
@@ -508,9 +484,7 @@ def load_raw(path: str | Path) -> dict[str, Any]:
     if data is None:
         data = {}
     if not isinstance(data, dict):
-        raise ConfigError(
-            f"config file {str(path)!r} must hold a mapping at the top level, got {type(data).__name__}"
-        )
+        raise ConfigError(f"config file {str(path)!r} must hold a mapping at the top level, got {type(data).__name__}")
     return data
 
 

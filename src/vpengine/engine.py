@@ -212,9 +212,7 @@ class FrameSlot:
                 except BaseException:
                     eng._input_writer.abort(slot)
                     raise
-            self.frame_id = eng._publish_input(
-                slot, self._frame_id_arg, t_capture, t_submit, placement, self._camera
-            )
+            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit, placement, self._camera)
         finally:
             eng._filling = None
             eng._submit_lock.release()
@@ -414,9 +412,7 @@ class Engine:
     def _require_running(self) -> None:
         if self._state != "running":
             raise EngineDeadError(
-                f"engine is {self._state}; call start() first"
-                if self._state == "planned"
-                else "engine is stopped"
+                f"engine is {self._state}; call start() first" if self._state == "planned" else "engine is stopped"
             )
         ctl = self._res.control
         if ctl is not None and ctl.state("foundation") == "failed":
@@ -577,9 +573,7 @@ class Engine:
         return self._outbox.latest(head, copy, tag)
 
     @_fenced
-    def results(
-        self, timeout: float = 0.0, heads: list[str] | None = None, copy: bool = True
-    ) -> list[Result]:
+    def results(self, timeout: float = 0.0, heads: list[str] | None = None, copy: bool = True) -> list[Result]:
         """Every output published since the previous call, oldest first; waits up to ``timeout`` for at least one.
 
         The first call starts the stream (earlier outputs are not returned). Call it regularly: if it falls
@@ -609,9 +603,7 @@ class Engine:
         timeout = checks.timeout(timeout)
         known = self._origins.get(int(frame_id))
         if known is None:
-            raise ValueError(
-                f"frame id {frame_id} was not submitted (or is older than the last {_ORIGINS_KEPT})"
-            )
+            raise ValueError(f"frame id {frame_id} was not submitted (or is older than the last {_ORIGINS_KEPT})")
         origin, camera = known
         return self._outbox.wait(origin, camera, frame_id, heads, timeout, copy, lambda: self._state == "running")
 

@@ -64,9 +64,7 @@ def default_palette(n: int, seed: int = 3) -> np.ndarray:
     i = np.arange(max(n, 1))
     # hues a golden angle (0.382 of a turn) apart; OpenCV's hue is 0..180
     hue = ((seed * 0.137 + i * 0.381966) % 1.0) * 180
-    sat = np.where((i // 3) % 2 == 0, 235, 170) - 12 * (
-        (i // 6) % 3
-    )  # the later terms keep 256 colours apart
+    sat = np.where((i // 3) % 2 == 0, 235, 170) - 12 * ((i // 6) % 3)  # the later terms keep 256 colours apart
     val = np.array([255, 205, 155])[i % 3] - 12 * ((i // 18) % 3)
     hsv = np.stack([hue, sat, val], -1).astype(np.uint8).reshape(-1, 1, 3)
     pal = np.ascontiguousarray(cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR).reshape(-1, 3))
@@ -122,13 +120,9 @@ def overlay_segmentation(
     import cv2
 
     if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(
-            f"overlay_segmentation needs a uint8 (H, W, 3) image, got {image.dtype} {image.shape}"
-        )
+        raise ValueError(f"overlay_segmentation needs a uint8 (H, W, 3) image, got {image.dtype} {image.shape}")
     n = int(classes.max()) + 1 if classes.size else 1
-    pal = np.asarray(
-        palette if palette is not None and len(palette) >= n else default_palette(max(n, 256)), np.uint8
-    )
+    pal = np.asarray(palette if palette is not None and len(palette) >= n else default_palette(max(n, 256)), np.uint8)
     if classes.dtype == np.uint8 and len(pal) != 256:  # ids < n <= len(pal): the table's other rows go unused
         table = np.zeros((256, 3), np.uint8)
         table[: min(len(pal), 256)] = pal[:256]

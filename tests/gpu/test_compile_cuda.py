@@ -63,9 +63,7 @@ def assert_same_results(name: str, got: dict, want: dict, rtol: float, what: str
         assert g.dtype == w.dtype and g.shape == w.shape, f"{what}: {k}"
         if w.dtype.is_floating_point:
             scale = w.float().abs().max().item()
-            torch.testing.assert_close(
-                g, w, rtol=rtol, atol=rtol * scale, msg=lambda m, k=k: f"{what}: {k}: {m}"
-            )
+            torch.testing.assert_close(g, w, rtol=rtol, atol=rtol * scale, msg=lambda m, k=k: f"{what}: {k}: {m}")
     if name == "seg":
         differ = (got["classes"] != want["classes"]).float().mean().item()
         assert differ <= 1e-3, f"{what}: {differ:.3%} of pixels differ"
@@ -355,9 +353,7 @@ def test_onnx_on_cuda_runs_on_the_cuda_provider_or_says_what_is_missing(tmp_path
 
     cfg = tiny("thread", "device=cuda")
     if "CUDAExecutionProvider" not in ort.get_available_providers():
-        with pytest.raises(
-            BackendError, match=r"needs ONNX Runtime's CUDAExecutionProvider.*onnxruntime-gpu"
-        ):
+        with pytest.raises(BackendError, match=r"needs ONNX Runtime's CUDAExecutionProvider.*onnxruntime-gpu"):
             make_executor(build(cfg, "foundation"), "onnx", CUDA, "foundation", cache_dir=tmp_path)
         return
     worker = torch.cuda.Stream()
@@ -403,9 +399,7 @@ def test_engine_with_compiled_models_on_cuda_matches_eager(mode):
     for i in range(5):
         got, want = runs["compile"][i], runs["eager"][i]
         scale = np.abs(want["depth"]["depth"]).max()
-        np.testing.assert_allclose(
-            got["depth"]["depth"], want["depth"]["depth"], rtol=1e-4, atol=1e-4 * scale
-        )
+        np.testing.assert_allclose(got["depth"]["depth"], want["depth"]["depth"], rtol=1e-4, atol=1e-4 * scale)
         assert (got["seg"]["classes"] != want["seg"]["classes"]).mean() <= 1e-3
         keep_g = got["det"]["scores"] > THRESHOLD + 1e-3
         keep_w = want["det"]["scores"] > THRESHOLD + 1e-3

@@ -68,9 +68,7 @@ def test_vmm_region_is_shared_between_processes_without_copies():
         assert kind == "written"
         n = region.tensor().numel() // 4
         got = region.tensor().view(torch.int32)[:n]
-        assert torch.equal(
-            got, torch.arange(n, dtype=torch.int32, device="cuda") * 7
-        )  # the child's writes, here
+        assert torch.equal(got, torch.arange(n, dtype=torch.int32, device="cuda") * 7)  # the child's writes, here
         conn.send("done")
         proc.wait(30)
         assert proc.returncode == 0
@@ -108,9 +106,7 @@ def test_device_memory_is_flat_between_frame_1000_and_10000(mode):
         st = e.stats()
     assert all(v is not None for v in samples[1000].values()), f"NVML did not report every process: {samples}"
     assert samples[1000] == samples[10000], f"device memory changed: {samples}"
-    assert all(m["runs"] >= 10000 for m in st["models"].values()), {
-        k: m["runs"] for k, m in st["models"].items()
-    }
+    assert all(m["runs"] >= 10000 for m in st["models"].values()), {k: m["runs"] for k, m in st["models"].items()}
 
 
 def test_thread_mode_host_mailboxes_are_page_locked_so_gpu_copies_do_not_block_the_worker():
@@ -141,9 +137,7 @@ def test_stop_leaves_no_process_and_gives_the_device_memory_back():
     e.stop()
     time.sleep(1.0)
     after = device_memory_used(0)
-    assert not [
-        p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
-    ]
+    assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
     assert during > before
     assert abs(after - before) <= 4 * 2**20, f"device memory before {before}, after {after} (during {during})"
 

@@ -105,9 +105,7 @@ def test_results_and_latest_give_only_results_whose_device_work_is_done(slow_hea
                         i,
                         r.head,
                     )
-                    latest = e.latest(
-                        r.head
-                    )  # the newest that is there: this frame's (the next is not submitted)
+                    latest = e.latest(r.head)  # the newest that is there: this frame's (the next is not submitted)
                     assert latest is not None and latest.frame_id == fid, (r.head, latest)
         assert all(r["missed"] == 0 and r["delivered"] == 6 for r in e.stats()["results"].values())
 
@@ -130,9 +128,7 @@ def test_a_wait_does_not_sit_in_the_driver_past_its_timeout_for_a_result_due_lat
         assert set(res) == HEADS and all(r.latency > 0.09 for r in res.values())
 
 
-def test_the_default_wait_polls_for_each_result_near_its_predicted_end_and_catches_it(
-    slow_heads, monkeypatch
-):
+def test_the_default_wait_polls_for_each_result_near_its_predicted_end_and_catches_it(slow_heads, monkeypatch):
     caught: list[bool] = []
     poll = handoff.poll
 

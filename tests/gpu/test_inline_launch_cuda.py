@@ -36,9 +36,7 @@ def run(
 
 
 def close(a, b) -> bool:  # type: ignore[no-untyped-def]
-    return all(
-        np.allclose(a[i][h][k], b[i][h][k], rtol=1e-4, atol=1e-4) for i in a for h in a[i] for k in a[i][h]
-    )
+    return all(np.allclose(a[i][h][k], b[i][h][k], rtol=1e-4, atol=1e-4) for i in a for h in a[i] for k in a[i][h])
 
 
 @pytest.mark.usefixtures("inductor_in_process")

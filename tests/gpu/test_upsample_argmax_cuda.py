@@ -91,9 +91,7 @@ def test_candidate_classes_on_smooth_logits_give_the_same_map_faster():
     assert_argmax_of(out, up, best, tol=tolerance(logits), at_most=1e-5)
     fast = _median_ms(lambda: kernel.launch(logits, out))
     slow = _median_ms(lambda: kernel.launch(logits, every, max_candidates=0))
-    print(
-        f"smooth logits, 150 classes at 1080p: {fast:.3f} ms with candidates, {slow:.3f} ms searching every class"
-    )
+    print(f"smooth logits, 150 classes at 1080p: {fast:.3f} ms with candidates, {slow:.3f} ms searching every class")
     assert fast < 0.5 * slow, (fast, slow)
 
 

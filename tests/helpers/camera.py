@@ -12,9 +12,7 @@ import numpy as np
 class FakeCamera:
     """A ``cv2.VideoCapture`` stand-in: ``read`` blocks until the test delivers the next frame (frame i is all i)."""
 
-    def __init__(
-        self, end_at: int | None = None, fail_at: int | None = None, width: int = 8, height: int = 6
-    ) -> None:
+    def __init__(self, end_at: int | None = None, fail_at: int | None = None, width: int = 8, height: int = 6) -> None:
         self.width, self.height = width, height
         self.ready = threading.Semaphore(0)
         self.i = 0

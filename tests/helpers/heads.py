@@ -33,9 +33,7 @@ def head_config(
     )
 
 
-def upstream(
-    grid: tuple[int, int], dim: int, dtype: str = "float32"
-) -> tuple[dict[str, Any], dict[str, Any]]:
+def upstream(grid: tuple[int, int], dim: int, dtype: str = "float32") -> tuple[dict[str, Any], dict[str, Any]]:
     """The feature specs and meta of a ``dim``-wide backbone on a ``grid`` of 14-pixel tokens."""
     return feature_specs(grid[0] * grid[1], dim, dtype), {"grid": grid, "patch_size": 14, "embed_dim": dim}
 

@@ -57,9 +57,7 @@ def test_run_on_the_street_video_writes_every_heads_outputs_and_a_summary(tmp_pa
 
     depth = load_depth(out / "depth", "000200")  # a 16-bit PNG and its scale (Note [Depth PNG])
     assert depth.shape == (576, 768) and depth.dtype == np.float32 and np.isfinite(depth).all()
-    assert sorted(p.name for p in (out / "depth").glob("*.png")) == [
-        f"{i:06d}.png" for i in (0, 200, 400, 600)
-    ]
+    assert sorted(p.name for p in (out / "depth").glob("*.png")) == [f"{i:06d}.png" for i in (0, 200, 400, 600)]
     assert not s["interrupted"] and s["inputs_skipped"] == []
     import cv2
 
@@ -219,9 +217,7 @@ def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path,
     err = capsys.readouterr().err
     assert "config 'nope' is neither a file nor a shipped config; shipped (by name, e.g. -c tiny): " in err
     assert "dinov2s_depth_seg_det" in err and "Traceback" not in err
-    assert (
-        main(["run", "-c", "configs/tiny.yaml", "-s", "synthetic:64x64@30:3"]) == 1
-    )  # a path is never a name
+    assert main(["run", "-c", "configs/tiny.yaml", "-s", "synthetic:64x64@30:3"]) == 1  # a path is never a name
     assert "config 'configs/tiny.yaml' is neither a file nor a shipped config" in capsys.readouterr().err
 
 
@@ -369,9 +365,7 @@ def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path):
     for i in range(4):
         cv2.imwrite(str(frames / f"im{i}.png"), np.full((120, 160, 3), 50 * i, np.uint8))
     (frames / "im2.png").write_bytes(b"not an image")
-    p = vpengine(
-        "run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress"
-    )
+    p = vpengine("run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress")
     assert p.returncode == 0, p.stderr
     assert "images skipped as unreadable: 1 (listed in summary.json)" in p.stdout
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
@@ -392,9 +386,7 @@ def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path):
         cv2.imwrite(str(frames / f"im{i}.png"), np.full((h, w, 3), 70 * i, np.uint8))
     p = vpengine("predict", str(frames), "-o", str(tmp_path / "p"), "--mode", "thread", "--no-progress")
     assert p.returncode == 0, p.stderr
-    p = vpengine(
-        "run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress"
-    )
+    p = vpengine("run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress")
     assert p.returncode == 0, p.stderr
     for i, size in enumerate(sizes):
         assert load_depth(tmp_path / "o" / "depth", f"im{i}").shape == size

@@ -91,18 +91,14 @@ def test_full_hd_depth_maps_of_several_heads_arrive_exact():
     device = torch.device(cfg.device)
     plan = make_plan(cfg)
     fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, device, False)
-    heads = {
-        h: build_model(cfg, h, "head", plan.features, plan.feature_meta, device, False) for h in plan.heads
-    }
+    heads = {h: build_model(cfg, h, "head", plan.features, plan.feature_meta, device, False) for h in plan.heads}
     want = {}
     with torch.inference_mode():
         for name, frame in (("upright", img), ("flipped", flipped)):
             feats = fm({"frame": torch.from_numpy(frame).to(device)[None]})  # a batch of one frame
             for h, m in heads.items():
                 want[name, h] = m({k: feats[k] for k in m.input_spec})["depth"][0].cpu().numpy()
-    assert not np.array_equal(
-        want["upright", "depth"], want["upright", "depth1"]
-    )  # a swap of heads would show
+    assert not np.array_equal(want["upright", "depth"], want["upright", "depth1"])  # a swap of heads would show
 
     with Engine(cfg) as engine:
         kept = engine.wait(engine.submit(img), timeout=120)  # held through the frames below

@@ -95,7 +95,9 @@ def test_a_bag_in_and_out_gives_what_the_api_gives(tmp_path, image, api):
     assert d.header.stamp.sec == 5 and d.header.frame_id == "cam"
     depth = d.data.view(np.float32).reshape(1080, 1920)
     classes = s.data.reshape(1080, 1920)
-    centres = [(x.bbox.center.position.x, x.bbox.center.position.y, x.bbox.size_x, x.bbox.size_y) for x in det.detections]
+    centres = [
+        (x.bbox.center.position.x, x.bbox.center.position.y, x.bbox.size_x, x.bbox.size_y) for x in det.detections
+    ]
     boxes = np.asarray([[cx - w / 2, cy - h / 2, cx + w / 2, cy + h / 2] for cx, cy, w, h in centres], np.float32)
     boxes = boxes.reshape(-1, 4)
     np.testing.assert_allclose(depth, api["depth"]["depth"], rtol=1e-6)

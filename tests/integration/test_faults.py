@@ -53,10 +53,7 @@ def test_head_raising_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, 
         got = pump(e, 30)
         assert all(set(r) == {"depth", "det"} for r in got)  # the healthy heads never missed a beat
         wait_for(
-            lambda: (
-                e.stats()["models"]["seg"]["state"] == "running"
-                and e.stats()["models"]["seg"]["restarts"] == 1
-            ),
+            lambda: e.stats()["models"]["seg"]["state"] == "running" and e.stats()["models"]["seg"]["restarts"] == 1,
             what="seg restarted",
             show=lambda: e.stats()["models"]["seg"],
         )
@@ -149,9 +146,7 @@ def test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on(tm
 def test_hung_head_is_killed_and_restarted_by_the_hang_timeout(tmp_path, restart_backoff):
     cfg = faulty_cfg(tmp_path, hang_at_run=2, once_marker=None)
     restart_backoff(0.2)
-    cfg = cfg.model_copy(
-        update={"runtime": cfg.runtime.model_copy(update={"hang_timeout_s": 1.5, "max_restarts": 1})}
-    )
+    cfg = cfg.model_copy(update={"runtime": cfg.runtime.model_copy(update={"hang_timeout_s": 1.5, "max_restarts": 1})})
     with Engine(cfg) as e:
         pump(e, 3, heads=("depth",))
         wait_for(lambda: e.stats()["models"]["seg"]["crashes"] >= 1, timeout=20, what="hang detected")
@@ -178,9 +173,7 @@ def test_stop_returns_within_10_s_when_a_child_hangs_and_ignores_sigterm(tmp_pat
     t = time.monotonic()
     e.stop()
     assert time.monotonic() - t < 10
-    assert not [
-        p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
-    ]
+    assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
 
 
 PARENT = textwrap.dedent("""
@@ -206,9 +199,7 @@ def test_sigkill_of_the_parent_leaves_no_child_alive_after_5_s(tmp_path):
         proc.wait(5)
         t = time.monotonic()
         while time.monotonic() - t < 5:
-            alive = [
-                p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE
-            ]
+            alive = [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
             if not alive:
                 break
             time.sleep(0.05)

@@ -26,8 +26,7 @@ class Reference:
         self.device = torch.device(cfg.device)
         self.fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
         self.heads = {
-            n: build_model(cfg, n, "head", plan.features, plan.feature_meta, self.device, False)
-            for n in plan.heads
+            n: build_model(cfg, n, "head", plan.features, plan.feature_meta, self.device, False) for n in plan.heads
         }
 
     @torch.inference_mode()
@@ -59,9 +58,7 @@ def test_200_frames_three_heads_every_output_matches_its_frame():
     results = []
     with Engine(cfg) as e:
         e.results()  # start the stream
-        for i in range(
-            200
-        ):  # faster than the models: they skip frames, which must be counted, never mixed up
+        for i in range(200):  # faster than the models: they skip frames, which must be counted, never mixed up
             e.submit(frame(i), frame_id=5000 + i, timestamp=1000.0 + i)
             time.sleep(0.003)
             results += e.results()

@@ -36,9 +36,7 @@ def heads(*entries: str) -> str:
     for e in entries:
         name, _, opts = e.partition(":")
         out.append(
-            f"{{name: {name}, model: {FAULTY}, options: {opts}}}"
-            if opts
-            else f"{{name: {name}, model: tiny_depth}}"
+            f"{{name: {name}, model: {FAULTY}, options: {opts}}}" if opts else f"{{name: {name}, model: tiny_depth}}"
         )
     return "heads=[" + ", ".join(out) + "]"
 
@@ -247,9 +245,7 @@ def test_engines_dropped_without_stop_are_collected_and_leave_no_worker():
             gc.collect()
         assert [r() for r in refs] == [None] * n, mode
         assert not alive(pids), f"{mode}: workers of dropped engines alive: {alive(pids)}"
-        workers = [
-            t.name for t in set(threading.enumerate()) - threads_before if t.name.startswith("vpengine-")
-        ]
+        workers = [t.name for t in set(threading.enumerate()) - threads_before if t.name.startswith("vpengine-")]
         assert not workers, f"{mode}: threads of dropped engines alive: {workers}"
 
 
@@ -303,17 +299,12 @@ def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_wh
     with Engine(cfg) as e:
         pump_until(e, lambda: e.stats()["models"]["seg"]["state"] == "hung", "hang reported", every=0.2)
         seg = e.stats()["models"]["seg"]
-        assert (
-            seg["crashes"] == 1 and "hung for" in seg["last_error"] and "hang_timeout_s" in seg["last_error"]
-        )
+        assert seg["crashes"] == 1 and "hung for" in seg["last_error"] and "hang_timeout_s" in seg["last_error"]
         t = time.monotonic()
         got = e.wait(e.submit(frame(10)), timeout=10)  # a hung head is not waited for
         assert set(got) == {"depth"} and time.monotonic() - t < 2
         wait_for(
-            lambda: (
-                e.stats()["models"]["seg"]["state"] == "running"
-                and e.stats()["models"]["seg"]["restarts"] == 1
-            ),
+            lambda: e.stats()["models"]["seg"]["state"] == "running" and e.stats()["models"]["seg"]["restarts"] == 1,
             what="restart once its thread returned",
             show=lambda: e.stats()["models"]["seg"],
         )
@@ -328,26 +319,19 @@ def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_wh
     [("process", "exit_at_run"), ("thread", "raise_at_run")],
     ids=["process-os._exit(0)", "thread-raise"],
 )
-def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(
-    tmp_path, mode, fault, restart_backoff
-):
+def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(tmp_path, mode, fault, restart_backoff):
     opts = json.dumps({fault: 3, "once_marker": str(tmp_path / "once"), "sleep_ms": 20})
     restart_backoff(0.1)
     with Engine(tiny(mode, heads("depth", f"seg:{opts}"))) as e:
         pump_until(e, lambda: e.stats()["models"]["seg"]["restarts"] == 1, "seg died and was restarted")
         wait_for(
-            lambda: (
-                e.stats()["models"]["seg"]["restarts"] == 1
-                and e.stats()["models"]["seg"]["state"] == "running"
-            ),
+            lambda: e.stats()["models"]["seg"]["restarts"] == 1 and e.stats()["models"]["seg"]["state"] == "running",
             what="seg restarted",
             show=lambda: e.stats()["models"]["seg"],
         )
         fid = e.submit(frame(9))
         assert set(e.wait(fid, timeout=20)) == {"depth", "seg"}
-        wait_for(
-            lambda: accounted(e.stats()["models"]["seg"]), timeout=5, show=lambda: e.stats()["models"]["seg"]
-        )
+        wait_for(lambda: accounted(e.stats()["models"]["seg"]), timeout=5, show=lambda: e.stats()["models"]["seg"])
         seg = e.stats()["models"]["seg"]
         assert seg["crashes"] == 1 and seg["dropped"] >= 1
         assert seg["errors"] == (1 if fault == "raise_at_run" else 0)

@@ -74,7 +74,5 @@ def test_fast_writer_slow_readers_no_torn_reads_and_exact_accounting():
         assert r["reads"] > 10
         st = r["stats"]
         assert st["reads"] == r["reads"]
-        assert (
-            st["reads"] + st["missed"] == r["last_seq"]
-        )  # every frame up to the last one seen is accounted for
+        assert st["reads"] + st["missed"] == r["last_seq"]  # every frame up to the last one seen is accounted for
     assert stats["published"] == published

@@ -186,9 +186,7 @@ def subscriber_main(domain: int, report: str, topics: list[str]) -> None:
     def status(d: Any) -> dict[str, dict[str, str]]:
         return {s.name: {"level": s.level, **{kv.key: kv.value for kv in s.values}} for s in d.status}
 
-    Path(report).write_text(
-        json.dumps({"samples": samples, "first": status(first_diag), "last": status(last_diag)})
-    )
+    Path(report).write_text(json.dumps({"samples": samples, "first": status(first_diag), "last": status(last_diag)}))
     ctx.close()
 
 
@@ -422,9 +420,7 @@ def test_bad_inputs_are_logged_once_per_reason_and_the_interface_recovers_after_
         writer.write(image("bgr8", 100, 480 * 120, 1_850_000_011))  # a row shorter than its pixels
         time.sleep(1.5)
         level, message, values = statuses(diag, 1.2)[-1][1]["vpengine: interface"]
-        assert level == 1 and "inputs rejected in the last 5 s (encoding, short_data, step)" in message, (
-            message
-        )
+        assert level == 1 and "inputs rejected in the last 5 s (encoding, short_data, step)" in message, message
         assert values["rejected.encoding"] == "10" and values["rejected.short_data"] == "1", values
         assert values["rejected.step"] == "1", values
         lines = [ln for ln in BRIDGE_LOG[before:] if "input message rejected" in ln]
@@ -490,9 +486,7 @@ def test_compressed_input_in_process_bridge_with_the_sensor_data_profile():
             while not depth.dds.get_matched_publications():
                 time.sleep(0.05)
             png = cv2.imencode(".png", frame(3))[1]
-            w.write_raw(
-                cdr.encode_compressed_image(Header(42, 7, "zipped"), "bgr8; png compressed bgr8", png)
-            )
+            w.write_raw(cdr.encode_compressed_image(Header(42, 7, "zipped"), "bgr8; png compressed bgr8", png))
             got = []
             deadline = time.monotonic() + 20
             while not got and time.monotonic() < deadline:
@@ -639,9 +633,7 @@ def test_a_matched_publisher_whose_frames_never_arrive_is_a_warning():
     from vpengine.ros2 import dds_types as T
     from vpengine.ros2.dds import DdsContext
 
-    drops_big = LO_ONLY.replace(
-        "</Discovery>", "</Discovery><Internal><MaxSampleSize>1MB</MaxSampleSize></Internal>"
-    )
+    drops_big = LO_ONLY.replace("</Discovery>", "</Discovery><Internal><MaxSampleSize>1MB</MaxSampleSize></Internal>")
     log: list[str] = []
     os.environ.update({"CYCLONEDDS_URI": dds_env()["CYCLONEDDS_URI"]})
     with run_bridge("--input-topic", HD_INPUT, *HD, domain=DOMAIN + 3, uri=drops_big, log=log):

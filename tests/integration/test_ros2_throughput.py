@@ -79,9 +79,7 @@ def test_bridge_at_1080p_30_hz_accounts_for_every_frame(tmp_path):
         # were counted as missed by its result stream (the bench waits until the bridge's diagnostics show it
         # drained before it stops)
         assert t["received"] > 0 and t["received"] <= t["published_by_bridge"], topic
-        accounted = (
-            t["published_by_bridge"] + models[head]["results_missed"] + models[head]["outputs_superseded"]
-        )
+        accounted = t["published_by_bridge"] + models[head]["results_missed"] + models[head]["outputs_superseded"]
         assert models[head]["runs"] == accounted, (topic, t, models[head], run["drain_s"])
     # the bridge's own CPU for one frame in and all its outputs out (decode, submit, results, convert, encode, write;
     # thread CPU time, so other load does not inflate it) fits the 33 ms budget of 30 Hz

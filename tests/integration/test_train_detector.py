@@ -18,9 +18,7 @@ FILE_HW = (240, 320)  # image files: twice the engine's input size, so training 
 INPUT_HW = (120, 160)
 
 
-def make_dataset(
-    root: Path, n: int = 8, seed: int = 0
-) -> tuple[Path, Path, list[list[tuple[list[float], int]]]]:
+def make_dataset(root: Path, n: int = 8, seed: int = 0) -> tuple[Path, Path, list[list[tuple[list[float], int]]]]:
     """``n`` images of filled rectangles (class 0) and ellipses (class 1) and their COCO JSON.
 
     Returns the image folder, the JSON path and, per image, its boxes (x1, y1, x2, y2 in file pixels) and labels.
@@ -47,9 +45,7 @@ def make_dataset(
             if label == 0:
                 cv2.rectangle(img, (x, y), (x + bw - 1, y + bh - 1), color, thickness=-1)
             else:
-                cv2.ellipse(
-                    img, (x + bw // 2, y + bh // 2), (bw // 2, bh // 2), 0, 0, 360, color, thickness=-1
-                )
+                cv2.ellipse(img, (x + bw // 2, y + bh // 2), (bw // 2, bh // 2), 0, 0, 360, color, thickness=-1)
             objects.append((box, label))
         name = f"img_{i:02d}.png"
         cv2.imwrite(str(img_dir / name), img)
@@ -162,9 +158,7 @@ def test_train_detector_cli_loss_falls_and_engine_detects_with_the_checkpoint(tm
     with Engine(cfg) as engine:
         assert engine.head_info("det")["labels"] == CLASSES
         for i, objects in enumerate(truth):
-            frame = cv2.resize(
-                cv2.imread(str(img_dir / f"img_{i:02d}.png")), (w, h), interpolation=cv2.INTER_AREA
-            )
+            frame = cv2.resize(cv2.imread(str(img_dir / f"img_{i:02d}.png")), (w, h), interpolation=cv2.INTER_AREA)
             r = engine.wait(engine.submit(frame), timeout=30)["det"]
             n = r["count"]
             boxes = r["boxes"]
@@ -227,12 +221,8 @@ def test_train_refuses_a_head_whose_classes_differ_from_the_annotations(tmp_path
 
     img_dir, ann, _ = make_dataset(tmp_path, n=2)
     cfg = write_config(tmp_path / "c.yaml")
-    with pytest.raises(
-        ValueError, match=r"class_names \['cat', 'dog'\] but the annotations define \['box', 'disc'\]"
-    ):
-        train_detector(
-            cfg, img_dir, ann, tmp_path / "h.pth", overrides=["heads.det.options.class_names=[cat, dog]"]
-        )
+    with pytest.raises(ValueError, match=r"class_names \['cat', 'dog'\] but the annotations define \['box', 'disc'\]"):
+        train_detector(cfg, img_dir, ann, tmp_path / "h.pth", overrides=["heads.det.options.class_names=[cat, dog]"])
 
 
 def test_the_training_api_reports_each_epoch_to_its_caller_and_prints_nothing(tmp_path, capsys):

@@ -205,16 +205,12 @@ def test_with_a_token_the_page_works_from_its_address_and_says_so_without_it(bro
     engine, view = live
     with WebServer(engine, "127.0.0.1", 0, token="tok-9", frames=view.pictures.frames) as guarded:
         browser.get(guarded.url)
-        eventually(
-            lambda: "token is required" in browser.find_element(By.ID, "engine").text, 10, "the refusal shown"
-        )
+        eventually(lambda: "token is required" in browser.find_element(By.ID, "engine").text, 10, "the refusal shown")
         assert not browser.find_elements(By.CSS_SELECTOR, "tr[data-model]")
         browser.get(guarded.url + "?token=tok-9")
         eventually(lambda: int(cell(browser, "det", "runs")) > 0, 30, "runs shown with the token")
         eventually(
-            lambda: browser.execute_script(
-                "return document.querySelector('img[data-head=\"det\"]').naturalWidth"
-            ),
+            lambda: browser.execute_script("return document.querySelector('img[data-head=\"det\"]').naturalWidth"),
             20,
             "a picture fetched with the token",
         )

@@ -69,16 +69,30 @@ def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscrib
         ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
         try:
             hello = messages(ws, time.monotonic() + 2)
-            channels = {c["topic"]: c for m in hello if isinstance(m, dict) and m.get("op") == "advertise"
-                        for c in m["channels"]}
-            assert {"/vpengine/depth/image", "/vpengine/seg/image", "/vpengine/det/image",
-                    "/vpengine/det/annotations"} <= set(channels)
+            channels = {
+                c["topic"]: c
+                for m in hello
+                if isinstance(m, dict) and m.get("op") == "advertise"
+                for c in m["channels"]
+            }
+            assert {
+                "/vpengine/depth/image",
+                "/vpengine/seg/image",
+                "/vpengine/det/image",
+                "/vpengine/det/annotations",
+            } <= set(channels)
             assert channels["/vpengine/det/image"]["schemaName"] == "foxglove.CompressedImage"
             assert channels["/vpengine/det/annotations"]["schemaName"] == "foxglove.ImageAnnotations"
             assert fox.pictures.made == 0 and fox.sent == 0  # nobody subscribed: nothing drawn
             subs = {1: "/vpengine/seg/image", 2: "/vpengine/det/annotations"}
-            ws.send(json.dumps({"op": "subscribe", "subscriptions": [
-                {"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()]}))
+            ws.send(
+                json.dumps(
+                    {
+                        "op": "subscribe",
+                        "subscriptions": [{"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()],
+                    }
+                )
+            )
             got: dict[str, list[bytes]] = {t: [] for t in subs.values()}
             for m in messages(ws, time.monotonic() + 3):
                 if isinstance(m, bytes) and m[0] == 1:  # message data: opcode, subscription id, log time, payload

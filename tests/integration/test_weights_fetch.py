@@ -306,9 +306,7 @@ def test_an_entry_without_a_digest_needs_sha256_or_trust_on_first_use(server, en
         assert catalog.effective(entry, env).sha256 == DIGEST
         assert cached_checkpoint(entry, env) == entry.path(env)
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 0
-        entry.path(env).write_bytes(
-            PAYLOAD[:-1] + bytes([PAYLOAD[-1] ^ 0xFF])
-        )  # last byte differs, same size
+        entry.path(env).write_bytes(PAYLOAD[:-1] + bytes([PAYLOAD[-1] ^ 0xFF]))  # last byte differs, same size
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 1
         assert "MISMATCH" in capsys.readouterr().out
 

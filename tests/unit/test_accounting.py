@@ -91,10 +91,7 @@ def test_info_models_prints_the_report_as_json_and_text(capsys):
 
 
 def test_info_models_applies_overrides(capsys):
-    assert (
-        cli(["info", "--models", "-c", str(TINY), "--set", "foundation_model.options.embed_dim=64", "--json"])
-        == 0
-    )
+    assert cli(["info", "--models", "-c", str(TINY), "--set", "foundation_model.options.embed_dim=64", "--json"]) == 0
     shown = json.loads(capsys.readouterr().out)
     assert shown["models"]["depth"]["params"] == 64 + 1  # the heads follow the wider backbone
 

@@ -71,14 +71,10 @@ def assert_outputs_match(got: dict, want: dict, rtol: float, what: str) -> None:
     assert set(got) == set(want), what
     for k, w in want.items():
         g = got[k]
-        assert g.dtype == w.dtype and g.shape == w.shape, (
-            f"{what}: {k}: {g.dtype}{list(g.shape)} vs {w.dtype}"
-        )
+        assert g.dtype == w.dtype and g.shape == w.shape, f"{what}: {k}: {g.dtype}{list(g.shape)} vs {w.dtype}"
         if w.dtype.is_floating_point:
             scale = w.abs().max().item()
-            torch.testing.assert_close(
-                g, w, rtol=rtol, atol=rtol * scale, msg=lambda m, k=k: f"{what}: {k}: {m}"
-            )
+            torch.testing.assert_close(g, w, rtol=rtol, atol=rtol * scale, msg=lambda m, k=k: f"{what}: {k}: {m}")
         else:
             assert torch.equal(g, w), f"{what}: {k}: {(g != w).sum().item()} of {w.numel()} elements differ"
 
@@ -123,9 +119,7 @@ def test_onnx_export_has_the_spec_io_passes_the_checker_and_matches_pytorch(name
 def test_compile_matches_eager_on_new_input_tensors_without_recompiling(name):
     cfg = tiny("thread")
     ex = make_executor(build(cfg, name), "compile", CPU, name)
-    assert (
-        ex.describe()["cudagraphs"] is False
-    )  # CUDA graphs are a CUDA-only feature; the CPU ignores the option
+    assert ex.describe()["cudagraphs"] is False  # CUDA graphs are a CUDA-only feature; the CPU ignores the option
     eager = make_executor(build(cfg, name), "eager", CPU, name)
     # Every call gets new tensors (as mailbox slots do), some of them inference tensors: the compiled code only ever
     # sees its static buffers, so none of this may trigger a recompilation.
@@ -135,9 +129,7 @@ def test_compile_matches_eager_on_new_input_tensors_without_recompiling(name):
             if i == 2:
                 with torch.inference_mode():
                     x = {k: v.clone() for k, v in x.items()}
-            assert_outputs_match(
-                snapshot(ex(x)), snapshot(eager(x)), 1e-4, f"{name} compile vs eager, frame {i}"
-            )
+            assert_outputs_match(snapshot(ex(x)), snapshot(eager(x)), 1e-4, f"{name} compile vs eager, frame {i}")
 
 
 @pytest.mark.slow
@@ -146,7 +138,10 @@ def test_compiled_faster_rcnn_never_recompiles_once_warm_whatever_the_batch_and_
     and its anchor cache fills on the first call; once warm-up is over no frame may recompile, since a recompilation
     stalls the stream for a long time (Note [RoIAlign runs eagerly])."""
     cfg = tiny(
-        "thread", "heads.det.model=frcnn_dinov2_lite", "heads.det.options={num_classes: 3}", "weights.random_weights=true"
+        "thread",
+        "heads.det.model=frcnn_dinov2_lite",
+        "heads.det.options={num_classes: 3}",
+        "weights.random_weights=true",
     )
     model = build(cfg, "det")
     ex = make_executor(model, "compile", CPU, "det", options={"fullgraph": False}, max_batch=2)
@@ -177,9 +172,7 @@ def test_compile_fullgraph_refuses_graph_breaks_and_false_runs_them():
 
 # ------------------------------------------------------------------------------------------ bad names and options
 def test_unknown_backend_is_refused_naming_the_accepted_ones():
-    with pytest.raises(
-        BackendError, match=r"depth: unknown backend 'tensorrt'; accepted: 'eager', 'compile', 'onnx'"
-    ):
+    with pytest.raises(BackendError, match=r"depth: unknown backend 'tensorrt'; accepted: 'eager', 'compile', 'onnx'"):
         make_executor(build(tiny("thread"), "depth"), "tensorrt", CPU, "depth")
 
 
@@ -201,16 +194,12 @@ def test_unknown_backend_is_refused_naming_the_accepted_ones():
     ],
 )
 def test_bad_backend_options_are_refused_naming_the_accepted_ones(backend, options, message):
-    with pytest.raises(
-        BackendError, match=rf"depth: bad backend_options for backend '{backend}': .*{message}"
-    ):
+    with pytest.raises(BackendError, match=rf"depth: bad backend_options for backend '{backend}': .*{message}"):
         make_executor(build(tiny("thread"), "depth"), backend, CPU, "depth", options=options)
 
 
 def test_unavailable_onnx_provider_is_refused_naming_the_available_ones(tmp_path):
-    with pytest.raises(
-        BackendError, match=r"not available: \['NoSuchExecutionProvider'\]; available: \[.*CPU"
-    ):
+    with pytest.raises(BackendError, match=r"not available: \['NoSuchExecutionProvider'\]; available: \[.*CPU"):
         make_executor(
             build(tiny("thread"), "depth"),
             "onnx",
@@ -299,14 +288,10 @@ def test_backends_compute_at_the_configured_precision(backend, name, precision, 
     if backend == "onnx":
         weights = [i for i in onnx.load(str(ex.artifact.path)).graph.initializer if len(i.dims) == 2]
         assert weights and all(i.data_type == onnx.TensorProto.FLOAT16 for i in weights)
-        assert {p.dtype for p in model.parameters()} == {
-            torch.float32
-        }  # exported from a copy: model untouched
+        assert {p.dtype for p in model.parameters()} == {torch.float32}  # exported from a copy: model untouched
     else:
         assert {p.dtype for p in ex.model.parameters()} == {dtype}
-    if (
-        name == "foundation" and backend == "eager"
-    ):  # parameter-free preprocessing keeps its float32 constants
+    if name == "foundation" and backend == "eager":  # parameter-free preprocessing keeps its float32 constants
         assert ex.model.stages[0].mean.dtype == ex.model.stages[0].std.dtype == torch.float32
 
 
@@ -331,9 +316,7 @@ def test_onnx_opset_is_the_one_asked_for_or_the_export_is_refused(tmp_path):
         match=r"foundation: asked for ONNX opset 17 but the exporter could only "
         r"write opset 18 .* use opset 18 or later",
     ):
-        make_executor(
-            build(cfg, "foundation"), "onnx", CPU, "foundation", options={"opset": 17}, cache_dir=tmp_path
-        )
+        make_executor(build(cfg, "foundation"), "onnx", CPU, "foundation", options={"opset": 17}, cache_dir=tmp_path)
 
 
 # ------------------------------------------------------------------------------------------ the ONNX cache
@@ -343,9 +326,7 @@ def test_cache_key_follows_everything_that_shapes_the_graph():
     assert cache_key(build(cfg, "det"), "fp32", 18, "dynamo")[0] == key  # deterministic across rebuilds
     changed = {
         "input size": cache_key(build(tiny("thread", "input.width=182"), "det"), "fp32", 18, "dynamo")[0],
-        "weights": cache_key(
-            build(tiny("thread", "heads.det.options={seed: 7}"), "det"), "fp32", 18, "dynamo"
-        )[0],
+        "weights": cache_key(build(tiny("thread", "heads.det.options={seed: 7}"), "det"), "fp32", 18, "dynamo")[0],
         # a threshold is a graph constant, in no state dict: the key must still see it
         "threshold": cache_key(
             build(tiny("thread", "heads.det.options={score_threshold: 0.7}"), "det"), "fp32", 18, "dynamo"
@@ -421,15 +402,11 @@ def test_cli_export_writes_a_checked_onnx_named_after_the_specs(tmp_path, capsys
     manifest = json.loads((tmp_path / "det.json").read_text())
     assert manifest["precision"] == "fp32" and manifest["recipe"] == "tiny_det" and manifest["batch"] == 1
     assert manifest["outputs"]["count"] == {"shape": [], "dtype": "int32"}  # the per-frame specs
-    assert manifest["verification"]["ok"] and set(manifest["verification"]["outputs"]) == set(
-        model.output_spec
-    )
+    assert manifest["verification"]["ok"] and set(manifest["verification"]["outputs"]) == set(model.output_spec)
 
 
 def test_cli_export_fp16_changes_the_graph_precision(tmp_path):
-    assert (
-        cli(["export", "-c", str(TINY), "-m", "foundation", "-o", str(tmp_path), "--precision", "fp16"]) == 0
-    )
+    assert cli(["export", "-c", str(TINY), "-m", "foundation", "-o", str(tmp_path), "--precision", "fp16"]) == 0
     graph_in, graph_out = onnx_io(tmp_path / "foundation.onnx")
     assert graph_in == [("frame", "uint8", (1, 120, 160, 3))]
     assert {dt for _, dt, _ in graph_out} == {"float16"}
@@ -438,13 +415,8 @@ def test_cli_export_fp16_changes_the_graph_precision(tmp_path):
 
 def test_cli_export_errors_name_the_accepted_values(tmp_path, capsys):
     assert cli(["export", "-c", str(TINY), "-m", "depht", "-o", str(tmp_path)]) == 1
-    assert (
-        "'depht' is not a model of this config; accepted: foundation, depth, seg, det"
-        in capsys.readouterr().err
-    )
-    assert (
-        cli(["export", "-c", str(TINY), "-m", "depth", "-o", str(tmp_path), "--set", "precision=bf16"]) == 1
-    )
+    assert "'depht' is not a model of this config; accepted: foundation, depth, seg, det" in capsys.readouterr().err
+    assert cli(["export", "-c", str(TINY), "-m", "depth", "-o", str(tmp_path), "--set", "precision=bf16"]) == 1
     assert "depth: precision 'bf16' is not available with ONNX" in capsys.readouterr().err
     assert not list(tmp_path.iterdir())
 
@@ -466,9 +438,7 @@ def representative_recipes() -> list:
     """
     groups: dict = {}
     for r in recipes():
-        variant = tuple(
-            sorted((k, repr(v)) for k, v in r.defaults.items() if k not in ("size", "default_checkpoint"))
-        )
+        variant = tuple(sorted((k, repr(v)) for k, v in r.defaults.items() if k not in ("size", "default_checkpoint")))
         groups.setdefault((r.target, variant), []).append(r)
     return [min(rs, key=lambda r: _SIZES.get(str(r.defaults.get("size")), 9)) for rs in groups.values()]
 
@@ -493,9 +463,7 @@ def _recipe_config(recipe) -> dict | None:
 def _recipe_param(r):
     marks = [] if r.name.startswith("tiny_") else [pytest.mark.slow]
     if r.target in KNOWN_EXPORT_FAILURES:
-        marks.append(
-            pytest.mark.xfail(strict=True, raises=BackendError, reason=KNOWN_EXPORT_FAILURES[r.target])
-        )
+        marks.append(pytest.mark.xfail(strict=True, raises=BackendError, reason=KNOWN_EXPORT_FAILURES[r.target]))
     return pytest.param(r, id=r.name, marks=marks)
 
 
@@ -518,9 +486,7 @@ def test_every_registered_model_exports_to_onnx_and_matches_pytorch(recipe, tmp_
     for k, w in want.items():
         if w.dtype.is_floating_point:  # deep models: float reassociation adds up over dozens of layers
             scale = w.abs().max().item()
-            torch.testing.assert_close(
-                got[k], w, rtol=1e-3, atol=1e-3 * scale, msg=lambda m, k=k: f"{k}: {m}"
-            )
+            torch.testing.assert_close(got[k], w, rtol=1e-3, atol=1e-3 * scale, msg=lambda m, k=k: f"{k}: {m}")
         else:  # argmax ties may break differently in a handful of elements, never in a pattern
             mismatch = (got[k] != w).double().mean().item()
             assert mismatch <= 0.01, f"{k}: {mismatch:.2%} of elements differ"
@@ -555,9 +521,7 @@ def test_an_export_that_froze_a_data_dependent_value_is_refused(tmp_path):
         match=r"user: the ONNX export \(torchscript\) does not reproduce PyTorch: count: "
         r"100.00% of elements differ",
     ):
-        make_executor(
-            _FrozenCount(), "onnx", CPU, "user", options={"exporter": "torchscript"}, cache_dir=tmp_path
-        )
+        make_executor(_FrozenCount(), "onnx", CPU, "user", options={"exporter": "torchscript"}, cache_dir=tmp_path)
     assert not list((tmp_path / "onnx").glob("*/model.onnx"))  # nothing half-good is left in the cache
 
 
@@ -579,9 +543,7 @@ def test_unused_declared_inputs_survive_export_or_are_dropped_cleanly(tmp_path):
             return {"y": inputs["patch.3"].sum(-1)}
 
     for exporter in ("dynamo", "torchscript"):
-        ex = make_executor(
-            _ReadsOne(), "onnx", CPU, "user", options={"exporter": exporter}, cache_dir=tmp_path
-        )
+        ex = make_executor(_ReadsOne(), "onnx", CPU, "user", options={"exporter": exporter}, cache_dir=tmp_path)
         x = {"patch.2": torch.rand(1, 6, 4), "patch.3": torch.rand(1, 6, 4)}
         torch.testing.assert_close(ex(x)["y"], x["patch.3"].sum(-1))
 
@@ -615,6 +577,4 @@ def test_faster_rcnn_exports_with_the_tracing_exporter_and_its_count_follows_the
         assert torch.equal(got["labels"], want["labels"]), f"frame {i}: labels differ"
         assert (got["labels"][n:] == -1).all() and (got["scores"][n:] == 0).all(), "padding past the count"
         counts.append(n)
-    assert len(set(counts)) > 1, (
-        f"the frames gave the same count {counts}: the test cannot tell a frozen count"
-    )
+    assert len(set(counts)) > 1, f"the frames gave the same count {counts}: the test cannot tell a frozen count"

@@ -162,7 +162,11 @@ def test_dinov2_with_registers_batches():
         {"name": "h", "model": "dav2_depth_s", "options": DPT_WIDTHS, "postprocess": {"output": "both"}},
         {"name": "h", "model": "dav2_depth_s", "options": {**DPT_WIDTHS, "use_clstoken": True, "use_bn": True}},
         {"name": "h", "model": "dinov2_linear_ade20k_s", "options": {"upsample": "torch"}},
-        {"name": "h", "model": "frcnn_dinov2_lite", "options": {"num_classes": 3, "score_threshold": 0.0, "max_detections": 1000}},
+        {
+            "name": "h",
+            "model": "frcnn_dinov2_lite",
+            "options": {"num_classes": 3, "score_threshold": 0.0, "max_detections": 1000},
+        },
     ],
     ids=["dpt-colormap", "dpt-clstoken", "linear-seg", "faster-rcnn"],
 )

@@ -40,9 +40,7 @@ def test_timed_counts_from_the_time_a_step_returns():
         time.sleep(0.02)  # e.g. writing the frame into its slot: not latency
         start = time.perf_counter()
         time.sleep(0.01)
-        return (
-            start if i % 2 else {"outputs": 1}
-        )  # odd steps say where their latency starts; others return data
+        return start if i % 2 else {"outputs": 1}  # odd steps say where their latency starts; others return data
 
     out = timed(step, 20, warmup=0)
     assert out["n"] == 20

@@ -18,11 +18,7 @@ RECIPE_DEFAULTS = {
     **{f"dinov2_vit{s}14_reg4": f"dinov2_vit{s}14_reg4_pretrain" for s in SIZES},
     **{f"dinov2_vit{s}14_dav2": f"depth_anything_v2_vit{s}" for s in "sbl"},
     **{f"dav2_depth_{s}": f"depth_anything_v2_vit{s}" for s in "sbl"},
-    **{
-        f"dinov2_linear_{ds}_{s}": f"dinov2_vit{s}14_{ds}_linear_head"
-        for ds in ("ade20k", "voc2012")
-        for s in SIZES
-    },
+    **{f"dinov2_linear_{ds}_{s}": f"dinov2_vit{s}14_{ds}_linear_head" for ds in ("ade20k", "voc2012") for s in SIZES},
 }
 
 

@@ -26,7 +26,9 @@ def test_depth_colours_need_no_matplotlib(monkeypatch):
     colormaps.lut.cache_clear()
     try:
         assert colormaps.lut("Spectral_r").shape == (256, 3)
-        with pytest.raises(ValueError, match=r"unknown colormap 'cividis'; accepted: Spectral_r.*pip install matplotlib"):
+        with pytest.raises(
+            ValueError, match=r"unknown colormap 'cividis'; accepted: Spectral_r.*pip install matplotlib"
+        ):
             colormaps.lut("cividis")
     finally:
         colormaps.lut.cache_clear()

@@ -74,9 +74,7 @@ def test_deep_nesting_and_binary_files_name_the_file(tmp_path):
     with pytest.raises(ConfigError, match="nests too deeply"):
         load_config(deep_json)
     nested = tmp_path / "nested.yaml"  # parses, but nests past the bound
-    nested.write_text(
-        "heads:\n  - {name: d, model: tiny_depth, options: " + "[" * MAX_DEPTH + "]" * MAX_DEPTH + "}\n"
-    )
+    nested.write_text("heads:\n  - {name: d, model: tiny_depth, options: " + "[" * MAX_DEPTH + "]" * MAX_DEPTH + "}\n")
     with pytest.raises(ConfigError, match=f"nests deeper than {MAX_DEPTH} levels"):
         load_config(nested)
     for suffix in (".yaml", ".json"):
@@ -89,9 +87,7 @@ def test_deep_nesting_and_binary_files_name_the_file(tmp_path):
 
 def test_huge_values_are_clipped_in_error_messages():
     with pytest.raises(ConfigError) as e:
-        load_config(
-            {"input": {"height": "9" * 1_000_000}, "heads": [{"name": "x" * 1_000_000, "model": "m"}]}
-        )
+        load_config({"input": {"height": "9" * 1_000_000}, "heads": [{"name": "x" * 1_000_000, "model": "m"}]})
     msg = str(e.value)
     assert len(msg) < 5000
     assert "(1000002 characters)" in msg and "input.height" in msg
@@ -138,7 +134,5 @@ def test_an_allocation_the_system_refuses_names_the_ring_and_its_size(monkeypatc
         raise OSError(12, "Cannot allocate memory")
 
     monkeypatch.setattr(ring, "allocate", enomem)
-    with pytest.raises(
-        MemoryError, match=r"ring 'big': cannot allocate 0.52 GB \(8 slots of 64800000 bytes\)"
-    ):
+    with pytest.raises(MemoryError, match=r"ring 'big': cannot allocate 0.52 GB \(8 slots of 64800000 bytes\)"):
         ring.SlotRing.create("big", {"x": TensorSpec((16200000,), "float32")}, 8, [ring.ReaderDecl("r")])

@@ -103,9 +103,7 @@ def test_outputs_match_specs_with_padding_past_count_and_best_first():
     assert 1 < n <= 50
     boxes, scores, labels = out["boxes"], out["scores"], out["labels"]
     assert torch.all(boxes[:n, 2:] > boxes[:n, :2])
-    assert (
-        torch.all(boxes[:n, 0::2] <= 160) and torch.all(boxes[:n, 1::2] <= 120) and torch.all(boxes[:n] >= 0)
-    )
+    assert torch.all(boxes[:n, 0::2] <= 160) and torch.all(boxes[:n, 1::2] <= 120) and torch.all(boxes[:n] >= 0)
     assert torch.all(scores[:n] > 0) and torch.all(scores[:n].diff() <= 0)
     assert torch.all((labels[:n] >= 0) & (labels[:n] < 3))
     assert torch.all(boxes[n:] == 0) and torch.all(scores[n:] == 0) and torch.all(labels[n:] == -1)
@@ -247,18 +245,14 @@ def test_state_dict_has_torchvision_faster_rcnn_layout():
     )
     backbone = nn.Conv2d(3, 256, 1)
     backbone.out_channels = 256  # what FasterRCNN asks of a backbone
-    tv = FasterRCNN(
-        backbone, num_classes=91, rpn_anchor_generator=AnchorGenerator(((32,),), ((0.5, 1.0, 2.0),))
-    )
+    tv = FasterRCNN(backbone, num_classes=91, rpn_anchor_generator=AnchorGenerator(((32,),), ((0.5, 1.0, 2.0),)))
     tv_sd = {k: v for k, v in tv.state_dict().items() if not k.startswith("backbone.")}
     ours = head.state_dict()
     assert {k for k in ours if not k.startswith("pyramid.")} == set(tv_sd)
     # so the RPN and box head of a torchvision model load as they are, next to the pyramid's own keys
     from vpengine.models.weights import apply_state_dict
 
-    apply_state_dict(
-        head, {**tv_sd, **{k: v for k, v in ours.items() if k.startswith("pyramid.")}}, "tv", "test"
-    )
+    apply_state_dict(head, {**tv_sd, **{k: v for k, v in ours.items() if k.startswith("pyramid.")}}, "tv", "test")
     key = "roi_heads.box_predictor.cls_score.weight"
     torch.testing.assert_close(head.state_dict()[key], tv_sd[key])
 
@@ -276,9 +270,7 @@ def test_random_weights_depend_only_on_the_seed_option():
     differ = [k for k, v in a.state_dict().items() if not torch.equal(v, c.state_dict()[k])]
     # every weight is drawn from the seed (norm layers start at 1 and 0, biases of the RPN at 0)
     assert set(differ) == {
-        k
-        for k in a.state_dict()
-        if not (".norm." in k or (k.startswith("rpn.head.") and k.endswith(".bias")))
+        k for k in a.state_dict() if not (".norm." in k or (k.startswith("rpn.head.") and k.endswith(".bias")))
     }
 
 
@@ -317,9 +309,7 @@ def test_wrong_state_dict_fails_naming_file_and_keys_and_loads_nothing(tmp_path)
     with pytest.raises(CheckpointError) as e:
         build(config(checkpoint=str(wrong_classes)))
     msg = str(e.value)
-    assert (
-        "five_classes.pth" in msg and "roi_heads.box_predictor.cls_score.weight" in msg and "3 classes" in msg
-    )
+    assert "five_classes.pth" in msg and "roi_heads.box_predictor.cls_score.weight" in msg and "3 classes" in msg
 
     # A checkpoint without the pyramid and with a foreign backbone: its RPN and RoI keys would fit, but the file
     # must be refused as a whole. The head's own weights are moved away from the file's first, so a partial copy
@@ -334,9 +324,7 @@ def test_wrong_state_dict_fails_naming_file_and_keys_and_loads_nothing(tmp_path)
     before = {k: v.clone() for k, v in head.state_dict().items()}
     cfg = config(checkpoint=str(no_pyramid))
     plan = make_plan(cfg)
-    ctx = BuildContext(
-        "head", "det", cfg.head("det"), cfg, plan.features, plan.feature_meta, torch.device("cpu")
-    )
+    ctx = BuildContext("head", "det", cfg.head("det"), cfg, plan.features, plan.feature_meta, torch.device("cpu"))
     with pytest.raises(CheckpointError, match=r"missing keys: pyramid\..*unexpected keys: backbone\.body"):
         head.load_checkpoint(ctx)
     for k, v in head.state_dict().items():

@@ -37,9 +37,7 @@ META_WARNING = "ignore:for .*copying from a non-meta parameter"
 
 
 # ------------------------------------------------------------------------------------------------- helpers
-def engine_cfg(
-    model: str, hw: tuple[int, int], options: dict | None = None, checkpoint: str | None = None, **kw
-):
+def engine_cfg(model: str, hw: tuple[int, int], options: dict | None = None, checkpoint: str | None = None, **kw):
     """An engine config whose preprocessing keeps ``hw`` as is (so the backbone sees exactly ``hw``)."""
     raw: dict[str, Any] = {
         "input": {"height": hw[0], "width": hw[1]},
@@ -117,11 +115,7 @@ def hf_config(embed: int, depth: int, heads: int, registers: int, swiglu: bool):
 
 
 def hf_model(cfg):
-    cls = (
-        transformers.Dinov2WithRegistersModel
-        if hasattr(cfg, "num_register_tokens")
-        else transformers.Dinov2Model
-    )
+    cls = transformers.Dinov2WithRegistersModel if hasattr(cfg, "num_register_tokens") else transformers.Dinov2Model
     return cls(cfg).eval()
 
 
@@ -174,9 +168,7 @@ def ours_to_hf(sd: dict[str, torch.Tensor], registers: int, swiglu: bool) -> dic
     return out
 
 
-def assert_features_close(
-    ours: dict[str, torch.Tensor], ref: dict[str, torch.Tensor], tol: float = 1e-4
-) -> None:
+def assert_features_close(ours: dict[str, torch.Tensor], ref: dict[str, torch.Tensor], tol: float = 1e-4) -> None:
     assert set(ours) == set(ref) == {f"{k}.{i}" for k in ("patch", "cls") for i in range(4)}
     for k in ref:
         assert ours[k].shape == ref[k].shape, k
@@ -336,9 +328,7 @@ def test_the_other_interpolation_differs_so_parity_tests_can_fail(tmp_path):
     randomize_(hf, seed=1)
     hf.save_pretrained(tmp_path)
     opts = {**TINY, "pos_embed_interpolation": "dinov2"}
-    model, ctx = build_backbone(
-        engine_cfg("dinov2_vits14", (518, 924), opts, str(tmp_path / "model.safetensors"))
-    )
+    model, ctx = build_backbone(engine_cfg("dinov2_vits14", (518, 924), opts, str(tmp_path / "model.safetensors")))
     model.load_checkpoint(ctx)
     img = image((518, 924))
     with torch.no_grad():
@@ -416,8 +406,7 @@ def test_official_pth_files_load_strictly_for_every_release(tmp_path, size, regi
 @pytest.mark.parametrize(("size", "registers"), SIZES_REG)
 def test_hf_hub_layout_loads_strictly_for_every_release(size, registers):
     sd = {
-        k: torch.empty(s, device="meta")
-        for k, s in hf_hub_shapes(official_shapes(*RELEASED[size], registers)).items()
+        k: torch.empty(s, device="meta") for k, s in hf_hub_shapes(official_shapes(*RELEASED[size], registers)).items()
     }
     model, _ = build_backbone(engine_cfg(recipe(size, registers), (518, 924)), "meta")
     assert model.load_state_dict_any(sd, "hub-layout") == "hf"
@@ -431,9 +420,7 @@ def test_depth_anything_v2_files_load_the_pretrained_encoder_and_ignore_the_head
     sd["depth_head.scratch.output_conv2.2.bias"] = torch.zeros(1)
     path = tmp_path / f"depth_anything_v2_vit{size}.pth"
     torch.save(sd, path)
-    model, ctx = build_backbone(
-        engine_cfg(f"dinov2_vit{size}14_dav2", (518, 924), checkpoint=str(path)), "meta"
-    )
+    model, ctx = build_backbone(engine_cfg(f"dinov2_vit{size}14_dav2", (518, 924), checkpoint=str(path)), "meta")
     model.load_checkpoint(ctx)
     assert model.meta["backbone"] == f"dinov2_vit{size}14_dav2"
     assert model.default_checkpoint == f"depth_anything_v2_vit{size}"
@@ -454,17 +441,11 @@ def test_official_values_land_where_they_belong(tmp_path, registers, swiglu, pre
     model, ctx = build_backbone(engine_cfg("dinov2_vits14", (518, 924), opts, checkpoint=str(path)))
     model.load_checkpoint(ctx)
     vit = model.vit
-    torch.testing.assert_close(
-        vit.blocks[2].attn.qkv.weight, official["blocks.2.attn.qkv.weight"], rtol=0, atol=0
-    )
+    torch.testing.assert_close(vit.blocks[2].attn.qkv.weight, official["blocks.2.attn.qkv.weight"], rtol=0, atol=0)
     torch.testing.assert_close(vit.blocks[1].ls2.gamma, official["blocks.1.ls2.gamma"], rtol=0, atol=0)
     if swiglu:
-        torch.testing.assert_close(
-            vit.blocks[3].mlp.fc1.weight, official["blocks.3.mlp.w12.weight"], rtol=0, atol=0
-        )
-        torch.testing.assert_close(
-            vit.blocks[3].mlp.fc2.bias, official["blocks.3.mlp.w3.bias"], rtol=0, atol=0
-        )
+        torch.testing.assert_close(vit.blocks[3].mlp.fc1.weight, official["blocks.3.mlp.w12.weight"], rtol=0, atol=0)
+        torch.testing.assert_close(vit.blocks[3].mlp.fc2.bias, official["blocks.3.mlp.w3.bias"], rtol=0, atol=0)
     if registers:
         cls = official["cls_token"] + official["pos_embed"][:, :1]
         torch.testing.assert_close(vit.cls_token, cls)
@@ -572,9 +553,7 @@ def test_bad_checkpoints_fail_naming_file_model_and_keys_and_change_nothing(tmp_
 
 
 # ------------------------------------------------------------------------------ building and planning
-@pytest.mark.parametrize(
-    "model", ["dinov2_vits14", "dinov2_vitg14", "dinov2_vitb14_reg4", "dinov2_vitl14_dav2"]
-)
+@pytest.mark.parametrize("model", ["dinov2_vits14", "dinov2_vitg14", "dinov2_vitb14_reg4", "dinov2_vitl14_dav2"])
 def test_plan_at_1080p_on_the_meta_device(model):
     cfg = load_config(
         {

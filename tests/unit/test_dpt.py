@@ -257,9 +257,7 @@ def test_plan_on_meta_device_with_tiny_vit_declares_specs_and_warns_about_backbo
     assert str(plan.heads["raw"].output_spec["depth"]) == "float32[120, 160]"
     both = {k: str(v) for k, v in plan.heads["both"].output_spec.items()}
     assert both == {"depth": "float32[120, 160]", "depth_color": "uint8[120, 160, 3]"}
-    assert {k: str(v) for k, v in plan.heads["pic"].output_spec.items()} == {
-        "depth_color": "uint8[120, 160, 3]"
-    }
+    assert {k: str(v) for k, v in plan.heads["pic"].output_spec.items()} == {"depth_color": "uint8[120, 160, 3]"}
     assert set(plan.heads["raw"].input_spec) == {f"patch.{i}" for i in range(4)}
     assert all(p.device.type == "meta" for p in plan.heads["both"].parameters())
     assert any("'dinov2_vits14_dav2'" in w and "'tiny_vit'" in w for w in plan.warnings)
@@ -328,9 +326,9 @@ def test_final_resize_to_input_resolution_uses_align_corners_like_reference():
         at_backbone = head(inputs)["depth"]
         head.out_hw = (100, 150)
         full = head(inputs)["depth"]
-    expected = torch.nn.functional.interpolate(
-        at_backbone[:, None], (100, 150), mode="bilinear", align_corners=True
-    )[:, 0]
+    expected = torch.nn.functional.interpolate(at_backbone[:, None], (100, 150), mode="bilinear", align_corners=True)[
+        :, 0
+    ]
     torch.testing.assert_close(full, expected)
     # align_corners=True keeps the corner pixels exactly
     assert full[0, 0, 0] == at_backbone[0, 0, 0] and full[0, -1, -1] == at_backbone[0, -1, -1]
@@ -347,9 +345,7 @@ def test_device_colormap_equals_visualize_colorize_depth():
     assert out["depth"] is not None and (out["depth_color"][0, 3, 4] == 0).all()
     flat = DepthColormap((4, 5))({"depth": torch.full((1, 4, 5), 2.0)})  # hi == lo: no division by zero
     assert set(flat) == {"depth_color"}
-    np.testing.assert_array_equal(
-        flat["depth_color"][0].numpy(), colorize_depth(np.full((4, 5), 2.0, np.float32))
-    )
+    np.testing.assert_array_equal(flat["depth_color"][0].numpy(), colorize_depth(np.full((4, 5), 2.0, np.float32)))
 
 
 def test_device_colormap_scales_each_frame_of_a_batch_by_its_own_range():
@@ -364,9 +360,7 @@ def test_device_colormap_scales_each_frame_of_a_batch_by_its_own_range():
 
 # ----------------------------------------------------------------------------------------- config errors
 def test_bad_options_and_postprocess_are_named():
-    with pytest.raises(
-        ModelBuildError, match=r"set options.size \(one of s, b, l\) or both options.features"
-    ):
+    with pytest.raises(ModelBuildError, match=r"set options.size \(one of s, b, l\) or both options.features"):
         build_head((28, 28), (2, 2), 32, options={"size": None})
     with pytest.raises(ModelBuildError, match=r"bad options: size: Input should be 's', 'b' or 'l'"):
         build_head((28, 28), (2, 2), 32, options={"size": "x"})
@@ -431,9 +425,7 @@ def test_cls_token_readout_and_batchnorm_variants_follow_the_reference_layout():
     for i in range(4):  # readout_projects.i = Sequential(Linear(2C, C), GELU)
         assert shapes[f"readout_projects.{i}.0.weight"] == (dim, 2 * dim)
     assert shapes["scratch.refinenet2.resConfUnit1.bn2.running_var"] == (TINY_WIDTHS["features"],)
-    plain = {
-        k.removeprefix("depth_head."): s for k, s in official_dpt_shapes(dim, 16, [8, 16, 32, 32]).items()
-    }
+    plain = {k.removeprefix("depth_head."): s for k, s in official_dpt_shapes(dim, 16, [8, 16, 32, 32]).items()}
     extra = set(shapes) - set(plain)
     assert extra and all(k.startswith("readout_projects.") or ".bn" in k for k in extra)
     inputs = head.example_inputs()

@@ -83,9 +83,7 @@ def test_results_stream_in_order_and_counts_what_was_not_collected():
         e.wait(ids[-1], timeout=5)
         res = e.results(timeout=1)
         assert sorted((r.head, r.frame_id) for r in res) == [("depth", 0), ("det", 0), ("seg", 0)]
-        for i in range(
-            20
-        ):  # nobody calls results(): only the last output.slots + the leases (4 + 2) survive
+        for i in range(20):  # nobody calls results(): only the last output.slots + the leases (4 + 2) survive
             e.wait(e.submit(frame(i)), timeout=5)
         res = e.results(timeout=1)
         per_head = {h: [r.frame_id for r in res if r.head == h] for h in ("depth", "seg", "det")}
@@ -102,9 +100,7 @@ def test_set_rate_validates_and_stats_and_rate_show_it(engine):
     engine.set_rate("seg", None)
     assert engine.stats()["models"]["seg"]["target_hz"] is None and engine.rate("seg") is None
     for call in (lambda: engine.set_rate("segm", 5), lambda: engine.rate("segm")):
-        with pytest.raises(
-            KeyError, match=r"no model named 'segm'; models: \['foundation', 'depth', 'seg', 'det'\]"
-        ):
+        with pytest.raises(KeyError, match=r"no model named 'segm'; models: \['foundation', 'depth', 'seg', 'det'\]"):
             call()
     for bad in (-1, float("nan"), float("inf"), "fast"):
         with pytest.raises(ValueError, match="must be None or a finite number >= 0 Hz"):

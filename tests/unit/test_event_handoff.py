@@ -67,9 +67,7 @@ class Dev:
         )
 
 
-def spec(
-    name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream, notify: bool = False
-) -> WorkerSpec:  # type: ignore[no-untyped-def]
+def spec(name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream, notify: bool = False) -> WorkerSpec:  # type: ignore[no-untyped-def]
     return WorkerSpec(
         name=name,
         role=role,  # type: ignore[arg-type]
@@ -162,11 +160,7 @@ def test_with_event_hand_off_features_are_published_before_the_foundation_waits_
         assert head_log[1] == ("depth", "model") and head_log[2][1] == "complete", head_log
         out = rings["out"].reader("results")
         got = out.pin(timeout=1.0)
-        assert (
-            got is not None
-            and got.frame_id == i
-            and torch.equal(got.tensors["d"], torch.full((4,), 2.0 * i + 1))
-        )
+        assert got is not None and got.frame_id == i and torch.equal(got.tensors["d"], torch.full((4,), 2.0 * i + 1))
         out.release(got)
     assert control.snapshot("foundation")["runs"] == 5 and control.snapshot("depth")["runs"] == 5
 

@@ -27,9 +27,7 @@ def test_a_frame_written_into_the_slot_gives_what_submit_gives(engine):
     img = frame(7)
     want = _outputs(engine.wait(engine.submit(img), timeout=5))
     with engine.frame_slot(timestamp=1700000000.5) as slot:
-        assert (
-            slot.array.shape == (120, 160, 3) and slot.array.dtype == np.uint8 and slot.array.flags.writeable
-        )
+        assert slot.array.shape == (120, 160, 3) and slot.array.dtype == np.uint8 and slot.array.flags.writeable
         slot.array[...] = img
     assert slot.array is None  # the slot is the engine's again
     out = engine.wait(slot.frame_id, timeout=5)
@@ -92,9 +90,7 @@ def test_an_open_slot_is_never_read_and_other_writers_wait_for_it():
             t.start()
             time.sleep(0.3)
             assert not done.is_set(), "a submit went through while a frame slot was open"
-            assert e.stats()["models"]["foundation"]["runs"] == runs, (
-                "the foundation read an unfinished frame"
-            )
+            assert e.stats()["models"]["foundation"]["runs"] == runs, "the foundation read an unfinished frame"
             with pytest.raises(RuntimeError, match="frame_slot is open in this thread"):
                 e.submit(frame(1))
             with pytest.raises(RuntimeError, match="frame_slot is open in this thread"):

@@ -97,9 +97,7 @@ def test_an_armed_worker_gets_its_work_queued_before_the_frame_is_published_pinn
     assert worker.launched == [(slot, "out")] and offer.launches == 1
     pinned, _, error = offer.take_done()  # type: ignore[misc]
     assert pinned is writer.pinned and error is None
-    assert (
-        publish(offer, writer) == 2 and log[-1] == "publish"
-    )  # disarmed: the next frame waits for the worker
+    assert publish(offer, writer) == 2 and log[-1] == "publish"  # disarmed: the next frame waits for the worker
     assert offer.take_done() is None and offer.launches == 1
 
 

@@ -154,9 +154,7 @@ def test_bad_checkpoint_fails_naming_file_model_and_keys_and_loads_nothing(tmp_p
     with pytest.raises(CheckpointError, match=message) as info:
         head.load_checkpoint(ctx)
     text = str(info.value)
-    assert (
-        str(path) in text and "seg (dinov2_linear_ade20k_s: DINOv2 linear head, 384 channels -> 150" in text
-    )
+    assert str(path) in text and "seg (dinov2_linear_ade20k_s: DINOv2 linear head, 384 channels -> 150" in text
     after = head.state_dict()
     assert all(torch.equal(before[k], after[k]) for k in before), "a failed load changed weights"
 
@@ -266,9 +264,7 @@ def test_upsample_choice_names_why_the_fused_kernel_cannot_run():
         assert head.upsample == "torch"
         out = head(head.example_inputs())["classes"]
         assert out.dtype == torch.uint8 and out.shape == (1, 28, 42)
-    with pytest.raises(
-        ModelBuildError, match=r"upsample is 'fused', which cannot run on cpu: it runs on CUDA only"
-    ):
+    with pytest.raises(ModelBuildError, match=r"upsample is 'fused', which cannot run on cpu: it runs on CUDA only"):
         build_head((28, 42), (2, 3), 32, options={"upsample": "fused"})
     with pytest.raises(ModelBuildError, match=r"upsample: Input should be 'auto', 'fused' or 'torch'"):
         build_head((28, 42), (2, 3), 32, options={"upsample": "nearest"})
@@ -277,21 +273,15 @@ def test_upsample_choice_names_why_the_fused_kernel_cannot_run():
 def test_bad_options_are_named():
     with pytest.raises(ModelBuildError, match=r"num_classes=20 contradicts dataset 'voc2012' \(21 classes\)"):
         build_head((28, 42), (2, 3), 32, model="dinov2_linear_voc2012_s", options={"num_classes": 20})
-    with pytest.raises(
-        ModelBuildError, match=r"set options.dataset \(ade20k or voc2012\) or options.num_classes"
-    ):
+    with pytest.raises(ModelBuildError, match=r"set options.dataset \(ade20k or voc2012\) or options.num_classes"):
         build_head((28, 42), (2, 3), 32, options={"dataset": None})
-    with pytest.raises(
-        ModelBuildError, match=r"bad options: .*accepted: dataset, num_classes, size, upsample"
-    ):
+    with pytest.raises(ModelBuildError, match=r"bad options: .*accepted: dataset, num_classes, size, upsample"):
         build_head((28, 42), (2, 3), 32, options={"layers": 4})
     cfg = head_config((28, 42))
     specs, _ = upstream((2, 3), 32)
     with pytest.raises(ModelBuildError, match=r"patch.3 is float32\[6, 32\], expected \[4, C\]"):
         LinearSegHead.from_config(
-            BuildContext(
-                "head", "seg", cfg.heads[0], cfg, specs, {"grid": (2, 2)}, defaults={"dataset": "ade20k"}
-            )
+            BuildContext("head", "seg", cfg.heads[0], cfg, specs, {"grid": (2, 2)}, defaults={"dataset": "ade20k"})
         )
 
 

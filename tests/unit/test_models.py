@@ -136,9 +136,7 @@ def test_head_needing_a_feature_the_backbone_lacks_fails_with_names():
 
 
 def test_bad_recipe_options_name_the_accepted_ones():
-    with pytest.raises(
-        ModelBuildError, match=r"depth \(tiny_depth\): bad options: colour.*accepted: .*num_classes"
-    ):
+    with pytest.raises(ModelBuildError, match=r"depth \(tiny_depth\): bad options: colour.*accepted: .*num_classes"):
         make_plan(tiny("process", "heads.depth.options={colour: red}"))
 
 
@@ -191,9 +189,7 @@ def test_models_built_in_parallel_threads_get_the_same_seeded_weights():
             for _ in range(20):  # default layer init draws from the global RNG meanwhile
                 build_model(cfg, n, "head", plan.features, plan.feature_meta, cpu, False)
 
-        threads = [threading.Thread(target=fm)] + [
-            threading.Thread(target=head, args=(f"h{i}",)) for i in range(3)
-        ]
+        threads = [threading.Thread(target=fm)] + [threading.Thread(target=head, args=(f"h{i}",)) for i in range(3)]
         for t in threads:
             t.start()
         for t in threads:

@@ -59,7 +59,9 @@ def test_the_engines_cameras_are_the_sources_names_or_must_match_the_configs():
     assert config_for_cameras(TINY, None).camera_names() == ["camera"]  # one camera: as always
     two = tiny("thread", "cameras=[{name: a}, {name: b}]")
     assert config_for_cameras(two, ["b", "a"]).camera_names() == ["a", "b"]  # the config's order stands
-    with pytest.raises(ValueError, match=r"the sources are named \['a', 'c'\] but the config's cameras are \['a', 'b'\]"):
+    with pytest.raises(
+        ValueError, match=r"the sources are named \['a', 'c'\] but the config's cameras are \['a', 'b'\]"
+    ):
         config_for_cameras(two, ["a", "c"])
     with pytest.raises(ValueError, match=r"the config has cameras \['a', 'b'\]: give one of the input topics for each"):
         config_for_cameras(two, None, what="input topics")

@@ -143,6 +143,12 @@ def test_ruff_lint_is_clean():
     assert p.returncode == 0, p.stdout + p.stderr
 
 
+def test_code_is_formatted():
+    # one layout, so a diff shows what changed and not whose editor saved the file (fix: ruff format src tests)
+    p = subprocess.run([_tool("ruff"), "format", "--check", "src", "tests"], cwd=ROOT, capture_output=True, text=True)
+    assert p.returncode == 0, p.stdout + p.stderr
+
+
 @pytest.mark.timeout(600)
 def test_mypy_is_clean_on_transport_runtime_and_config():
     p = subprocess.run([sys.executable, "-m", "mypy"], cwd=ROOT, capture_output=True, text=True)

@@ -112,9 +112,7 @@ def test_every_e2_and_e3_run_has_a_row_labelled_with_what_ran(tmp_path):
 
     e2 = [line for line in md if line.startswith("| E2")]
     assert len(e2) == 2, md
-    assert (
-        "(dinov2_vits14_dav2, eager) | 1.50x vs sequential (engine 40.0 ms" in e2[0]
-    )  # det eager too: unsaid
+    assert "(dinov2_vits14_dav2, eager) | 1.50x vs sequential (engine 40.0 ms" in e2[0]  # det eager too: unsaid
     assert "(dinov2_vits14_dav2, compile, detection heads eager, MPS) | 3.50x" in e2[1]
     assert e2[1].endswith("| paper_cuda_e2_c.json |")
 
@@ -166,10 +164,7 @@ def test_a_floor_off_cuda_has_no_floors_and_says_so(tmp_path):
     _write(tmp_path, "paper_cpu", "2026-01-01T00:00:00", _setup(backend="eager"), floor=f)
     r = collect(tmp_path)
     (row,) = [line for line in table(r).splitlines() if "device-time floor" in line]
-    assert (
-        "(dinov2_vits14_dav2, eager; depth+seg) | no device times off CUDA; thread mode 3.00 ms submitted,"
-        in row
-    )
+    assert "(dinov2_vits14_dav2, eager; depth+seg) | no device times off CUDA; thread mode 3.00 ms submitted," in row
     assert floor_panel_rows(r) == []
 
 
@@ -258,12 +253,8 @@ def test_main_writes_the_summary_naming_the_machine_and_the_figure(tmp_path, cap
         f"# vpengine benchmarks: {tmp_path.name}\n\nMachine: NVIDIA H100 80GB HBM3, 16-core Intel Xeon"
     )
     assert "torch 2.11.0, CUDA 13.0" in md
-    assert (
-        "| E1 shared backbone + 8 depth heads (dinov2_vits14_dav2, compile) | engine 9.0 ms: 2.78x vs" in md
-    )
-    assert (
-        "## Against the baseline (files named *before*)" in md and "| -10.0% | paper_cuda_after.json |" in md
-    )
+    assert "| E1 shared backbone + 8 depth heads (dinov2_vits14_dav2, compile) | engine 9.0 ms: 2.78x vs" in md
+    assert "## Against the baseline (files named *before*)" in md and "| -10.0% | paper_cuda_after.json |" in md
     assert (tmp_path / "summary.png").read_bytes().startswith(b"\x89PNG\r\n\x1a\n")
     with pytest.raises(ValueError, match="is not a folder"):
         report.main(argparse.Namespace(results=str(tmp_path / "nothing"), baseline=None))

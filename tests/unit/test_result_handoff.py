@@ -70,9 +70,7 @@ def finish(ring: SlotRing, ev: SlotEvents, index: int, seq: int) -> float:
     return t
 
 
-@pytest.mark.parametrize(
-    "make", [latest_buffer, lambda *a: fifo_queue(*a, n_slots=4)], ids=["latest", "fifo"]
-)
+@pytest.mark.parametrize("make", [latest_buffer, lambda *a: fifo_queue(*a, n_slots=4)], ids=["latest", "fifo"])
 def test_a_reader_asking_for_done_results_does_not_take_queued_ones_and_takes_them_once_done(make):
     ring = make("out", SPECS, ["results"])
     try:
@@ -163,9 +161,7 @@ def test_wait_done_waits_for_queued_work_and_times_each_result_by_when_it_was_do
 
 
 def test_mark_done_wakes_a_reader_waiting_for_a_done_result(monkeypatch):
-    monkeypatch.setattr(
-        ring_module, "_MAX_SLEEP", 10.0
-    )  # no periodic re-check: only the wake-up can end the wait
+    monkeypatch.setattr(ring_module, "_MAX_SLEEP", 10.0)  # no periodic re-check: only the wake-up can end the wait
     ring = latest_buffer("out", SPECS, ["results"])
     try:
         ev = handed_off(ring)
@@ -404,9 +400,7 @@ def test_wait_leaves_a_result_not_predicted_to_be_done_in_time_and_keeps_its_tim
         t0 = time.monotonic()
         with pytest.raises(TimeoutError, match=r"no output from \['depth'\]"):
             e.wait(fid, timeout=0.3)
-        assert (
-            time.monotonic() - t0 < 2.0 and sum(ev.syncs for ev in events) == 0
-        )  # never waited in the driver
+        assert time.monotonic() - t0 < 2.0 and sum(ev.syncs for ev in events) == 0  # never waited in the driver
         assert set(e.wait(fid, heads=["seg", "det"], timeout=0.3)) == {
             "seg",
             "det",

@@ -130,9 +130,7 @@ def test_detections_and_diagnostics_idl_agree_with_rosbags_vision_msgs_4():
         assert det.bbox.center.position.x == 30.0 and det.bbox.size_y == 60.0
         assert det.results[0].hypothesis.class_id == "person" and det.results[0].hypothesis.score == 0.875
         assert det.results[0].pose.pose.orientation.w == 1.0  # ROS 2's identity quaternion
-    diag = DiagnosticsOut(
-        Header(3, 4), [Status(2, "vp: depth", "failed: x", "hw", [("runs", "5"), ("a", "")])]
-    )
+    diag = DiagnosticsOut(Header(3, 4), [Status(2, "vp: depth", "failed: x", "hw", [("runs", "5"), ("a", "")])])
     raw = bytes(diagnostics_to_dds(diag).serialize())
     m = typestore("jazzy").deserialize_cdr(raw, "diagnostic_msgs/msg/DiagnosticArray")
     s = m.status[0]
@@ -193,9 +191,7 @@ def _effective_receive_buffer(tmp_path, name: str, user: str, extra: str | None 
         f'<CycloneDDS><Domain id="any"><Tracing><Verbosity>config</Verbosity><OutputFile>{trace}</OutputFile>'
         "</Tracing></Domain></CycloneDDS>"
     )
-    ctx = DdsContext(
-        200 + os.getpid() % 30, bridge_config(extra, user=",".join(filter(None, (user, tracing))))
-    )
+    ctx = DdsContext(200 + os.getpid() % 30, bridge_config(extra, user=",".join(filter(None, (user, tracing)))))
     ctx.close()
     deadline = time.monotonic() + 5
     while "SocketReceiveBufferSize[@max]" not in (trace.read_text() if trace.exists() else ""):

@@ -93,9 +93,7 @@ def test_row_padding_is_skipped_and_byte_order_does_not_matter_for_8_bit_pixels(
 def test_other_encodings_fail_naming_the_encoding_and_the_accepted_ones(encoding):
     msg = image_msg(frame(1), "bgr8")
     msg.encoding = encoding
-    with pytest.raises(
-        InputError, match=rf"encoding '{encoding}' is not supported; accepted: rgb8, bgr8, mono8"
-    ):
+    with pytest.raises(InputError, match=rf"encoding '{encoding}' is not supported; accepted: rgb8, bgr8, mono8"):
         image_to_frame(msg)
 
 
@@ -129,9 +127,7 @@ def test_inconsistent_sizes_fail_with_the_numbers():
         image_to_frame(msg)
     msg = image_msg(frame(1), "bgr8")
     msg.data = msg.data[:-10]
-    with pytest.raises(
-        InputError, match=r"data holds 57590 bytes; a 160x120 bgr8 image with step 480 needs 57600"
-    ):
+    with pytest.raises(InputError, match=r"data holds 57590 bytes; a 160x120 bgr8 image with step 480 needs 57600"):
         image_to_frame(msg)
 
 
@@ -539,9 +535,7 @@ def test_rejections_log_the_first_of_each_reason_and_count_the_rest():
     assert r.recent() == []
 
 
-def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_are_warnings(
-    monkeypatch, caplog
-):
+def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_are_warnings(monkeypatch, caplog):
     from vpengine.ros2 import core as core_module
 
     assert receive_buffer_advice(None, 10**7) is None  # unknown (not Linux): nothing to say
@@ -562,9 +556,7 @@ def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_ar
         core.note_publishers(1)
         first, again = interface(), interface()
     assert first.level == WARN and "a publisher has been matched" in first.message
-    assert (
-        "net.core.rmem_max" in first.message and dict(first.values)["receive_buffer_limit_bytes"] == "212992"
-    )
+    assert "net.core.rmem_max" in first.message and dict(first.values)["receive_buffer_limit_bytes"] == "212992"
     assert again.message == first.message
     assert len([r for r in caplog.records if r.getMessage().startswith("input link:")]) == 2  # each once
     core.note_receive_buffer(64 << 20)
@@ -631,8 +623,7 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
     after = [t for t in published if t >= applied]
     assert after and after[0] - applied < 0.05  # diagnostics right after the command, showing it
     assert any(
-        "rate command {key: 'nope', value: '5'} ignored: unknown model" in r.getMessage()
-        for r in caplog.records
+        "rate command {key: 'nope', value: '5'} ignored: unknown model" in r.getMessage() for r in caplog.records
     )
     assert len(refreshed) == len(published)
     with pytest.raises(ValueError, match="period must be > 0 s, got 0"):

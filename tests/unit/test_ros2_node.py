@@ -38,9 +38,7 @@ def test_services_come_from_the_first_package_that_has_both(monkeypatch):
     for pkg in node.SERVICE_PACKAGES:
         monkeypatch.setitem(sys.modules, pkg, None)
         monkeypatch.setitem(sys.modules, f"{pkg}.srv", None)
-    assert (
-        node.find_services() is None
-    )  # -> the node falls back to std_srvs/Trigger and rate.<model> parameters
+    assert node.find_services() is None  # -> the node falls back to std_srvs/Trigger and rate.<model> parameters
     change, names = _fake_srv_package(monkeypatch, "vp_engine_ros")  # the VPEngine paper's package
     assert node.find_services() == (change, names)
     _fake_srv_package(monkeypatch, "vpengine_interfaces", complete=False)  # incomplete: skipped

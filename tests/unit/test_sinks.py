@@ -103,9 +103,7 @@ def test_a_sink_that_fails_is_raised_in_the_caller_once_and_nothing_hangs():
     sink = Recorder(fail_at=2)
     w = SinkThread([lambda: sink], max_pending=2, block=True)
     with pytest.raises(RuntimeError, match="writing outputs failed: .*No space left on device"):
-        for i in range(
-            1000
-        ):  # a blocking put on a queue a failed writer no longer writes must not wait forever
+        for i in range(1000):  # a blocking put on a queue a failed writer no longer writes must not wait forever
             w.put(result("depth", i), None, str(i))
     assert [r[1] for r in sink.written] == [0, 1]
     w.close()  # already raised: not again; the sink is still closed

@@ -74,9 +74,7 @@ def test_bound_workers_publish_what_unbound_ones_do_and_use_every_slot(binding):
         # the rings rotate: several input and output slots were read and written
         assert len({i for i, _ in ex.used}) >= 2 and len({j for _, j in ex.used}) >= 2, (name, ex.used)
     binding.clear()
-    backends.make_executor = (
-        plain_make_executor  # the same engine unbound (monkeypatch restores it either way)
-    )
+    backends.make_executor = plain_make_executor  # the same engine unbound (monkeypatch restores it either way)
     plain = run(tiny("thread"), n)
     for i in range(n):
         for head, outs in plain[i].items():

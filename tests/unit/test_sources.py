@@ -131,9 +131,7 @@ def test_a_single_image_and_a_glob_are_sources(tmp_path):
         open_source(str(tmp_path / "a" / "*.bmp"))
 
 
-def test_an_unreadable_image_is_skipped_and_listed_and_a_truncated_one_is_used_with_a_warning(
-    tmp_path, caplog
-):
+def test_an_unreadable_image_is_skipped_and_listed_and_a_truncated_one_is_used_with_a_warning(tmp_path, caplog):
     import cv2
     import numpy as np
 

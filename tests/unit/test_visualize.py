@@ -48,12 +48,8 @@ def test_depth_colours_are_the_scaled_map_looked_up_and_non_finite_pixels_are_bl
         assert not out[~np.isfinite(d)].any()
     if d.size > 2:  # the nearest and the farthest finite pixels get the colour map's two ends
         lut = colormap_lut()
-        np.testing.assert_array_equal(
-            out.reshape(-1, 3)[np.nanargmin(np.where(np.isfinite(d), d, np.nan))], lut[0]
-        )
-        np.testing.assert_array_equal(
-            out.reshape(-1, 3)[np.nanargmax(np.where(np.isfinite(d), d, np.nan))], lut[255]
-        )
+        np.testing.assert_array_equal(out.reshape(-1, 3)[np.nanargmin(np.where(np.isfinite(d), d, np.nan))], lut[0])
+        np.testing.assert_array_equal(out.reshape(-1, 3)[np.nanargmax(np.where(np.isfinite(d), d, np.nan))], lut[255])
 
 
 def test_a_flat_or_empty_depth_map_gives_one_colour_or_black():
@@ -186,12 +182,8 @@ def test_all_heads_side_by_side(size, heads, grid, tile):
     assert mosaic.shape == (grid[0] * tile[0], grid[1] * tile[1], 3)
     import cv2
 
-    first = cv2.resize(
-        frame, tile[::-1], interpolation=cv2.INTER_AREA if tile[0] < size[0] else cv2.INTER_LINEAR
-    )
-    np.testing.assert_array_equal(
-        mosaic[tile[0] // 2 : tile[0], : tile[1]], first[tile[0] // 2 :]
-    )  # the input
+    first = cv2.resize(frame, tile[::-1], interpolation=cv2.INTER_AREA if tile[0] < size[0] else cv2.INTER_LINEAR)
+    np.testing.assert_array_equal(mosaic[tile[0] // 2 : tile[0], : tile[1]], first[tile[0] // 2 :])  # the input
     if "other" in results:  # never answered yet: the frame, darkened, with a caption
         r, c = divmod(heads, grid[1])
         cell = mosaic[r * tile[0] : (r + 1) * tile[0], c * tile[1] : (c + 1) * tile[1]]

@@ -64,8 +64,14 @@ class StandIn:
     def stats(self) -> dict:
         models = {n: model_stats(0 if n == "det" else 100, r) for n, r in self.rates.items()}
         return {
-            "engine": {"state": "running", "mode": "thread", "device": "cpu", "uptime_s": 1.0, "submitted": 120,
-                       "rejected": 1},
+            "engine": {
+                "state": "running",
+                "mode": "thread",
+                "device": "cpu",
+                "uptime_s": 1.0,
+                "submitted": 120,
+                "rejected": 1,
+            },
             "models": models,
             "results": {h: {"missed": 7} for h in INFOS},
             "memory": {"mailbox_host_bytes": 1000, "mailbox_device_bytes": 0},
@@ -107,8 +113,12 @@ def seg_result(frame_id: int = 7, seq: int = 1) -> Result:
 
 def det_result(frame_id: int = 7, seq: int = 1) -> Result:
     boxes = np.array([[10, 10, 40, 30]], np.float32)
-    return result("det", frame_id, seq, {"boxes": boxes, "scores": np.array([0.9], np.float32),
-                                         "labels": np.array([1], np.int32), "count": 1})
+    return result(
+        "det",
+        frame_id,
+        seq,
+        {"boxes": boxes, "scores": np.array([0.9], np.float32), "labels": np.array([1], np.int32), "count": 1},
+    )
 
 
 def frame_of(value: int) -> np.ndarray:
@@ -147,8 +157,14 @@ def test_a_rate_body_is_a_number_zero_or_null(body, hz):
 
 @pytest.mark.parametrize(
     ("body", "why"),
-    [(b"", "got None"), (b"5", "got 5"), (b'{"rate": 5}', "got {'rate': 5}"), (b'{"hz": "5"}', "hz='5'"),
-     (b'{"hz": true}', "hz=True"), (b"{nope", "not JSON")],
+    [
+        (b"", "got None"),
+        (b"5", "got 5"),
+        (b'{"rate": 5}', "got {'rate': 5}"),
+        (b'{"hz": "5"}', "hz='5'"),
+        (b'{"hz": true}', "hz=True"),
+        (b"{nope", "not JSON"),
+    ],
 )
 def test_a_bad_rate_body_says_what_is_accepted(body, why):
     with pytest.raises(ValueError, match="a number >= 0") as e:
@@ -158,8 +174,13 @@ def test_a_bad_rate_body_says_what_is_accepted(body, why):
 
 @pytest.mark.parametrize(
     ("text", "address"),
-    [("8080", ("127.0.0.1", 8080)), ("0.0.0.0:9000", ("0.0.0.0", 9000)), ("[::1]:81", ("::1", 81)),
-     ("robot.local:0", ("robot.local", 0)), (":8080", ("127.0.0.1", 8080))],
+    [
+        ("8080", ("127.0.0.1", 8080)),
+        ("0.0.0.0:9000", ("0.0.0.0", 9000)),
+        ("[::1]:81", ("::1", 81)),
+        ("robot.local:0", ("robot.local", 0)),
+        (":8080", ("127.0.0.1", 8080)),
+    ],
 )
 def test_serve_addresses(text, address):
     assert parse_address(text) == address
@@ -203,8 +224,12 @@ def test_put_rate_sets_it_and_answers_the_rate_now(view, engine):
 
 @pytest.mark.parametrize(
     ("model", "body", "reason"),
-    [("depth", b'{"hz": -2}', ">= 0 Hz, got -2.0"), ("nope", b'{"hz": 1}', "no model named 'nope'"),
-     ("depth", b'{"hz": "fast"}', "hz='fast'"), ("depth", b"", "got None")],
+    [
+        ("depth", b'{"hz": -2}', ">= 0 Hz, got -2.0"),
+        ("nope", b'{"hz": 1}', "no model named 'nope'"),
+        ("depth", b'{"hz": "fast"}', "hz='fast'"),
+        ("depth", b"", "got None"),
+    ],
 )
 def test_a_bad_rate_or_model_is_a_400_with_the_reason(view, engine, model, body, reason):
     status, _, reply = request(view.url + f"api/rate/{model}", "PUT", body)
@@ -373,9 +398,7 @@ def test_with_a_token_every_request_carries_it(engine):
         assert engine.rates["depth"] is None
         assert request(v.url + "api/stats", headers={"Authorization": "Bearer s3cret"})[0] == 200
         assert request(v.url + "metrics?token=s3cret")[0] == 200
-        status, _, _ = request(
-            v.url + "api/rate/depth", "PUT", b'{"hz": 1}', {"Authorization": "Bearer s3cret"}
-        )
+        status, _, _ = request(v.url + "api/rate/depth", "PUT", b'{"hz": 1}', {"Authorization": "Bearer s3cret"})
         assert status == 200 and engine.rates["depth"] == 1.0
 
 
@@ -422,8 +445,9 @@ def test_metrics_are_prometheus_text_with_vpengine_names_and_a_model_label(view)
     assert fams["vpengine_latency_seconds"].type == "summary"
     assert value("vpengine_latency_seconds", model="depth", quantile="0.99") == pytest.approx(0.009)
     assert value("vpengine_latency_seconds", "_count", model="depth") == 100
-    assert not [s for s in fams["vpengine_latency_seconds"].samples if s.labels.get("model") == "det"
-                and "quantile" in s.labels]  # no runs: no quantiles (not NaN)
+    assert not [
+        s for s in fams["vpengine_latency_seconds"].samples if s.labels.get("model") == "det" and "quantile" in s.labels
+    ]  # no runs: no quantiles (not NaN)
     assert value("vpengine_results_missed", "_total", model="seg") == 7
     assert value("vpengine_frames_submitted", "_total") == 120
     assert value("vpengine_up") == 1

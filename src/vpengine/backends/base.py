@@ -122,9 +122,7 @@ class Executor(abc.ABC):
 
     backend: ClassVar[str]
 
-    def __init__(
-        self, model: Model, device: torch.device | str, precision: str, name: str, max_batch: int = 1
-    ) -> None:
+    def __init__(self, model: Model, device: torch.device | str, precision: str, name: str, max_batch: int = 1) -> None:
         self.name = name
         self.device = resolve_device(device)
         self.precision = precision

@@ -235,9 +235,7 @@ class CompiledExecutor(Executor):
                 out_graphs = [self._copy_graph([(t, graph_out[k][0]) for k, t in s.items()]) for s in outputs]
         except Exception as e:
             _reset_capture_state(self.device)
-            log.warning(
-                "%s: running without slot-bound copies (capturing them failed: %s)", self.name, _short(e)
-            )
+            log.warning("%s: running without slot-bound copies (capturing them failed: %s)", self.name, _short(e))
             return False
         finally:
             cur.wait_stream(self._side)
@@ -321,9 +319,7 @@ class _RawLaunch:
             torch.cuda.synchronize(index)
             draws = not torch.equal(before, torch.cuda.get_rng_state(index))
         if draws:
-            log.info(
-                "%s: the model draws random numbers; a launch from another thread switches streams", name
-            )
+            log.info("%s: the model draws random numbers; a launch from another thread switches streams", name)
             return None
         return cls(
             cudart,

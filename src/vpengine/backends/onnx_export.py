@@ -198,9 +198,7 @@ def _export_onnx(
                     do_constant_folding=True,
                 )
             else:
-                raise BackendError(
-                    f"{name}: unknown exporter {exporter!r}; accepted: 'dynamo', 'torchscript'"
-                )
+                raise BackendError(f"{name}: unknown exporter {exporter!r}; accepted: 'dynamo', 'torchscript'")
     except BackendError:
         raise
     except Exception as e:
@@ -318,9 +316,7 @@ def check_onnx(
     try:
         onnx.checker.check_model(str(path), full_check=True)
     except Exception as e:
-        raise BackendError(
-            f"{name}: exported ONNX graph {str(path)!r} fails onnx.checker: {_short(e)}"
-        ) from e
+        raise BackendError(f"{name}: exported ONNX graph {str(path)!r} fails onnx.checker: {_short(e)}") from e
     proto = onnx.load(str(path), load_external_data=False)
     written = next((o.version for o in proto.opset_import if o.domain in ("", "ai.onnx")), None)
     if opset is not None and written != opset:
@@ -335,9 +331,7 @@ def check_onnx(
     got_out = {vi.name: _value_info(vi) for vi in graph.output}
     problems = []
 
-    def compare(
-        kind: str, got: dict[str, tuple[str, tuple[int | str, ...]]], want: dict[str, TensorSpec]
-    ) -> None:
+    def compare(kind: str, got: dict[str, tuple[str, tuple[int | str, ...]]], want: dict[str, TensorSpec]) -> None:
         for k, spec in want.items():
             if k not in got:
                 if not (kind == "input" and allow_unused_inputs):
@@ -354,9 +348,7 @@ def check_onnx(
     compare("input", got_in, input_spec)
     compare("output", got_out, output_spec)
     if problems:
-        raise BackendError(
-            f"{name}: exported ONNX graph does not match the model's specs: {'; '.join(problems)}"
-        )
+        raise BackendError(f"{name}: exported ONNX graph does not match the model's specs: {'; '.join(problems)}")
 
 
 # ------------------------------------------------------------------------------------------------ cache key
@@ -409,9 +401,7 @@ def _tensors_digest(model: nn.Module) -> str:
 def _modules_fingerprint(model: nn.Module) -> list[Any]:
     out = []
     for n, m in model.named_modules():
-        attrs = {
-            k: _plain(v) for k, v in sorted(vars(m).items()) if not k.startswith("_") and k != "training"
-        }
+        attrs = {k: _plain(v) for k, v in sorted(vars(m).items()) if not k.startswith("_") and k != "training"}
         out.append([n, f"{type(m).__module__}.{type(m).__qualname__}", attrs])
     return out
 

@@ -96,9 +96,7 @@ class OnnxExecutor(Executor):
             if self.artifact.exported:
                 raise
             # A cached file that no longer loads (truncated by a full disk, edited by hand): export it again once.
-            log.warning(
-                "%s: cached ONNX export %s does not load (%s); exporting again", name, self.artifact.path, e
-            )
+            log.warning("%s: cached ONNX export %s does not load (%s); exporting again", name, self.artifact.path, e)
             self.artifact = cache.get_or_export(model, precision, self.opts, name, force=True)
             self.session = self._session(ort)
         if precision == "fp16" and self.session.get_providers()[0] == "CPUExecutionProvider":
@@ -137,9 +135,7 @@ class OnnxExecutor(Executor):
                 "this model with backend 'compile' or 'eager'"
             )
         if self.device.type != "cuda" and on_gpu:
-            raise BackendError(
-                f"{self.name}: provider {providers[0]} needs a cuda device, the model is on cpu"
-            )
+            raise BackendError(f"{self.name}: provider {providers[0]} needs a cuda device, the model is on cpu")
         return providers
 
     def _session(self, ort: Any) -> Any:
@@ -197,17 +193,14 @@ class OnnxExecutor(Executor):
         self._dev_id = self.device.index or 0
         # A model may ignore some declared inputs; an exporter may then drop them from the graph.
         self._in_keys = [k for k in self.input_spec if k in graph_in]
-        self._in_meta = {
-            k: (_NUMPY[s.torch_dtype], [1, *s.shape]) for k, s in self.input_spec.items() if k in graph_in
-        }
+        self._in_meta = {k: (_NUMPY[s.torch_dtype], [1, *s.shape]) for k, s in self.input_spec.items() if k in graph_in}
         n = self.max_batch
         self._staging = {
             k: torch.empty((n, *self.input_spec[k].shape), dtype=self.input_spec[k].torch_dtype, device=self.device)
             for k in self._in_keys
         }
         self._out = {
-            k: torch.empty((n, *s.shape), dtype=s.torch_dtype, device=self.device)
-            for k, s in self.output_spec.items()
+            k: torch.empty((n, *s.shape), dtype=s.torch_dtype, device=self.device) for k, s in self.output_spec.items()
         }
         self._bindings = []
         for i in range(n):

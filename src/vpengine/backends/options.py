@@ -120,9 +120,7 @@ def parse_options(backend: str, raw: Mapping[str, Any] | None, name: str) -> Any
     """Validate ``raw`` as the options of ``backend`` for model ``name``; raise BackendError naming what is wrong."""
     cls = OPTIONS.get(backend)
     if cls is None:
-        raise BackendError(
-            f"{name}: unknown backend {backend!r}; accepted: {', '.join(repr(b) for b in OPTIONS)}"
-        )
+        raise BackendError(f"{name}: unknown backend {backend!r}; accepted: {', '.join(repr(b) for b in OPTIONS)}")
     try:
         return cls.model_validate(dict(raw or {}))
     except ValidationError as e:
@@ -134,6 +132,4 @@ def parse_options(backend: str, raw: Mapping[str, Any] | None, name: str) -> Any
                 problems.append(f"unknown key {loc!r} (accepted: {accepted})")
             else:
                 problems.append(f"{loc}: {err['msg']} (got {err.get('input')!r})")
-        raise BackendError(
-            f"{name}: bad backend_options for backend {backend!r}: {'; '.join(problems)}"
-        ) from None
+        raise BackendError(f"{name}: bad backend_options for backend {backend!r}: {'; '.join(problems)}") from None

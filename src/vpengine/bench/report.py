@@ -73,9 +73,7 @@ def collect(folder: Path) -> dict[str, Any]:
         path = folder / name
         if path.exists():
             out[name] = json.loads(path.read_text())
-    out["cameras_all"] = [
-        {"file": p.name, **json.loads(p.read_text())} for p in sorted(folder.glob("cameras_*.json"))
-    ]
+    out["cameras_all"] = [{"file": p.name, **json.loads(p.read_text())} for p in sorted(folder.glob("cameras_*.json"))]
     return out
 
 
@@ -137,9 +135,7 @@ def table(r: dict[str, Any]) -> str:
     for e1 in r.get("E1_all", []):
         last = e1["rows"][-1]
         ideal = (
-            f" (ideal from device times {last['ideal_vs_independent']:.2f}x)"
-            if "ideal_vs_independent" in last
-            else ""
+            f" (ideal from device times {last['ideal_vs_independent']:.2f}x)" if "ideal_vs_independent" in last else ""
         )
         rows.append(
             f"| E1 shared backbone + {last['heads']} depth heads ({setup_label(e1['setup'])}) | "
@@ -271,9 +267,7 @@ def headline(key: str, run: dict[str, Any]) -> dict[str, float]:
         return {"all three, p50": a["p50"], "all three, p99": a["p99"]}
     if key == "floor":
         return {
-            f"{m} mode{', written in place' if slot else ''}, mean": run[
-                f"{m}{'_frame_slot' if slot else ''}"
-            ]["mean"]
+            f"{m} mode{', written in place' if slot else ''}, mean": run[f"{m}{'_frame_slot' if slot else ''}"]["mean"]
             for m in ("thread", "process")
             for slot in (False, True)
         }

@@ -17,9 +17,7 @@ from vpengine.cli import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--config", default="configs/bench.yaml", help="engine config; its first head is the template"
-    )
+    p.add_argument("--config", default="configs/bench.yaml", help="engine config; its first head is the template")
     p.add_argument("--heads", default="1,2,3,4", help="head counts to measure (comma separated)")
     p.add_argument("--modes", default="process,thread")
     p.add_argument("--height", type=int, default=1080)
@@ -33,9 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def _config(base: str, n_heads: int, mode: str, h: int, w: int, overrides: list[str]) -> Any:
     from vpengine.config import load_config
 
-    cfg = load_config(
-        base, [f"mode={mode}", "device=cuda", f"input.height={h}", f"input.width={w}", *overrides]
-    )
+    cfg = load_config(base, [f"mode={mode}", "device=cuda", f"input.height={h}", f"input.width={w}", *overrides])
     template = cfg.heads[0].model_dump()
     heads = [{**template, "name": f"head{i}"} for i in range(n_heads)]
     return load_config(cfg.model_dump() | {"heads": heads})
@@ -166,9 +162,7 @@ def main(args: argparse.Namespace) -> int:
     for mode in args.modes.split(","):
         for n in counts:
             overrides = [*args.overrides, *([f"device={args.device}"] if args.device != "cuda" else [])]
-            r = isolated(
-                args.config, n, mode, args.height, args.width, args.seconds, overrides, cpu=(n == max(counts))
-            )
+            r = isolated(args.config, n, mode, args.height, args.width, args.seconds, overrides, cpu=(n == max(counts)))
             rows.append(r)
             extra = (
                 ""
@@ -182,11 +176,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"{mode:8s} heads={n}: device memory {mem}{extra}", flush=True)
     summary = {}
     for mode in args.modes.split(","):
-        pts = [
-            (r["heads"], r["device_mem_mb"])
-            for r in rows
-            if r["mode"] == mode and r["device_mem_mb"] is not None
-        ]
+        pts = [(r["heads"], r["device_mem_mb"]) for r in rows if r["mode"] == mode and r["device_mem_mb"] is not None]
         if len(pts) >= 2:
             xs, ys = zip(*pts)
             summary[mode] = {"mb_per_extra_head": float(np.polyfit(xs, ys, 1)[0])}

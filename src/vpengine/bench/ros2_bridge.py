@@ -46,8 +46,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--input-qos",
         choices=["sensor", "default"],
         default="sensor",
-        help="input QoS of publisher and bridge: sensor (best effort, what cameras use; default) or default "
-        "(reliable)",
+        help="input QoS of publisher and bridge: sensor (best effort, what cameras use; default) or default (reliable)",
     )
     p.add_argument(
         "--output-qos",
@@ -135,9 +134,7 @@ def subscriber(conn: Any, domain: int, topics: list[str]) -> None:
     from vpengine.ros2.dds import DdsContext
 
     ctx = DdsContext(domain)
-    readers = {
-        t: ctx.reader(t, T.Detection2DArray_ if t.endswith("/detections") else T.Image_) for t in topics
-    }
+    readers = {t: ctx.reader(t, T.Detection2DArray_ if t.endswith("/detections") else T.Image_) for t in topics}
     diag = ctx.reader("/diagnostics", T.DiagnosticArray_)
     while any(not r.dds.get_matched_publications() for r in readers.values()):
         time.sleep(0.05)
@@ -189,9 +186,7 @@ def drained(status: dict[str, dict[str, str]], topics: list[str]) -> bool:
         published = iface.get(f"published:{t}")
         if runs is None or published is None:
             return False
-        gone = int(iface.get(f"results_missed.{head}", "0")) + int(
-            iface.get(f"outputs_superseded.{head}", "0")
-        )
+        gone = int(iface.get(f"results_missed.{head}", "0")) + int(iface.get(f"outputs_superseded.{head}", "0"))
         if int(float(runs)) != int(published) + gone:
             return False
     return True
@@ -351,10 +346,7 @@ def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) 
     interface = status.get("interface", {})
     models = {
         name: {
-            **{
-                k: v.get(k)
-                for k in ("runs", "skipped", "drops", "errors", "latency_p50_ms", "latency_p99_ms")
-            },
+            **{k: v.get(k) for k in ("runs", "skipped", "drops", "errors", "latency_p50_ms", "latency_p99_ms")},
             # outputs the engine produced that the bridge did not collect in time (counted by the engine)
             **(
                 {
@@ -374,9 +366,7 @@ def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) 
     # The bridge's CPU per stage (thread CPU time, so not inflated by other load): input stages per submitted
     # frame, output stages per frame whose outputs went out (the busiest head's runs).
     submitted = max(int(iface.get("submitted", 0)), 1)
-    processed = max(
-        [int(m.get("runs") or 0) for n, m in status.items() if n not in ("interface", "foundation")] + [1]
-    )
+    processed = max([int(m.get("runs") or 0) for n, m in status.items() if n not in ("interface", "foundation")] + [1])
     busy_s = {k.split(".", 1)[1]: float(v) for k, v in iface.items() if k.startswith("busy_s.")}
     per_in = {k: busy_s.get(k, 0.0) / submitted * 1e3 for k in ("decode", "resize", "submit")}
     per_out = {k: busy_s.get(k, 0.0) / processed * 1e3 for k in ("results", "convert", "encode", "write")}
@@ -459,9 +449,7 @@ def main(args: argparse.Namespace) -> int:
             + ")"
         )
         for name, m in res["models"].items():
-            print(
-                f"  model {name:10s} runs {m['runs']:>5s} skipped {m['skipped']:>5s} p50 {m['latency_p50_ms']} ms"
-            )
+            print(f"  model {name:10s} runs {m['runs']:>5s} skipped {m['skipped']:>5s} p50 {m['latency_p50_ms']} ms")
         for t, v in res["topics"].items():
             print(
                 f"  {t:32s} received {v['received']:4d}/{res['frames_published']} (bridge published "

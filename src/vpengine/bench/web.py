@@ -110,8 +110,15 @@ def _cpu_s(exclude: set[int]) -> float:
     return total
 
 
-def _phase(engine: Any, view: Any, imgs: list[np.ndarray], recent: dict[int, np.ndarray], viewer: bool,
-           seconds: float, fps: float) -> dict[str, Any]:
+def _phase(
+    engine: Any,
+    view: Any,
+    imgs: list[np.ndarray],
+    recent: dict[int, np.ndarray],
+    viewer: bool,
+    seconds: float,
+    fps: float,
+) -> dict[str, Any]:
     heads = list(engine.plan.heads)
     per_frame: dict[int, dict[str, float]] = {}
     lat: dict[str, list[float]] = {h: [] for h in heads}
@@ -186,9 +193,7 @@ def _per_phase(phases: list[dict[str, Any]], key: str) -> dict[str, list[float |
     return {f"{s}_per_phase": [p[key][s] for p in phases] for s in ("p50", "p99", "mean")}
 
 
-def measure(
-    config: str, overrides: list[str], seconds: float, rounds: int, fps: float
-) -> dict[str, Any]:
+def measure(config: str, overrides: list[str], seconds: float, rounds: int, fps: float) -> dict[str, Any]:
     from vpengine.engine import Engine
     from vpengine.io.sources import SyntheticSource
     from vpengine.web import serve

@@ -81,9 +81,7 @@ def prepare_out_file(path: str | Path, exist_ok: bool, what: str, replaceable: b
     (unless ``exist_ok`` and ``replaceable``) and its folder can be created and written."""
     out = Path(path)
     if out.exists() and not (exist_ok and replaceable and out.is_file()):
-        hint = (
-            ", or add --exist-ok to replace it" if replaceable and out.is_file() else " (never overwritten)"
-        )
+        hint = ", or add --exist-ok to replace it" if replaceable and out.is_file() else " (never overwritten)"
         raise ValueError(f"{what} {str(out)!r} exists already; give a new name{hint}")
     try:
         out.parent.mkdir(parents=True, exist_ok=True)

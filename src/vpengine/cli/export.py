@@ -35,12 +35,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="torch.onnx exporter (auto: what the model asks for; torchscript for Faster R-CNN)",
     )
     add_overrides_argument(p, "input.height=720")
-    p.add_argument(
-        "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
-    )
-    p.add_argument(
-        "--no-verify", action="store_true", help="skip running the export on ONNX Runtime against PyTorch"
-    )
+    p.add_argument("--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints")
+    p.add_argument("--no-verify", action="store_true", help="skip running the export on ONNX Runtime against PyTorch")
 
 
 def _jsonable(v: Any) -> Any:
@@ -121,9 +117,7 @@ def main(args: argparse.Namespace) -> int:
     def specs(d: dict[str, Any]) -> str:
         return format_specs({k: TensorSpec(tuple(v["shape"]), v["dtype"]) for k, v in d.items()})
 
-    print(
-        f"{args.model} -> {path} ({size:.1f} MB, {m['precision']}, opset {m['opset']}, {m['export_s']:.1f} s)"
-    )
+    print(f"{args.model} -> {path} ({size:.1f} MB, {m['precision']}, opset {m['opset']}, {m['export_s']:.1f} s)")
     print(f"  inputs:  {specs(m['inputs'])}")
     print(f"  outputs: {specs(m['outputs'])}")
     v = m["verification"]

@@ -91,11 +91,7 @@ def _fused_upsample_argmax() -> str:
         if torch.cuda.is_available()
         else "no CUDA device visible"
     )
-    return (
-        "available"
-        if why_not is None
-        else f"not used: {why_not} (PyTorch's interpolate and argmax run instead)"
-    )
+    return "available" if why_not is None else f"not used: {why_not} (PyTorch's interpolate and argmax run instead)"
 
 
 def models_main(args: argparse.Namespace) -> int:

@@ -45,9 +45,7 @@ EXTRAS = {
 def build_parser() -> argparse.ArgumentParser:
     from vpengine import __version__
 
-    p = argparse.ArgumentParser(
-        prog="vpengine", description="One foundation model per frame, many heads in parallel."
-    )
+    p = argparse.ArgumentParser(prog="vpengine", description="One foundation model per frame, many heads in parallel.")
     p.add_argument("--version", action="version", version=f"vpengine {__version__}")
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")

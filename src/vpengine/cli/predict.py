@@ -48,9 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_overrides_argument(p, "device=cuda")
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
     p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
-    p.add_argument(
-        "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
-    )
+    p.add_argument("--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_serve_arguments(p)
 
@@ -84,24 +82,19 @@ def main(args: argparse.Namespace) -> int:
     # every head on every frame: one picture per frame with every head in it
     rates = {"foundation": cfg.foundation_model.rate_hz, **{h.name: h.rate_hz for h in cfg.heads}}
     limited = ", ".join(f"{n} to {hz:g} Hz" for n, hz in rates.items() if hz is not None)
-    cfg = load_config(
-        cfg, ["foundation_model.rate_hz=null", *(f"heads.{h.name}.rate_hz=null" for h in cfg.heads)]
-    )
+    cfg = load_config(cfg, ["foundation_model.rate_hz=null", *(f"heads.{h.name}.rate_hz=null" for h in cfg.heads)])
     serve = serve_options(args)
     out = prepare_out_dir(args.out, args.exist_ok) if args.out else None  # checked before a camera opens
     with open_sources(wanted) as sources:
         out = out or next_run_dir()  # made once the sources opened: a bad one leaves no empty run folder
         print(
-            "rate limits off: every head runs on every frame"
-            + (f" (the config limits {limited})" if limited else ""),
+            "rate limits off: every head runs on every frame" + (f" (the config limits {limited})" if limited else ""),
             flush=True,
         )
 
         def pictures(heads: dict[str, dict[str, Any]], served: dict[str, list[str]]) -> Any:
             # several cameras: one folder of pictures each, out/<camera>/
-            return per_camera(
-                served, heads, lambda camera, infos: AnnotatedSink(infos, pictures=out / (camera or ""))
-            )
+            return per_camera(served, heads, lambda camera, infos: AnnotatedSink(infos, pictures=out / (camera or "")))
 
         summary = run_pipeline(
             cfg,

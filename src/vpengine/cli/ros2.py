@@ -36,9 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="camera topic, sensor_msgs/Image (e.g. /camera/image_raw); several cameras: NAME=TOPIC for each, "
         "repeated (each camera's outputs then go under <namespace>/<NAME>/)",
     )
-    p.add_argument(
-        "--namespace", default="/vpengine", help="prefix of every output topic (default: /vpengine)"
-    )
+    p.add_argument("--namespace", default="/vpengine", help="prefix of every output topic (default: /vpengine)")
     p.add_argument(
         "--input-qos",
         choices=["sensor", "default"],
@@ -57,12 +55,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="read sensor_msgs/CompressedImage (jpeg/png) from <input-topic>/compressed",
     )
-    p.add_argument(
-        "--depth-color", action="store_true", help="also publish colour-mapped depth (<head>/depth_color)"
-    )
-    p.add_argument(
-        "--seg-overlay", action="store_true", help="also publish segmentation overlays (<head>/overlay)"
-    )
+    p.add_argument("--depth-color", action="store_true", help="also publish colour-mapped depth (<head>/depth_color)")
+    p.add_argument("--seg-overlay", action="store_true", help="also publish segmentation overlays (<head>/overlay)")
     p.add_argument(
         "--domain-id",
         type=int,

@@ -84,9 +84,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="stop at a bag's first bad message (default: skip it, log it, list it in the summary)",
     )
-    p.add_argument(
-        "--out-bag", help="also record every head's outputs to this new rosbag2 bag (ROS 2 message types)"
-    )
+    p.add_argument("--out-bag", help="also record every head's outputs to this new rosbag2 bag (ROS 2 message types)")
     p.add_argument("--bag-storage", choices=["mcap", "sqlite3"], default="mcap", help="--out-bag storage")
     p.add_argument(
         "--bag-distro",
@@ -100,13 +98,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help="output folder (per-head outputs and summary.json), refused if it holds files already; omit to write "
         "nothing",
     )
-    p.add_argument(
-        "--exist-ok", action="store_true", help="write into an --out folder (or over a --video) that exists"
-    )
+    p.add_argument("--exist-ok", action="store_true", help="write into an --out folder (or over a --video) that exists")
     add_overrides_argument(p, "heads.depth.rate_hz=5")
-    p.add_argument(
-        "--pace", choices=["lockstep", "realtime"], help="see `vpengine run --help` (default by source)"
-    )
+    p.add_argument("--pace", choices=["lockstep", "realtime"], help="see `vpengine run --help` (default by source)")
     p.add_argument(
         "--fps",
         type=positive_float,
@@ -114,27 +108,21 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "camera paces itself unless given)",
     )
     p.add_argument("--max-frames", type=positive_int, help="stop after this many frames")
-    p.add_argument(
-        "--save-every", type=positive_int, default=1, help="write every Nth output per head (default: all)"
-    )
+    p.add_argument("--save-every", type=positive_int, default=1, help="write every Nth output per head (default: all)")
     p.add_argument(
         "--depth-format",
         choices=["png16", "npy"],
         default="png16",
         help="depth files: 16-bit PNG with its scale in depth_scale.jsonl (default; Note [Depth PNG]) or float32 .npy",
     )
-    p.add_argument(
-        "--viz", action="store_true", help="also write pictures: depth with a colour bar, overlays, boxes"
-    )
+    p.add_argument("--viz", action="store_true", help="also write pictures: depth with a colour bar, overlays, boxes")
     p.add_argument(
         "--video",
         help="also write an annotated mp4: the input and every head side by side, one frame per frame",
     )
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
     p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
-    p.add_argument(
-        "--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints"
-    )
+    p.add_argument("--random-weights", action="store_true", help="use random weights (loudly) instead of checkpoints")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_serve_arguments(p)
 
@@ -274,17 +262,13 @@ def run_pipeline(
             bar.update(done - bar.n)
             if after > before:
                 st = engine.stats()["models"]
-                bar.set_postfix_str(
-                    " ".join(f"{n}={m['achieved_hz']:.1f}Hz" for n, m in st.items()), refresh=False
-                )
+                bar.set_postfix_str(" ".join(f"{n}={m['achieved_hz']:.1f}Hz" for n, m in st.items()), refresh=False)
 
     interrupted = False
     t_start = time.monotonic()
     view = contextlib.ExitStack()
     try:
-        view.enter_context(
-            serving(serve, engine, lambda fid: recent.get(fid, (None,))[0], cfg.input.color)
-        )
+        view.enter_context(serving(serve, engine, lambda fid: recent.get(fid, (None,))[0], cfg.input.color))
         with _ctrl_c() as stop:
             if pace == "lockstep":
                 _lockstep(feeds, max_frames, stop, submit, engine, handle, progressed)
@@ -343,9 +327,7 @@ def run_pipeline(
     submitted = sum(f.submitted for f in feeds)
     summary = {
         "config": cfg.name,
-        "source": ", ".join(
-            _describe(s) if c is None else f"{c}={_describe(s)}" for c, s in sources.items()
-        ),
+        "source": ", ".join(_describe(s) if c is None else f"{c}={_describe(s)}" for c, s in sources.items()),
         "pace": pace,
         "frames_submitted": submitted,
         "source_missed": sum(getattr(s, "missed", 0) for s in sources.values()),
@@ -559,9 +541,7 @@ def format_summary(s: dict[str, Any]) -> str:
     if s.get("inputs_skipped"):
         lines.append(f"images skipped as unreadable: {len(s['inputs_skipped'])} (listed in summary.json)")
     if s.get("inputs_partial"):
-        lines.append(
-            f"images truncated, decoded partially: {len(s['inputs_partial'])} (listed in summary.json)"
-        )
+        lines.append(f"images truncated, decoded partially: {len(s['inputs_partial'])} (listed in summary.json)")
     unwritten = {n: m["results_unwritten"] for n, m in s["models"].items() if m.get("results_unwritten")}
     if unwritten:
         lines.append(

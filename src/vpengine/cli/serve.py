@@ -55,8 +55,7 @@ def add_serve_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--serve-token",
         metavar="TOKEN",
-        help=f"token every request to the view must carry (default: ${TOKEN_ENV}); required when HOST is "
-        "not loopback",
+        help=f"token every request to the view must carry (default: ${TOKEN_ENV}); required when HOST is not loopback",
     )
     p.add_argument(
         "--foxglove",
@@ -113,8 +112,9 @@ def serving(
 
             host, port = options.foxglove
             pictures = server.pictures if server is not None else None  # one bound for both
-            fox = _start("--foxglove", options.foxglove, FoxgloveView, engine, host, port, frames, frame_color,
-                         pictures=pictures)
+            fox = _start(
+                "--foxglove", options.foxglove, FoxgloveView, engine, host, port, frames, frame_color, pictures=pictures
+            )
             stack.callback(fox.stop)
             print(f"vpengine: Foxglove view at {fox.url}", file=sys.stderr, flush=True)
         yield server

@@ -31,18 +31,14 @@ def _positive(kind: type, name: str) -> Any:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "what", choices=["detector"], help="what to train: detector (Faster R-CNN head on frozen features)"
-    )
+    p.add_argument("what", choices=["detector"], help="what to train: detector (Faster R-CNN head on frozen features)")
     p.add_argument("--config", "-c", required=True, help="engine config (its foundation model and head)")
     p.add_argument("--images", required=True, help="folder the COCO file_name entries are relative to")
     p.add_argument("--annotations", required=True, help="COCO-format JSON with boxes (bbox: x, y, w, h)")
     p.add_argument("--out", "-o", required=True, help="checkpoint to write (.pth, or .safetensors)")
     p.add_argument("--head", help="name of the head to train when the config has several detection heads")
     p.add_argument("--epochs", type=_positive(int, "--epochs"), default=12, help="passes over the data (12)")
-    p.add_argument(
-        "--lr", type=_positive(float, "--lr"), default=1e-4, help="AdamW peak learning rate (1e-4)"
-    )
+    p.add_argument("--lr", type=_positive(float, "--lr"), default=1e-4, help="AdamW peak learning rate (1e-4)")
     p.add_argument("--weight-decay", type=float, default=1e-4, help="AdamW weight decay (1e-4)")
     p.add_argument("--batch-size", type=_positive(int, "--batch-size"), default=4, help="images per step (4)")
     p.add_argument(

@@ -54,9 +54,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="for an entry without a sha256: accept the digest of what is downloaded now, print and record it",
     )
-    f.add_argument(
-        "--url", help="download a custom entry NAME from this URL (needs --sha256 or --trust-on-first-use)"
-    )
+    f.add_argument("--url", help="download a custom entry NAME from this URL (needs --sha256 or --trust-on-first-use)")
     f.add_argument("--file", help="file name of a custom --url entry (default: the URL's last path part)")
     f.add_argument("--force", action="store_true", help="download again even if a verified copy is cached")
     f.add_argument(
@@ -67,9 +65,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--timeout", type=float, default=60.0, help="network timeout in seconds (default 60)")
 
     v = sub.add_parser("verify", parents=[common], help="re-hash cached checkpoints; exit 1 on any problem")
-    v.add_argument(
-        "names", nargs="*", metavar="NAME", help="entries to check (default: every cached or partial one)"
-    )
+    v.add_argument("names", nargs="*", metavar="NAME", help="entries to check (default: every cached or partial one)")
 
     pa = sub.add_parser("path", parents=[common], help="the cache path of a checkpoint (exit 1 if not there)")
     pa.add_argument("name", metavar="NAME")

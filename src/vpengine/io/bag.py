@@ -84,9 +84,7 @@ class BagSource(Source):
     docstring.
     """
 
-    def __init__(
-        self, path: str | Path, topic: str | None = None, color: str = "bgr", strict: bool = False
-    ) -> None:
+    def __init__(self, path: str | Path, topic: str | None = None, color: str = "bgr", strict: bool = False) -> None:
         from rosbags.rosbag2 import Reader
 
         from vpengine.ros2.rosbags_msgs import DISTROS, typestore
@@ -112,9 +110,7 @@ class BagSource(Source):
             self.topic = topic
             self._conns = [c for c in conns if c.topic == topic]
             if not self._conns:
-                raise ValueError(
-                    f"bag {str(self.path)!r} has no topic {topic!r}; topics: {_topic_list(conns)}"
-                )
+                raise ValueError(f"bag {str(self.path)!r} has no topic {topic!r}; topics: {_topic_list(conns)}")
             types = {c.msgtype for c in self._conns}
             if len(types) != 1 or not types <= set(IMAGE_TYPES):
                 raise ValueError(
@@ -285,9 +281,7 @@ class BagSink(Sink):
         if storage not in STORAGES:
             raise ValueError(f"bag storage {storage!r} is not supported; accepted: {', '.join(STORAGES)}")
         if distro not in DISTROS:
-            raise ValueError(
-                f"ROS 2 distribution {distro!r} is not supported; accepted: {', '.join(DISTROS)}"
-            )
+            raise ValueError(f"ROS 2 distribution {distro!r} is not supported; accepted: {', '.join(DISTROS)}")
         self.path = Path(path)
         if self.path.exists():
             raise ValueError(f"output bag {str(self.path)!r} exists already; bags are never overwritten")

@@ -37,9 +37,7 @@ JPEG_QUALITY = 90
 
 
 class Sink:
-    def write(
-        self, result: Result, frame: np.ndarray | None, name: str
-    ) -> None:  # pragma: no cover - abstract
+    def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def close(self) -> None:
@@ -363,9 +361,7 @@ class AnnotatedSink(Sink):
         self.fps = fps
         self.lag = lag
         self.frames_written = 0
-        self._pending: collections.OrderedDict[int, tuple[np.ndarray, str, dict[str, Any]]] = (
-            collections.OrderedDict()
-        )
+        self._pending: collections.OrderedDict[int, tuple[np.ndarray, str, dict[str, Any]]] = collections.OrderedDict()
         self._newest: dict[str, Any] = {}
         self._writer: Any = None
         self._size: tuple[int, int] | None = None
@@ -391,17 +387,13 @@ class AnnotatedSink(Sink):
 
         frame, name, got = self._pending.pop(frame_id)
         self._newest.update(got)
-        picture = visualize.draw_results(
-            frame, {h: got.get(h, self._newest.get(h)) for h in self.heads}, self.heads
-        )
+        picture = visualize.draw_results(frame, {h: got.get(h, self._newest.get(h)) for h in self.heads}, self.heads)
         if self.pictures is not None:
             _write_jpeg(self.pictures / f"{name}.jpg", picture)
         if self.video is not None:
             if self._writer is None:
                 self._size = (picture.shape[1], picture.shape[0])
-                self._writer = cv2.VideoWriter(
-                    str(self.video), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size
-                )
+                self._writer = cv2.VideoWriter(str(self.video), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size)
                 if not self._writer.isOpened():
                     raise OSError(f"cannot write video {str(self.video)!r} (mp4v through OpenCV)")
             self._writer.write(_fit(picture, self._size or (0, 0)))

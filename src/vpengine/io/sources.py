@@ -40,9 +40,7 @@ class SyntheticSource(Source):
 
     _SPEC = re.compile(r"^synthetic(?::(\d+)x(\d+))?(?:@(\d+(?:\.\d*)?|\.\d+))?(?::(\d+))?$")
 
-    def __init__(
-        self, width: int = 640, height: int = 480, fps: float = 30.0, frames: int = 300, seed: int = 0
-    ):
+    def __init__(self, width: int = 640, height: int = 480, fps: float = 30.0, frames: int = 300, seed: int = 0):
         if width < 14 or height < 14:
             raise ValueError(f"synthetic source size {width}x{height} is too small (min 14x14)")
         fps = _positive_rate(fps, "synthetic source rate")
@@ -180,9 +178,7 @@ class VideoSource(Source):
         import cv2
 
         self.path = path
-        self._cap = (
-            capture if capture is not None else cv2.VideoCapture(path if isinstance(path, int) else str(path))
-        )
+        self._cap = capture if capture is not None else cv2.VideoCapture(path if isinstance(path, int) else str(path))
         if not self._cap.isOpened():
             raise ValueError(f"cannot open video {str(path)!r} (missing file or unsupported codec)")
         self.width = int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH))
@@ -255,9 +251,7 @@ class VideoSource(Source):
                     frame, newest[0] = newest[0], None
                     if frame is None:
                         if isinstance(ended[0], BaseException):
-                            raise RuntimeError(f"reading camera {self.path} failed: {ended[0]!r}") from ended[
-                                0
-                            ]
+                            raise RuntimeError(f"reading camera {self.path} failed: {ended[0]!r}") from ended[0]
                         return
                 yield frame
         finally:
@@ -268,9 +262,7 @@ class VideoSource(Source):
         self._cap.release()
 
 
-def open_source(
-    spec: str, topic: str | None = None, fps: float | None = None, strict: bool = False
-) -> Source:
+def open_source(spec: str, topic: str | None = None, fps: float | None = None, strict: bool = False) -> Source:
     """A source from a command-line spec: ``synthetic[...]``, an image, a folder of images, a glob of images
     (``frames/*.jpg``), a video file, ``camera:N``, ``sample:NAME`` or a rosbag2 bag (a folder with metadata.yaml, or a
     .mcap / .db3 file; ``topic`` names its image topic; ``strict`` stops at its first bad message instead of skipping
@@ -280,18 +272,14 @@ def open_source(
     elif spec.startswith("camera:"):
         index = spec.split(":", 1)[1]
         if not index.isdigit():
-            raise ValueError(
-                f"bad camera source {spec!r}; use camera:N with N the camera's index, e.g. camera:0"
-            )
+            raise ValueError(f"bad camera source {spec!r}; use camera:N with N the camera's index, e.g. camera:0")
         source = VideoSource(int(index))
     elif spec.startswith("sample:"):
         return open_source(str(sample(spec.split(":", 1)[1])), topic, fps, strict)
     else:
         path = Path(spec)
         if not path.exists() and glob.has_magic(spec):
-            files = sorted(
-                Path(f) for f in glob.glob(spec, recursive=True) if Path(f).suffix.lower() in IMAGE_EXTS
-            )
+            files = sorted(Path(f) for f in glob.glob(spec, recursive=True) if Path(f).suffix.lower() in IMAGE_EXTS)
             if not files:
                 raise ValueError(f"no images ({', '.join(sorted(IMAGE_EXTS))}) match {spec!r}")
             source = ImageSource(files, spec, fps)

@@ -107,7 +107,6 @@ def format_report(report: dict[str, Any]) -> str:
     lines.append("")
     lines.extend(f"{label:{lw}s}  {n:>15,d}  ({_short(n)})" for label, n in rows)
     lines.append(
-        f"sharing the backbone saves {s['saved']:,d} parameters ({_short(s['saved'])}): "
-        f"{s['percent_fewer']:.1f}% fewer"
+        f"sharing the backbone saves {s['saved']:,d} parameters ({_short(s['saved'])}): {s['percent_fewer']:.1f}% fewer"
     )
     return "\n".join(lines)

@@ -97,11 +97,7 @@ class BuildContext:
         except ValidationError as e:
             problems = "; ".join(
                 f"{'.'.join(map(str, err['loc'])) or 'options'}: {err['msg']}"
-                + (
-                    f" (accepted: {', '.join(sorted(cls.model_fields))})"
-                    if err["type"] == "extra_forbidden"
-                    else ""
-                )
+                + (f" (accepted: {', '.join(sorted(cls.model_fields))})" if err["type"] == "extra_forbidden" else "")
                 for err in e.errors()
             )
             raise ModelBuildError(f"{self.name} ({self.cfg.model}): bad options: {problems}") from None
@@ -153,9 +149,7 @@ class Model(nn.Module):
     def load_checkpoint(self, ctx: BuildContext) -> None:
         """Load weights named by ``ctx.cfg.checkpoint`` (or the recipe's default). Default: nothing to load."""
 
-    def forward(
-        self, inputs: dict[str, torch.Tensor]
-    ) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
         raise NotImplementedError
 
     def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -232,9 +226,7 @@ def random_inputs(
     return out
 
 
-def check_outputs(
-    name: str, spec: SpecDict, outputs: dict[str, torch.Tensor], batch: int | None = None
-) -> None:
+def check_outputs(name: str, spec: SpecDict, outputs: dict[str, torch.Tensor], batch: int | None = None) -> None:
     """Raise naming the mismatch if a model's batched outputs differ from what it declared: every output must be
     ``[B, *shape]`` of its spec with one ``B`` for all (``batch``, when given; Note [Batched models])."""
     missing = [k for k in spec if k not in outputs]
@@ -253,6 +245,4 @@ def check_outputs(
         )
     ]
     if missing or bad:
-        raise ModelBuildError(
-            f"{name}: outputs differ from the declared output_spec: missing {missing}; {bad}"
-        )
+        raise ModelBuildError(f"{name}: outputs differ from the declared output_spec: missing {missing}; {bad}")

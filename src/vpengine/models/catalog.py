@@ -120,9 +120,7 @@ class Entry:
             object.__setattr__(self, "sha256", parse_sha256(self.sha256, where))
         elif not self.sha256_missing:
             raise CatalogError(f"{where}: sha256 is null, so sha256_missing must say why")
-        if self.size is not None and (
-            not isinstance(self.size, int) or isinstance(self.size, bool) or self.size <= 0
-        ):
+        if self.size is not None and (not isinstance(self.size, int) or isinstance(self.size, bool) or self.size <= 0):
             raise CatalogError(f"{where}: size must be a positive number of bytes or null, got {self.size!r}")
         if not isinstance(self.licence, str) or not self.licence.strip():
             raise CatalogError(f"{where}: licence must be a non-empty string, got {self.licence!r}")

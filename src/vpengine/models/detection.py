@@ -80,12 +80,8 @@ class FasterRCNNOptions(Options):
     class_names: list[str] | None = Field(
         None, description="One name per class; label i of the output is class_names[i]."
     )
-    score_threshold: float = Field(
-        0.5, ge=0.0, le=1.0, description="Keep detections whose class score is above this."
-    )
-    nms_threshold: float = Field(
-        0.5, gt=0.0, le=1.0, description="Per-class NMS IoU threshold (1.0: no suppression)."
-    )
+    score_threshold: float = Field(0.5, ge=0.0, le=1.0, description="Keep detections whose class score is above this.")
+    nms_threshold: float = Field(0.5, gt=0.0, le=1.0, description="Per-class NMS IoU threshold (1.0: no suppression).")
     max_detections: int = Field(
         100, ge=1, le=10000, description="Output capacity M: at most this many detections per frame."
     )
@@ -109,39 +105,21 @@ class FasterRCNNOptions(Options):
         description="Anchor sizes per pyramid level (top level included), same count on every level; null: "
         "4 and 4*sqrt(2) times each level's stride.",
     )
-    rpn_aspect_ratios: list[float] = Field(
-        [0.5, 1.0, 2.0], description="Anchor height/width ratios (every level)."
-    )
+    rpn_aspect_ratios: list[float] = Field([0.5, 1.0, 2.0], description="Anchor height/width ratios (every level).")
     rpn_pre_nms_top_n_train: int = Field(2000, ge=1, description="Proposals per level before NMS, training.")
     rpn_pre_nms_top_n_test: int = Field(1000, ge=1, description="Proposals per level before NMS, inference.")
     rpn_post_nms_top_n_train: int = Field(2000, ge=1, description="Proposals kept after NMS, training.")
     rpn_post_nms_top_n_test: int = Field(1000, ge=1, description="Proposals kept after NMS, inference.")
     rpn_nms_threshold: float = Field(0.7, gt=0.0, le=1.0, description="Proposal NMS IoU threshold.")
-    rpn_score_threshold: float = Field(
-        0.0, ge=0.0, le=1.0, description="Drop proposals below this objectness."
-    )
-    rpn_fg_iou_threshold: float = Field(
-        0.7, gt=0.0, le=1.0, description="Anchor IoU for a positive (training)."
-    )
-    rpn_bg_iou_threshold: float = Field(
-        0.3, ge=0.0, lt=1.0, description="Anchor IoU for a negative (training)."
-    )
-    rpn_batch_size_per_image: int = Field(
-        256, ge=1, description="Anchors sampled per image for the RPN loss."
-    )
+    rpn_score_threshold: float = Field(0.0, ge=0.0, le=1.0, description="Drop proposals below this objectness.")
+    rpn_fg_iou_threshold: float = Field(0.7, gt=0.0, le=1.0, description="Anchor IoU for a positive (training).")
+    rpn_bg_iou_threshold: float = Field(0.3, ge=0.0, lt=1.0, description="Anchor IoU for a negative (training).")
+    rpn_batch_size_per_image: int = Field(256, ge=1, description="Anchors sampled per image for the RPN loss.")
     rpn_positive_fraction: float = Field(0.5, gt=0.0, le=1.0, description="Positive share of those anchors.")
-    box_fg_iou_threshold: float = Field(
-        0.5, gt=0.0, le=1.0, description="Proposal IoU for a positive (training)."
-    )
-    box_bg_iou_threshold: float = Field(
-        0.5, ge=0.0, le=1.0, description="Proposal IoU below which: background."
-    )
-    box_batch_size_per_image: int = Field(
-        512, ge=1, description="Proposals sampled per image for the box loss."
-    )
-    box_positive_fraction: float = Field(
-        0.25, gt=0.0, le=1.0, description="Positive share of those proposals."
-    )
+    box_fg_iou_threshold: float = Field(0.5, gt=0.0, le=1.0, description="Proposal IoU for a positive (training).")
+    box_bg_iou_threshold: float = Field(0.5, ge=0.0, le=1.0, description="Proposal IoU below which: background.")
+    box_batch_size_per_image: int = Field(512, ge=1, description="Proposals sampled per image for the box loss.")
+    box_positive_fraction: float = Field(0.25, gt=0.0, le=1.0, description="Positive share of those proposals.")
     trained_on: str | None = Field(
         None, description="Backbone recipe the weights were trained on (the engine warns on a mismatch)."
     )
@@ -156,9 +134,7 @@ class FasterRCNNOptions(Options):
             )
         if self.class_names is not None:
             if self.num_classes is not None and self.num_classes != len(self.class_names):
-                raise ValueError(
-                    f"num_classes is {self.num_classes} but class_names has {len(self.class_names)} names"
-                )
+                raise ValueError(f"num_classes is {self.num_classes} but class_names has {len(self.class_names)} names")
             if not self.class_names:
                 raise ValueError("class_names is empty; give at least one class")
         bad = [s for s in self.scales if s not in LEVEL_NAMES]
@@ -391,8 +367,7 @@ class FasterRCNNHead(Model):
         spec = ctx.upstream[opts.layer]
         if len(spec.shape) != 2 or spec.shape[0] != self.grid[0] * self.grid[1]:
             raise ModelBuildError(
-                f"{ctx.name} ({ctx.cfg.model}) reads {opts.layer!r} as [h*w, C] with grid {self.grid}, "
-                f"but it is {spec}"
+                f"{ctx.name} ({ctx.cfg.model}) reads {opts.layer!r} as [h*w, C] with grid {self.grid}, but it is {spec}"
             )
         self.dim = spec.shape[1]
         patch = int(meta.get("patch_size", 14))
@@ -586,9 +561,7 @@ class FasterRCNNHead(Model):
             labels = t["labels"].to(torch.int64)
             if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= k):
                 raise ValueError(f"target {i}: labels {labels.tolist()} outside 0..{k - 1}")
-            tv_targets.append(
-                {"boxes": self.boxes_to_image(t["boxes"].float()).reshape(-1, 4), "labels": labels + 1}
-            )
+            tv_targets.append({"boxes": self.boxes_to_image(t["boxes"].float()).reshape(-1, 4), "labels": labels + 1})
         maps = self.feature_maps(tokens)
         images = self._images(tokens.shape[0], tokens.device)
         proposals, rpn_losses = self.rpn(images, maps, tv_targets)
@@ -613,9 +586,9 @@ class FasterRCNNHead(Model):
         count = torch.ones_like(scores, dtype=torch.int32).sum(dtype=torch.int32)
         boxes = torch.cat([det["boxes"][:m].float(), torch.zeros(m, 4, device=device)])[first]
         scores = torch.cat([scores, torch.zeros(m, device=device)])[first]
-        labels = torch.cat(
-            [det["labels"][:m].to(torch.int32), torch.full((m,), -1, dtype=torch.int32, device=device)]
-        )[first]
+        labels = torch.cat([det["labels"][:m].to(torch.int32), torch.full((m,), -1, dtype=torch.int32, device=device)])[
+            first
+        ]
         return {"boxes": boxes, "scores": scores, "labels": labels, "count": count}
 
     def finalize(self, outputs: dict[str, np.ndarray]) -> dict[str, Any]:

@@ -124,9 +124,7 @@ class DinoV2Options(Options):
     embed_dim: int | None = Field(None, ge=8, le=8192, description="custom: embedding width.")
     depth: int | None = Field(None, ge=N_LAYERS, le=256, description="custom: number of blocks.")
     heads: int | None = Field(None, ge=1, le=256, description="custom: attention heads (divides embed_dim).")
-    mlp_ratio: float | None = Field(
-        None, gt=0, le=16, description="custom: MLP width / embed_dim (default 4)."
-    )
+    mlp_ratio: float | None = Field(None, gt=0, le=16, description="custom: MLP width / embed_dim (default 4).")
     swiglu: bool | None = Field(None, description="custom: SwiGLU MLP as in ViT-G (default false).")
     pretrain_size: int | None = Field(
         None,
@@ -370,9 +368,7 @@ class DinoV2(Model):
 
         h, w = image_hw
         if h % PATCH_SIZE or w % PATCH_SIZE or h <= 0 or w <= 0:
-            raise ModelBuildError(
-                f"DINOv2 input {h}x{w} must be positive multiples of the patch size {PATCH_SIZE}"
-            )
+            raise ModelBuildError(f"DINOv2 input {h}x{w} must be positive multiples of the patch size {PATCH_SIZE}")
         self.opts = opts
         self.registers = opts.registers
         self.grid = (h // PATCH_SIZE, w // PATCH_SIZE)
@@ -503,9 +499,7 @@ class DinoV2(Model):
         ).clone()
 
     # -- weights --------------------------------------------------------------------------------------------
-    def load_state_dict_any(
-        self, sd: Mapping[str, torch.Tensor], source: str, expected: str | None = None
-    ) -> str:
+    def load_state_dict_any(self, sd: Mapping[str, torch.Tensor], source: str, expected: str | None = None) -> str:
         """Load a DINOv2 state dict in any supported layout, strictly and all or nothing; returns the layout.
 
         ``source`` (the file) and ``expected`` (the model it was meant for) appear in every error, with the
@@ -569,10 +563,7 @@ def _summarize(sd: Mapping[str, torch.Tensor]) -> str:
         return "no class token"
     blocks = {int(m.group(1)) for k in sd if (m := re.match(r"^blocks\.(\d+)\.", k))}
     reg = sd.get("reg_token")
-    return (
-        f"a DINOv2 with embed {cls.shape[-1]}, {len(blocks)} blocks, "
-        f"{0 if reg is None else reg.shape[1]} registers"
-    )
+    return f"a DINOv2 with embed {cls.shape[-1]}, {len(blocks)} blocks, {0 if reg is None else reg.shape[1]} registers"
 
 
 def _preview(keys: list[str], n: int = 8) -> str:

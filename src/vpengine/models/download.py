@@ -51,9 +51,7 @@ _CHUNK = 1 << 20
 
 def offline(configured: bool = False) -> bool:
     """Offline if the config says so or $VPENGINE_OFFLINE / $HF_HUB_OFFLINE is set to a true value."""
-    env = any(
-        os.environ.get(v, "").lower() in ("1", "true", "yes") for v in ("VPENGINE_OFFLINE", "HF_HUB_OFFLINE")
-    )
+    env = any(os.environ.get(v, "").lower() in ("1", "true", "yes") for v in ("VPENGINE_OFFLINE", "HF_HUB_OFFLINE"))
     return configured or env
 
 
@@ -123,9 +121,7 @@ def fetch(
                 digest = _download(entry, dest, expected, progress, timeout, force)
             except BaseException:
                 if not dest.is_file() and entry.hub is not None:
-                    shutil.rmtree(
-                        dest.parent / ".cache", ignore_errors=True
-                    )  # huggingface_hub's locks, records
+                    shutil.rmtree(dest.parent / ".cache", ignore_errors=True)  # huggingface_hub's locks, records
                 with contextlib.suppress(OSError):
                     dest.parent.rmdir()  # only succeeds when empty: a failed fetch leaves nothing behind
                 raise
@@ -147,9 +143,7 @@ def fetch(
     return FetchResult(entry, dest, digest, downloaded, pin_how)
 
 
-def _download(
-    entry: Entry, dest: Path, expected: str | None, progress: bool, timeout: float, force: bool
-) -> str:
+def _download(entry: Entry, dest: Path, expected: str | None, progress: bool, timeout: float, force: bool) -> str:
     """Fetch ``entry`` to ``dest`` and return its sha256; a file of the wrong size or digest is deleted.
 
     The caller holds the cache lock.
@@ -257,9 +251,7 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
         e.close()  # it holds the response's socket
         if e.code == 416 and offset:  # nothing left to send: the partial file is checked as it is
             return part
-        raise CheckpointError(
-            f"download of {entry.name} from {entry.url} failed: HTTP {e.code} {e.reason}"
-        ) from None
+        raise CheckpointError(f"download of {entry.name} from {entry.url} failed: HTTP {e.code} {e.reason}") from None
     except (urllib.error.URLError, OSError) as e:
         reason = getattr(e, "reason", e)
         raise CheckpointError(f"download of {entry.name} from {entry.url} failed: {reason}") from None

@@ -272,9 +272,7 @@ class DPTDepthHead(Model):
         path = s.refinenet1(path, l1)
         out = s.output_conv1(path)
         # The reference resizes to the backbone's input size (patch grid x 14 for its ViT-*/14 backbones).
-        out = F.interpolate(
-            out, (gh * self.patch_size, gw * self.patch_size), mode="bilinear", align_corners=True
-        )
+        out = F.interpolate(out, (gh * self.patch_size, gw * self.patch_size), mode="bilinear", align_corners=True)
         # output_conv2 ends in a ReLU, so the reference's extra F.relu after the head (idempotent) is left out.
         out = s.output_conv2(out)
         if tuple(out.shape[-2:]) != self.out_hw:
@@ -319,9 +317,7 @@ def _upstream_geometry(ctx: BuildContext) -> tuple[tuple[int, int], int, int]:
             )
         dims.add(spec.shape[1])
     if len(dims) != 1:
-        raise ModelBuildError(
-            f"{ctx.name} ({ctx.cfg.model}): patch.0..3 must share one width, got {sorted(dims)}"
-        )
+        raise ModelBuildError(f"{ctx.name} ({ctx.cfg.model}): patch.0..3 must share one width, got {sorted(dims)}")
     return (gh, gw), patch, dims.pop()
 
 
@@ -337,9 +333,7 @@ class DepthColormap(Model):
     def __init__(self, hw: tuple[int, int], cmap: str = "Spectral_r", keep_depth: bool = False) -> None:
         super().__init__()
         # torch.tensor (not from_numpy) so the table lands on the device the model is being built on.
-        self.register_buffer(
-            "lut", torch.tensor(colormaps.lut(cmap).tolist(), dtype=torch.uint8), persistent=False
-        )
+        self.register_buffer("lut", torch.tensor(colormaps.lut(cmap).tolist(), dtype=torch.uint8), persistent=False)
         self.keep_depth = keep_depth
         depth = TensorSpec(hw, "float32")
         self.input_spec = {"depth": depth}

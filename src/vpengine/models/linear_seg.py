@@ -123,9 +123,7 @@ class LinearSegHead(Model):
         self.out_hw = ctx.input_hw
         self.num_classes = n
         size = SIZES[opts.size] if opts.size is not None else None
-        self.default_checkpoint = (
-            checkpoint_name(opts.size, opts.dataset) if opts.size and opts.dataset else None
-        )
+        self.default_checkpoint = checkpoint_name(opts.size, opts.dataset) if opts.size and opts.dataset else None
 
         # mmseg's SyncBatchNorm (eps 1e-5) is a plain BatchNorm at inference: running statistics only.
         self.bn = nn.BatchNorm2d(dim)
@@ -147,9 +145,7 @@ class LinearSegHead(Model):
                     f"{where}: options.upsample is 'fused', which cannot run on {device}: {why_not}; use auto or torch"
                 )
             elif device.type == "cuda" and not ctx.plan_only:  # on a GPU the user would expect the kernel
-                log.warning(
-                    "%s: PyTorch's upsampling and argmax run instead of the fused kernel: %s", where, why_not
-                )
+                log.warning("%s: PyTorch's upsampling and argmax run instead of the fused kernel: %s", where, why_not)
         self.meta = {
             "kind": "segmentation",
             "output_grid": {"classes": "labels"},  # Note [Frame grid] in boundary.py

@@ -85,12 +85,8 @@ class ImagePreprocess(Model):
         self.input_spec = {"frame": TensorSpec((height, width, 3), in_dtype)}
         self.output_spec = {"image": TensorSpec((3, *self.size), dtype)}
         self.out_dtype = self.output_spec["image"].torch_dtype
-        self.register_buffer(
-            "mean", torch.tensor(mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
-        )
-        self.register_buffer(
-            "std", torch.tensor(std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False
-        )
+        self.register_buffer("mean", torch.tensor(mean, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(std, dtype=torch.float32).view(1, 3, 1, 1), persistent=False)
         # normalise_mean: what the boundary pads frames with, zero once normalised (Note [Frame grid])
         self.meta = {
             "image_size": self.size,
@@ -114,9 +110,7 @@ class ImagePreprocess(Model):
             # On the CPU, shrink the 8-bit frame first: PyTorch's uint8 antialiased resize is ~40x faster than
             # converting a 1080p frame to float and resizing that (1 ms vs 43 ms), and differs by under one grey
             # level. GPUs take the float path below, which matches the reference implementations exactly.
-            x = F.interpolate(
-                x, size=(h, w), mode="bilinear", align_corners=False, antialias=True
-            )
+            x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
             x = x.float()
             if self.bgr:
                 x = x.flip(1)
@@ -131,8 +125,6 @@ class ImagePreprocess(Model):
                 x = x[..., :h, :w]
             else:
                 # antialias: a 1080p frame shrinks ~2x, and without it thin structures alias.
-                x = F.interpolate(
-                    x, size=(h, w), mode="bilinear", align_corners=False, antialias=True
-                )
+                x = F.interpolate(x, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
         x = (x - self.mean) / self.std
         return {"image": x.to(self.out_dtype).contiguous()}

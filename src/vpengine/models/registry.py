@@ -60,9 +60,7 @@ def resolve(name: str, role: Role) -> tuple[type[Model], dict[str, Any]]:
     recipe = _RECIPES.get(name)
     if recipe is None:
         known = sorted(r.name for r in _RECIPES.values() if r.role == role)
-        raise ModelBuildError(
-            f"unknown {role} model {name!r}; known: {', '.join(known)} (or 'package.module:Class')"
-        )
+        raise ModelBuildError(f"unknown {role} model {name!r}; known: {', '.join(known)} (or 'package.module:Class')")
     if recipe.role != role:
         raise ModelBuildError(f"model {name!r} is a {recipe.role} model and cannot be used as a {role}")
     return _import(recipe.target), dict(recipe.defaults)

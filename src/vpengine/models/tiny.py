@@ -217,9 +217,7 @@ class TinyDetHead(_TinyHead):
         gh, gw = self.grid
         h, w = self.out_hw
         ys, xs = torch.meshgrid(torch.arange(gh), torch.arange(gw), indexing="ij")
-        cells = torch.stack([xs * w / gw, ys * h / gh, (xs + 1) * w / gw, (ys + 1) * h / gh], -1).reshape(
-            -1, 4
-        )
+        cells = torch.stack([xs * w / gw, ys * h / gh, (xs + 1) * w / gw, (ys + 1) * h / gh], -1).reshape(-1, 4)
         self.register_buffer("cells", cells.float(), persistent=False)
         self.meta = {
             "kind": "detection",

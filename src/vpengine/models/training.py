@@ -71,9 +71,7 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"annotations {str(path)!r} are not valid JSON: {e}") from None
     if not isinstance(data, dict):
-        raise ValueError(
-            f"annotations {str(path)!r} are not COCO detection JSON (top level is not an object)"
-        )
+        raise ValueError(f"annotations {str(path)!r} are not COCO detection JSON (top level is not an object)")
     missing = [k for k in ("images", "annotations", "categories") if not isinstance(data.get(k), list)]
     if missing:
         raise ValueError(f"annotations {str(path)!r} are not COCO detection JSON: no list {missing}")
@@ -91,9 +89,7 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
         if a.get("iscrowd", 0):
             continue
         if a.get("image_id") not in per_image:
-            raise ValueError(
-                f"{path.name}: annotation {a.get('id')} refers to unknown image_id {a.get('image_id')}"
-            )
+            raise ValueError(f"{path.name}: annotation {a.get('id')} refers to unknown image_id {a.get('image_id')}")
         if a.get("category_id") not in label_of:
             raise ValueError(
                 f"{path.name}: annotation {a.get('id')} has category_id {a.get('category_id')}; "
@@ -117,9 +113,7 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
     return names, samples
 
 
-def read_frame(
-    path: Path, height: int, width: int, color: str, dtype: str
-) -> tuple[np.ndarray, float, float]:
+def read_frame(path: Path, height: int, width: int, color: str, dtype: str) -> tuple[np.ndarray, float, float]:
     """The image as the engine would receive it (``height`` x ``width``, channel order and dtype of the config),
     and the x and y factors from file pixels to frame pixels."""
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)  # BGR uint8, whatever the file held
@@ -144,9 +138,7 @@ def _select_head(raw: dict[str, Any], head: str | None, class_names: list[str]) 
     if head is not None:
         entry = next((h for h in heads if h.get("name") == head), None)
         if entry is None:
-            raise ValueError(
-                f"--head {head!r}: the config has no such head; heads: {[h.get('name') for h in heads]}"
-            )
+            raise ValueError(f"--head {head!r}: the config has no such head; heads: {[h.get('name') for h in heads]}")
         cls, _ = resolve(entry["model"], "head")
         if not issubclass(cls, FasterRCNNHead):
             raise ValueError(f"--head {head!r} is a {entry['model']!r} head, not a Faster R-CNN head")
@@ -236,9 +228,7 @@ def train_detector(
         t0 = time.monotonic()
         fm = build_model(cfg, "foundation", "foundation", frame_spec(cfg), {}, device, plan_only=False)
         cls, defaults = resolve(hcfg.model, "head")
-        ctx = BuildContext(
-            "head", head_name, hcfg, cfg, fm.output_spec, dict(fm.meta), device, False, defaults
-        )
+        ctx = BuildContext("head", head_name, hcfg, cfg, fm.output_spec, dict(fm.meta), device, False, defaults)
         model = cls.from_config(ctx)  # random weights from the head's own `seed` option
         assert isinstance(model, FasterRCNNHead)
         if init is not None:

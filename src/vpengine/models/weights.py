@@ -103,9 +103,7 @@ def missing_error(
     if eff.sha256 is not None:
         check = f"sha256 {eff.sha256}, {human_size(eff.size)}"
     else:
-        check = (
-            f"no sha256 is known: afterwards pin one with `vpengine weights fetch {entry.name} --sha256 HEX`"
-        )
+        check = f"no sha256 is known: afterwards pin one with `vpengine weights fetch {entry.name} --sha256 HEX`"
     why = "downloads are off (offline mode)" if offline else "vpengine downloads only when asked"
     return CheckpointError(
         f"{who}checkpoint {entry.name!r} is not in the cache and {why}. Run `vpengine weights fetch {entry.name}` "

@@ -118,9 +118,7 @@ def detections_to_dds(d: DetectionsOut) -> T.Detection2DArray_:
             T.Detection2D_(
                 header,
                 [T.ObjectHypothesisWithPose_(T.ObjectHypothesis_(det.class_id, det.score))],
-                T.BoundingBox2D_(
-                    T.Pose2D_(T.Point2D_(det.center_x, det.center_y), 0.0), det.size_x, det.size_y
-                ),
+                T.BoundingBox2D_(T.Pose2D_(T.Point2D_(det.center_x, det.center_y), 0.0), det.size_x, det.size_y),
                 "",
             )
             for det in d.detections
@@ -132,9 +130,7 @@ def diagnostics_to_dds(d: DiagnosticsOut) -> T.DiagnosticArray_:
     return T.DiagnosticArray_(
         _header(d.header),
         [
-            T.DiagnosticStatus_(
-                s.level, s.name, s.message, s.hardware_id, [T.KeyValue_(k, v) for k, v in s.values]
-            )
+            T.DiagnosticStatus_(s.level, s.name, s.message, s.hardware_id, [T.KeyValue_(k, v) for k, v in s.values])
             for s in d.status
         ],
     )
@@ -171,9 +167,7 @@ class Ros2Bridge:
         if options.input_qos not in ("sensor", "default"):
             raise ValueError(f"input QoS {options.input_qos!r} is not known; accepted: sensor, default")
         if options.output_qos not in OUTPUT_QOS:
-            raise ValueError(
-                f"output QoS {options.output_qos!r} is not known; accepted: {', '.join(OUTPUT_QOS)}"
-            )
+            raise ValueError(f"output QoS {options.output_qos!r} is not known; accepted: {', '.join(OUTPUT_QOS)}")
         self.core = core
         self.opts = options
         self.dds: DdsContext | None = None

@@ -189,9 +189,7 @@ def encode_image(img: ImageOut) -> bytearray:
 
 def encode_compressed_image(header: Header, fmt: str, data: Any) -> bytearray:
     """sensor_msgs/CompressedImage as CDR little-endian bytes."""
-    arr = (
-        np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1).view(np.uint8)
-    )
+    arr = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1).view(np.uint8)
     out = _prefix_header(header)
     _string(out, fmt)
     out += b"\x00" * ((-(len(out) - 4)) % 4)

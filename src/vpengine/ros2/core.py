@@ -72,7 +72,6 @@ OUTPUT_QOS = ("latest", "default")
 UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
 
 
-
 class InputError(ValueError):
     """An input message the engine cannot use; the message names what was wrong and what is accepted.
 
@@ -396,14 +395,10 @@ def image_out(array: np.ndarray, encoding: str, header: Header) -> ImageOut:
     h, w = a.shape[:2]
     row = w * (a.shape[2] if a.ndim == 3 else 1) * a.dtype.itemsize
     big = int(a.dtype.byteorder == ">" or (a.dtype.byteorder == "=" and sys.byteorder == "big"))
-    return ImageOut(
-        header, h, w, encoding, big if a.dtype.itemsize > 1 else 0, row, a.reshape(-1).view(np.uint8)
-    )
+    return ImageOut(header, h, w, encoding, big if a.dtype.itemsize > 1 else 0, row, a.reshape(-1).view(np.uint8))
 
 
-def detections_out(
-    outputs: Mapping[str, Any], label_names: Sequence[str] | None, header: Header
-) -> DetectionsOut:
+def detections_out(outputs: Mapping[str, Any], label_names: Sequence[str] | None, header: Header) -> DetectionsOut:
     """Detections (``boxes`` x1,y1,x2,y2 in input pixels, ``scores``, ``labels``) as a Detection2DArray.
 
     The class id is the head's label name for that class (the numeric id as text when the head has no names).
@@ -441,9 +436,7 @@ def payload_for(
         if cls.dtype == np.uint8:
             return image_out(cls, "mono8", header)
         if cls.size and (cls.min() < 0 or cls.max() > 65535):
-            raise ValueError(
-                f"head {topic.head!r}: class ids {cls.min()}..{cls.max()} do not fit mono8/mono16"
-            )
+            raise ValueError(f"head {topic.head!r}: class ids {cls.min()}..{cls.max()} do not fit mono8/mono16")
         big = cls.size and cls.max() > 255
         return image_out(cls.astype(np.uint16 if big else np.uint8), "mono16" if big else "mono8", header)
     if role == "overlay":
@@ -719,11 +712,7 @@ class ControlLoop:
             if applied or now >= next_at:
                 self.diagnostics_now()
                 # a fixed schedule; after a command (or a stall longer than a period) a period from now
-                next_at = (
-                    now + self.period_s
-                    if applied or now - next_at > self.period_s
-                    else next_at + self.period_s
-                )
+                next_at = now + self.period_s if applied or now - next_at > self.period_s else next_at + self.period_s
 
 
 # ------------------------------------------------------------------------------------------------- the core
@@ -766,9 +755,7 @@ class Ros2Core:
         self.input_size = input_size
         planner = self._new_engine(self.config)  # planned only: head metadata without starting anything
         self.model_names: list[str] = self.config.model_names()
-        self.head_infos: dict[str, dict[str, Any]] = {
-            h.name: planner.head_info(h.name) for h in self.config.heads
-        }
+        self.head_infos: dict[str, dict[str, Any]] = {h.name: planner.head_info(h.name) for h in self.config.heads}
         #: the engine's cameras, in priority order; with several, each has its own input topic and namespace
         self.cameras: list[str] = self.config.camera_names()
         self.several = len(self.cameras) > 1
@@ -777,9 +764,7 @@ class Ros2Core:
             self.head_infos, self.namespace, depth_color, seg_overlay, served if self.several else None
         )
         for h in self.unmapped:
-            log.warning(
-                "head %r has no ROS 2 message mapping (kind 'generic'); its outputs are not published", h
-            )
+            log.warning("head %r has no ROS 2 message mapping (kind 'generic'); its outputs are not published", h)
         self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
         for t in self.topics:
             self._by_head[(t.camera, t.head)].append(t)
@@ -999,11 +984,7 @@ class Ros2Core:
             found["silent"] = (
                 f"a publisher has been matched for {time.monotonic() - since:.0f} s and no input message "
                 "arrived: large samples are probably lost on the way in"
-                + (
-                    ""
-                    if advice
-                    else " (check the transport's receive buffer, fragment and sample size settings)"
-                )
+                + ("" if advice else " (check the transport's receive buffer, fragment and sample size settings)")
             )
         if advice:
             found["buffer"] = advice
@@ -1060,9 +1041,7 @@ class Ros2Core:
             if name in models:
                 status.append(model_status(name, models[name], self.status_prefix, self.hardware_id))
             else:
-                status.append(
-                    Status(WARN, f"{self.status_prefix}: {name}", "engine not started", self.hardware_id)
-                )
+                status.append(Status(WARN, f"{self.status_prefix}: {name}", "engine not started", self.hardware_id))
         c = self.counters
         values = [
             (k, str(c[k]))
@@ -1093,13 +1072,9 @@ class Ros2Core:
             if recent:
                 problems.append(f"{what} in the last {rej.recent_s:g} s ({', '.join(recent)})")
         problems += self.link_warnings()
-        msg = "; ".join(
-            [f"{c['submitted']} frames in, {sum(self.published.values())} messages out", *problems]
-        )
+        msg = "; ".join([f"{c['submitted']} frames in, {sum(self.published.values())} messages out", *problems])
         status.append(
-            Status(
-                WARN if problems else OK, f"{self.status_prefix}: interface", msg, self.hardware_id, values
-            )
+            Status(WARN if problems else OK, f"{self.status_prefix}: interface", msg, self.hardware_id, values)
         )
         per_camera = stats.get("cameras", {})
         for camera, counts in self.camera_counters.items():  # several cameras: each one's input and models

@@ -80,9 +80,7 @@ def qos(name: QosName) -> Qos:
             xcdr1,
         )
     if name == "sensor":
-        return Qos(
-            Policy.Reliability.BestEffort, Policy.Durability.Volatile, Policy.History.KeepLast(5), xcdr1
-        )
+        return Qos(Policy.Reliability.BestEffort, Policy.Durability.Volatile, Policy.History.KeepLast(5), xcdr1)
     if name == "latched":
         return Qos(
             Policy.Reliability.Reliable(duration(seconds=1)),
@@ -109,9 +107,7 @@ def loopback_config(large_messages: bool = True) -> str:
     bridge's receive buffer (:data:`RECEIVE_BUFFER_BYTES`, as much as net.core.rmem_max allows), and a writer
     history high-water mark of 64 MB so reliable writers of multi-megabyte images do not stall on acknowledgements.
     """
-    big = (
-        "<MaxMessageSize>65500B</MaxMessageSize><FragmentSize>60000B</FragmentSize>" if large_messages else ""
-    )
+    big = "<MaxMessageSize>65500B</MaxMessageSize><FragmentSize>60000B</FragmentSize>" if large_messages else ""
     internal = (
         f'<Internal><SocketReceiveBufferSize min="default" max="{RECEIVE_BUFFER_BYTES}B"/>'
         "<Watermarks><WhcHigh>64MB</WhcHigh></Watermarks></Internal>"

@@ -96,9 +96,7 @@ def ros_image(p: ImageOut) -> Any:
     from sensor_msgs.msg import Image
 
     data = array.array("B")
-    data.frombytes(
-        p.data
-    )  # one memcpy; rclpy's fast path for uint8[] is array.array('B'), not bytes or lists
+    data.frombytes(p.data)  # one memcpy; rclpy's fast path for uint8[] is array.array('B'), not bytes or lists
     return Image(
         header=ros_header(p.header),
         height=p.height,
@@ -127,9 +125,7 @@ def ros_detections(p: DetectionsOut) -> Any:
         detections=[
             Detection2D(
                 header=header,
-                results=[
-                    ObjectHypothesisWithPose(hypothesis=ObjectHypothesis(class_id=d.class_id, score=d.score))
-                ],
+                results=[ObjectHypothesisWithPose(hypothesis=ObjectHypothesis(class_id=d.class_id, score=d.score))],
                 bbox=BoundingBox2D(
                     center=Pose2D(position=Point2D(x=d.center_x, y=d.center_y), theta=0.0),
                     size_x=d.size_x,
@@ -257,9 +253,7 @@ def build_node(argv: list[str] | None = None) -> Any:
             )
             self._threads = [
                 threading.Thread(target=self._output_loop, name="vpengine-outputs", daemon=True),
-                threading.Thread(
-                    target=control.run, args=(self._stop,), name="vpengine-control", daemon=True
-                ),
+                threading.Thread(target=control.run, args=(self._stop,), name="vpengine-control", daemon=True),
             ]
             for th in self._threads:
                 th.start()

@@ -36,9 +36,7 @@ def main(fd: int, parent_pid: int) -> None:
         spec, log_level, log_file = init.spec, init.log_level, init.log_file
     except (EOFError, OSError):
         os._exit(2)
-    logging.basicConfig(
-        level=log_level, format=f"%(asctime)s %(levelname)s [{spec.name}] %(name)s: %(message)s"
-    )
+    logging.basicConfig(level=log_level, format=f"%(asctime)s %(levelname)s [{spec.name}] %(name)s: %(message)s")
 
     from vpengine.runtime.control import ControlBlock
     from vpengine.runtime.process import Failed, Ready, Stop, recv_fds

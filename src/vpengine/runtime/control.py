@@ -62,12 +62,11 @@ _FIELDS = [
     ("started_at", "d"),
     ("device_mem_bytes", "d"),
 ]
-_F = {
-    name: (1 + i, kind) for i, (name, kind) in enumerate(_FIELDS)
-}  # word index inside an entry (word 0: futex)
+_F = {name: (1 + i, kind) for i, (name, kind) in enumerate(_FIELDS)}  # word index inside an entry (word 0: futex)
 _LAT0 = 1 + len(_FIELDS)
 ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
 ENTRY_BYTES = ENTRY_WORDS * 8
+
 
 def reader_name(model: str, camera: str, cameras: list[str]) -> str:
     """The name of ``model``'s reader of its input ring for ``camera``: the model's own with one camera."""

@@ -71,9 +71,7 @@ class MappingFence:
         with self._lock:
             self._users += 1
         try:
-            threading.Thread(
-                target=self._leave_after, args=(thread,), name="vpengine-unmap-after", daemon=True
-            ).start()
+            threading.Thread(target=self._leave_after, args=(thread,), name="vpengine-unmap-after", daemon=True).start()
         except RuntimeError:  # the interpreter is exiting: the process's end unmaps everything
             pass
 

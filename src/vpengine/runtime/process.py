@@ -79,9 +79,7 @@ def send_fds(conn: Connection, fds: list[int]) -> None:
 def recv_fds(conn: Connection) -> list[int]:
     _pid, uid = peer_uid(conn.fileno())
     if uid != os.getuid():
-        raise PermissionError(
-            f"handle socket peer runs as uid {uid}, not {os.getuid()}; refusing its handles"
-        )
+        raise PermissionError(f"handle socket peer runs as uid {uid}, not {os.getuid()}; refusing its handles")
     sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
     try:
         msg, fds, _flags, _addr = socket.recv_fds(sock, 4, 256)
@@ -401,9 +399,7 @@ class ProcessRunner(Runner):
                     continue
                 hb = self.control.get(name, "heartbeat")
                 if hb > 0 and now - hb > limit:
-                    log.error(
-                        "%s has not reported for %.0f s (runtime.hang_timeout_s); killing it", name, now - hb
-                    )
+                    log.error("%s has not reported for %.0f s (runtime.hang_timeout_s); killing it", name, now - hb)
                     ch.error = f"hung for {now - hb:.0f} s"
                     ch.proc.kill()
 

@@ -36,9 +36,7 @@ class ThreadRunner(Runner):
         # what the workers hand each other on the device and the submitting thread (handoff.py)
         self.handoffs = handoffs or Handoffs()
         self._threads: dict[str, threading.Thread] = {}
-        self._events: queue.Queue[tuple[str, str, str]] = (
-            queue.Queue()
-        )  # (name, "ready"|"error"|"exit", text)
+        self._events: queue.Queue[tuple[str, str, str]] = queue.Queue()  # (name, "ready"|"error"|"exit", text)
         self._generation: dict[str, int] = dict.fromkeys(self.specs, 0)
         self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
         self._monitor: threading.Thread | None = None

@@ -191,9 +191,7 @@ class WorkerCore:
         # Inputs live wherever their ring lives; a model on another device reads preallocated staging copies.
         self._staging: dict[str, torch.Tensor] | None = None
         if not bound and in_ring.data_region.device != device.device:
-            self._staging = {
-                k: torch.empty_like(in_ring.views[0][k], device=device.device) for k in self._keys
-            }
+            self._staging = {k: torch.empty_like(in_ring.views[0][k], device=device.device) for k in self._keys}
 
     def _inputs(self, slot: SlotInfo) -> dict[str, torch.Tensor]:
         """The slot's one frame as a batch of one (views; Note [Executor contract] in backends/base.py)."""
@@ -627,9 +625,7 @@ def prepare_worker(
         except Exception:  # the bindings are optional in thread mode; MPS status is informational
             control.set(spec.name, "mps_active", 0)
     with dev.active():
-        model = build_model(
-            cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False
-        )
+        model = build_model(cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False)
         # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
         # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
         with build_lock:
@@ -653,9 +649,7 @@ def prepare_worker(
     control.set(spec.name, "started_at", time.monotonic())
     if handoff is not None and not inline_wanted(dev.cuda, bound):
         handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]
-    core = WorkerCore(
-        spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff
-    )
+    core = WorkerCore(spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff)
     control.heartbeat(spec.name)
     control.set_state(spec.name, READY)
     return core

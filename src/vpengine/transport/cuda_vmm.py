@@ -54,9 +54,7 @@ def _check(result: Any, what: str) -> Any:
     if err != d.CUresult.CUDA_SUCCESS:
         _, name = d.cuGetErrorName(err)
         _, text = d.cuGetErrorString(err)
-        raise CudaVmmError(
-            f"{what} failed: {name.decode() if name else err}: {text.decode() if text else ''}"
-        )
+        raise CudaVmmError(f"{what} failed: {name.decode() if name else err}: {text.decode() if text else ''}")
     if not rest:
         return None
     return rest[0] if len(rest) == 1 else tuple(rest)
@@ -92,9 +90,7 @@ def vmm_support(index: int = 0) -> dict[str, bool]:
     d = _driver()
     dev = _current_context(index)
     attrs = d.CUdevice_attribute
-    vmm = _check(
-        d.cuDeviceGetAttribute(attrs.CU_DEVICE_ATTRIBUTE_VIRTUAL_MEMORY_MANAGEMENT_SUPPORTED, dev), "attr"
-    )
+    vmm = _check(d.cuDeviceGetAttribute(attrs.CU_DEVICE_ATTRIBUTE_VIRTUAL_MEMORY_MANAGEMENT_SUPPORTED, dev), "attr")
     fd = _check(
         d.cuDeviceGetAttribute(attrs.CU_DEVICE_ATTRIBUTE_HANDLE_TYPE_POSIX_FILE_DESCRIPTOR_SUPPORTED, dev),
         "attr",
@@ -130,9 +126,7 @@ class CudaVmmRegion(Region):
 
     kind = "cuda-vmm"
 
-    def __init__(
-        self, name: str, nbytes: int, device: torch.device | str, *, import_fd: int | None = None
-    ) -> None:
+    def __init__(self, name: str, nbytes: int, device: torch.device | str, *, import_fd: int | None = None) -> None:
         device = torch.device(device)
         index = device.index if device.index is not None else torch.cuda.current_device()
         super().__init__(name, nbytes, torch.device("cuda", index))
@@ -164,9 +158,7 @@ class CudaVmmRegion(Region):
             self.alloc_bytes = max(gran, (nbytes + gran - 1) // gran * gran)
             try:
                 if import_fd is None:
-                    self._handle = _check(
-                        d.cuMemCreate(self.alloc_bytes, prop, 0), f"cuMemCreate({self.alloc_bytes})"
-                    )
+                    self._handle = _check(d.cuMemCreate(self.alloc_bytes, prop, 0), f"cuMemCreate({self.alloc_bytes})")
                     self._fd = int(
                         _check(
                             d.cuMemExportToShareableHandle(
@@ -195,9 +187,7 @@ class CudaVmmRegion(Region):
                 self._release()
                 raise
             del dev
-        self._tensor = torch.as_tensor(_CudaArray(int(self._ptr), self.alloc_bytes), device=self.device)[
-            :nbytes
-        ]
+        self._tensor = torch.as_tensor(_CudaArray(int(self._ptr), self.alloc_bytes), device=self.device)[:nbytes]
 
     @property
     def ptr(self) -> int:

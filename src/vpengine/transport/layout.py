@@ -57,9 +57,7 @@ class SlotLayout:
     def views(self, flat: torch.Tensor) -> list[dict[str, torch.Tensor]]:
         """Per-slot dicts of tensors viewing ``flat`` (a uint8 tensor of at least ``total_bytes``)."""
         if flat.dtype != torch.uint8 or flat.numel() < self.total_bytes:
-            raise ValueError(
-                f"need a uint8 buffer of {self.total_bytes} bytes, got {flat.dtype}[{flat.numel()}]"
-            )
+            raise ValueError(f"need a uint8 buffer of {self.total_bytes} bytes, got {flat.dtype}[{flat.numel()}]")
         out = []
         for s in range(self.n_slots):
             base = s * self.slot_bytes

@@ -68,9 +68,7 @@ class HostRegion(Region):
 
     def export(self, fds: list[int]) -> RegionHandle:
         if self._fd is None:
-            raise TypeError(
-                f"region {self.name!r} was opened without its descriptor and cannot be re-exported"
-            )
+            raise TypeError(f"region {self.name!r} was opened without its descriptor and cannot be re-exported")
         fds.append(self._fd)
         return RegionHandle(self.kind, self.name, self.nbytes, len(fds) - 1)
 
@@ -84,9 +82,7 @@ class HostRegion(Region):
             return
         rc = torch.cuda.cudart().cudaHostRegister(self.address(), self.nbytes, 0)
         if int(rc) != 0:
-            raise RuntimeError(
-                f"cudaHostRegister failed for region {self.name!r} ({self.nbytes} bytes): {rc}"
-            )
+            raise RuntimeError(f"cudaHostRegister failed for region {self.name!r} ({self.nbytes} bytes): {rc}")
         self.cuda_registered = True
 
     def close(self) -> None:
@@ -167,9 +163,7 @@ def free_bytes(device: torch.device) -> int | None:
     return free
 
 
-def allocate(
-    name: str, nbytes: int, device: torch.device | str, shared: bool, pinned: bool = False
-) -> Region:
+def allocate(name: str, nbytes: int, device: torch.device | str, shared: bool, pinned: bool = False) -> Region:
     """Allocate a region on ``device``. ``shared`` regions can be exported to other processes.
 
     ``pinned``: host memory that GPU copies read or write. A local region is allocated page-locked; a shared one is

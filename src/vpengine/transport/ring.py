@@ -189,9 +189,7 @@ class SlotRing:
         ``pinned``: the data is host memory that a GPU copies to or from (see ``allocate``).
         """
         if overflow not in _OVERFLOW_CODE:
-            raise ValueError(
-                f"ring {name!r}: unknown overflow policy {overflow!r}; accepted: {list(_OVERFLOW_CODE)}"
-            )
+            raise ValueError(f"ring {name!r}: unknown overflow policy {overflow!r}; accepted: {list(_OVERFLOW_CODE)}")
         names = [r.name for r in readers]
         if len(set(names)) != len(names):
             raise ValueError(f"ring {name!r}: reader names must be unique, got {names}")
@@ -441,17 +439,13 @@ class RingWriter:
                 tag = q[b + _S_TAG]
                 if seq == newest[tag]:
                     continue
-                if unread and (
-                    seq > unread.get(None, seq) or q[b + _S_TAG_SEQ] > unread.get(tag, q[b + _S_TAG_SEQ])
-                ):
+                if unread and (seq > unread.get(None, seq) or q[b + _S_TAG_SEQ] > unread.get(tag, q[b + _S_TAG_SEQ])):
                     continue  # unread by a FIFO reader and the policy forbids overwriting it
             if best_seq is None or seq < best_seq:
                 best, best_seq = i, seq
         return best
 
-    def acquire(
-        self, timeout: float | None = None, should_stop: Callable[[], bool] | None = None
-    ) -> SlotInfo | None:
+    def acquire(self, timeout: float | None = None, should_stop: Callable[[], bool] | None = None) -> SlotInfo | None:
         """A slot to fill, or None: full under ``drop_newest`` (counted), or ``block`` timed out / stopped."""
         ring, q, u = self.ring, self.ring._q, self.ring._u
         deadline = None if timeout is None else time.monotonic() + timeout
@@ -731,9 +725,7 @@ class RingReader:
         ring, q, u = self.ring, self.ring._q, self.ring._u
         with ring._mutex:
             if slot is not None and q[self._b + _R_PINNED] != slot.index:
-                raise RuntimeError(
-                    f"reader {self.name!r} does not pin slot {slot.index} of ring {ring.name!r}"
-                )
+                raise RuntimeError(f"reader {self.name!r} does not pin slot {slot.index} of ring {ring.name!r}")
             q[self._b + _R_PINNED] = -1
             waiting = q[_H_WRITER_WAITING]
             if waiting:
@@ -768,9 +760,7 @@ class RingReader:
                 self.release(slot)
 
 
-def latest_buffer(
-    name: str, specs: SpecDict, readers: list[str], n_slots: int | None = None, **kw: object
-) -> SlotRing:
+def latest_buffer(name: str, specs: SpecDict, readers: list[str], n_slots: int | None = None, **kw: object) -> SlotRing:
     """A LatestBuffer: circular, newest wins; what a reader never saw is counted as missed (skipped)."""
     decls = [ReaderDecl(r, "latest") for r in readers]
     return SlotRing.create(name, specs, n_slots or len(readers) + 2, decls, **kw)  # type: ignore[arg-type]

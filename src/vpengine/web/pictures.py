@@ -163,9 +163,7 @@ class Pictures:
             return None
         return frame[..., ::-1] if self.frame_color == "rgb" else frame
 
-    def latest(
-        self, engine: Any, head: str, width: int = DEFAULT_WIDTH, camera: str | None = None
-    ) -> Picture | None:
+    def latest(self, engine: Any, head: str, width: int = DEFAULT_WIDTH, camera: str | None = None) -> Picture | None:
         """The newest picture of ``head`` at most ``width`` pixels wide (KeyError for an unknown head), or None while
         it has no result (or no picture: a ``generic`` head). ``camera``: of that camera's frames (ValueError for one
         the head does not serve); None: the newest of any camera's. A picture younger than ``1 / max_hz`` comes

@@ -116,9 +116,7 @@ class WebServer:
             raise ImportError("the live view needs prometheus-client: pip install 'vpengine[web]'")
         token = token or None
         if not is_loopback(host) and token is None:
-            raise ValueError(
-                f"serving on {host!r} reaches beyond this machine: give a token, or bind to 127.0.0.1"
-            )
+            raise ValueError(f"serving on {host!r} reaches beyond this machine: give a token, or bind to 127.0.0.1")
         self._get_engine: Callable[[], Any] = engine if callable(engine) else (lambda: engine)
         self.token = token
         self.pictures = Pictures(frames, frame_color)
@@ -275,7 +273,9 @@ class _Handler(BaseHTTPRequestHandler):
         except Exception as e:  # the engine stopped under us, or a bug: a 500 that says what, not a dead thread
             from vpengine.engine import EngineDeadError
 
-            status = HTTPStatus.SERVICE_UNAVAILABLE if isinstance(e, EngineDeadError) else HTTPStatus.INTERNAL_SERVER_ERROR
+            status = (
+                HTTPStatus.SERVICE_UNAVAILABLE if isinstance(e, EngineDeadError) else HTTPStatus.INTERNAL_SERVER_ERROR
+            )
             if status == HTTPStatus.INTERNAL_SERVER_ERROR:
                 log.exception("live view: %s %s failed", method, self.path)
             try:
@@ -351,7 +351,9 @@ class _Handler(BaseHTTPRequestHandler):
             except ValueError:
                 width = 0
             if not 16 <= width <= 8192:
-                raise _HttpError(HTTPStatus.BAD_REQUEST, f"width must be an integer in 16..8192, got {query['width'][0]!r}")
+                raise _HttpError(
+                    HTTPStatus.BAD_REQUEST, f"width must be an integer in 16..8192, got {query['width'][0]!r}"
+                )
         try:
             eng.head_info(head)  # KeyError for an unknown head
             served = eng.config.model_cameras(head)

@@ -37,12 +37,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"comma-separated subset of {', '.join(EXPERIMENTS)} (default: all)",
     )
     p.add_argument("--heads", default="1,2,4,8", help="head counts of E1 and E2 (default: %(default)s)")
-    p.add_argument(
-        "--frames", type=int, default=100, help="frames per lockstep measurement (default: %(default)s)"
-    )
-    p.add_argument(
-        "--e5-frames", type=int, default=10000, help="frames of the E5 stream (default: %(default)s)"
-    )
+    p.add_argument("--frames", type=int, default=100, help="frames per lockstep measurement (default: %(default)s)")
+    p.add_argument("--e5-frames", type=int, default=10000, help="frames of the E5 stream (default: %(default)s)")
     p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (default: %(default)s)"
     )

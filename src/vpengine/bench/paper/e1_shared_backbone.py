@@ -29,9 +29,7 @@ def independent_latency(es: list[Any], imgs: list[np.ndarray], b: Bench) -> dict
 def run(b: Bench, imgs: list[np.ndarray], ns: list[int]) -> dict[str, Any]:
     rows = []
     for n in ns:
-        shared, sequential, dt = engine_and_sequential(
-            b, [b.head("depth", f"depth{i}") for i in range(n)], imgs
-        )
+        shared, sequential, dt = engine_and_sequential(b, [b.head("depth", f"depth{i}") for i in range(n)], imgs)
         singles = [b.config([b.head("depth", "depth")], mode="process") for _ in range(n)]
         with engines(singles) as es:
             indep = independent_latency(es, imgs, b)
@@ -51,7 +49,6 @@ def run(b: Bench, imgs: list[np.ndarray], ns: list[int]) -> dict[str, Any]:
         log(
             f"E1 N={n}: engine ({b.label}) {shared['mean']:.1f} ms on {shared['cpu_cores']:.2f} cores, independent {indep['mean']:.1f} ms "
             f"({row['speedup_vs_independent']:.2f}x), sequential {sequential['mean']:.1f} ms "
-            f"({row['speedup_vs_sequential']:.2f}x)"
-            + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")
+            f"({row['speedup_vs_sequential']:.2f}x)" + (f", ideal {row['ideal_vs_independent']:.2f}x" if dt else "")
         )
     return {"rows": rows}

@@ -13,9 +13,7 @@ from vpengine.bench.paper.harness import Bench, engine_and_sequential, log
 def run(b: Bench, imgs: list[np.ndarray], ns: list[int]) -> dict[str, Any]:
     rows = []
     for n in ns:
-        parallel, sequential, dt = engine_and_sequential(
-            b, [b.head("det", f"det{i}") for i in range(n)], imgs
-        )
+        parallel, sequential, dt = engine_and_sequential(b, [b.head("det", f"det{i}") for i in range(n)], imgs)
         rows.append(
             {
                 "heads": n,

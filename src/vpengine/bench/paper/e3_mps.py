@@ -12,9 +12,7 @@ from vpengine.bench.paper.harness import Bench, engines, lockstep, log, mps_daem
 
 def check(b: Bench) -> None:
     if not b.on_cuda:
-        raise ValueError(
-            f"E3 compares CUDA MPS off and on: it needs device cuda, and the config has {b.device!r}"
-        )
+        raise ValueError(f"E3 compares CUDA MPS off and on: it needs device cuda, and the config has {b.device!r}")
 
 
 def run(b: Bench, imgs: list[np.ndarray], ns: tuple[int, ...] = (4, 8)) -> dict[str, Any]:

@@ -78,9 +78,7 @@ def run(b: Bench, imgs: list[np.ndarray], n_frames: int) -> dict[str, Any]:
         "results_missed": {h: st["results"][h]["missed"] for h in HEADS},
         "skipped": {h: st["models"][h]["skipped"] for h in ("foundation", *HEADS)},
         "memory": memory,
-        "memory_flat": max(steady) == min(steady)
-        if steady
-        else None,  # None: not measured (no NVML, no CUDA)
+        "memory_flat": max(steady) == min(steady) if steady else None,  # None: not measured (no NVML, no CUDA)
     }
     a3 = out["all_three_latency_ms"]
     log(

@@ -42,9 +42,7 @@ def run(b: Bench, imgs: list[np.ndarray], kinds: tuple[str, ...] = KINDS) -> dic
         if dt:
             for key in (mode, f"{mode}_frame_slot"):
                 out[f"{key}_overhead_vs_floor"] = out[key]["mean"] / out["floor_sum_ms"] - 1
-                out[f"{key}_overhead_vs_floor_with_transfers"] = (
-                    out[key]["mean"] / out["floor_with_transfers_ms"] - 1
-                )
+                out[f"{key}_overhead_vs_floor_with_transfers"] = out[key]["mean"] / out["floor_with_transfers_ms"] - 1
                 out[f"{key}_overhead_vs_chained"] = out[key]["mean"] / chained["compute"] - 1
     floors = (
         f"summed device time {out['floor_sum_ms']:.2f} ms, with transfers {out['floor_with_transfers_ms']:.2f} ms, "

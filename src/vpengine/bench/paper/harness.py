@@ -173,9 +173,7 @@ def timed(step: Any, n: int, warmup: int = 10) -> dict[str, float]:
     return out
 
 
-def lockstep(
-    engine: Any, imgs: list[np.ndarray], b: Bench, warmup: int = 10, slot: bool = False
-) -> dict[str, float]:
+def lockstep(engine: Any, imgs: list[np.ndarray], b: Bench, warmup: int = 10, slot: bool = False) -> dict[str, float]:
     """submit -> all heads' results on the host, one frame in flight, ``b.frames`` times.
 
     ``slot``: the frame is written in place into the input mailbox (``Engine.frame_slot``), as a camera's decode
@@ -364,9 +362,7 @@ class InProcess:
                 **{name: (head, {k: feats[k] for k in keys}) for name, (head, keys) in self.heads.items()},
             }.items():
                 parts[name] = (
-                    (lambda fn=fn, inputs=inputs: fn(inputs))
-                    if self.graphed[name]
-                    else _graphed(fn, inputs, torch)
+                    (lambda fn=fn, inputs=inputs: fn(inputs)) if self.graphed[name] else _graphed(fn, inputs, torch)
                 )
                 if name != "foundation":
                     outs += [t for t in fn(inputs).values() if t.device.type == "cuda"]

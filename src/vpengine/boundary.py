@@ -120,6 +120,21 @@ class Placement:
 
 
 # what cv2.resize takes for each filter (int32/int64 class maps are indexed by hand)
+SIZES_KEPT = 8  # buffers kept per frame size (by last use): enough for every camera of a robot, bounded for a folder
+
+
+def buffer_for(cache: dict[tuple[int, int], np.ndarray], size: tuple[int, int], dtype: Any) -> np.ndarray:
+    """A ``size`` HxWx3 buffer from ``cache``, made on first use: one per frame size, not one per frame, and at most
+    SIZES_KEPT sizes (the least recently used goes), so a stream of ever new sizes does not grow memory."""
+    buf = cache.pop(size, None)
+    if buf is None:
+        buf = np.zeros((*size, 3), dtype)
+        while len(cache) >= SIZES_KEPT:
+            del cache[next(iter(cache))]
+    cache[size] = buf  # last used goes last
+    return buf
+
+
 _CV_NEAREST = {np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "float32", "float64")}
 _CV_LINEAR = {np.dtype(t) for t in ("uint8", "uint16", "int16", "float32", "float64")}
 
@@ -233,9 +248,7 @@ class Boundary:
             return p
         import cv2
 
-        scratch = self._scratch.get((p.h, p.w))
-        if scratch is None:  # one per frame size, not per frame
-            scratch = self._scratch[(p.h, p.w)] = np.empty((p.h, p.w, 3), self.dtype)
+        scratch = buffer_for(self._scratch, (p.h, p.w), self.dtype)
         shrink = p.w < frame.shape[1]
         cv2.resize(
             np.ascontiguousarray(frame),

@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from vpengine import checks
-from vpengine.boundary import Boundary, Placement
+from vpengine.boundary import Boundary, Placement, buffer_for
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.results import Outbox, Result
@@ -515,11 +515,8 @@ class Engine:
         return self.config.camera_names()
 
     def _staging(self, size: tuple[int, int]) -> np.ndarray:
-        """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size, kept."""
-        buf = self._staged.get(size)
-        if buf is None:
-            buf = self._staged[size] = np.zeros((*size, 3), self.boundary.dtype)
-        return buf
+        """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size (``buffer_for``)."""
+        return buffer_for(self._staged, size, self.boundary.dtype)
 
     def _refuse_inside_frame_slot(self) -> None:
         if self._filling == threading.get_ident():

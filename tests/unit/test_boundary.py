@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests_paths import tiny
-from vpengine.boundary import Boundary, Placement, output_kinds
+from vpengine.boundary import SIZES_KEPT, Boundary, Placement, buffer_for, output_kinds
 from vpengine.specs import TensorSpec
 
 
@@ -96,3 +96,19 @@ def test_a_wide_frame_is_written_scaled_with_its_aspect_between_bands_of_the_mea
     assert (dst[:30] == mean_bgr).all() and (dst[90:] == mean_bgr).all()
     same = np.random.default_rng(1).integers(0, 256, (120, 160, 3), np.uint8)
     assert b.write(same, dst).identity and (dst == same).all()
+
+
+def test_frames_of_ever_new_sizes_keep_a_bounded_number_of_buffers():
+    b = Boundary(tiny("thread"), {})
+    dst = np.zeros((120, 160, 3), np.uint8)
+    rng = np.random.default_rng(2)
+    for w in range(200, 200 + 4 * SIZES_KEPT, 4):  # a folder of images, each of another size
+        b.write(rng.integers(0, 256, (100, w, 3), np.uint8), dst)
+        assert len(b._scratch) <= SIZES_KEPT
+    cache: dict = {}
+    first = buffer_for(cache, (10, 20), np.uint8)
+    for i in range(SIZES_KEPT - 1):
+        buffer_for(cache, (11 + i, 20), np.uint8)
+    assert buffer_for(cache, (10, 20), np.uint8) is first  # used again: kept, now the most recent
+    buffer_for(cache, (99, 99), np.uint8)  # one size too many: the least recently used goes, not the first
+    assert (10, 20) in cache and (11, 20) not in cache and len(cache) == SIZES_KEPT

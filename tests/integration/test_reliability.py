@@ -337,6 +337,26 @@ def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(t
         assert seg["errors"] == (1 if fault == "raise_at_run" else 0)
 
 
+def test_the_frame_a_worker_died_on_is_answered_so_wait_does_not_wait_for_it(tmp_path, restart_backoff):
+    """The frame a head held when it died never runs: once the head is back, ``wait`` for it returns the other
+    heads' outputs at once rather than waiting for a newer frame to answer it (or timing out in lockstep)."""
+    opts = json.dumps({"exit_at_run": 3, "once_marker": str(tmp_path / "once")})
+    restart_backoff(0.05)
+    with Engine(tiny("process", heads("depth", f"seg:{opts}"))) as e:
+        for i in range(2):
+            assert set(e.wait(e.submit(frame(i)), timeout=20)) == {"depth", "seg"}
+        fid = e.submit(frame(2))  # seg's third run: it dies holding this frame
+        wait_for(
+            lambda: e.stats()["models"]["seg"]["restarts"] == 1 and e.stats()["models"]["seg"]["state"] == "running",
+            what="seg died and was restarted",
+            show=lambda: e.stats()["models"]["seg"],
+        )
+        t = time.monotonic()
+        assert set(e.wait(fid, timeout=5)) == {"depth"}
+        assert time.monotonic() - t < 1
+        assert set(e.wait(e.submit(frame(3)), timeout=20)) == {"depth", "seg"}
+
+
 # ------------------------------------------------------------------------------------- 15: logging.file
 @pytest.mark.parametrize("mode", ["process", "thread"])
 def test_logging_file_gets_the_engines_and_the_workers_records(tmp_path, mode):

@@ -5,7 +5,7 @@ and detection heads at 1080p; ``--set`` as everywhere), in thread mode:
 
 * ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
   synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
-  the host (p50, p99), frames some head never answered (each is counted by the engine too: skipped, late, deferred),
+  the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
   and the device memory in use (NVML, else PyTorch's reserved bytes).
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with one frame in flight (submit, wait for every head), as each camera's

@@ -337,7 +337,8 @@ class _EagerRoIAlign(MultiScaleRoIAlign):
     feature size times every batch size and number of boxes it meets, and the boxes' number depends on the frame: new
     combinations keep coming after warm-up, each a recompilation of hundreds of milliseconds in the middle of a stream
     until dynamo's recompile limit is hit (seen with four cameras on an H100). It is one kernel per level either way,
-    so compiling it gains nothing: it always runs as the plain torchvision op, a graph break in a compiled head."""
+    so compiling it gains nothing: it always runs as the plain torchvision op, a graph break in a compiled head (which
+    its data-dependent NMS needs anyway: compile this head with ``backend_options: {fullgraph: false}``)."""
 
     @torch.compiler.disable
     def forward(self, *args: Any, **kwargs: Any) -> torch.Tensor:

@@ -101,12 +101,16 @@ class Runner(ABC):
 
     # ------------------------------------------------------------------------------------- death handling
     def _cleanup_after(self, name: str) -> None:
-        """Release what a dead worker held so its neighbours never wait on it."""
+        """Release what a dead worker held so its neighbours never wait on it, and answer the frame it held (in
+        flight, or held for its camera's next batch): it will never run, and ``Engine.wait`` must not wait for it
+        (Note [Answered frames] in worker.py)."""
         spec = self.specs[name]
         in_ring = self.rings[spec.in_ring.name]
         out_ring = self.rings[spec.out_ring.name]
-        for reader, _ in self._lanes(name):
-            in_ring.release_reader(reader)
+        for reader, entry in self._lanes(name):
+            origin = in_ring.release_reader(reader)
+            if origin is not None and origin > self.control.get(entry, "decided"):
+                self.control.decide(entry, origin, ran=False)
         out_ring.reset_writer()
         self._count_lost_frames(name)
 

@@ -211,9 +211,11 @@ class WorkerCore:
             with self.dev.active(), torch.inference_mode():
                 self._loop(should_stop)
         finally:
-            self._drop_spare()
-            for tag in list(self._held):
-                self._drop_held(tag)
+            try:
+                self._drop_spare()
+            finally:  # whatever the spare did, the held frames are answered
+                for tag in list(self._held):
+                    self._drop_held(tag)
 
     def _loop(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name

@@ -340,11 +340,12 @@ class SlotRing:
         self._wake_publish()
 
     # -------------------------------------------------------------------------------------- supervision
-    def release_reader(self, name: str) -> bool:
-        """Drop the pin of a reader whose process died. Returns whether it held one."""
+    def release_reader(self, name: str) -> int | None:
+        """Drop the pin of a reader whose process died. Returns the origin of the slot it held (None: none)."""
         r = self._reader(self._reader_index[name])
         with self._mutex:
-            held = self._q[r + _R_PINNED] >= 0
+            pinned = self._q[r + _R_PINNED]
+            held = None if pinned < 0 else int(self._q[self._slot(int(pinned)) + _S_ORIGIN])
             self._q[r + _R_PINNED] = -1
             waiting = self._q[_H_WRITER_WAITING]
             if waiting:

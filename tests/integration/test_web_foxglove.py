@@ -101,6 +101,60 @@ def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscrib
             assert len(got["/vpengine/seg/image"]) >= 5
             assert all(b"\xff\xd8\xff" in p and b"jpeg" in p for p in got["/vpengine/seg/image"])  # a JPEG inside
             assert got["/vpengine/det/annotations"] and all(b"class_" in p for p in got["/vpengine/det/annotations"])
-            assert {h for h, _ in fox._sent.items()} == {"seg", "det"}  # depth: nobody subscribed, never drawn
+            assert {h for _, h in fox._sent} == {"seg", "det"}  # depth: nobody subscribed, never drawn
         finally:
             ws.close()
+
+
+def test_with_several_cameras_each_camera_has_its_own_channels_and_pictures():
+    import websocket
+
+    from vpengine.engine import Engine
+    from vpengine.io.sources import SyntheticSource
+    from vpengine.web.foxglove import FoxgloveView
+
+    sizes = {"front": (160, 120), "rear": (200, 90)}
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", "heads.det.cameras=[front]")
+    with Engine(cfg) as engine:
+        recent: dict[int, np.ndarray] = {}
+        for i in range(3):
+            for camera, (w, h) in sizes.items():
+                frame = SyntheticSource(w, h, 30.0, 10).render(i)
+                fid = engine.submit(frame, camera=camera)
+                recent[fid] = frame
+                engine.wait(fid, timeout=20)
+        with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox:
+            ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
+            try:
+                channels = {
+                    c["topic"]: c
+                    for m in messages(ws, time.monotonic() + 2)
+                    if isinstance(m, dict) and m.get("op") == "advertise"
+                    for c in m["channels"]
+                }
+                assert {
+                    "/vpengine/front/seg/image",
+                    "/vpengine/rear/seg/image",
+                    "/vpengine/front/det/annotations",
+                } <= set(channels)
+                assert "/vpengine/rear/det/image" not in channels and "/vpengine/seg/image" not in channels
+                subs = {1: "/vpengine/front/seg/image", 2: "/vpengine/rear/seg/image"}
+                ws.send(
+                    json.dumps(
+                        {
+                            "op": "subscribe",
+                            "subscriptions": [{"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()],
+                        }
+                    )
+                )
+                got: dict[str, list[bytes]] = {t: [] for t in subs.values()}
+                for m in messages(ws, time.monotonic() + 3):
+                    if isinstance(m, bytes) and m[0] == 1:
+                        sub, _log_time = struct.unpack_from("<IQ", m, 1)
+                        got[subs[sub]].append(m[13:])
+                # each channel gets its own camera's picture, named by its frame_id
+                assert got["/vpengine/front/seg/image"] and all(b"front" in p for p in got["/vpengine/front/seg/image"])
+                assert got["/vpengine/rear/seg/image"] and all(b"rear" in p for p in got["/vpengine/rear/seg/image"])
+                assert {k for k in fox._sent} == {("front", "seg"), ("rear", "seg")}
+            finally:
+                ws.close()

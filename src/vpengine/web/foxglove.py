@@ -6,6 +6,9 @@ Foxglove opens ``ws://HOST:PORT`` ("Open connection" -> Foxglove WebSocket) and 
     /vpengine/<head>/annotations  foxglove.ImageAnnotations (detection heads): a box and a caption per detection,
                                   in the picture's pixels, stamped like the picture
 
+With several cameras each camera a head serves has its own pair, ``/vpengine/<camera>/<head>/...``, whose
+``frame_id`` is the camera: one picture per camera and head, never the newest of any camera's.
+
 A pump thread looks at each channel up to ``hz`` times a second and does nothing for channels nobody subscribed to;
 pictures come from the same bounded :class:`~vpengine.web.pictures.Pictures` as the page's (Note [Pictures and
 frames]). Foxglove's WebSocket protocol has no authentication, so the server binds to loopback only; from another
@@ -115,8 +118,9 @@ class FoxgloveView:
         self._server = foxglove.start_server(name="vpengine", host=host, port=port, context=self._context)
         self.port = self._server.port
         self._image_channel, self._annotation_channel = CompressedImageChannel, ImageAnnotationsChannel
-        self._channels: dict[str, tuple[Any, Any | None]] = {}
-        self._sent: dict[str, int] = {}  # head -> seq of the picture sent last
+        # (camera, head) -> its image and annotation channels; camera None with one camera
+        self._channels: dict[tuple[str | None, str], tuple[Any, Any | None]] = {}
+        self._sent: dict[tuple[str | None, str], int] = {}  # seq of the picture sent last on each
         self.sent = 0  # messages logged
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._pump, name="vpengine-foxglove", daemon=True)
@@ -127,20 +131,24 @@ class FoxgloveView:
     def url(self) -> str:
         return f"ws://127.0.0.1:{self.port}"
 
-    def _heads(self, engine: Any) -> dict[str, tuple[Any, Any | None]]:
-        """The channels of every head (made once the engine is there: the ROS 2 core's may start late)."""
+    def _heads(self, engine: Any) -> dict[tuple[str | None, str], tuple[Any, Any | None]]:
+        """The channels of every head and camera it serves (made once the engine is there: the ROS 2 core's may
+        start late)."""
         if not self._channels:
+            several = len(engine.cameras) > 1
             for head in engine.plan.heads:
                 kind = head_kind(engine.head_info(head))
                 if kind == "generic":
                     continue
-                image = self._image_channel(f"{self.ns}/{head}/image", context=self._context)
-                boxes = (
-                    self._annotation_channel(f"{self.ns}/{head}/annotations", context=self._context)
-                    if kind == "detection"
-                    else None
-                )
-                self._channels[head] = (image, boxes)
+                for camera in engine.config.model_cameras(head) if several else [None]:
+                    base = f"{self.ns}/{camera}/{head}" if camera else f"{self.ns}/{head}"
+                    image = self._image_channel(f"{base}/image", context=self._context)
+                    boxes = (
+                        self._annotation_channel(f"{base}/annotations", context=self._context)
+                        if kind == "detection"
+                        else None
+                    )
+                    self._channels[(camera, head)] = (image, boxes)
         return self._channels
 
     def _pump(self) -> None:
@@ -159,21 +167,22 @@ class FoxgloveView:
         engine = self._get_engine()
         if engine is None or not engine.running:
             return
-        for head, (image, boxes) in self._heads(engine).items():
+        for (camera, head), (image, boxes) in self._heads(engine).items():
             if not image.has_sinks() and not (boxes is not None and boxes.has_sinks()):
                 continue  # nobody subscribed: nothing is drawn or sent
-            pic = self.pictures.latest(engine, head, self.width)
-            if pic is None or self._sent.get(head) == pic.seq:
+            pic = self.pictures.latest(engine, head, self.width, camera)
+            if pic is None or self._sent.get((camera, head)) == pic.seq:
                 continue
-            self._sent[head] = pic.seq
+            self._sent[(camera, head)] = pic.seq
             t_ns = int(pic.capture_time * 1e9)
+            frame_id = camera or head
             image.log(
-                CompressedImage(timestamp=_stamp(pic.capture_time), frame_id=head, data=pic.jpeg, format="jpeg"),
+                CompressedImage(timestamp=_stamp(pic.capture_time), frame_id=frame_id, data=pic.jpeg, format="jpeg"),
                 log_time=t_ns,
             )
             self.sent += 1
             if boxes is not None and boxes.has_sinks():
-                result = engine.latest(head)
+                result = engine.latest(head, camera=camera)
                 if result is not None and result.seq == pic.seq:  # the boxes of the picture's own result
                     scale = pic.width / result.frame_size[1]  # the picture's frame grid (Note [Pictures and frames])
                     labels = engine.head_info(head).get("labels")

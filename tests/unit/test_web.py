@@ -47,7 +47,7 @@ def model_stats(runs: int, target: float | None) -> dict:
 
 
 class StandIn:
-    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, running.
+    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, boundary, running.
     ``results``: head -> its newest result; ``camera_results``, with several ``cameras``: (camera, head) -> it."""
 
     def __init__(self, cameras: tuple[str, ...] = ("camera",), served: dict[str, list[str]] | None = None) -> None:
@@ -55,6 +55,9 @@ class StandIn:
         self.cameras = list(cameras)
         served = served or {}
         self.config = SimpleNamespace(model_cameras=lambda head: served.get(head, self.cameras))
+        # how each head's outputs lie in the model's grid, as the engine's boundary works it out (Note [Frame grid])
+        kinds = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
+        self.boundary = SimpleNamespace(kinds=dict.fromkeys(INFOS, kinds))
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)
         self.camera_results: dict[tuple[str, str], Result] = {}

@@ -186,7 +186,7 @@ class FoxgloveView:
                 if result is not None and result.seq == pic.seq:  # the boxes of the picture's own result
                     scale = pic.width / result.frame_size[1]  # the picture's frame grid (Note [Pictures and frames])
                     labels = engine.head_info(head).get("labels")
-                    outputs = in_frame_grid(result, dict(result.outputs))
+                    outputs = in_frame_grid(result, dict(result.outputs), engine.boundary.kinds[head])
                     boxes.log(image_annotations(outputs, labels, scale, pic.capture_time), log_time=t_ns)
                     self.sent += 1
 

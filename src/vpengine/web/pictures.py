@@ -116,17 +116,14 @@ def render(
     return None
 
 
-#: How each output ``render`` draws lies in the canvas grid (Note [Frame grid] in boundary.py)
-_GRID_KINDS = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
-
-
-def in_frame_grid(result: Any, outputs: dict[str, Any]) -> dict[str, Any]:
+def in_frame_grid(result: Any, outputs: dict[str, Any], kinds: dict[str, Any]) -> dict[str, Any]:
     """``outputs`` (host arrays) of ``result`` in its frame's grid: those of a head that keeps the native grid are
-    mapped by the result's placement (Note [Pictures and frames])."""
+    mapped by the result's placement, each as the engine maps it (``kinds``: the head's entry of
+    ``Engine.boundary.kinds``; Note [Pictures and frames])."""
     placement = result.placement
     if result.grid != "native" or placement is None or placement.identity:
         return outputs
-    return {k: placement.to_frame(_GRID_KINDS[k], v) if k in _GRID_KINDS else v for k, v in outputs.items()}
+    return {k: placement.to_frame(kinds[k], v) if k in kinds else v for k, v in outputs.items()}
 
 
 class Pictures:
@@ -187,7 +184,9 @@ class Pictures:
             frame = self._frame(result.frame_id)
             if frame is not None and frame.shape[:2] != size:
                 frame = None  # not the frame these outputs were computed from
-            outputs = in_frame_grid(result, {k: _host(v) for k, v in result.outputs.items()})
+            outputs = in_frame_grid(
+                result, {k: _host(v) for k, v in result.outputs.items()}, engine.boundary.kinds[head]
+            )
             image = render({**info, "frame_size": size}, outputs, frame, width)
             if image is None:
                 return None

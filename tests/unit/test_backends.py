@@ -9,6 +9,7 @@ Integer outputs (class ids, labels, counts) must be equal.
 from __future__ import annotations
 
 import json
+import logging
 
 import onnx
 import pytest
@@ -144,13 +145,24 @@ def test_compiled_faster_rcnn_never_recompiles_once_warm_whatever_the_batch_and_
         "weights.random_weights=true",
     )
     model = build(cfg, "det")
-    ex = make_executor(model, "compile", CPU, "det", options={"fullgraph": False}, max_batch=2)
-    g = torch.Generator().manual_seed(0)
-    with torch.compiler.set_stance("fail_on_recompile"):
-        for i, (b, scale) in enumerate([(1, 1.0), (2, 4.0), (1, 0.1), (2, 0.5), (1, 8.0), (2, 2.0)]):
-            x = {k: torch.randn((b, *s.shape), generator=g) * scale for k, s in model.input_spec.items()}
-            out = ex(x)
-            assert out["count"].shape == (b,), f"frame {i}"
+    # dynamo gives up on a function past its recompile limit and runs it eagerly from then on, without recompiling:
+    # that must not happen either, or 'fail_on_recompile' below would pass on code that no longer runs compiled
+    limit_hits: list[logging.LogRecord] = []
+    catch = logging.Handler(logging.WARNING)
+    catch.emit = lambda r: limit_hits.append(r) if "recompile_limit" in r.getMessage() else None  # type: ignore[method-assign]
+    dynamo_log = logging.getLogger("torch._dynamo")
+    dynamo_log.addHandler(catch)
+    try:
+        ex = make_executor(model, "compile", CPU, "det", options={"fullgraph": False}, max_batch=2)
+        g = torch.Generator().manual_seed(0)
+        with torch.compiler.set_stance("fail_on_recompile"):
+            for i, (b, scale) in enumerate([(1, 1.0), (2, 4.0), (1, 0.1), (2, 0.5), (1, 8.0), (2, 2.0)]):
+                x = {k: torch.randn((b, *s.shape), generator=g) * scale for k, s in model.input_spec.items()}
+                out = ex(x)
+                assert out["count"].shape == (b,), f"frame {i}"
+    finally:
+        dynamo_log.removeHandler(catch)
+    assert not limit_hits, [r.getMessage() for r in limit_hits]
 
 
 class _GraphBreak(SmallHead):

@@ -59,6 +59,32 @@ def messages(ws, until: float) -> list:
     return out
 
 
+def advertised(ws) -> dict[str, dict]:
+    """The channels the server advertises on connecting, by topic."""
+    return {
+        c["topic"]: c
+        for m in messages(ws, time.monotonic() + 2)
+        if isinstance(m, dict) and m.get("op") == "advertise"
+        for c in m["channels"]
+    }
+
+
+def subscribe(ws, channels: dict[str, dict], topics: list[str], seconds: float = 3.0) -> dict[str, list[bytes]]:
+    """Subscribe to ``topics`` and collect each one's message payloads for ``seconds``."""
+    subs = dict(enumerate(topics, 1))
+    ws.send(
+        json.dumps(
+            {"op": "subscribe", "subscriptions": [{"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()]}
+        )
+    )
+    got: dict[str, list[bytes]] = {t: [] for t in topics}
+    for m in messages(ws, time.monotonic() + seconds):
+        if isinstance(m, bytes) and m[0] == 1:  # message data: opcode, subscription id, log time, payload
+            sub, _log_time = struct.unpack_from("<IQ", m, 1)
+            got[subs[sub]].append(m[13:])
+    return got
+
+
 def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscribed(fed_engine):
     import websocket
 
@@ -68,13 +94,7 @@ def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscrib
     with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox:
         ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
         try:
-            hello = messages(ws, time.monotonic() + 2)
-            channels = {
-                c["topic"]: c
-                for m in hello
-                if isinstance(m, dict) and m.get("op") == "advertise"
-                for c in m["channels"]
-            }
+            channels = advertised(ws)
             assert {
                 "/vpengine/depth/image",
                 "/vpengine/seg/image",
@@ -84,20 +104,7 @@ def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscrib
             assert channels["/vpengine/det/image"]["schemaName"] == "foxglove.CompressedImage"
             assert channels["/vpengine/det/annotations"]["schemaName"] == "foxglove.ImageAnnotations"
             assert fox.pictures.made == 0 and fox.sent == 0  # nobody subscribed: nothing drawn
-            subs = {1: "/vpengine/seg/image", 2: "/vpengine/det/annotations"}
-            ws.send(
-                json.dumps(
-                    {
-                        "op": "subscribe",
-                        "subscriptions": [{"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()],
-                    }
-                )
-            )
-            got: dict[str, list[bytes]] = {t: [] for t in subs.values()}
-            for m in messages(ws, time.monotonic() + 3):
-                if isinstance(m, bytes) and m[0] == 1:  # message data: opcode, subscription id, log time, payload
-                    sub, _log_time = struct.unpack_from("<IQ", m, 1)
-                    got[subs[sub]].append(m[13:])
+            got = subscribe(ws, channels, ["/vpengine/seg/image", "/vpengine/det/annotations"])
             assert len(got["/vpengine/seg/image"]) >= 5
             assert all(b"\xff\xd8\xff" in p and b"jpeg" in p for p in got["/vpengine/seg/image"])  # a JPEG inside
             assert got["/vpengine/det/annotations"] and all(b"class_" in p for p in got["/vpengine/det/annotations"])
@@ -126,32 +133,14 @@ def test_with_several_cameras_each_camera_has_its_own_channels_and_pictures():
         with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox:
             ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
             try:
-                channels = {
-                    c["topic"]: c
-                    for m in messages(ws, time.monotonic() + 2)
-                    if isinstance(m, dict) and m.get("op") == "advertise"
-                    for c in m["channels"]
-                }
+                channels = advertised(ws)
                 assert {
                     "/vpengine/front/seg/image",
                     "/vpengine/rear/seg/image",
                     "/vpengine/front/det/annotations",
                 } <= set(channels)
                 assert "/vpengine/rear/det/image" not in channels and "/vpengine/seg/image" not in channels
-                subs = {1: "/vpengine/front/seg/image", 2: "/vpengine/rear/seg/image"}
-                ws.send(
-                    json.dumps(
-                        {
-                            "op": "subscribe",
-                            "subscriptions": [{"id": i, "channelId": channels[t]["id"]} for i, t in subs.items()],
-                        }
-                    )
-                )
-                got: dict[str, list[bytes]] = {t: [] for t in subs.values()}
-                for m in messages(ws, time.monotonic() + 3):
-                    if isinstance(m, bytes) and m[0] == 1:
-                        sub, _log_time = struct.unpack_from("<IQ", m, 1)
-                        got[subs[sub]].append(m[13:])
+                got = subscribe(ws, channels, ["/vpengine/front/seg/image", "/vpengine/rear/seg/image"])
                 # each channel gets its own camera's picture, named by its frame_id
                 assert got["/vpengine/front/seg/image"] and all(b"front" in p for p in got["/vpengine/front/seg/image"])
                 assert got["/vpengine/rear/seg/image"] and all(b"rear" in p for p in got["/vpengine/rear/seg/image"])

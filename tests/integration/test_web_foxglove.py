@@ -3,10 +3,13 @@ running tiny engine's heads and gets their pictures and detections; nothing is d
 
 from __future__ import annotations
 
+import contextlib
 import json
 import struct
 import threading
 import time
+from collections.abc import Iterator
+from typing import Any
 
 import numpy as np
 import pytest
@@ -59,6 +62,18 @@ def messages(ws, until: float) -> list:
     return out
 
 
+@contextlib.contextmanager
+def view_socket(fox) -> Iterator[Any]:
+    """A WebSocket to the Foxglove view, as the Foxglove app opens one."""
+    import websocket
+
+    ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
+    try:
+        yield ws
+    finally:
+        ws.close()
+
+
 def advertised(ws) -> dict[str, dict]:
     """The channels the server advertises on connecting, by topic."""
     return {
@@ -86,36 +101,28 @@ def subscribe(ws, channels: dict[str, dict], topics: list[str], seconds: float =
 
 
 def test_foxglove_gets_each_heads_picture_and_the_detections_only_while_subscribed(fed_engine):
-    import websocket
-
     from vpengine.web.foxglove import FoxgloveView
 
     engine, recent = fed_engine
-    with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox:
-        ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
-        try:
-            channels = advertised(ws)
-            assert {
-                "/vpengine/depth/image",
-                "/vpengine/seg/image",
-                "/vpengine/det/image",
-                "/vpengine/det/annotations",
-            } <= set(channels)
-            assert channels["/vpengine/det/image"]["schemaName"] == "foxglove.CompressedImage"
-            assert channels["/vpengine/det/annotations"]["schemaName"] == "foxglove.ImageAnnotations"
-            assert fox.pictures.made == 0 and fox.sent == 0  # nobody subscribed: nothing drawn
-            got = subscribe(ws, channels, ["/vpengine/seg/image", "/vpengine/det/annotations"])
-            assert len(got["/vpengine/seg/image"]) >= 5
-            assert all(b"\xff\xd8\xff" in p and b"jpeg" in p for p in got["/vpengine/seg/image"])  # a JPEG inside
-            assert got["/vpengine/det/annotations"] and all(b"class_" in p for p in got["/vpengine/det/annotations"])
-            assert {h for _, h in fox._sent} == {"seg", "det"}  # depth: nobody subscribed, never drawn
-        finally:
-            ws.close()
+    with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox, view_socket(fox) as ws:
+        channels = advertised(ws)
+        assert {
+            "/vpengine/depth/image",
+            "/vpengine/seg/image",
+            "/vpengine/det/image",
+            "/vpengine/det/annotations",
+        } <= set(channels)
+        assert channels["/vpengine/det/image"]["schemaName"] == "foxglove.CompressedImage"
+        assert channels["/vpengine/det/annotations"]["schemaName"] == "foxglove.ImageAnnotations"
+        assert fox.pictures.made == 0 and fox.sent == 0  # nobody subscribed: nothing drawn
+        got = subscribe(ws, channels, ["/vpengine/seg/image", "/vpengine/det/annotations"])
+        assert len(got["/vpengine/seg/image"]) >= 5
+        assert all(b"\xff\xd8\xff" in p and b"jpeg" in p for p in got["/vpengine/seg/image"])  # a JPEG inside
+        assert got["/vpengine/det/annotations"] and all(b"class_" in p for p in got["/vpengine/det/annotations"])
+        assert {h for _, h in fox._sent} == {"seg", "det"}  # depth: nobody subscribed, never drawn
 
 
 def test_with_several_cameras_each_camera_has_its_own_channels_and_pictures():
-    import websocket
-
     from vpengine.engine import Engine
     from vpengine.io.sources import SyntheticSource
     from vpengine.web.foxglove import FoxgloveView
@@ -130,20 +137,16 @@ def test_with_several_cameras_each_camera_has_its_own_channels_and_pictures():
                 fid = engine.submit(frame, camera=camera)
                 recent[fid] = frame
                 engine.wait(fid, timeout=20)
-        with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox:
-            ws = websocket.create_connection(fox.url, subprotocols=["foxglove.sdk.v1"], timeout=10)
-            try:
-                channels = advertised(ws)
-                assert {
-                    "/vpengine/front/seg/image",
-                    "/vpengine/rear/seg/image",
-                    "/vpengine/front/det/annotations",
-                } <= set(channels)
-                assert "/vpengine/rear/det/image" not in channels and "/vpengine/seg/image" not in channels
-                got = subscribe(ws, channels, ["/vpengine/front/seg/image", "/vpengine/rear/seg/image"])
-                # each channel gets its own camera's picture, named by its frame_id
-                assert got["/vpengine/front/seg/image"] and all(b"front" in p for p in got["/vpengine/front/seg/image"])
-                assert got["/vpengine/rear/seg/image"] and all(b"rear" in p for p in got["/vpengine/rear/seg/image"])
-                assert {k for k in fox._sent} == {("front", "seg"), ("rear", "seg")}
-            finally:
-                ws.close()
+        with FoxgloveView(engine, port=0, frames=recent.get, hz=20) as fox, view_socket(fox) as ws:
+            channels = advertised(ws)
+            assert {
+                "/vpengine/front/seg/image",
+                "/vpengine/rear/seg/image",
+                "/vpengine/front/det/annotations",
+            } <= set(channels)
+            assert "/vpengine/rear/det/image" not in channels and "/vpengine/seg/image" not in channels
+            got = subscribe(ws, channels, ["/vpengine/front/seg/image", "/vpengine/rear/seg/image"])
+            # each channel gets its own camera's picture, named by its frame_id
+            assert got["/vpengine/front/seg/image"] and all(b"front" in p for p in got["/vpengine/front/seg/image"])
+            assert got["/vpengine/rear/seg/image"] and all(b"rear" in p for p in got["/vpengine/rear/seg/image"])
+            assert {k for k in fox._sent} == {("front", "seg"), ("rear", "seg")}

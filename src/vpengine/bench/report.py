@@ -435,8 +435,13 @@ def _panels(r: dict[str, Any]) -> list[Any]:
     return [draw for draw, present in have.items() if present]
 
 
+def _all_runs(r: dict[str, Any]) -> list[dict[str, Any]]:
+    """Every run the folder has: the paper's experiments' and the cameras benchmark's."""
+    return [run for key in PAPER for run in r.get(f"{key}_all", [])] + r.get("cameras_all", [])
+
+
 def _newest_machine(r: dict[str, Any]) -> dict[str, Any]:
-    runs = [run for key in PAPER for run in r.get(f"{key}_all", [])] + r.get("cameras_all", [])
+    runs = _all_runs(r)
     return max(runs, key=lambda x: x["date"])["machine"] if runs else {}
 
 
@@ -469,8 +474,7 @@ def main(args: argparse.Namespace) -> int:
     if not folder.is_dir():
         raise ValueError(f"--results {args.results!r} is not a folder")
     r = collect(folder)
-    runs = [run for key in PAPER for run in r[f"{key}_all"]] + r["cameras_all"]
-    machines = sorted({machine_label(run["machine"]) for run in runs})
+    machines = sorted({machine_label(run["machine"]) for run in _all_runs(r)})
     md = [f"# vpengine benchmarks: {folder.name}", ""]
     md += [f"Machine: {m}" for m in machines] or ["No results in this folder."]
     md += ["", table(r)]

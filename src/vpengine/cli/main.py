@@ -56,9 +56,28 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _take_verbose(argv: list[str]) -> tuple[list[str], int]:
+    """``-v``/``-vv``/``--verbose`` anywhere before a ``--``, counted and taken out, so that they work after a
+    subcommand (``vpengine run ... -v``, ``vpengine config list -v``) as well as before it."""
+    rest: list[str] = []
+    count = 0
+    for i, arg in enumerate(argv):
+        if arg == "--":
+            return rest + argv[i:], count
+        if arg == "--verbose":
+            count += 1
+        elif len(arg) > 1 and arg[0] == "-" and set(arg[1:]) == {"v"}:
+            count += len(arg) - 1
+        else:
+            rest.append(arg)
+    return rest, count
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv, verbose = _take_verbose(sys.argv[1:] if argv is None else list(argv))
     args = parser.parse_args(argv)
+    args.verbose = verbose
     if not getattr(args, "_module", None):
         parser.print_help()
         return 2

@@ -254,7 +254,7 @@ def test_a_process_dying_inside_the_ring_lock_does_not_hang_the_others(tmp_path)
         w = ring.writer()
         s = w.acquire()  # would hang forever with a plain mutex
         w.publish(s, 1, 0.0, 0.0)
-        assert time.monotonic() - t < 1.0
+        assert time.monotonic() - t < 5.0
         assert ring._mutex.owner_died == 1
     finally:
         conn.close()

@@ -101,13 +101,22 @@ def test_a_paused_foundation_takes_no_frame_from_submit_and_resumes():
             assert set(e.wait(fid, timeout=10)) == {"depth", "seg", "det"}
 
 
-def test_stop_wakes_an_armed_foundation_at_once():
+def test_stop_wakes_an_armed_foundation_at_once(monkeypatch):
+    from vpengine.runtime.worker import WorkerCore
+
+    init = WorkerCore.__init__
+
+    def long_poll(self, *args, **kwargs):  # a long poll, so that waiting one out cannot pass for a wake-up
+        init(self, *args, **kwargs)
+        self.poll_s = 10.0
+
+    monkeypatch.setattr(WorkerCore, "__init__", long_poll)
     with engine(True) as e:
         lockstep(e, 2)
         time.sleep(0.1)  # armed, waiting for a frame
         t0 = time.monotonic()
         e.stop()
-        assert time.monotonic() - t0 < 0.4  # not the worker's 0.5 s poll
+        assert time.monotonic() - t0 < 5.0  # woken, not the 10 s poll waited out
 
 
 def test_rate_changes_while_frames_stream_in_leave_every_frame_run_or_counted():

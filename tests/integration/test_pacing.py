@@ -23,5 +23,5 @@ def test_lockstep_over_a_10fps_video_runs_a_5hz_head_on_every_second_frame(mode)
     assert m["seg"]["runs"] == 20 and m["seg"]["skipped"] == 20  # the frames' stamps decide, not the wall clock
     assert m["det"]["runs"] == 0  # paused: answers nothing, waits for nothing
     assert m["seg"]["results_received"] == 20 and m["depth"]["results_received"] == 40
-    # waiting out seg's period on every frame took 40 x 0.2 s; the video's own timeline is 4 s
-    assert s["wall_s"] < 3.0
+    # waiting out seg's period on every frame takes 40 x 0.2 s = 8 s or more; a run on the frames' stamps, far less
+    assert s["wall_s"] < 6.0

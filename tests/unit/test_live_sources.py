@@ -150,3 +150,9 @@ def test_a_video_file_on_a_web_server_is_read_as_a_file_every_frame_on_its_timel
     assert all(f.image.shape == (576, 768, 3) for f in frames)
     with FileServer(Path(SAMPLES)) as server, pytest.raises(ValueError, match="cannot open stream .*nope.mp4'"):
         open_source(server.url + "nope.mp4")
+
+
+def test_a_stream_that_opens_but_gives_no_frame_says_so(capfd):
+    with FileServer(Path(SAMPLES), ranges=False) as server:  # the sample's index is at its end: out of reach
+        msg = refusal(server.url + "street.mp4", capfd)
+    assert msg.startswith(f"stream '{server.url}street.mp4' opened but gave no frame")

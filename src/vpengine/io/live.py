@@ -206,7 +206,7 @@ def _probed(cap: Any, path: str | int, what: str, live: bool = True, read_timeou
         if read_timeout is not None and time.monotonic() - t0 >= 0.9 * read_timeout:
             raise ValueError(f"{what} opened but sent no frame within {read_timeout:g} s")
         why = _because(said)
-        raise ValueError(f"{what} opened but gave no frame" + (f": {why}" if why else ""))
+        raise ValueError(f"{what} opened but gave no frame" + (f" (FFmpeg said: {why})" if why else ""))
     return Opened(path, cap, what, np.ascontiguousarray(img), stamp, live, read_timeout)
 
 
@@ -267,10 +267,7 @@ def _cv2() -> Any:
 
 
 def _has_backend(cv2: Any, name: str) -> bool:
-    try:
-        return bool(cv2.videoio_registry.hasBackend(getattr(cv2, name)))
-    except AttributeError:  # an OpenCV before 4.5: no registry to ask, so try
-        return True
+    return bool(cv2.videoio_registry.hasBackend(getattr(cv2, name)))
 
 
 def _opencv() -> str:

@@ -29,8 +29,8 @@ import numpy as np
 
 log = logging.getLogger("vpengine.sources")
 
-#: Seconds a stream may take to open, and then to deliver each frame, before it is given up (FFmpeg honours both;
-#: a V4L2 camera has the driver's own, 10 s). Long enough for an RTSP camera's first keyframe.
+#: Seconds a stream or pipeline may take to open, and then to deliver each frame, before it is given up (OpenCV's
+#: V4L2 backend has its own wait for a camera, 10 s). Long enough for an RTSP camera's first keyframe.
 TIMEOUT_S = 10.0
 #: The character-device major number of every video4linux device (Linux's VIDEO_MAJOR).
 _VIDEO_MAJOR = 81
@@ -78,7 +78,8 @@ def open_live(spec: str, timeout: float | None = None) -> Opened:
             raise ValueError(f"bad camera source {spec!r}; use camera:N with N the camera's index, e.g. camera:0")
         return _open_camera(int(index))
     if spec.startswith(_GST_PREFIX) or _bare_pipeline(spec):
-        return _open_pipeline(spec[len(_GST_PREFIX) :].strip() if spec.startswith(_GST_PREFIX) else spec)
+        pipeline = spec[len(_GST_PREFIX) :].strip() if spec.startswith(_GST_PREFIX) else spec
+        return _open_pipeline(pipeline, timeout)
     if _URL.match(spec):
         return _open_stream(spec, timeout)
     return _open_device(Path(spec), spec)
@@ -154,21 +155,14 @@ def _open_stream(url: str, timeout: float) -> Opened:
             f"cannot open {what}: this OpenCV ({_opencv()}) has no FFMPEG backend (opencv-python from PyPI has "
             "one), or read it with a gst: pipeline"
         )
-    ms = int(timeout * 1000)
-    params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms]
-    t0 = time.monotonic()
-    cap, said = _attempt(lambda cv2: cv2.VideoCapture(url, cv2.CAP_FFMPEG, params))
-    if cap is None:
-        if time.monotonic() - t0 >= 0.9 * timeout:
-            raise ValueError(f"cannot open {what}: it did not answer within {timeout:g} s")
-        why = _because(said) or "no video there (refused, not found, or not a format FFmpeg reads)"
-        raise ValueError(f"cannot open {what}: {why}")
+    why = "no video there (refused, not found, or not a format FFmpeg reads)"
+    cap = _open_timed(url, cv2.CAP_FFMPEG, what, timeout, why)
     frames = cap.get(cv2.CAP_PROP_FRAME_COUNT)
     remote_file = math.isfinite(frames) and frames > 0  # a live stream has no length
     return _probed(cap, url, what, live=not remote_file, read_timeout=timeout)
 
 
-def _open_pipeline(pipeline: str) -> Opened:
+def _open_pipeline(pipeline: str, timeout: float) -> Opened:
     what = f"GStreamer pipeline {pipeline!r}"
     cv2 = _cv2()
     if not _has_backend(cv2, "CAP_GSTREAMER"):
@@ -176,13 +170,23 @@ def _open_pipeline(pipeline: str) -> Opened:
             f"cannot open {what}: this OpenCV ({_opencv()}) has no GStreamer backend; use an OpenCV built with "
             "GStreamer (e.g. the system's python3-opencv), or give the stream's URL or device instead"
         )
-    # no timeouts here: a pipeline sets its own (and OpenCV's GStreamer backend refuses properties it lacks)
-    cap, _ = _attempt(lambda cv2: cv2.VideoCapture(pipeline, cv2.CAP_GSTREAMER))
+    why = "GStreamer refused it (does it end in appsink? try it with gst-launch-1.0)"
+    return _probed(_open_timed(pipeline, cv2.CAP_GSTREAMER, what, timeout, why), pipeline, what, read_timeout=timeout)
+
+
+def _open_timed(target: str, api: int, what: str, timeout: float, refused: str) -> Any:
+    """A capture of ``target`` through backend ``api`` (FFmpeg and GStreamer honour both timeouts), opened within
+    ``timeout`` s; ValueError naming why not (FFmpeg's last error, else ``refused``)."""
+    cv2 = _cv2()
+    ms = int(timeout * 1000)
+    params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms]
+    t0 = time.monotonic()
+    cap, said = _attempt(lambda cv2: cv2.VideoCapture(target, api, params))
     if cap is None:
-        raise ValueError(
-            f"cannot open {what}: GStreamer refused it (does it end in appsink? run it with gst-launch-1.0)"
-        )
-    return _probed(cap, pipeline, what)
+        if time.monotonic() - t0 >= 0.9 * timeout:
+            raise ValueError(f"cannot open {what}: it did not answer within {timeout:g} s")
+        raise ValueError(f"cannot open {what}: {_because(said) or refused}")
+    return cap
 
 
 def _bare_pipeline(spec: str) -> bool:

@@ -136,6 +136,8 @@ def _group_hint(device: Path) -> str:
         group = grp.getgrgid(device.stat().st_gid).gr_name
     except (ImportError, KeyError):
         return ""
+    if group == "root":  # joining root's group is no advice to give
+        return " (only root may open it; a udev rule can give it to the group 'video')"
     return f" (it belongs to group '{group}': sudo usermod -aG {group} $USER, then log in again)"
 
 

@@ -53,7 +53,9 @@ log = logging.getLogger("vpengine.run")
 
 SOURCE_HELP = (
     "an image, a folder or a glob of images ('frames/*.jpg'), a video file, a rosbag2 bag (folder or .mcap/.db3), "
-    "camera:N, sample:street or sample:cheetah (shipped with vpengine), or synthetic[:WxH][@FPS][:FRAMES]"
+    "a camera (camera:N, or its device: /dev/video0, /dev/v4l/by-id/...), a stream URL (rtsp://, http://, udp://...), "
+    "a GStreamer pipeline (gst:... ! appsink), sample:street or sample:cheetah (shipped with vpengine), or "
+    "synthetic[:WxH][@FPS][:FRAMES]"
 )
 
 

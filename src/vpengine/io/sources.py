@@ -1,5 +1,6 @@
-"""Frame sources: a built-in synthetic scene, images (a file, a folder, a glob), video files, cameras, rosbag2 bags
-(io/bag.py) and the samples that ship with the package (``sample:street``, ``sample:cheetah``).
+"""Frame sources: a built-in synthetic scene, images (a file, a folder, a glob), video files, cameras and streams
+(opened by io/live.py), rosbag2 bags (io/bag.py) and the samples that ship with the package (``sample:street``,
+``sample:cheetah``).
 
 Every source yields :class:`~vpengine.io.base.Frame` objects: an HxWx3 uint8 image in the source's channel order
 (OpenCV order, BGR, for everything here) at its own size, and a capture timestamp in seconds. Files are stamped on
@@ -171,13 +172,30 @@ def _positive_rate(fps: float, what: str) -> float:
 
 
 class VideoSource(Source):
-    """A video file (or camera index) through OpenCV. ``capture``: an opened ``cv2.VideoCapture``-like object to
-    read instead of opening ``path`` (tests use a stand-in camera)."""
+    """A video file, camera or stream through OpenCV. ``capture``: an opened ``cv2.VideoCapture``-like object to
+    read instead of opening ``path`` (vpengine.io.live opens cameras and streams; tests use a stand-in camera).
 
-    def __init__(self, path: str | Path | int, capture: Any = None) -> None:
+    ``live``: frames come at the source's own rate (a camera, a live stream), so they are read on a thread and the
+    newest wins (Note [Live capture]); by default a camera index is live and anything else a file. ``read_timeout``:
+    the seconds after which ``capture`` gives up on a frame, when it was opened with one (a stream); a source
+    ended by it says so. ``what`` names the source in messages. ``first``: a frame already read from ``capture``
+    (to check it delivers) and its stamp: a file yields it first, a live source drops it (stale by the time the frame
+    loop starts)."""
+
+    def __init__(
+        self,
+        path: str | Path | int,
+        capture: Any = None,
+        *,
+        live: bool | None = None,
+        read_timeout: float | None = None,
+        what: str | None = None,
+        first: tuple[np.ndarray, float] | None = None,
+    ) -> None:
         import cv2
 
         self.path = path
+        self.what = what or (f"camera {path}" if isinstance(path, int) else f"video {str(path)!r}")
         self._cap = capture if capture is not None else cv2.VideoCapture(path if isinstance(path, int) else str(path))
         if not self._cap.isOpened():
             raise ValueError(f"cannot open video {str(path)!r} (missing file or unsupported codec)")
@@ -185,10 +203,17 @@ class VideoSource(Source):
         self.height = int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT))
         fps = self._cap.get(cv2.CAP_PROP_FPS)
         self.fps = fps if fps and math.isfinite(fps) and fps > 0 else None
-        self._n = int(self._cap.get(cv2.CAP_PROP_FRAME_COUNT)) if not isinstance(path, int) else 0
-        self.live = isinstance(path, int)
+        self.live = isinstance(path, int) if live is None else live
+        count = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        self._n = int(count) if not self.live and math.isfinite(count) and count > 0 else 0
+        self.read_timeout = read_timeout
         #: A camera's frames that a newer frame replaced before anyone took them (Note [Live capture]).
         self.missed = 0
+        self._first = first
+        if first is not None:
+            self.height, self.width = first[0].shape[:2]
+        self._reader: threading.Thread | None = None
+        self._stop = threading.Event()
 
     def __len__(self) -> int:
         return max(self._n, 0)
@@ -200,14 +225,27 @@ class VideoSource(Source):
         import cv2
 
         i = 0
+        if self._first is not None:
+            (img, ts), self._first = self._first, None
+            yield Frame(img, ts, f"{i:06d}")
+            i += 1
         while True:
+            t0 = time.monotonic()
             ok, img = self._cap.read()
             if not ok:
+                self._ended(i, time.monotonic() - t0)
                 return
             # the frame's position in the video, in seconds
             ts = self._cap.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
             yield Frame(np.ascontiguousarray(img), ts, f"{i:06d}")
             i += 1
+
+    def _ended(self, frames: int, waited: float) -> None:
+        """Say why frames stopped coming, when that is news: a live source ending, or a stream's read timing out."""
+        if self.read_timeout is not None and waited >= 0.9 * self.read_timeout:
+            log.warning("%s ended after %d frames: no frame came for %.0f s", self.what, frames, waited)
+        elif self.live:
+            log.warning("%s ended after %d frames: it stopped delivering", self.what, frames)
 
     def _newest(self) -> Iterator[Frame]:
         """Note [Live capture]: a camera delivers frames at its own rate whether or not they are read. Read in the
@@ -215,20 +253,26 @@ class VideoSource(Source):
         by a frame each time round) until the driver drops some, uncounted. So a thread reads the camera as fast
         as it delivers and keeps only the newest frame, stamped with the time it arrived; the loop takes that one
         (waiting if it has taken it already), and every frame replaced before it was taken is counted in
-        ``missed``. Frame names number every frame the camera delivered, so the gaps show in the output too."""
+        ``missed``. Frame names number every frame the camera delivered, so the gaps show in the output too. A
+        read that never returns would hang the loop, so a stream is opened with a read timeout (vpengine.io.live):
+        a stream that stops ends the source, with a warning."""
         cond = threading.Condition()
         newest: list[Frame | None] = [None]
         ended: list[BaseException | bool] = [False]  # True at the camera's end; the error if reading raised
-        stop = threading.Event()
+        stop = self._stop = threading.Event()
+        self._first = None  # stale by now: the newest frame is the next one
 
         def grab() -> None:
             i = 0
             try:
                 while not stop.is_set():
+                    t0 = time.monotonic()
                     ok, img = self._cap.read()
                     t = time.time()
                     with cond:
                         if not ok:
+                            if not stop.is_set():
+                                self._ended(i, time.monotonic() - t0)
                             break
                         if newest[0] is not None:
                             self.missed += 1
@@ -242,7 +286,7 @@ class VideoSource(Source):
                 ended[0] = ended[0] or True
                 cond.notify()
 
-        reader = threading.Thread(target=grab, name="vpengine-camera", daemon=True)
+        reader = self._reader = threading.Thread(target=grab, name="vpengine-camera", daemon=True)
         reader.start()
         try:
             while True:
@@ -251,7 +295,7 @@ class VideoSource(Source):
                     frame, newest[0] = newest[0], None
                     if frame is None:
                         if isinstance(ended[0], BaseException):
-                            raise RuntimeError(f"reading camera {self.path} failed: {ended[0]!r}") from ended[0]
+                            raise RuntimeError(f"reading {self.what} failed: {ended[0]!r}") from ended[0]
                         return
                 yield frame
         finally:
@@ -259,21 +303,33 @@ class VideoSource(Source):
             reader.join(timeout=1.0)  # a read in progress ends with the camera's next frame
 
     def close(self) -> None:
+        reader = self._reader
+        if reader is not None and reader.is_alive():
+            self._stop.set()
+            # releasing the capture under a read in progress frees what the read is using: let the read end first
+            reader.join(timeout=(self.read_timeout or 10.0) + 1.0)
+            if reader.is_alive():
+                log.warning("%s: a read did not return; leaving its capture open", self.what)
+                return
         self._cap.release()
 
 
 def open_source(spec: str, topic: str | None = None, fps: float | None = None, strict: bool = False) -> Source:
     """A source from a command-line spec: ``synthetic[...]``, an image, a folder of images, a glob of images
-    (``frames/*.jpg``), a video file, ``camera:N``, ``sample:NAME`` or a rosbag2 bag (a folder with metadata.yaml, or a
-    .mcap / .db3 file; ``topic`` names its image topic; ``strict`` stops at its first bad message instead of skipping
-    it, see vpengine.io.bag). ``fps``: the rate images are stamped at (default 30 Hz)."""
+    (``frames/*.jpg``), a video file, ``sample:NAME``, a rosbag2 bag (a folder with metadata.yaml, or a .mcap / .db3
+    file; ``topic`` names its image topic; ``strict`` stops at its first bad message instead of skipping it, see
+    vpengine.io.bag), or a live source (vpengine.io.live): ``camera:N``, a device path (``/dev/video0``), a stream URL
+    (``rtsp://...``, ``http://...``) or a GStreamer pipeline (``gst:... ! appsink``). ``fps``: the rate images are
+    stamped at (default 30 Hz). ValueError, one line, when the source cannot be read."""
+    from vpengine.io import live
+
     if spec.startswith("synthetic"):
         source: Source = SyntheticSource.parse(spec)
-    elif spec.startswith("camera:"):
-        index = spec.split(":", 1)[1]
-        if not index.isdigit():
-            raise ValueError(f"bad camera source {spec!r}; use camera:N with N the camera's index, e.g. camera:0")
-        source = VideoSource(int(index))
+    elif live.is_live(spec):
+        o = live.open_live(spec)
+        source = VideoSource(
+            o.path, o.capture, live=o.live, read_timeout=o.read_timeout, what=o.what, first=(o.image, o.stamp)
+        )
     elif spec.startswith("sample:"):
         return open_source(str(sample(spec.split(":", 1)[1])), topic, fps, strict)
     else:
@@ -286,7 +342,7 @@ def open_source(spec: str, topic: str | None = None, fps: float | None = None, s
         elif not path.exists():
             raise ValueError(
                 f"source {spec!r} does not exist (expected an image, a folder, a glob, a video, a rosbag2 bag, "
-                f"camera:N, sample:NAME or synthetic)"
+                f"camera:N, a device path, a stream URL, gst:PIPELINE, sample:NAME or synthetic)"
             )
         elif (path.is_dir() and (path / "metadata.yaml").is_file()) or (
             path.is_file() and path.suffix.lower() in (".mcap", ".db3")

@@ -75,7 +75,9 @@ def main(args: argparse.Namespace) -> int:
 
     given = [*args.sources, *args.source]
     if not given:
-        raise ValueError("give a source: an image, a folder, a glob, a video, camera:N or sample:NAME")
+        raise ValueError(
+            "give a source: an image, a folder, a glob, a video, a camera (camera:N, /dev/videoN), a stream URL or sample:NAME"
+        )
     wanted = parse_sources(given, args.topic)
     cameras = [c for c in wanted if c is not None]
     cfg = config_for_cameras(args.config, cameras or None, engine_overrides(args))

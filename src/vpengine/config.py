@@ -176,6 +176,12 @@ class HeadConfig(ModelConfig):
         None, description="The cameras this head serves, by name; null: every camera. Its rate is per camera."
     )
     postprocess: dict[str, Any] = Field(default_factory=dict, description="Postprocessing options of the recipe.")
+    accept_backbone_mismatch: bool = Field(
+        False,
+        description="Run this head although its weights were trained on another backbone, or on other feature "
+        "blocks (foundation_model.options.layers), than the ones it reads here: a warning instead of an error. "
+        "Its outputs are degraded.",
+    )
     output: OutputConfig = Field(default_factory=OutputConfig)  # type: ignore[arg-type]
 
     @field_validator("name")

@@ -42,6 +42,7 @@ from vpengine import checks
 from vpengine.boundary import Boundary, Placement, buffer_for
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.preprocess import IMAGENET_MEAN
+from vpengine.models.weights import check_checkpoints
 from vpengine.results import Outbox, Result
 from vpengine.runtime.control import ControlBlock, camera_entry, control_names, reader_name
 from vpengine.runtime.fence import MappingFence
@@ -229,6 +230,7 @@ class Engine:
     ) -> None:
         self.config = load_config(config, overrides)
         self.plan: Plan = make_plan(self.config)
+        check_checkpoints(self.config, {"foundation": self.plan.foundation, **self.plan.heads})  # before any worker
         self._res = _Resources()
         self._finalizer = weakref.finalize(self, _Resources.close, self._res)
         self._state = "planned"

@@ -277,38 +277,51 @@ def test_loading_never_downloads_and_finds_the_fetched_file_by_catalog_name(serv
         assert resolve_checkpoint(ctx_def, entry.name) == path
 
 
-def test_an_entry_without_a_digest_needs_sha256_or_trust_on_first_use(server, env, capsys):
+def test_a_catalog_entry_without_a_digest_is_trusted_on_first_use_and_says_so(server, env, capsys):
     entry = make_entry(server, sha256=None, size=None, sha256_missing="nobody publishes one")
     with catalog.use(Catalog([entry])):
-        # Refused before any byte is downloaded, with both ways out named.
-        assert cli(["weights", "fetch", entry.name]) == 1
-        err = capsys.readouterr().err
-        assert "--sha256 HEX" in err and "--trust-on-first-use" in err
-        assert server.requests == []
-        with pytest.raises(CheckpointError, match="no known sha256"):
-            download.fetch(entry, env)
-        entry.path(env).parent.mkdir(parents=True)
-        entry.path(env).write_bytes(PAYLOAD)  # placed by hand: still not used without a digest
-        with pytest.raises(CheckpointError, match="no known sha256"):
-            cached_checkpoint(entry, env)
-        entry.path(env).unlink()
-        entry.path(env).parent.rmdir()
-
         wrong = hashlib.sha256(b"nope").hexdigest()
         assert cli(["weights", "fetch", entry.name, "--sha256", wrong, "--no-progress"]) == 1
         assert f"expected {wrong}, got {DIGEST}" in capsys.readouterr().err
         assert files_under(env) == []
 
-        assert cli(["weights", "fetch", entry.name, "--trust-on-first-use", "--no-progress"]) == 0
-        out = capsys.readouterr().out
-        assert f"trusted on first use: sha256 {DIGEST}" in out
-        # The accepted digest is recorded and from now on every use is checked against it.
+        # A plain fetch, as the README shows it: downloaded, and the digest recorded, in one loud line.
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 0
+        out = capsys.readouterr()
+        assert f"{entry.name}: downloaded: {entry.path(env)}" in out.out
+        notice = [line for line in out.err.splitlines() if "trusted on first use" in line]
+        assert len(notice) == 1 and "WARNING" in notice[0] and DIGEST in notice[0] and "catalog.local.json" in notice[0]
+        # From now on every use is checked against it.
         assert catalog.effective(entry, env).sha256 == DIGEST
         assert cached_checkpoint(entry, env) == entry.path(env)
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 0
+        assert f"already cached, sha256 {DIGEST} verified" in capsys.readouterr().out
+        assert len(server.requests) == 2  # the --sha256 try and the first fetch
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 0
         entry.path(env).write_bytes(PAYLOAD[:-1] + bytes([PAYLOAD[-1] ^ 0xFF]))  # last byte differs, same size
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 1
         assert "MISMATCH" in capsys.readouterr().out
+
+        # The publisher replaced the file: the pin refuses it until the user re-pins on purpose.
+        server.files["/ckpt/model.pth"] = b"new release" * 100
+        assert cli(["weights", "fetch", entry.name, "--force", "--no-progress"]) == 1
+        assert f"expected {DIGEST}" in capsys.readouterr().err
+        args = ["weights", "fetch", entry.name, "--force", "--trust-on-first-use", "--no-progress"]
+        assert cli(args) == 0
+        new = hashlib.sha256(b"new release" * 100).hexdigest()
+        assert new in capsys.readouterr().err and catalog.effective(entry, env).sha256 == new
+
+
+def test_a_file_placed_by_hand_without_a_digest_is_pinned_by_fetch_without_a_request(server, env, capsys):
+    entry = make_entry(server, sha256=None, size=None, sha256_missing="nobody publishes one")
+    entry.path(env).parent.mkdir(parents=True)
+    entry.path(env).write_bytes(PAYLOAD)
+    with catalog.use(Catalog([entry])):
+        with pytest.raises(CheckpointError, match=f"no known sha256.*`vpengine weights fetch {entry.name}` records"):
+            cached_checkpoint(entry, env)  # the engine never uses a file it cannot check
+        assert cli(["weights", "fetch", entry.name, "--offline", "--no-progress"]) == 0
+        assert f"trusted on first use: sha256 {DIGEST}" in capsys.readouterr().err
+    assert cached_checkpoint(entry, env) == entry.path(env) and server.requests == []
 
 
 def test_a_published_digest_cannot_be_overridden(server, env, capsys):
@@ -389,7 +402,7 @@ def test_prefetch_fetches_every_catalog_checkpoint_of_a_config(server, env):
     cfg = load_config("configs/tiny.yaml", ["heads.depth.checkpoint=depth_ckpt"])
     with catalog.use(Catalog([default, explicit])):
         assert download.prefetch(load_config(cfg, ["weights.random_weights=true"])) == []
-        with pytest.raises(CheckpointError, match="foundation: checkpoint 'tiny_vit_default'.*offline mode"):
+        with pytest.raises(CheckpointError, match="foundation: tiny_vit_default is not in the cache.*offline mode"):
             download.prefetch(load_config(cfg, ["weights.offline=true"]))
         assert server.requests == []
         paths = download.prefetch(cfg, progress=False)

@@ -200,6 +200,7 @@ def test_plan_on_meta_device_with_tiny_vit_declares_specs_and_warns_about_backbo
     cfg = load_config(
         {
             "input": {"height": 120, "width": 160},
+            "weights": {"random_weights": True},  # else the other backbone is an error (test_models.py)
             "foundation_model": {"model": "tiny_vit", "options": {"embed_dim": 384, "heads": 6}},
             "heads": [
                 {"name": "ade", "model": "dinov2_linear_ade20k_s"},

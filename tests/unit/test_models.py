@@ -149,18 +149,6 @@ def test_pipeline_rejects_mismatched_links():
         Pipeline(pre, other)
 
 
-def test_backbone_mismatch_warns_at_build():
-    cfg = load_config(
-        {
-            "input": {"height": 56, "width": 56},
-            "foundation_model": {"model": "tiny_vit"},
-            "heads": [{"name": "x", "model": "helpers.models:TrainedElsewhere"}],
-        }
-    )
-    plan = make_plan(cfg)
-    assert any("trained on backbone 'dinov2_vitl14'" in w and "tiny_vit" in w for w in plan.warnings)
-
-
 def test_models_built_in_parallel_threads_get_the_same_seeded_weights():
     """Thread mode builds every model at once; construction uses PyTorch's global RNG, so builds must not mix."""
     import threading

@@ -6,8 +6,10 @@
 * ``verify [NAME...]``: re-hash cached files, report OK / MISMATCH / MISSING, exit 1 on any problem;
 * ``path NAME``: where the file of NAME lives (exit 1 if it is not there yet).
 
-Entries without a published sha256 are refused unless the user gives one (``--sha256 HEX``) or accepts the digest of
-what is downloaded (``--trust-on-first-use``); either is recorded in the cache and used from then on.
+A catalog entry without a published sha256 is trusted on first use: the digest of what is fetched is recorded in the
+cache, said in one line, and checked on every later use. A custom ``--url`` entry needs ``--sha256 HEX`` or
+``--trust-on-first-use``. Offline or with the server unreachable, each file gets one line: why, the path to place it
+at and the URL to get it from.
 """
 
 from __future__ import annotations
@@ -52,7 +54,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument(
         "--trust-on-first-use",
         action="store_true",
-        help="for an entry without a sha256: accept the digest of what is downloaded now, print and record it",
+        help="for an entry without a published sha256: accept the digest of what is there now, even over an "
+        "earlier pin (catalog entries are trusted on first use without it)",
     )
     f.add_argument("--url", help="download a custom entry NAME from this URL (needs --sha256 or --trust-on-first-use)")
     f.add_argument("--file", help="file name of a custom --url entry (default: the URL's last path part)")
@@ -164,7 +167,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 def cmd_fetch(args: argparse.Namespace) -> int:
     from vpengine.models import download
     from vpengine.models.catalog import CatalogError, custom_entry
-    from vpengine.models.weights import CheckpointError, missing_error
+    from vpengine.models.weights import CheckpointError, place_hint
 
     def usage(msg: str) -> int:
         print(f"vpengine weights fetch: {msg}", file=sys.stderr)
@@ -192,6 +195,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
         if len(wanted) == len(args.names):
             print(f"{args.config} loads no catalog checkpoint (files, random weights or none)")
     failed = 0
+    unreachable: dict[str, download.Unreachable] = {}  # host -> how it failed: one wait per host, not per file
     for name, entry in wanted:
         try:
             if args.url:
@@ -201,7 +205,10 @@ def cmd_fetch(args: argparse.Namespace) -> int:
             elif entry is None:
                 entry = _lookup(name, cache)
             if is_offline and (args.force or not entry.path(cache).is_file()):
-                raise missing_error(entry, cache, offline=True)
+                raise CheckpointError(f"offline mode, not downloaded: {place_hint(entry, cache)}")
+            host = download.source_host(entry)
+            if host in unreachable and (args.force or not entry.path(cache).is_file()):
+                raise download.Unreachable(host, unreachable[host].why, place_hint(entry, cache))
             res = download.fetch(
                 entry,
                 cache,
@@ -212,17 +219,18 @@ def cmd_fetch(args: argparse.Namespace) -> int:
                 timeout=args.timeout,
             )
         except (CheckpointError, CatalogError) as e:
+            if isinstance(e, download.Unreachable):
+                unreachable[e.host] = e
             print(f"vpengine weights fetch: {name}: {e}", file=sys.stderr)
             failed += 1
             continue
         how = "downloaded" if res.downloaded else "already cached"
-        print(f"{entry.name}: {how}, sha256 {res.sha256} verified: {res.path}")
         if res.pinned == "trust-on-first-use":
-            print(
-                f"{entry.name}: trusted on first use: sha256 {res.sha256} is now recorded in {cache} and every "
-                "later use is checked against it; compare it with the publisher's digest if one exists"
-            )
-        elif res.pinned:
+            print(f"{entry.name}: {how}: {res.path}")
+            print(f"vpengine weights fetch: WARNING: {download.trust_notice(res, cache)}", file=sys.stderr)
+        else:
+            print(f"{entry.name}: {how}, sha256 {res.sha256} verified: {res.path}")
+        if res.pinned == "--sha256":
             print(f"{entry.name}: sha256 from --sha256 recorded in {cache}")
         if entry.licence not in ("Apache-2.0", "MIT", "BSD-3-Clause") and res.downloaded:
             print(f"{entry.name}: licence {entry.licence}: check that your use is allowed")

@@ -3,8 +3,8 @@
 Each :class:`Entry` names one file: its URL, file name, sha256, size in bytes, licence and the recipes that use it.
 The shipped list is ``catalog.json`` next to this module; every sha256 and size in it was taken from a source that
 is recorded in the entry (``source``). Where no source was found the digest is ``null`` and the entry says why
-(``sha256_missing``): such a file is never used until the user supplies a digest (``fetch --sha256 HEX``) or accepts
-the one computed on download (``fetch --trust-on-first-use``); that choice is recorded as a *pin* in the cache.
+(``sha256_missing``): such a file is never used before it has a *pin* in the cache, the digest recorded by its first
+``fetch`` (trust on first use, announced in one line) or given by the user (``fetch --sha256 HEX``).
 
 An entry whose URL is a top-level file of a Hugging Face Hub repository
 (``https://huggingface.co/<org>/<repo>/resolve/<revision>/<file>``) is fetched through ``huggingface_hub``

@@ -407,6 +407,8 @@ class DinoV2(Model):
             "embed_dim": self.embed_dim,
             "patch_size": PATCH_SIZE,
             "layers": self.layers,
+            # what the recipe's released heads were trained on (Note [Trained layers] in runtime/plan.py)
+            "default_layers": self._default_layers(opts, depth),
             "backbone": backbone,
             "image_size": (h, w),
             "registers": self.registers,

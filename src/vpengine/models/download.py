@@ -24,6 +24,7 @@ import logging
 import os
 import shutil
 import urllib.error
+import urllib.parse
 import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -35,9 +36,9 @@ from vpengine.models.catalog import Entry, HubFile, human_size, parse_sha256
 from vpengine.models.weights import (
     CheckpointError,
     byte_progress,
-    cached_checkpoint,
     check_file,
     missing_error,
+    place_hint,
     sha256_file,
     stamp_path,
     unverifiable_error,
@@ -55,6 +56,21 @@ def offline(configured: bool = False) -> bool:
     return configured or env
 
 
+class Unreachable(CheckpointError):
+    """The server of a file did not answer (no network, DNS, refused, timeout); ``host`` names it."""
+
+    def __init__(self, host: str, why: object, hint: str = "") -> None:
+        super().__init__(f"{host} is unreachable ({why})" + (f": {hint}" if hint else ""))
+        self.host = host
+        self.why = why
+
+
+def source_host(entry: Entry) -> str:
+    """The host a fetch of ``entry`` talks to: the Hub's endpoint ($HF_ENDPOINT) for a Hub file, else the URL's."""
+    url = (os.environ.get("HF_ENDPOINT") or "https://huggingface.co") if entry.hub is not None else entry.url
+    return urllib.parse.urlsplit(url).netloc
+
+
 @dataclass
 class FetchResult:
     """What :func:`fetch` did."""
@@ -65,6 +81,14 @@ class FetchResult:
     downloaded: bool
     #: Set when a digest was recorded in the cache's local catalog (and how: "--sha256" or "trust-on-first-use").
     pinned: str | None = None
+
+
+def trust_notice(res: FetchResult, cache: str | Path) -> str:
+    """The one line that says a digest was trusted on first use, what it is, and where it is recorded."""
+    return (
+        f"{res.entry.name}: no published sha256, trusted on first use: sha256 {res.sha256} is now recorded in "
+        f"{catalog.weights_root(cache) / catalog.LOCAL_CATALOG} and every later use is checked against it"
+    )
 
 
 def fetch(
@@ -79,9 +103,11 @@ def fetch(
 ) -> FetchResult:
     """Make sure the verified file of ``entry`` is in ``cache``, downloading it if needed.
 
-    ``sha256`` supplies the digest for an entry without one (it must agree with a published one); with
-    ``trust_on_first_use`` the digest of the downloaded file is accepted. Either way the digest is recorded as a pin
-    in the cache so later runs verify against it. ``force`` downloads again even if a verified copy is cached.
+    A catalog entry without a published digest is trusted on first use: the digest of the file fetched (or found)
+    now is recorded as a pin in the cache, every later use is checked against it, and the result says so
+    (``pinned``). A custom ``--url`` entry needs the user's word instead: ``sha256`` (a digest to check against; it
+    must agree with a published one) or ``trust_on_first_use``, which also replaces an earlier pin by the digest of
+    what is there now. ``force`` downloads again even if a verified copy is cached.
     """
     if sha256 is not None:
         sha256 = parse_sha256(sha256, f"--sha256 for {entry.name}")
@@ -101,7 +127,11 @@ def fetch(
     # Trust-on-first-use deliberately ignores an earlier pin: the user asks to accept what is there now.
     expected = sha256 or (None if trust_on_first_use else eff.sha256)
     if expected is None and not trust_on_first_use:
-        raise unverifiable_error(entry)
+        # Why a catalog entry may be trusted on first use and a custom URL may not: the catalog's URL was reviewed
+        # (the publisher's own HTTPS download) and a pin guards every later use; a typed URL was not.
+        if catalog.active().find(entry.name) is None:
+            raise unverifiable_error(entry)
+        trust_on_first_use = True
     dest = entry.path(cache)
     pin_how = "--sha256" if sha256 is not None and entry.sha256 is None else None
     with _cache_lock(cache, entry.name):
@@ -119,11 +149,13 @@ def fetch(
                 _remove_quietly(stamp_path(dest))
             try:
                 digest = _download(entry, dest, expected, progress, timeout, force)
-            except BaseException:
+            except BaseException as e:
                 if not dest.is_file() and entry.hub is not None:
                     shutil.rmtree(dest.parent / ".cache", ignore_errors=True)  # huggingface_hub's locks, records
                 with contextlib.suppress(OSError):
                     dest.parent.rmdir()  # only succeeds when empty: a failed fetch leaves nothing behind
+                if isinstance(e, Unreachable):
+                    raise Unreachable(e.host, e.why, place_hint(entry, cache)) from None
                 raise
             downloaded = True
             if expected is None:
@@ -188,12 +220,24 @@ def _discard(path: Path, hub: HubFile | None) -> None:
 
 def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: float, force: bool) -> Path:
     """Fetch a Hub file into ``dest``'s directory through huggingface_hub; returns where it landed."""
-    from huggingface_hub import hf_hub_download
+    from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
+    from huggingface_hub.utils import HfHubHTTPError
 
     from vpengine._version import __version__
 
+    # read when called, not when huggingface_hub was imported, so a mirror set later still counts
+    endpoint = os.environ.get("HF_ENDPOINT") or None
+    url = hf_hub_url(hub.repo_id, hub.filename, revision=hub.revision, endpoint=endpoint)
+    # Why a probe first: with no network, hf_hub_download retries five times over half a minute and logs every try
+    # (twice, through its handler and ours); one request without retries says at once whether the Hub answers.
     try:
-        with _hub_progress(progress):
+        get_hf_file_metadata(url, timeout=timeout, library_name="vpengine", library_version=__version__)
+    except HfHubHTTPError:
+        pass  # the Hub answered (not found, gated, ...): hf_hub_download below says what, in its words
+    except Exception as e:  # DNS, refused, TLS, timeout: whatever the HTTP client of this version raises
+        raise Unreachable(urllib.parse.urlsplit(url).netloc, e) from None
+    try:
+        with _hub_progress(progress), _quiet_hub_log():
             got = hf_hub_download(
                 hub.repo_id,
                 hub.filename,
@@ -201,8 +245,7 @@ def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: f
                 local_dir=dest.parent,
                 force_download=force,
                 etag_timeout=timeout,
-                # read when called, not when huggingface_hub was imported, so a mirror set later still counts
-                endpoint=os.environ.get("HF_ENDPOINT") or None,
+                endpoint=endpoint,
                 library_name="vpengine",
                 library_version=__version__,
             )
@@ -213,6 +256,18 @@ def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: f
             f"{hub.revision}) failed: {type(e).__name__}: {e}"
         ) from None
     return Path(got)
+
+
+@contextlib.contextmanager
+def _quiet_hub_log() -> Iterator[None]:
+    """huggingface_hub's retry warnings off for the block: the outcome is reported once, by us."""
+    hub_log = logging.getLogger("huggingface_hub")
+    before = hub_log.level
+    hub_log.setLevel(max(before, logging.ERROR))
+    try:
+        yield
+    finally:
+        hub_log.setLevel(before)
 
 
 @contextlib.contextmanager
@@ -252,9 +307,8 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
         if e.code == 416 and offset:  # nothing left to send: the partial file is checked as it is
             return part
         raise CheckpointError(f"download of {entry.name} from {entry.url} failed: HTTP {e.code} {e.reason}") from None
-    except (urllib.error.URLError, OSError) as e:
-        reason = getattr(e, "reason", e)
-        raise CheckpointError(f"download of {entry.name} from {entry.url} failed: {reason}") from None
+    except (urllib.error.URLError, OSError) as e:  # DNS, refused, TLS, timeout: the server was not reached
+        raise Unreachable(urllib.parse.urlsplit(entry.url).netloc, getattr(e, "reason", e)) from None
     with resp:
         if offset and resp.status != 206:
             log.warning("%s: the server does not resume downloads; starting again", entry.name)
@@ -383,13 +437,13 @@ def prefetch(cfg: Any, progress: bool = True) -> list[Path]:
     cache = catalog.cache_dir()
     paths = []
     for name, entry in checkpoints(cfg):
-        if offline(cfg.weights.offline):
-            if not entry.path(cache).is_file():
-                raise missing_error(entry, cache, name, offline=True)
-            paths.append(cached_checkpoint(entry, cache, for_model=name))
-            continue
-        try:
-            paths.append(fetch(entry, cache, progress=progress).path)
+        if offline(cfg.weights.offline) and not entry.path(cache).is_file():
+            raise missing_error(entry, cache, name, offline=True)
+        try:  # a file already there is verified (or, without a digest, pinned) without any request
+            res = fetch(entry, cache, progress=progress)
         except CheckpointError as e:
             raise CheckpointError(f"{name}: {e}") from None
+        if res.pinned == "trust-on-first-use":
+            log.warning("%s", trust_notice(res, cache))
+        paths.append(res.path)
     return paths

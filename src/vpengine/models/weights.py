@@ -32,13 +32,15 @@ import torch
 from torch import nn
 
 from vpengine.models import catalog
-from vpengine.models.base import BuildContext, ModelBuildError
+from vpengine.models.base import BuildContext, Model, ModelBuildError, Pipeline
 from vpengine.models.catalog import Entry, human_size
 
 log = logging.getLogger("vpengine.weights")
 
 _RANDOM_WARNED: set[str] = set()
 _CHUNK = 1 << 20
+#: Names that are meant as a file, not a catalog entry, when no such file exists.
+_FILE_SUFFIXES = (".pth", ".pt", ".bin", ".safetensors", ".ckpt")
 
 
 class CheckpointError(ModelBuildError):
@@ -49,9 +51,7 @@ def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
     """The local file to load for this model, or None for random weights (or while planning)."""
     if ctx.plan_only:
         return None
-    wcfg = ctx.engine.weights
-    name = ctx.cfg.checkpoint or default
-    if wcfg.random_weights:
+    if ctx.engine.weights.random_weights:
         if ctx.name not in _RANDOM_WARNED:
             log.warning(
                 "%s (%s): RANDOM WEIGHTS, outputs are meaningless (weights.random_weights is set)",
@@ -60,22 +60,76 @@ def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
             )
             _RANDOM_WARNED.add(ctx.name)
         return None
+    return locate_checkpoint(ctx.name, ctx.cfg.model, ctx.cfg.checkpoint or default)
+
+
+def locate_checkpoint(model: str, recipe: str, name: str | None) -> Path:
+    """The verified local file of checkpoint ``name`` (a path or a catalog name) for ``model``; a one-line
+    CheckpointError starting with the model's name, naming the file and how to get it otherwise. Never downloads."""
+    try:
+        return _locate(recipe, name)
+    except CheckpointError as e:
+        raise CheckpointError(f"{model}: {e}") from None
+
+
+def _locate(recipe: str, name: str | None) -> Path:
     if name is None:
         raise CheckpointError(
-            f"{ctx.name} ({ctx.cfg.model}): no checkpoint configured and the recipe has no default; set "
-            "checkpoint to a file or catalog name, or weights.random_weights: true"
+            f"no checkpoint configured and recipe {recipe!r} has no default; set checkpoint to a file or catalog "
+            "name, or weights.random_weights: true"
         )
     path = Path(name).expanduser()
     if path.is_file():
         return path
     cache = catalog.cache_dir()
     entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
-    if entry is None:
+    if entry is not None:
+        return cached_checkpoint(entry, cache)
+    if path.suffix in _FILE_SUFFIXES or os.sep in name:
         raise CheckpointError(
-            f"{ctx.name} ({ctx.cfg.model}): checkpoint {name!r} is neither an existing file nor a catalog name "
-            f"(`vpengine weights list` shows the catalog)"
+            f"checkpoint file {str(path.absolute())!r} does not exist (and {name!r} is not a catalog name)"
         )
-    return cached_checkpoint(entry, cache, for_model=ctx.name)
+    raise CheckpointError(
+        f"checkpoint {name!r} is neither an existing file nor a catalog name (`vpengine weights list` shows the "
+        "catalog)"
+    )
+
+
+def check_checkpoints(cfg: Any, models: Mapping[str, nn.Module]) -> None:
+    """Raise one CheckpointError, a line per checkpoint, unless every model of ``models`` (name -> the model as
+    planned) finds its checkpoint verified on disk. Runs in the parent before any worker starts (Engine), so a
+    missing file is a few lines naming model, file and remedy rather than a traceback from every worker.
+
+    A model loads a checkpoint when one of its modules overrides :meth:`Model.load_checkpoint`; the recipe's default
+    catalog name is that module's ``default_checkpoint`` attribute (None or absent: no default).
+    """
+    if cfg.weights.random_weights:
+        return
+    problems: dict[str, list[str]] = {}  # message -> the models it concerns (a file shared by two: one line)
+    for name, model in models.items():
+        loaders = [m for m in model.modules() if _loads_checkpoint(m)]
+        if not loaders:
+            continue
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        default = next((d for m in loaders if (d := getattr(m, "default_checkpoint", None))), None)
+        try:
+            _locate(mcfg.model, mcfg.checkpoint or default)
+        except CheckpointError as e:
+            problems.setdefault(str(e), []).append(name)
+    if problems:
+        lines = [f"{', '.join(names)}: {msg}" for msg, names in problems.items()]
+        raise CheckpointError(
+            f"{len(lines)} checkpoint(s) not available, so no worker was started (the engine downloads nothing; "
+            "--random-weights runs without checkpoints):\n" + "\n".join(lines)
+        )
+
+
+def _loads_checkpoint(module: nn.Module) -> bool:
+    return (
+        isinstance(module, Model)
+        and not isinstance(module, Pipeline)
+        and type(module).load_checkpoint is not Model.load_checkpoint
+    )
 
 
 def cached_checkpoint(entry: Entry, cache: str | Path, for_model: str | None = None) -> Path:
@@ -94,31 +148,40 @@ def cached_checkpoint(entry: Entry, cache: str | Path, for_model: str | None = N
     return dest
 
 
-def missing_error(
-    entry: Entry, cache: str | Path, for_model: str | None = None, offline: bool = False
-) -> CheckpointError:
-    """The error for a checkpoint that is not in the cache: where to put it, where to get it, what fetches it."""
+def place_hint(entry: Entry, cache: str | Path) -> str:
+    """Where to put the file of ``entry`` by hand and where to get it: ``place the file at P (download it ...)``."""
     eff = catalog.effective(entry, cache)
-    who = f"{for_model}: " if for_model else ""
     if eff.sha256 is not None:
         check = f"sha256 {eff.sha256}, {human_size(eff.size)}"
     else:
-        check = f"no sha256 is known: afterwards pin one with `vpengine weights fetch {entry.name} --sha256 HEX`"
-    why = "downloads are off (offline mode)" if offline else "vpengine downloads only when asked"
+        check = (
+            f"no sha256 is published: `vpengine weights fetch {entry.name}` then records the digest of the file "
+            "you placed"
+        )
+    return f"place the file at {entry.path(cache)} (download it from {entry.url}; {check})"
+
+
+def missing_error(
+    entry: Entry, cache: str | Path, for_model: str | None = None, offline: bool = False
+) -> CheckpointError:
+    """The one-line error for a checkpoint that is not in the cache: what fetches it, or where to put it."""
+    who = f"{for_model}: " if for_model else ""
+    if offline:
+        return CheckpointError(
+            f"{who}{entry.name} is not in the cache and downloads are off (offline mode): " + place_hint(entry, cache)
+        )
     return CheckpointError(
-        f"{who}checkpoint {entry.name!r} is not in the cache and {why}. Run `vpengine weights fetch {entry.name}` "
-        f"(or `vpengine weights fetch --config CONFIG` for every checkpoint of a config) where the network is "
-        f"reachable, or place the file at {entry.path(cache)} (download it from {entry.url}; {check})"
+        f"{who}checkpoint {entry.name!r} is not in the cache: run `vpengine weights fetch {entry.name}` (or "
+        f"`vpengine weights fetch --config CONFIG` for every checkpoint of a config), or {place_hint(entry, cache)}"
     )
 
 
 def unverifiable_error(entry: Entry) -> CheckpointError:
-    """The error for an entry that has no digest to check a file against (neither published nor pinned)."""
+    """The error for a file in the cache that has no digest to check it against (neither published nor pinned)."""
     return CheckpointError(
         f"checkpoint {entry.name!r} has no known sha256 ({entry.sha256_missing or 'none recorded'}), so vpengine "
-        f"will not use it unverified. Run `vpengine weights fetch {entry.name} --sha256 HEX` with a digest you "
-        f"trust, or `vpengine weights fetch {entry.name} --trust-on-first-use` to accept and record the digest "
-        "of what is downloaded now"
+        f"will not use it unverified: `vpengine weights fetch {entry.name}` records the digest of the file there "
+        f"now (trust on first use), `vpengine weights fetch {entry.name} --sha256 HEX` checks it against one you trust"
     )
 
 

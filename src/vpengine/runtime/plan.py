@@ -4,6 +4,7 @@ and to size every mailbox from the declared specs before anything is allocated o
 from __future__ import annotations
 
 import logging
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -57,7 +58,8 @@ def make_plan(cfg: EngineConfig) -> Plan:
             f"configured as {format_specs(frame_spec)} (input.height/width/dtype)"
         )
     heads: dict[str, Model] = {}
-    warnings = []
+    warnings: list[str] = []
+    refused: list[str] = []
     for h in cfg.heads:
         model = build_model(cfg, h.name, "head", fm.output_spec, fm.meta, device, plan_only=True)
         for k, spec in model.input_spec.items():
@@ -71,17 +73,48 @@ def make_plan(cfg: EngineConfig) -> Plan:
                     f"head {h.name!r} ({h.model}) needs {k!r} as {spec}, but foundation model "
                     f"{cfg.foundation_model.model!r} produces it as {fm.output_spec[k]}"
                 )
-        trained_on = model.meta.get("trained_on")
-        backbone = fm.meta.get("backbone")
-        if trained_on and backbone and trained_on != backbone:
-            msg = (
-                f"head {h.name!r} was trained on backbone {trained_on!r} but the foundation model is {backbone!r}; "
-                "its outputs will be degraded"
-            )
+        mismatch = training_mismatch(h.name, model.meta, set(model.input_spec), fm.meta)
+        if mismatch and (h.accept_backbone_mismatch or cfg.weights.random_weights):
+            msg = f"{mismatch}; its outputs will be degraded"
             warnings.append(msg)
             log.warning(msg)
+        elif mismatch:
+            refused.append(f"{mismatch}; set accept_backbone_mismatch: true on the head to run it anyway (degraded)")
         heads[h.name] = model
+    if refused:
+        raise ModelBuildError("\n".join(refused))
     return Plan(cfg, frame_spec, fm, heads, warnings)
+
+
+_FEATURE_RE = re.compile(r"^(?:patch|cls)\.(\d+)$")
+
+
+def training_mismatch(head: str, meta: dict[str, Any], reads: set[str], fm_meta: dict[str, Any]) -> str | None:
+    """What differs between the features a head was trained on and those it would read here, naming both sides;
+    None when nothing does (or when the head or the backbone does not say).
+
+    Note [Trained layers]: a released head was trained on its backbone recipe's default feature blocks
+    (``default_layers`` in the foundation model's meta), so ``foundation_model.options.layers`` moves a head that
+    reads ``patch.i`` / ``cls.i`` to another block even though the backbone's name is the same. Only the blocks a
+    head reads count: a linear head reading ``patch.3`` does not care where ``patch.0`` comes from.
+    """
+    trained_on, backbone = meta.get("trained_on"), fm_meta.get("backbone")
+    if not trained_on or not backbone:
+        return None
+    if trained_on != backbone:
+        return f"head {head!r} was trained on backbone {trained_on!r} but the foundation model is {backbone!r}"
+    layers, default = fm_meta.get("layers"), fm_meta.get("default_layers")
+    if layers is None or default is None:
+        return None
+    indices = sorted({int(m.group(1)) for k in reads if (m := _FEATURE_RE.match(k))})
+    moved = [i for i in indices if i < len(layers) and layers[i] != default[i]]
+    if not moved:
+        return None
+    what = ", ".join(f"feature {i} from block {layers[i]} instead of block {default[i]}" for i in moved)
+    return (
+        f"head {head!r} would read {what}: it was trained on {trained_on!r} with layers {list(default)}, but "
+        f"foundation_model.options.layers is {list(layers)}"
+    )
 
 
 # ------------------------------------------------------------------------------------------------ mailboxes

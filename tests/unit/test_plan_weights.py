@@ -1,0 +1,117 @@
+"""What planning checks about weights, in the parent and before any worker: that each head reads the backbone and
+the feature blocks its weights were trained on, and that every checkpoint is on disk (no processes, no downloads).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+
+from vpengine.cli.main import main as cli
+from vpengine.config import load_config
+from vpengine.engine import Engine
+from vpengine.models.base import ModelBuildError
+from vpengine.models.weights import CheckpointError
+from vpengine.runtime.plan import make_plan
+
+
+@pytest.fixture
+def empty_cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("VPENGINE_CACHE", str(tmp_path / "cache"))
+    for var in ("VPENGINE_CATALOG", "VPENGINE_OFFLINE", "HF_HUB_OFFLINE"):
+        monkeypatch.delenv(var, raising=False)
+    return tmp_path / "cache"
+
+
+def dinov2(model: str, heads: list[dict], layers: list[int] | None = None, **weights: bool):
+    options = {} if layers is None else {"layers": layers}
+    return load_config(
+        {
+            "mode": "thread",
+            "device": "cpu",
+            "input": {"height": 56, "width": 56},
+            "foundation_model": {"model": model, "options": options},
+            "heads": heads,
+            "weights": weights,
+        }
+    )
+
+
+# ------------------------------------------------------------------------------- the backbone a head was trained on
+def test_a_head_on_another_backbone_is_an_error_naming_both_sides_and_the_way_out():
+    heads = [{"name": "x", "model": "helpers.models:TrainedElsewhere"}]
+    with pytest.raises(ModelBuildError) as e:
+        make_plan(load_config({"input": {"height": 56, "width": 56}, "heads": heads}))
+    msg = str(e.value)
+    assert "'x'" in msg and "'dinov2_vitl14'" in msg and "'dinov2_vits14'" in msg
+    assert "accept_backbone_mismatch: true" in msg and "\n" not in msg
+
+
+@pytest.mark.parametrize("ask", ["heads.x.accept_backbone_mismatch=true", "weights.random_weights=true"])
+def test_an_explicit_ask_or_random_weights_turn_the_mismatch_into_a_warning(ask, caplog):
+    cfg = load_config(
+        {"input": {"height": 56, "width": 56}, "heads": [{"name": "x", "model": "helpers.models:TrainedElsewhere"}]},
+        [ask],
+    )
+    with caplog.at_level(logging.WARNING, logger="vpengine.plan"):
+        plan = make_plan(cfg)
+    assert any("trained on backbone 'dinov2_vitl14'" in w and "degraded" in w for w in plan.warnings)
+    assert "trained on backbone 'dinov2_vitl14'" in caplog.text
+
+
+# ------------------------------------------------------------------------------- the blocks a head was trained on
+def test_moving_the_block_a_head_reads_is_an_error_naming_both_blocks():
+    seg = [{"name": "seg", "model": "dinov2_linear_ade20k_s"}]  # reads patch.3: block 11 of ViT-S
+    with pytest.raises(ModelBuildError) as e:
+        make_plan(dinov2("dinov2_vits14", seg, layers=[1, 3, 5, 7]))
+    msg = str(e.value)
+    assert "head 'seg'" in msg and "feature 3 from block 7 instead of block 11" in msg
+    assert "[2, 5, 8, 11]" in msg and "[1, 3, 5, 7]" in msg and "accept_backbone_mismatch" in msg
+
+
+def test_only_the_blocks_a_head_reads_count():
+    seg = [{"name": "seg", "model": "dinov2_linear_ade20k_s"}]
+    assert make_plan(dinov2("dinov2_vits14", seg)).warnings == []
+    assert make_plan(dinov2("dinov2_vits14", seg, layers=[0, 1, 2, 11])).warnings == []  # patch.3 is still block 11
+    depth = [{"name": "depth", "model": "dav2_depth_s"}]  # reads patch.0..3
+    with pytest.raises(ModelBuildError, match=r"feature 0 from block 0 instead of block 2, feature 1 from block 1"):
+        make_plan(dinov2("dinov2_vits14_dav2", depth, layers=[0, 1, 2, 11]))
+    depth[0]["accept_backbone_mismatch"] = True
+    plan = make_plan(dinov2("dinov2_vits14_dav2", depth, layers=[0, 1, 2, 11]))
+    assert len(plan.warnings) == 1 and "instead of block 2" in plan.warnings[0]
+
+
+# ------------------------------------------------------------------------------- checkpoints, before any worker
+def flagship_heads() -> list[dict]:
+    return [
+        {"name": "depth", "model": "dav2_depth_s"},
+        {"name": "seg", "model": "dinov2_linear_ade20k_s", "accept_backbone_mismatch": True},
+        {"name": "det", "model": "frcnn_dinov2_lite", "checkpoint": "runs/det/head.pth", "options": {"num_classes": 3}},
+    ]
+
+
+def test_missing_checkpoints_fail_at_plan_time_one_line_each(empty_cache):
+    cfg = dinov2("dinov2_vits14_dav2", flagship_heads())
+    with pytest.raises(CheckpointError) as e:
+        Engine(cfg)
+    lines = str(e.value).splitlines()
+    assert len(lines) == 4 and "no worker was started" in lines[0]
+    shared = empty_cache / "weights" / "depth_anything_v2_vits" / "depth_anything_v2_vits.pth"
+    assert lines[1].startswith("foundation, depth: ") and str(shared) in lines[1]
+    assert "`vpengine weights fetch depth_anything_v2_vits`" in lines[1] and "huggingface.co" in lines[1]
+    assert lines[2].startswith("seg: ") and "`vpengine weights fetch dinov2_vits14_ade20k_linear_head`" in lines[2]
+    assert lines[3].startswith("det: ") and "runs/det/head.pth" in lines[3] and "does not exist" in lines[3]
+
+
+def test_random_weights_need_no_checkpoint(empty_cache):
+    cfg = load_config(dinov2("dinov2_vits14_dav2", flagship_heads()), ["weights.random_weights=true"])
+    Engine(cfg)  # planned, never started: nothing to stop
+
+
+def test_the_flagship_config_without_checkpoints_says_so_without_a_traceback(empty_cache, capsys):
+    args = ["run", "-c", "dinov2s_depth_seg_det", "-s", "sample:cheetah", "--device", "cpu", "--mode", "thread"]
+    assert cli(args) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.splitlines()) <= 5
+    assert "foundation, depth: " in err and "seg: " in err and "det: " in err

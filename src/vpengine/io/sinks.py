@@ -309,7 +309,7 @@ class FolderSink(Sink):
             if "depth" in out and self.depth_format == "npy":
                 np.save(d / f"{name}.npy", np.asarray(out["depth"], dtype=np.float32))
             elif "depth" in out:
-                png, offset, scale = encode_depth_png(np.asarray(out["depth"]).squeeze())
+                png, offset, scale = encode_depth_png(visualize.plane(out["depth"], _map_size(result)))
                 _imwrite(d / f"{name}.png", png, _png16_params())
                 self._line(
                     h,
@@ -407,6 +407,13 @@ class AnnotatedSink(Sink):
             if self._writer is not None:
                 self._writer.release()
                 self._writer = None
+
+
+def _map_size(result: Result) -> tuple[int, int] | None:
+    """The (height, width) of ``result``'s maps: its frame's, or the models' input canvas for a native-grid head."""
+    if result.grid == "native" and result.placement is not None:
+        return result.placement.canvas_hw
+    return result.frame_size if all(result.frame_size) else None
 
 
 def _imwrite(path: Path, image: np.ndarray, params: Sequence[int] = ()) -> None:

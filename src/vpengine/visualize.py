@@ -141,7 +141,8 @@ def draw_detections(
     names: Sequence[str] | None = None,
 ) -> np.ndarray:
     """Boxes (x1, y1, x2, y2 in pixels) with 'name score' captions on their class colour, on a copy of a BGR image.
-    Each class has its own colour (:func:`default_palette` without its grey)."""
+    Each class has its own colour (:func:`default_palette` without its grey). A box of zero width or height (or not
+    finite) is not drawn, nor its caption: a caption with no box names nothing (Note [Empty boxes] in boundary.py)."""
     import cv2
 
     out = image.copy()
@@ -149,6 +150,8 @@ def draw_detections(
     scale = text_scale(out) * 0.8
     thick = max(2, round(min(out.shape[:2]) / 360))
     for box, score, label in zip(boxes, scores, labels):
+        if not (np.isfinite(box).all() and box[2] > box[0] and box[3] > box[1]):
+            continue
         x1, y1, x2, y2 = (round(float(v)) for v in box)
         c = tuple(int(v) for v in pal[int(label) % len(pal)])
         cv2.rectangle(out, (x1, y1), (x2, y2), c, thick)

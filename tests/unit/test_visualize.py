@@ -212,3 +212,12 @@ def test_every_kind_of_picture_of_a_frame_of_odd_shape_has_the_frames_shape(hw):
         assert draw_result(frame, out, title="head").shape == (*hw, 3)
         assert draw_results(frame, {"head": out}).ndim == 3
 
+
+def test_a_box_of_zero_width_or_height_is_not_drawn_and_has_no_caption():
+    """Note [Empty boxes]: a caption with no box names nothing, so neither is drawn."""
+    image = np.full((60, 80, 3), 128, np.uint8)
+    empty = np.array([[80, 10, 80, 40], [5, 60, 50, 60], [10, 10, 10, 10], [np.nan, 0, 5, 5]], np.float32)
+    out = draw_detections(image, empty, np.full(4, 0.9, np.float32), np.arange(4), ["a", "b", "c", "d"])
+    np.testing.assert_array_equal(out, image)
+    one = draw_detections(image, np.array([[10, 10, 30, 40]], np.float32), np.ones(1), np.zeros(1, np.int32))
+    assert (one != image).any()  # a real box still is

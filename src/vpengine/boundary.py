@@ -21,6 +21,16 @@ A head's ``output.grid: native`` keeps its outputs in the canvas grid instead (`
 (``{"depth": "map", "classes": "labels", "boxes": "boxes"}``); for a head that does not, an output whose leading
 two dimensions are the canvas's is a map (floating point) or a class map (integers), and a ``boxes`` output of
 shape ``[N, 4]`` holds x1, y1, x2, y2 canvas pixels. Anything else passes unchanged.
+
+Note [Empty boxes]
+~~~~~~~~~~~~~~~~~~
+A box that lies in the band around a frame, or reaches into it, is clipped to the frame's edge when mapped back;
+what lay wholly in the band comes out with zero width or height (on a 300x1 frame nearly every box does). Such a
+detection names no pixel of the frame, so :func:`drop_empty_boxes` drops it together with its row of every output
+of the same length (scores, labels), and lowers ``count``. A fixed-capacity head keeps its shapes: the kept rows
+move to the front, in their order, and the rows past the new count hold 0 (integers: -1), the detection heads'
+padding. Boxes the head keeps in the canvas grid (``output.grid: native``) and boxes of a frame of the canvas's size
+are not mapped and pass as the head made them.
 """
 
 from __future__ import annotations
@@ -151,6 +161,57 @@ def _resize_tensor(region: torch.Tensor, size: tuple[int, int], labels: bool, sh
         if not region.dtype.is_floating_point:
             y = y.round()
     return y[0].permute(1, 2, 0).reshape(*size, *extra).to(region.dtype)
+
+
+def drop_empty_boxes(outputs: dict[str, Any], kinds: dict[str, GridKind]) -> dict[str, Any]:
+    """``outputs`` (mapped to a frame) without the detections whose box has zero width or height (Note [Empty
+    boxes]); unchanged when none has or the head has no one ``[M, 4]`` boxes output. Numpy arrays or tensors; with
+    tensors it all stays on their device (no sync), a fixed-capacity head's shapes kept."""
+    keys = [k for k, kind in kinds.items() if kind == "boxes" and k in outputs]
+    if len(keys) != 1:
+        return outputs
+    boxes = outputs[keys[0]]
+    if boxes.ndim != 2 or boxes.shape[1] != 4:
+        return outputs
+    m = boxes.shape[0]
+    rows = [k for k, v in outputs.items() if k != "count" and kinds.get(k) in (None, "boxes") and _rows(v) == m]
+    count = outputs.get("count")
+    keep = (boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])
+    if isinstance(boxes, torch.Tensor):
+        if count is not None:
+            keep &= torch.arange(m, device=boxes.device) < torch.as_tensor(count, device=boxes.device)
+            order = torch.argsort((~keep).to(torch.uint8), stable=True)
+            n = keep.sum()
+            tail = torch.arange(m, device=boxes.device) >= n
+            out = {**outputs, "count": n.to(count.dtype).reshape(count.shape) if torch.is_tensor(count) else n}
+            for k in rows:
+                v = outputs[k][order]
+                pad = -1 if not v.dtype.is_floating_point and v.dtype != torch.bool and v.dtype.is_signed else 0
+                out[k] = v.masked_fill(tail.reshape(-1, *([1] * (v.ndim - 1))), pad)
+            return out
+        return {**outputs, **{k: outputs[k][keep] for k in rows}}
+    keep = np.asarray(keep)
+    if count is not None:
+        n_in = int(np.asarray(count))
+        if keep[:n_in].all():
+            return outputs
+        keep[n_in:] = False
+        n = int(keep.sum())
+        order = np.argsort(~keep, kind="stable")
+        out = {**outputs, "count": np.asarray(n, np.asarray(count).dtype).reshape(np.shape(count))}
+        for k in rows:
+            v = np.asarray(outputs[k])[order]
+            v[n:] = -1 if v.dtype.kind == "i" else 0
+            out[k] = v
+        return out
+    if keep.all():
+        return outputs
+    return {**outputs, **{k: np.asarray(outputs[k])[keep] for k in rows}}
+
+
+def _rows(v: Any) -> int | None:
+    shape = getattr(v, "shape", ())
+    return shape[0] if len(shape) else None
 
 
 def output_kinds(meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int]) -> dict[str, GridKind]:

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vpengine.boundary import Boundary, Placement
+from vpengine.boundary import Boundary, Placement, drop_empty_boxes
 from vpengine.config import DEFAULT_CAMERA
 from vpengine.models.base import Model
 from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock, camera_entry
@@ -406,6 +406,7 @@ class Outbox:
                     outputs[k] = change.to_frame(kinds[k], v)
                 else:
                     outputs[k] = self._host_outputs.copy(head, k, v) if isinstance(v, np.ndarray) else t.clone()
+            outputs = drop_empty_boxes(outputs, kinds)  # Note [Empty boxes] in boundary.py
         else:
             outputs = {
                 k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()

@@ -141,7 +141,8 @@ def draw_detections(
     names: Sequence[str] | None = None,
 ) -> np.ndarray:
     """Boxes (x1, y1, x2, y2 in pixels) with 'name score' captions on their class colour, on a copy of a BGR image.
-    Each class has its own colour (:func:`default_palette` without its grey)."""
+    Each class has its own colour (:func:`default_palette` without its grey). A box of zero width or height (or not
+    finite) is not drawn, nor its caption: a caption with no box names nothing (Note [Empty boxes] in boundary.py)."""
     import cv2
 
     out = image.copy()
@@ -149,6 +150,8 @@ def draw_detections(
     scale = text_scale(out) * 0.8
     thick = max(2, round(min(out.shape[:2]) / 360))
     for box, score, label in zip(boxes, scores, labels):
+        if not (np.isfinite(box).all() and box[2] > box[0] and box[3] > box[1]):
+            continue
         x1, y1, x2, y2 = (round(float(v)) for v in box)
         c = tuple(int(v) for v in pal[int(label) % len(pal)])
         cv2.rectangle(out, (x1, y1), (x2, y2), c, thick)
@@ -192,6 +195,21 @@ def depth_picture(depth: np.ndarray, cmap: str = "Spectral_r", bar: bool = True)
     return out
 
 
+def plane(x: Any, hw: tuple[int, int] | None = None) -> np.ndarray:
+    """A map output as its 2-D ``[H, W]`` host array: singleton axes beyond the two spatial ones dropped, so that
+    the map has the size ``hw`` when given and it can, else trailing ones first (``[H, W, 1]``), then leading ones
+    (``[1, H, W]``). Never ``squeeze()``: that also drops a spatial axis of 1, and a 1xN frame's map came out as a
+    vector (a 1x1 frame's as a scalar)."""
+    a = _host(x)
+    if hw is not None and a.ndim > 2 and [n for n in a.shape if n != 1] == [n for n in hw if n != 1]:
+        return a.reshape(hw)
+    while a.ndim > 2 and a.shape[-1] == 1:
+        a = a[..., 0]
+    while a.ndim > 2 and a.shape[0] == 1:
+        a = a[0]
+    return a
+
+
 def head_kind(info: Mapping[str, Any]) -> str:
     """What a head produces, from its metadata (``kind``) or its output names: depth, segmentation, detection or
     generic."""
@@ -226,12 +244,12 @@ def draw_result(
     size = None if frame is None else frame.shape[:2]
     names = info.get("labels")
     if kind == "depth" and "depth" in out:
-        d = _host(out["depth"]).astype(np.float32, copy=False).squeeze()
+        d = plane(out["depth"], size).astype(np.float32, copy=False)
         if size is not None and d.shape != size:
             d = cv2.resize(d, (size[1], size[0]), interpolation=cv2.INTER_LINEAR)
         pic = depth_picture(d)
     elif kind == "segmentation" and "classes" in out:
-        classes = _host(out["classes"]).squeeze()
+        classes = plane(out["classes"], size)
         if size is not None and classes.shape != size:  # nearest: class ids are not numbers to blend
             rows = np.arange(size[0]) * classes.shape[0] // size[0]
             cols = np.arange(size[1]) * classes.shape[1] // size[1]

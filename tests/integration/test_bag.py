@@ -12,6 +12,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import yaml
@@ -24,6 +25,7 @@ from vpengine.ros2.rosbags_msgs import typestore
 pytestmark = pytest.mark.timeout(300)
 
 N = 4
+COMPRESSED = "sensor_msgs/msg/CompressedImage"
 FRAME_ID = "camera_optical"
 STAMPS = [(1_700_000_000 + i, 100_000_007 * (i + 1) % 1_000_000_000) for i in range(N)]
 
@@ -59,8 +61,6 @@ def write_bag(
             h, wd = sizes[i] if sizes else (120, 160)
             img = frame(i, h, wd)
             if compressed:
-                import cv2
-
                 data = cv2.imencode(".png", img)[1].reshape(-1)
                 msg = T[msgtype](header=header, format="bgr8; png compressed bgr8", data=data)
             else:
@@ -112,13 +112,14 @@ def read_bag(path: Path, distro: str) -> dict[str, list]:
 def check_outputs(topics: dict[str, list], viz: bool = False, stamps: list | None = None) -> None:
     stamps = STAMPS if stamps is None else stamps
     want = {
+        "/vpengine/input/compressed": (COMPRESSED, "jpeg", None),  # what the heads saw, once a frame
         "/vpengine/depth/depth": ("sensor_msgs/msg/Image", "32FC1", 640),
         "/vpengine/seg/classes": ("sensor_msgs/msg/Image", "mono8", 160),
         "/vpengine/det/detections": ("vision_msgs/msg/Detection2DArray", None, None),
     }
-    if viz:
-        want["/vpengine/depth/depth_color"] = ("sensor_msgs/msg/Image", "bgr8", 480)
-        want["/vpengine/seg/overlay"] = ("sensor_msgs/msg/Image", "bgr8", 480)
+    if viz:  # pictures as JPEG on image_transport's topic (Note [Bag contents])
+        want["/vpengine/depth/depth_color/compressed"] = (COMPRESSED, "jpeg", None)
+        want["/vpengine/seg/overlay/compressed"] = (COMPRESSED, "jpeg", None)
     assert sorted(topics) == sorted(want)
     for topic, (msgtype, encoding, step) in want.items():
         msgs = topics[topic]
@@ -128,6 +129,10 @@ def check_outputs(topics: dict[str, list], viz: bool = False, stamps: list | Non
         for mtype, log_time, m in msgs:
             assert mtype == msgtype and m.header.frame_id == FRAME_ID
             assert log_time == m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+            if encoding == "jpeg":
+                assert m.format == "bgr8; jpeg compressed bgr8"
+                assert cv2.imdecode(m.data, cv2.IMREAD_COLOR).shape == (120, 160, 3)
+                continue
             if encoding is None:
                 for det in m.detections:
                     assert det.header.frame_id == FRAME_ID
@@ -194,11 +199,18 @@ def check_mcap(bag: Path) -> None:
             assert stamp in STAMPS and message.log_time == stamp[0] * 10**9 + stamp[1]
             if schema.name == "sensor_msgs/msg/Image":
                 assert (msg.width, msg.height) == (160, 120)
+            elif schema.name == COMPRESSED:
+                assert cv2.imdecode(msg.data, cv2.IMREAD_COLOR).shape == (120, 160, 3)
             else:
                 assert schema.name == "vision_msgs/msg/Detection2DArray"
                 assert "vision_msgs/Pose2D center" in schema.data.decode()  # the 4.x definition travels along
             seen[channel.topic] = seen.get(channel.topic, 0) + 1
-    assert seen == {"/vpengine/depth/depth": N, "/vpengine/seg/classes": N, "/vpengine/det/detections": N}
+    assert seen == {
+        "/vpengine/input/compressed": N,
+        "/vpengine/depth/depth": N,
+        "/vpengine/seg/classes": N,
+        "/vpengine/det/detections": N,
+    }
 
 
 def test_console_script_reads_a_bare_mcap_file_of_compressed_images_and_writes_colour_topics(tmp_path):
@@ -316,7 +328,12 @@ def test_ctrl_c_leaves_a_valid_output_bag(tmp_path):
             p.kill()
     assert p.returncode == 130 and "interrupted" in text and "Traceback" not in text, text
     topics = read_bag(out, "jazzy")
-    assert sorted(topics) == ["/vpengine/depth/depth", "/vpengine/det/detections", "/vpengine/seg/classes"]
+    assert sorted(topics) == [
+        "/vpengine/depth/depth",
+        "/vpengine/det/detections",
+        "/vpengine/input/compressed",
+        "/vpengine/seg/classes",
+    ]
     counts = {t: len(m) for t, m in topics.items()}
     assert min(counts.values()) >= 1 and max(counts.values()) < 100, counts  # stopped part way, closed valid
     check_mcap_readable(out)
@@ -329,3 +346,20 @@ def check_mcap_readable(bag: Path) -> None:
     with path.open("rb") as f:
         reader = make_reader(f)
         assert reader.get_summary() is not None  # the footer and summary were written: closed, not cut off
+
+
+def test_a_recorded_bag_holds_the_input_images_and_plays_back_as_a_source(tmp_path):
+    """Note [Bag contents]: the input goes in once a frame, as JPEG with its frame's header, and ``vpengine run``
+    reads the recording back from that topic with the same stamps."""
+    src, out, again = tmp_path / "in", tmp_path / "out", tmp_path / "again"
+    write_bag(src, "mcap", "jazzy", extra_topic=False)
+    assert run("-s", str(src), "--out-bag", str(out), "--mode", "thread") == 0
+    inputs = read_bag(out, "jazzy")["/vpengine/input/compressed"]
+    assert [(m.header.stamp.sec, m.header.stamp.nanosec) for _, _, m in inputs] == STAMPS
+    for i, (_, _, m) in enumerate(inputs):  # each its own frame (JPEG of noise is far from exact: the nearest)
+        got = cv2.imdecode(m.data, cv2.IMREAD_COLOR).astype(np.int16)
+        assert np.argmin([np.abs(got - frame(j)).mean() for j in range(N)]) == i
+    assert (
+        run("-s", str(out), "--topic", "/vpengine/input/compressed", "--out-bag", str(again), "--mode", "thread") == 0
+    )
+    check_outputs(read_bag(again, "jazzy"))

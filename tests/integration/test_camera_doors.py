@@ -142,8 +142,9 @@ def test_a_bag_with_two_image_topics_in_gives_each_cameras_outputs_under_its_nam
         for c, _, raw in r.messages():
             got.setdefault(c.topic, []).append(ts.deserialize_cdr(raw, c.msgtype))
     assert sorted(got) == [
-        "/vpengine/front/depth/depth", "/vpengine/front/det/detections",
-        "/vpengine/rear/depth/depth", "/vpengine/rear/det/detections", "/vpengine/rear/seg/classes",
+        "/vpengine/front/depth/depth", "/vpengine/front/det/detections", "/vpengine/front/input/compressed",
+        "/vpengine/rear/depth/depth", "/vpengine/rear/det/detections", "/vpengine/rear/input/compressed",
+        "/vpengine/rear/seg/classes",
     ]  # fmt: skip
     for camera, (h, w) in (("front", (120, 160)), ("rear", REAR_HW)):
         depth = got[f"/vpengine/{camera}/depth/depth"]

@@ -112,3 +112,71 @@ def test_frames_of_ever_new_sizes_keep_a_bounded_number_of_buffers():
     assert buffer_for(cache, (10, 20), np.uint8) is first  # used again: kept, now the most recent
     buffer_for(cache, (99, 99), np.uint8)  # one size too many: the least recently used goes, not the first
     assert (10, 20) in cache and (11, 20) not in cache and len(cache) == SIZES_KEPT
+
+
+def fixed_capacity(boxes: list[list[float]], count: int, m: int = 6) -> dict[str, np.ndarray]:
+    """A detection head's fixed-capacity outputs: ``count`` detections, 0 / -1 past them."""
+    out = {
+        "boxes": np.zeros((m, 4), np.float32),
+        "scores": np.zeros(m, np.float32),
+        "labels": np.full(m, -1, np.int32),
+        "count": np.array(count, np.int32),
+    }
+    out["boxes"][: len(boxes)] = boxes
+    out["scores"][:count] = np.linspace(0.9, 0.5, count)
+    out["labels"][:count] = np.arange(count)
+    return out
+
+
+def test_boxes_mapped_into_the_band_are_dropped_with_their_rows_and_the_count_follows():
+    """Note [Empty boxes]: a 300x1 frame fills one canvas row; boxes clipped to its edge have zero height."""
+    from vpengine.boundary import drop_empty_boxes
+
+    p = Placement.fit((1, 300), (120, 160))  # region x 0..160, y 59..60
+    canvas = [[0, 0, 16, 16], [16, 48, 32, 64], [0, 100, 160, 120], [40, 58, 80, 61], [5, 5, 5, 5]]
+    kinds = {"boxes": "boxes"}
+    out = fixed_capacity(canvas, count=4)  # the 5th is past count: padding, whatever it holds
+    mapped = {**out, "boxes": p.boxes_to_frame(out["boxes"])}
+    got = drop_empty_boxes(mapped, kinds)
+    assert int(got["count"]) == 2 and got["count"].dtype == np.int32 and got["count"].shape == ()
+    np.testing.assert_allclose(got["boxes"][:2], mapped["boxes"][[1, 3]])  # the kept ones, in their order
+    np.testing.assert_allclose(got["scores"][:2], out["scores"][[1, 3]])
+    assert got["labels"][:2].tolist() == [1, 3]
+    assert got["boxes"].shape == (6, 4) and not got["boxes"][2:].any()  # shapes kept, padding past the count
+    assert not got["scores"][2:].any() and (got["labels"][2:] == -1).all()
+    assert all((b[2] > b[0]) and (b[3] > b[1]) for b in got["boxes"][:2])
+
+    # the same as tensors, on their device, without leaving it
+    t = {k: torch.from_numpy(np.asarray(v)) for k, v in mapped.items()}
+    got_t = drop_empty_boxes(t, kinds)
+    for k in ("boxes", "scores", "labels", "count"):
+        np.testing.assert_array_equal(got_t[k].numpy(), got[k])
+
+    # variable length (no count): the rows go
+    var = {"boxes": mapped["boxes"][:4], "scores": out["scores"][:4], "labels": out["labels"][:4]}
+    got_v = drop_empty_boxes(var, kinds)
+    assert got_v["labels"].tolist() == [1, 3] and got_v["boxes"].shape == (2, 4)
+    got_vt = drop_empty_boxes({k: torch.from_numpy(v) for k, v in var.items()}, kinds)
+    assert got_vt["labels"].tolist() == [1, 3]
+
+
+def test_outputs_without_empty_boxes_or_without_boxes_pass_as_they_are():
+    from vpengine.boundary import drop_empty_boxes
+
+    out = fixed_capacity([[0, 0, 10, 10], [5, 5, 6, 7]], count=2)
+    assert drop_empty_boxes(out, {"boxes": "boxes"}) is out
+    depth = {"depth": np.zeros((120, 160), np.float32)}
+    assert drop_empty_boxes(depth, {"depth": "map"}) is depth
+
+
+def test_the_engine_returns_no_empty_box_for_frames_of_odd_shape():
+    from vpengine.engine import Engine
+
+    rng = np.random.default_rng(5)
+    with Engine(tiny("thread", "heads.det.options.score_threshold=0.0")) as e:  # every cell a detection
+        for hw in [(1, 1), (1, 300), (300, 1), (2, 3), (1080, 40)]:
+            det = e.predict(rng.integers(0, 256, (*hw, 3), dtype=np.uint8))["det"]
+            boxes = det["boxes"]
+            assert len(boxes) == len(det["scores"]) == len(det["labels"]) == det["count"], hw
+            assert ((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])).all(), hw
+            assert (boxes[:, [0, 2]] <= hw[1]).all() and (boxes[:, [1, 3]] <= hw[0]).all()

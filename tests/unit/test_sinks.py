@@ -219,6 +219,31 @@ def test_the_folder_sink_writes_depth_as_png_with_its_scale_by_default_and_start
         FolderSink(tmp_path, HEADS, depth_format="exr")
 
 
+@pytest.mark.parametrize("hw", [(1, 1), (1, 300), (300, 1), (2, 3)])
+def test_the_folder_sink_writes_the_maps_of_a_frame_of_any_shape_at_that_shape(tmp_path, hw):
+    """A 300x1 frame's depth PNG is 300x1, not transposed (``squeeze`` made it a vector, and a 1x1 one a scalar)."""
+    import cv2
+
+    from vpengine.io.sinks import FolderSink, load_depth
+
+    rng = np.random.default_rng(3)
+    depth = (rng.random(hw) * 5).astype(np.float32)
+    results = [
+        Result("depth", 0, 0.0, 0.01, {"depth": depth}, frame_size=hw),
+        Result("seg", 0, 0.0, 0.01, {"classes": rng.integers(0, 3, hw).astype(np.uint8)}, frame_size=hw),
+        Result("det", 0, 0.0, 0.01, head_results(0)[2].outputs, frame_size=hw),
+    ]
+    sink = FolderSink(tmp_path, HEADS, viz=True)
+    for r in results:
+        sink.write(r, rng.integers(0, 256, (*hw, 3), dtype=np.uint8), "f0")
+    sink.close()
+    got = load_depth(tmp_path / "depth", "f0")
+    assert got.shape == hw and np.abs(got - depth).max() <= (depth.max() - depth.min()) / 65534 + 1e-6
+    assert cv2.imread(str(tmp_path / "seg" / "f0.png"), cv2.IMREAD_UNCHANGED).shape == hw
+    for h in HEADS:
+        assert cv2.imread(str(tmp_path / h / "viz" / "f0.jpg")).shape == (*hw, 3)
+
+
 def test_a_file_that_cannot_be_written_raises(tmp_path):
     from vpengine.io.sinks import FolderSink
 

@@ -188,3 +188,36 @@ def test_all_heads_side_by_side(size, heads, grid, tile):
         r, c = divmod(heads, grid[1])
         cell = mosaic[r * tile[0] : (r + 1) * tile[0], c * tile[1] : (c + 1) * tile[1]]
         np.testing.assert_array_equal(cell[tile[0] // 2 :], first[tile[0] // 2 :] // 3)
+
+
+@pytest.mark.parametrize("hw", [(1, 1), (1, 300), (300, 1), (2, 3)])
+def test_every_kind_of_picture_of_a_frame_of_odd_shape_has_the_frames_shape(hw):
+    """A 1xN frame's maps are 1xN, never squeezed to a vector (or a 1x1's to a scalar), and drawn at its size."""
+    from vpengine.visualize import plane
+
+    frame = RNG.integers(0, 256, (*hw, 3), dtype=np.uint8)
+    depth = RNG.random(hw).astype(np.float32)
+    classes = RNG.integers(0, 5, hw).astype(np.uint8)
+    for shape in (hw, (*hw, 1), (1, *hw)):  # a map, and the two singleton axes a head may add
+        assert plane(depth.reshape(shape), hw).shape == hw
+    boxes = np.array([[0, 0, hw[1], hw[0]]], np.float32)
+    outputs = [
+        {"depth": depth},
+        {"depth": depth[..., None]},
+        {"depth": depth[None]},
+        {"classes": classes},
+        {"boxes": boxes, "scores": np.ones(1, np.float32), "labels": np.zeros(1, np.int32)},
+    ]
+    for out in outputs:
+        assert draw_result(frame, out, title="head").shape == (*hw, 3)
+        assert draw_results(frame, {"head": out}).ndim == 3
+
+
+def test_a_box_of_zero_width_or_height_is_not_drawn_and_has_no_caption():
+    """Note [Empty boxes]: a caption with no box names nothing, so neither is drawn."""
+    image = np.full((60, 80, 3), 128, np.uint8)
+    empty = np.array([[80, 10, 80, 40], [5, 60, 50, 60], [10, 10, 10, 10], [np.nan, 0, 5, 5]], np.float32)
+    out = draw_detections(image, empty, np.full(4, 0.9, np.float32), np.arange(4), ["a", "b", "c", "d"])
+    np.testing.assert_array_equal(out, image)
+    one = draw_detections(image, np.array([[10, 10, 30, 40]], np.float32), np.ones(1), np.zeros(1, np.int32))
+    assert (one != image).any()  # a real box still is

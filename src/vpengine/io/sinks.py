@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from vpengine import visualize
+from vpengine.io.video import VideoWriter, even_size
 from vpengine.results import Result
 
 DEPTH_FORMATS = ("png16", "npy")
@@ -309,7 +310,7 @@ class FolderSink(Sink):
             if "depth" in out and self.depth_format == "npy":
                 np.save(d / f"{name}.npy", np.asarray(out["depth"], dtype=np.float32))
             elif "depth" in out:
-                png, offset, scale = encode_depth_png(np.asarray(out["depth"]).squeeze())
+                png, offset, scale = encode_depth_png(visualize.plane(out["depth"], _map_size(result)))
                 _imwrite(d / f"{name}.png", png, _png16_params())
                 self._line(
                     h,
@@ -335,13 +336,14 @@ class FolderSink(Sink):
 
 class AnnotatedSink(Sink):
     """Note [Annotated frames]: one picture per frame of the input and every head side by side
-    (:func:`visualize.draw_results`), written as ``<pictures>/<frame>.jpg`` and/or as the frames of an mp4 ``video``.
+    (:func:`visualize.draw_results`), written as ``<pictures>/<frame>.jpg`` and/or as the frames of a ``video`` (H.264
+    in mp4 where an encoder is there: Note [Browser video] in io/video.py).
 
     Results arrive one head at a time; a frame is drawn once every head has answered it, or once ``lag`` newer
     frames are waiting (a head limited to a lower rate, paused, or slower, never answers some frames). A head
     that did not answer a frame is shown with its newest earlier result, as a live view would; one that has never
-    answered as 'no result yet'. Video frames all have the first picture's size: a picture of another size (a
-    folder of mixed sizes) is scaled into it with its aspect kept, never stretched."""
+    answered as 'no result yet'. Video frames all have the first picture's size (rounded up to even numbers): a
+    picture of another size (a folder of mixed sizes) is scaled into it with its aspect kept, never stretched."""
 
     def __init__(
         self,
@@ -363,7 +365,7 @@ class AnnotatedSink(Sink):
         self.frames_written = 0
         self._pending: collections.OrderedDict[int, tuple[np.ndarray, str, dict[str, Any]]] = collections.OrderedDict()
         self._newest: dict[str, Any] = {}
-        self._writer: Any = None
+        self._writer: VideoWriter | None = None
         self._size: tuple[int, int] | None = None
         if self.pictures is not None:
             self.pictures.mkdir(parents=True, exist_ok=True)
@@ -383,8 +385,6 @@ class AnnotatedSink(Sink):
             self._draw(next(iter(self._pending)))
 
     def _draw(self, frame_id: int) -> None:
-        import cv2
-
         frame, name, got = self._pending.pop(frame_id)
         self._newest.update(got)
         picture = visualize.draw_results(frame, {h: got.get(h, self._newest.get(h)) for h in self.heads}, self.heads)
@@ -392,10 +392,8 @@ class AnnotatedSink(Sink):
             _write_jpeg(self.pictures / f"{name}.jpg", picture)
         if self.video is not None:
             if self._writer is None:
-                self._size = (picture.shape[1], picture.shape[0])
-                self._writer = cv2.VideoWriter(str(self.video), cv2.VideoWriter_fourcc(*"mp4v"), self.fps, self._size)
-                if not self._writer.isOpened():
-                    raise OSError(f"cannot write video {str(self.video)!r} (mp4v through OpenCV)")
+                self._size = even_size(picture.shape[1], picture.shape[0])
+                self._writer = VideoWriter(self.video, self.fps, self._size)
             self._writer.write(_fit(picture, self._size or (0, 0)))
         self.frames_written += 1
 
@@ -405,8 +403,15 @@ class AnnotatedSink(Sink):
                 self._draw(next(iter(self._pending)))
         finally:
             if self._writer is not None:
-                self._writer.release()
+                self._writer.close()
                 self._writer = None
+
+
+def _map_size(result: Result) -> tuple[int, int] | None:
+    """The (height, width) of ``result``'s maps: its frame's, or the models' input canvas for a native-grid head."""
+    if result.grid == "native" and result.placement is not None:
+        return result.placement.canvas_hw
+    return result.frame_size if all(result.frame_size) else None
 
 
 def _imwrite(path: Path, image: np.ndarray, params: Sequence[int] = ()) -> None:

@@ -73,6 +73,12 @@ def image_msg(ts: Any, img: ImageOut) -> Any:
     )
 
 
+def compressed_msg(ts: Any, header: Header, fmt: str, data: np.ndarray) -> Any:
+    """A sensor_msgs/CompressedImage of already encoded bytes (``fmt``: image_transport's, e.g. ``"bgr8; jpeg
+    compressed bgr8"``)."""
+    return ts.types["sensor_msgs/msg/CompressedImage"](header=header_msg(ts, header), format=fmt, data=data)
+
+
 def detections_msg(ts: Any, d: DetectionsOut) -> Any:
     T = ts.types
     header = header_msg(ts, d.header)

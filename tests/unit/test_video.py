@@ -1,0 +1,94 @@
+"""Note [Browser video] (io/video.py): ``--video`` writes what browsers play, H.264 in mp4 where an encoder is
+there, and says so plainly where none is. Codecs are read from the file itself (the mp4 'stsd' box, WebM's codec
+id), not from a tool."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from vpengine.io import video
+from vpengine.io.sinks import AnnotatedSink
+from vpengine.results import Result
+
+HEADS = {"depth": {"kind": "depth"}}
+
+
+def mp4_codec(path: Path) -> str:
+    """The first sample entry's format in the mp4's 'stsd' box: 'avc1' is H.264, 'mp4v' MPEG-4 Part 2."""
+    data = path.read_bytes()
+    i = data.find(b"stsd")
+    assert i > 0, "no stsd box: not an mp4"
+    # 'stsd', version and flags (4), entry count (4), the entry's size (4), then its format
+    return data[i + 16 : i + 20].decode("ascii")
+
+
+def write_frames(path: Path, hw: tuple[int, int], n: int = 3) -> AnnotatedSink:
+    sink = AnnotatedSink(HEADS, video=path, fps=10)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        depth = rng.random(hw).astype(np.float32)
+        sink.write(Result("depth", i, i / 10, 0.01, {"depth": depth}), np.full((*hw, 3), 40 * i, np.uint8), f"f{i}")
+    sink.close()
+    return sink
+
+
+def read_back(path: Path) -> list[np.ndarray]:
+    cap = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, f = cap.read()
+        if not ok:
+            break
+        frames.append(f)
+    cap.release()
+    return frames
+
+
+@pytest.mark.parametrize("hw", [(60, 80), (1, 1), (1, 300), (300, 1), (2, 3)])
+def test_the_video_is_h264_in_mp4_at_an_even_size_for_a_frame_of_any_shape(tmp_path, hw):
+    av = pytest.importorskip("av", reason="the H.264 encoder comes with vpengine[video] (PyAV)")
+    if "libx264" not in av.codecs_available and "libopenh264" not in av.codecs_available:
+        pytest.skip("this PyAV has no H.264 encoder")
+    path = tmp_path / "v.mp4"
+    write_frames(path, hw)
+    assert mp4_codec(path) == "avc1"  # H.264: what every browser plays
+    frames = read_back(path)
+    assert len(frames) == 3 and frames[0].shape[0] % 2 == 0 and frames[0].shape[1] % 2 == 0
+
+
+def test_without_an_h264_encoder_the_mp4_is_mpeg4_part2_and_a_warning_says_how_to_get_one(
+    tmp_path, monkeypatch, caplog
+):
+    monkeypatch.setitem(sys.modules, "av", None)  # PyAV not installed
+    real = video._opencv_writer
+    monkeypatch.setattr(
+        video, "_opencv_writer", lambda p, fourcc, *a: None if fourcc == "avc1" else real(p, fourcc, *a)
+    )
+    path = tmp_path / "v.mp4"
+    with caplog.at_level(logging.WARNING, logger="vpengine"):
+        write_frames(path, (60, 80))
+    assert mp4_codec(path) == "mp4v" and len(read_back(path)) == 3
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert "which browsers do not play" in line and "pip install 'vpengine[video]'" in line and str(path) in line
+
+
+def test_a_webm_name_gets_vp8(tmp_path):
+    path = tmp_path / "v.webm"
+    try:
+        write_frames(path, (30, 40), n=2)
+    except OSError as e:
+        pytest.skip(str(e))  # an OpenCV without libvpx
+    assert path.read_bytes()[:4] == b"\x1a\x45\xdf\xa3" and b"V_VP8" in path.read_bytes()  # EBML, codec id
+    assert len(read_back(path)) == 2
+
+
+def test_a_video_of_odd_size_is_refused_by_the_writer_itself(tmp_path):
+    with pytest.raises(ValueError, match="video size must be even numbers of pixels .*, got 81x60"):
+        video.VideoWriter(tmp_path / "v.mp4", 10, (81, 60))
+    assert video.even_size(81, 59) == (82, 60) and video.even_size(2, 2) == (2, 2)

@@ -155,6 +155,7 @@ def test_a_bag_with_two_image_topics_in_gives_each_cameras_outputs_under_its_nam
 
 
 # ---------------------------------------------------------------------------------------------------------- ROS 2
+@pytest.mark.xdist_group("dds")  # one DDS test at a time: no two share a domain or ports
 def test_the_dds_bridge_takes_a_topic_per_camera_and_publishes_under_each_cameras_namespace(monkeypatch):
     """The bridge in this process (thread-mode engine) on loopback: two cameras of different sizes, each on its
     own topic; every output under ``<ns>/<camera>/`` with that camera's header and size."""

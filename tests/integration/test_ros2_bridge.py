@@ -30,7 +30,7 @@ import pytest
 HERE = Path(__file__).resolve()
 ROOT = HERE.parents[2]
 
-pytestmark = pytest.mark.timeout(300)
+pytestmark = [pytest.mark.timeout(300), pytest.mark.xdist_group("dds")]  # one DDS test at a time
 
 INPUT = "/test/camera/image_raw"
 FRAME_ID = "test_cam"

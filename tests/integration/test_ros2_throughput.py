@@ -18,7 +18,7 @@ import pytest
 
 from tests_paths import ROOT
 
-pytestmark = [pytest.mark.slow, pytest.mark.timeout(600)]
+pytestmark = [pytest.mark.slow, pytest.mark.timeout(600), pytest.mark.xdist_group("dds")]
 
 
 def _bench(

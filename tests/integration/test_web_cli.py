@@ -122,6 +122,7 @@ def test_serving_beyond_loopback_needs_a_token_and_then_every_request_carries_it
         proc.communicate(timeout=120)
 
 
+@pytest.mark.xdist_group("dds")  # one DDS test at a time: no two share a domain or ports
 def test_ros2_serves_the_view_with_pictures_on_the_messages_frames(monkeypatch):
     import numpy as np
 

@@ -157,6 +157,7 @@ def test_dds_names_follow_the_ros2_conventions():
             dds_topic(bad)
 
 
+@pytest.mark.xdist_group("dds")  # one DDS test at a time: no two share a domain or ports
 def test_qos_profiles_are_ros2s():
     from cyclonedds.core import Policy
 
@@ -201,6 +202,7 @@ def _effective_receive_buffer(tmp_path, name: str, user: str, extra: str | None 
     return line.split(": ")[-1].split(" {")[0]
 
 
+@pytest.mark.xdist_group("dds")  # one DDS test at a time: no two share a domain or ports
 def test_the_bridge_asks_for_a_frame_sized_receive_buffer_and_the_users_settings_win(tmp_path):
     from vpengine.ros2.dds import RECEIVE_BUFFER_BYTES, bridge_config, loopback_config
 

@@ -163,3 +163,24 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     bad = vpengine("bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--heads", "nope", "--out", str(tmp_path))
     assert bad.returncode != 0 and "--heads 'nope': the config's heads are depth, seg, det" in bad.stderr
+
+
+def test_run_street_viz_runs_from_a_clone_on_the_shipped_sample_into_a_folder_of_its_own(tmp_path):
+    tracked = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
+    script = ROOT / "benchmarks" / "run_street_viz.py"
+    p = subprocess.run(
+        [sys.executable, str(script), "--max-frames", "3"], cwd=tmp_path, capture_output=True, text=True, timeout=400
+    )
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (out,) = tmp_path.glob("run-street-viz-*")
+    assert [f.name for f in out.iterdir()] == ["run_street_viz_cpu.json"]
+    res = json.loads((out / "run_street_viz_cpu.json").read_text())
+    assert res["summary"]["frames_submitted"] == 3 and res["summary"]["source"].endswith("street.mp4")
+    assert res["command"].startswith("vpengine run --config tiny --source sample:street --out TMP/demo --viz")
+    assert (
+        res["printed"][0].startswith("3 frames in ")
+        and 0 < res["bytes_written"] < res["bytes_written_with_depth_format_npy"]
+    )
+    assert f"results in {out.name}/run_street_viz_cpu.json" in p.stdout
+    now = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
+    assert now == tracked

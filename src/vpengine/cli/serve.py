@@ -5,7 +5,7 @@ runs an engine.
 
     add_serve_arguments(parser)                      # --serve, --serve-token, --foxglove
     ...
-    with serving(serve_options(args), engine, frames=lookup):
+    with serving(options := serve_options(args), engine, frames=lookup) as server:
         ...                                          # the engine runs; the view answers at the printed address
         keep_serving(options, server)                # a run that ended: its last state until Ctrl-C (Note [Serving on])
 """
@@ -152,8 +152,8 @@ def _start(flag: str, address: tuple[str, int], make: Callable[..., Any], *args:
 # anyone could open its live view. So once such a run has ended on its own (not by Ctrl-C), its summary printed and
 # its files written, the view stays up on the engine, now idle: the page, /api/stats and /metrics show the run's
 # counters and each head's last picture, until Ctrl-C or SIGTERM (either ends the wait; the run's exit status is
-# unchanged). The engine is kept rather than a snapshot of it, so every route answers as during the run; rates
-# still change but there is nothing left to run.
+# unchanged). The engine is kept rather than a snapshot of it, so every route answers as during the run (the
+# achieved rates fall to 0, truthfully: nothing runs; rates can still be set, with nothing left to run).
 def keep_serving(options: ServeOptions, server: Any) -> None:
     """After a run that ended on its own: say so, then keep the view (``server``, :func:`serving`'s) up until
     SIGINT or SIGTERM (Note [Serving on]). Returns at once off the main thread, where no signal can end the wait."""

@@ -73,4 +73,4 @@ for exp in "${experiments[@]}"; do
     run after "$after" "$exp" "after_${exp,,}$suffix"
   done
 done
-vpengine bench report --results "$OUT" --baseline before
+vpengine bench report --results "$OUT" --out "$OUT" --baseline before

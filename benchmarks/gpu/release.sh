@@ -100,7 +100,7 @@ for stage in "${stages[@]}"; do
           | tee -a "$OUT/release.log" | tail -7
         cp "/tmp/street_$variant/summary.json" "$OUT/run_street_$variant.json"
       done ;;
-    report) vpengine bench report --results "$OUT" ;;
+    report) vpengine bench report --results "$OUT" --out "$OUT" ;;
     *) echo "unknown stage $stage; accepted: tests integration e1 e2 e3 e4 e5 floor resources hop boundary cameras" \
       "web street report"; exit 2 ;;
   esac

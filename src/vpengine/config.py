@@ -484,7 +484,7 @@ def load_raw(path: str | Path) -> dict[str, Any]:
     try:
         data = json.loads(text) if kind == "JSON" else _load_yaml(text, repr(str(path)))
     except (json.JSONDecodeError, yaml.YAMLError) as e:
-        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_clip(str(e), 1000)}") from None
+        raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_syntax_error(e, text)}") from None
     except RecursionError:
         raise ConfigError(f"config file {str(path)!r} nests too deeply to parse") from None
     if data is None:
@@ -492,6 +492,26 @@ def load_raw(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"config file {str(path)!r} must hold a mapping at the top level, got {type(data).__name__}")
     return data
+
+
+def _syntax_error(e: json.JSONDecodeError | yaml.YAMLError, text: str) -> str:
+    """A parser's complaint in one line: where (line and column, from 1) and why, without the parser's own
+    multi-line layout (which names ``<unicode string>`` rather than the file)."""
+    if isinstance(e, json.JSONDecodeError):
+        return f"line {e.lineno}, column {e.colno}: {e.msg}"
+    if isinstance(e, yaml.reader.ReaderError):  # a character YAML does not allow; it has an offset, not a mark
+        before = text[: e.position]
+        line, column = before.count("\n") + 1, e.position - (before.rfind("\n") + 1) + 1
+        ch = e.character
+        shown = f"U+{ch:04X}" if isinstance(ch, int) else repr(ch)  # an int for a code point, bytes when undecodable
+        return f"line {line}, column {column}: character {shown} is not allowed in YAML ({e.reason})"
+    mark = getattr(e, "problem_mark", None)
+    problem = getattr(e, "problem", None)
+    if mark is None or problem is None:
+        return _clip(" ".join(str(e).split()), 300)
+    context = getattr(e, "context", None)
+    why = f"{problem} ({context})" if context else problem
+    return f"line {mark.line + 1}, column {mark.column + 1}: {_clip(' '.join(why.split()), 300)}"
 
 
 def load_config(

@@ -56,7 +56,7 @@ def test_paper_runs_every_cpu_experiment_and_the_report_reads_them(tmp_path):
     for key in ("thread", "process", "thread_frame_slot", "process_frame_slot"):
         assert floor[key]["n"] == 5, key
 
-    r = vpengine("bench", "report", "--results", str(tmp_path))
+    r = vpengine("bench", "report", "--results", str(tmp_path), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
     md = (tmp_path / "summary.md").read_text()
     assert "Machine: " in md and "-core" in md
@@ -80,11 +80,28 @@ def test_set_reaches_the_engine_and_the_report_labels_it(tmp_path):
     res = json.loads((tmp_path / "paper_cpu_thread.json").read_text())
     assert res["setup"]["mode"] == "thread" and res["setup"]["overrides"] == ["mode=thread"]
     assert res["setup"]["frame_size"] == [200, 90]  # frames of another size than the 160x120 canvas
-    r = vpengine("bench", "report", "--results", str(tmp_path))
+    r = vpengine("bench", "report", "--results", str(tmp_path), "--out", str(tmp_path))
     assert r.returncode == 0, r.stderr[-3000:]
     md = (tmp_path / "summary.md").read_text()
     label = "(tiny_vit, eager, 120x160, 200x90 frames (boundary), thread mode, borrowed results)"
     assert f"| E2 2 detection heads {label} |" in md, md
+
+
+def test_cheap_benches_and_the_report_write_a_new_folder_of_their_own_by_default(tmp_path):
+    tracked = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
+    # the cheapest for real (every bench's default folder: tests/unit/test_bench_out.py)
+    p = vpengine("bench", "hop", "--hops", "30", "--mbytes", "0.01", cwd=tmp_path, timeout=300)
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (hop,) = tmp_path.glob("bench-hop-*")
+    assert sorted(f.name for f in hop.iterdir()) == ["hop_cpu.json", "hop_cpu.png"]
+    r = vpengine("bench", "report", "--results", str(hop), cwd=tmp_path)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (report,) = tmp_path.glob("bench-report-*")
+    assert sorted(f.name for f in report.iterdir()) == ["summary.md", "summary.png"]
+    assert (report / "summary.md").read_text().startswith(f"# vpengine benchmarks: {hop.name}")
+    assert sorted(f.name for f in hop.iterdir()) == ["hop_cpu.json", "hop_cpu.png"]  # the results, only read
+    now = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
+    assert now == tracked  # the clone's results untouched
 
 
 def test_a_bad_override_is_named(tmp_path):
@@ -146,3 +163,24 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     bad = vpengine("bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--heads", "nope", "--out", str(tmp_path))
     assert bad.returncode != 0 and "--heads 'nope': the config's heads are depth, seg, det" in bad.stderr
+
+
+def test_run_street_viz_runs_from_a_clone_on_the_shipped_sample_into_a_folder_of_its_own(tmp_path):
+    tracked = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
+    script = ROOT / "benchmarks" / "run_street_viz.py"
+    p = subprocess.run(
+        [sys.executable, str(script), "--max-frames", "3"], cwd=tmp_path, capture_output=True, text=True, timeout=400
+    )
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (out,) = tmp_path.glob("run-street-viz-*")
+    assert [f.name for f in out.iterdir()] == ["run_street_viz_cpu.json"]
+    res = json.loads((out / "run_street_viz_cpu.json").read_text())
+    assert res["summary"]["frames_submitted"] == 3 and res["summary"]["source"].endswith("street.mp4")
+    assert res["command"].startswith("vpengine run --config tiny --source sample:street --out TMP/demo --viz")
+    assert (
+        res["printed"][0].startswith("3 frames in ")
+        and 0 < res["bytes_written"] < res["bytes_written_with_depth_format_npy"]
+    )
+    assert f"results in {out.name}/run_street_viz_cpu.json" in p.stdout
+    now = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
+    assert now == tracked

@@ -76,14 +76,67 @@ def test_run_serves_the_view_while_it_runs_and_rates_set_there_reach_the_engine(
         assert headers["X-On-Frame"] == "1"  # drawn on its own input frame, which the run loop keeps
         assert get(url + "api/rate/seg", "PUT", b'{"hz": 4}')[0] == 200
         assert 'vpengine_target_hz{model="seg"} 4.0' in get(url + "metrics")[2].decode()
-        out, err = proc.communicate(timeout=120)
+        summary = summary_lines(proc)
+        assert ended_line(proc) == url  # the run is over; its view stays (Note [Serving on])
+        proc.send_signal(signal.SIGTERM)  # as a service manager ends it
+        _out, err = proc.communicate(timeout=120)
     finally:
         proc.kill()
         proc.wait()
     assert proc.returncode == 0, err
-    seg = next(line for line in out.splitlines() if line.startswith("seg "))
+    seg = next(line for line in summary if line.startswith("seg "))
     assert seg.split()[1] == "4"  # the summary's target column
-    with pytest.raises(OSError):  # the view ended with the run
+    with pytest.raises(OSError):  # the view ended with the process
+        get(url + "api/stats")
+
+
+def summary_lines(proc: subprocess.Popen) -> list[str]:
+    """The summary the run prints on stdout, read up to its latency note."""
+    lines = []
+    while not lines or not lines[-1].startswith("(latency:"):
+        line = proc.stdout.readline()
+        assert line, "stdout ended before the summary:\n" + "".join(lines)
+        lines.append(line)
+    return lines
+
+
+def ended_line(proc: subprocess.Popen) -> str:
+    """The address in the line saying the run has ended and its view stays up."""
+    seen = []
+    while line := proc.stderr.readline():
+        seen.append(line)
+        if m := re.search(r"the run has ended; its live view stays at (http://\S+) until Ctrl-C", line):
+            return m.group(1)
+    raise AssertionError("no 'the run has ended' line:\n" + "".join(seen))
+
+
+def test_the_view_of_a_finished_run_answers_until_ctrl_c(tmp_path):
+    proc = start(
+        "run", "-c", "tiny", "-s", "synthetic:160x120@30:6", "--pace", "lockstep", "--no-progress",
+        "--set", "mode=thread", "--serve", "0", "-o", str(tmp_path / "run"),
+    )  # fmt: skip
+    try:
+        url = view_url(proc)
+        summary = summary_lines(proc)  # printed when the run ends, before the wait
+        assert summary[0].startswith("6 frames in ")
+        assert ended_line(proc) == url
+        written = json.loads((tmp_path / "run" / "summary.json").read_text())
+        assert written["frames_submitted"] == 6 and written["models"]["depth"]["runs"] == 6  # lockstep: every frame
+        status, _, page = get(url)
+        assert status == 200 and b"<html" in page.lower()
+        status, _, body = get(url + "api/stats")
+        assert status == 200 and json.loads(body)["models"]["depth"]["runs"] == 6  # the run's last state
+        status, headers, jpeg = get(url + "api/latest/depth.jpg")
+        assert status == 200 and jpeg.startswith(b"\xff\xd8") and headers["X-Frame-Id"] == "5"
+        assert proc.poll() is None  # still up, however long that took
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err, err
+    with pytest.raises(OSError):
         get(url + "api/stats")
 
 

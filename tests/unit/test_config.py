@@ -146,3 +146,25 @@ def test_the_config_has_at_most_max_leaf_fields():
     assert len(fields) <= MAX_LEAF_FIELDS, f"{len(fields)} leaf fields (at most {MAX_LEAF_FIELDS}):\n" + "\n".join(
         fields
     )
+
+
+@pytest.mark.parametrize(
+    "name, text, where, why",
+    [
+        ("flow.yaml", "mode: thread\nheads: [unclosed\n", "line 3, column 1", "expected ',' or ']'"),
+        ("indent.yaml", "mode: thread\ndevice: cpu\n  extra: 1\n", "line 3, column 8", "mapping values are not"),
+        ("tab.yaml", "mode: thread\n\tdevice: cpu\n", "line 2, column 1", "'\\t' that cannot start any token"),
+        ("control.yaml", 'mode: thread\ndevice: "c\x01"\n', "line 2, column 11", "U+0001 is not allowed in YAML"),
+        ("comma.json", '{"mode": "thread",\n "device": }\n', "line 2, column 12", "Expecting value"),
+    ],
+)
+def test_a_syntax_error_is_one_line_naming_file_line_column_and_reason(tmp_path, name, text, where, why):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ConfigError) as e:
+        load_config(path)
+    msg = str(e.value)
+    assert "\n" not in msg and "<unicode string>" not in msg, msg
+    kind = "JSON" if name.endswith(".json") else "YAML"
+    assert msg.startswith(f"config file {str(path)!r} is not valid {kind}: {where}: "), msg
+    assert why in msg, msg

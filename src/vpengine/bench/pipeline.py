@@ -14,7 +14,7 @@ import numpy as np
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default="configs/tiny.yaml", help="engine config (default: configs/tiny.yaml)")
+    p.add_argument("--config", default="tiny", help="engine config (default: the shipped tiny config)")
     p.add_argument("--frames", type=int, default=300, help="lockstep frames per mode")
     p.add_argument("--seconds", type=float, default=5.0, help="streaming duration per mode")
 

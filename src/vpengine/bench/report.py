@@ -1,7 +1,7 @@
 """``vpengine bench report``: a folder of results files (one folder per GPU kind) -> summary.md and summary.png.
 
-    vpengine bench report --results benchmarks/results/<GPU kind>
-    vpengine bench report --results DIR --baseline before   # each run against the runs of files named *before*
+    vpengine bench report --results benchmarks/results/<GPU kind> --out benchmarks/results/<GPU kind>
+    vpengine bench report --results DIR --out DIR --baseline before   # each run against files named *before*
 
 Every number it writes is read from a results file in that folder, and every row names its file; nothing is typed in
 by hand. This is the one place the paper experiments' figures are drawn.
@@ -486,10 +486,12 @@ def main(args: argparse.Namespace) -> int:
             comparison(r, args.baseline),
         ]
     text = "\n".join(md) + "\n"
-    (folder / "summary.md").write_text(text)
+    out = Path(args.out) if getattr(args, "out", None) else folder  # `vpengine bench` always gives --out
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "summary.md").write_text(text)
     fig = build_figure(r)
-    fig.savefig(folder / "summary.png")
+    fig.savefig(out / "summary.png")
     pyplot().close(fig)
     print(text)
-    print(f"-> {folder / 'summary.md'}, {folder / 'summary.png'}")
+    print(f"-> {out / 'summary.md'}, {out / 'summary.png'}")
     return 0

@@ -17,7 +17,7 @@ from vpengine.cli import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default="configs/bench.yaml", help="engine config; its first head is the template")
+    p.add_argument("--config", default="bench", help="engine config; its first head is the template (default: bench)")
     p.add_argument("--heads", default="1,2,3,4", help="head counts to measure (comma separated)")
     p.add_argument("--modes", default="process,thread")
     p.add_argument("--height", type=int, default=1080)

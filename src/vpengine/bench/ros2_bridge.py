@@ -33,7 +33,7 @@ from vpengine.cli import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", default="configs/tiny.yaml", help="engine config (default: configs/tiny.yaml)")
+    p.add_argument("--config", default="tiny", help="engine config (default: the shipped tiny config)")
     p.add_argument(
         "--sizes",
         default="1920x1080,640x480",

@@ -30,7 +30,7 @@ from vpengine.cli import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", "-c", default="configs/tiny.yaml", help="engine config (default: configs/tiny.yaml)")
+    p.add_argument("--config", "-c", default="tiny", help="engine config (default: the shipped tiny config)")
     add_overrides_argument(p, "heads.seg.rate_hz=null")
     p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")

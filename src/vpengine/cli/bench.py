@@ -1,9 +1,13 @@
-"""``vpengine bench``: the benchmark suite. Each benchmark writes a JSON results file (and figures where useful)."""
+"""``vpengine bench``: the benchmark suite. Each benchmark writes a JSON results file (and figures where useful)
+under ``--out``: by default a new folder named for the run in the current folder, never a tracked one such as a
+clone's ``benchmarks/results`` (results land there when asked for, ``--out benchmarks/results/<GPU kind>``)."""
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import time
+from pathlib import Path
 
 BENCHES = {
     "hop": ("vpengine.bench.hop", "mailbox hop latency: publish -> reader woken -> slot pinned"),
@@ -25,10 +29,37 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     for name, (module, help_text) in BENCHES.items():
         sp = sub.add_parser(name, help=help_text, description=help_text)
         sp.set_defaults(_bench=module)
-        if name != "report":
-            sp.add_argument("--out", default="benchmarks/results", help="folder for the results JSON")
+        what = "summary.md and summary.png" if name == "report" else "the results JSON (and figures)"
+        sp.add_argument(
+            "--out",
+            "-o",
+            metavar="DIR",
+            help=f"folder for {what}, made if missing (default: a new folder bench-{name}-<date>-<time> here)",
+        )
         importlib.import_module(module).add_arguments(sp)
 
 
+def out_folder(bench: str, out: str | None, now: float | None = None) -> Path:
+    """The folder a benchmark writes to, made: ``out``, or a new ``bench-<bench>-<YYYYmmdd-HHMMSS>[-N]`` in the
+    current folder. ValueError when ``out`` is a file."""
+    if out is not None:
+        path = Path(out)
+        if path.exists() and not path.is_dir():
+            raise ValueError(f"--out {out!r} is a file; give a folder (made if missing)")
+        path.mkdir(parents=True, exist_ok=True)
+        return path
+    stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(now))
+    for n in range(1, 1000):
+        path = Path(f"bench-{bench}-{stamp}" + (f"-{n}" if n > 1 else ""))
+        try:
+            path.mkdir()
+        except FileExistsError:  # another run in the same second
+            continue
+        return path
+    raise ValueError(f"no free folder name bench-{bench}-{stamp}-N here; give --out")
+
+
 def main(args: argparse.Namespace) -> int:
+    if not getattr(args, "single", None):  # `resources --single` is one measurement of a parent run: stdout only
+        args.out = str(out_folder(args.bench, args.out))
     return int(importlib.import_module(args._bench).main(args) or 0)

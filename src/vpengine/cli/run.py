@@ -10,12 +10,13 @@ Pacing decides what happens when models are slower than the source:
   models take the newest frame and every frame they skip is counted in the summary.
 
 Several cameras: ``--source NAME=SPEC`` for each; every source feeds its camera on its own timeline (Note [Several
-sources]), outputs go to ``DIR/<camera>/<head>/``, and the summary counts per camera as well as per model.
+sources] in ``vpengine.cli.pacing``), outputs go to ``DIR/<camera>/<head>/``, and the summary counts per camera as well as per model.
 
 A camera is read on its own thread and the loop takes its newest frame; frames it replaced are counted too (Note
 [Live capture] in ``vpengine.io.sources``). Outputs are written on a writer thread (Note [Sink thread] in
 ``vpengine.io.sinks``). Every output is checked before the engine starts; Ctrl-C ends the run after the frame in
-hand and still prints and writes the summary (Note [Ctrl-C]).
+hand and still prints and writes the summary (Note [Ctrl-C] in ``vpengine.cli.pacing``). With ``--serve``, the live
+view of a run that ends on its own stays up after the summary until Ctrl-C (Note [Serving on] in ``vpengine.cli.serve``).
 """
 
 from __future__ import annotations
@@ -27,13 +28,11 @@ import functools
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -47,7 +46,8 @@ from vpengine.cli import (
     prepare_out_dir,
     prepare_out_file,
 )
-from vpengine.cli.serve import ServeOptions, add_serve_arguments, serve_options, serving
+from vpengine.cli.pacing import Feed, ctrl_c, lockstep, realtime
+from vpengine.cli.serve import ServeOptions, add_serve_arguments, keep_serving, serve_options, serving
 
 log = logging.getLogger("vpengine.run")
 
@@ -102,7 +102,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--exist-ok", action="store_true", help="write into an --out folder (or over a --video) that exists")
     add_overrides_argument(p, "heads.depth.rate_hz=5")
-    p.add_argument("--pace", choices=["lockstep", "realtime"], help="see `vpengine run --help` (default by source)")
+    p.add_argument(
+        "--pace",
+        choices=["lockstep", "realtime"],
+        help="lockstep: the next frame goes in once every head has answered the last, nothing skipped (default for "
+        "files, folders, bags); realtime: frames go in at the source's rate and models take the newest, skipped "
+        "frames counted (default for cameras and synthetic)",
+    )
     p.add_argument(
         "--fps",
         type=positive_float,
@@ -136,18 +142,6 @@ def _percentiles(values: list[float]) -> dict[str, float | None]:
     return {"p50": float(np.percentile(a, 50)), "p99": float(np.percentile(a, 99)), "mean": float(a.mean())}
 
 
-@dataclass
-class _Feed:
-    """One camera's source in the frame loop (Note [Several sources])."""
-
-    camera: str | None  # None: the engine's one camera, unnamed
-    source: Any
-    period: float  # its pace and the spacing of its stamps when its frames have none
-    self_paced: bool  # a live camera without --fps: it delivers at its own rate (Note [Live capture])
-    frames: Iterator[Any]
-    submitted: int = 0
-
-
 def run_pipeline(
     config: Any,
     source: Any,
@@ -163,6 +157,7 @@ def run_pipeline(
     video: str | Path | None = None,
     folder: bool = True,
     serve: ServeOptions | None = None,
+    ended: Callable[[dict[str, Any]], None] | None = None,
 ) -> dict[str, Any]:
     """Run ``config`` over ``source``; returns the summary (also written to ``out_dir/summary.json``).
 
@@ -174,7 +169,10 @@ def run_pipeline(
     result with its input frame and name, like the folder sink. Every sink is made, written and closed on one
     writer thread, not the caller's (Note [Sink thread] in ``vpengine.io.sinks``). ``max_frames`` counts per
     source. Ctrl-C ends the run after the frame in hand; the summary then says ``interrupted`` (Note [Ctrl-C]).
-    ``serve``: the live view (``vpengine.web``) while it runs, drawing on the recent frames the loop keeps."""
+    ``serve``: the live view (``vpengine.web``) while it runs, drawing on the recent frames the loop keeps.
+    ``ended``: called with the summary once the run is over (outputs and summary.json written), for the caller to
+    report it; with ``serve``, the view of a run that ended on its own then stays up, on the idle engine, until
+    Ctrl-C or SIGTERM (Note [Serving on] in ``vpengine.cli.serve``)."""
     from tqdm import tqdm
 
     from vpengine.config import config_for_cameras
@@ -227,7 +225,7 @@ def run_pipeline(
         engine.stop()
         raise
     feeds = [
-        _Feed(camera, s, 1.0 / (fps or s.fps or 30.0), fps is None and getattr(s, "live", False), iter(s))
+        Feed(camera, s, 1.0 / (fps or s.fps or 30.0), fps is None and getattr(s, "live", False), iter(s))
         for camera, s in sources.items()
     ]
     # frame id -> (frame, its name); fed and read under one lock: a result may come back before submit returns
@@ -249,7 +247,7 @@ def run_pipeline(
             if factories and not writer.put(r, frame, name):
                 unwritten[key] += 1
 
-    def submit(feed: _Feed, frame: Any, stamp: float | None) -> int:
+    def submit(feed: Feed, frame: Any, stamp: float | None) -> int:
         with lock:
             fid = engine.submit(frame.image, timestamp=stamp, camera=feed.camera)
             recent[fid] = (frame.image, frame.name or f"{fid:06d}")
@@ -268,107 +266,115 @@ def run_pipeline(
 
     interrupted = False
     t_start = time.monotonic()
-    view = contextlib.ExitStack()
+    live = contextlib.ExitStack()  # the engine, then its view: up until the run ends (Note [Serving on])
+    live.callback(engine.stop)
     try:
-        view.enter_context(serving(serve, engine, lambda fid: recent.get(fid, (None,))[0], cfg.input.color))
-        with _ctrl_c() as stop:
-            if pace == "lockstep":
-                _lockstep(feeds, max_frames, stop, submit, engine, handle, progressed)
-            else:
-                engine.results(0)  # start the result stream before the first frame
-                _realtime(feeds, max_frames, stop, submit, engine, handle, progressed)
-                deadline = time.monotonic() + 2.0  # let in-flight frames finish
-                while time.monotonic() < deadline and not stop.is_set():
-                    res = engine.results(timeout=0.2)
-                    handle(res)
-                    if not res:
-                        break
-            interrupted = stop.is_set()
-        wall = time.monotonic() - t_start
-        stats = engine.stats()
+        try:
+            server = live.enter_context(
+                serving(serve, engine, lambda fid: recent.get(fid, (None,))[0], cfg.input.color)
+            )
+            with ctrl_c() as stop:
+                if pace == "lockstep":
+                    lockstep(feeds, max_frames, stop, submit, engine, handle, progressed)
+                else:
+                    engine.results(0)  # start the result stream before the first frame
+                    realtime(feeds, max_frames, stop, submit, engine, handle, progressed)
+                    deadline = time.monotonic() + 2.0  # let in-flight frames finish
+                    while time.monotonic() < deadline and not stop.is_set():
+                        res = engine.results(timeout=0.2)
+                        handle(res)
+                        if not res:
+                            break
+                interrupted = stop.is_set()
+            wall = time.monotonic() - t_start
+            stats = engine.stats()
+        finally:
+            for f in feeds:
+                close = getattr(f.frames, "close", None)  # a generator's clean-up (a camera's reader thread)
+                if close is not None:
+                    with contextlib.suppress(ValueError):  # still running in a feed that did not end in time
+                        close()
+            bar.close()
+            writer.close()  # writes what is queued; raises a sink's error
+
+        def model_entry(m: dict[str, Any], results: Mapping[str, Any] | None = None) -> dict[str, Any]:
+            return {
+                "target_hz": m["target_hz"],
+                "achieved_hz": m["runs"] / wall if wall > 0 else 0.0,
+                "runs": m["runs"],
+                "skipped": m["skipped"],
+                "dropped": m["dropped"],
+                "errors": m["errors"],
+                "restarts": m["restarts"],
+                "latency_ms": {"p50": m["latency_ms"]["p50"], "p99": m["latency_ms"]["p99"]},
+                **(results or {}),
+            }
+
+        def head_results(cams: list[str], head: str) -> dict[str, Any]:
+            return {
+                "e2e_latency_ms": _percentiles([x for c in cams for x in latencies[(c, head)]]),
+                "results_received": sum(received[(c, head)] for c in cams),
+            }
+
+        models = {}
+        for name, m in stats["models"].items():
+            extra = None
+            if name in heads:
+                extra = {
+                    **head_results(list(served), name),
+                    "results_missed": stats["results"][name]["missed"],
+                    "results_unwritten": writer.unwritten[name],
+                }
+            models[name] = model_entry(m, extra)
+        submitted = sum(f.submitted for f in feeds)
+        summary = {
+            "config": cfg.name,
+            "source": ", ".join(_describe(s) if c is None else f"{c}={_describe(s)}" for c, s in sources.items()),
+            "pace": pace,
+            "frames_submitted": submitted,
+            "source_missed": sum(getattr(s, "missed", 0) for s in sources.values()),
+            "inputs_skipped": [x for s in sources.values() for x in getattr(s, "skipped", [])],
+            "inputs_partial": [x for s in sources.values() for x in getattr(s, "partial", [])],
+            "interrupted": interrupted,
+            "wall_s": wall,
+            "input_hz": submitted / wall if wall > 0 else 0.0,
+            "mode": cfg.mode,
+            "device": cfg.device,
+            "models": models,
+            "warnings": engine.plan.warnings,
+        }
+        if several:  # each camera's frames and models, from stats()["cameras"] (Note [Cameras] in runtime/worker.py)
+            by_camera = {f.camera: f for f in feeds}
+            summary["cameras"] = {
+                c: {
+                    "source": _describe(by_camera[c].source),
+                    "frames_submitted": by_camera[c].submitted,
+                    "source_missed": getattr(by_camera[c].source, "missed", 0),
+                    "models": {
+                        name: {
+                            **model_entry(
+                                m,
+                                {**head_results([c], name), "results_unwritten": unwritten[(c, name)]}
+                                if name in heads
+                                else None,
+                            ),
+                            "late": m.get("late", 0),
+                            "deferred": m.get("deferred", 0),
+                        }
+                        for name, m in stats["cameras"].get(c, {}).items()
+                    },
+                }
+                for c in served
+            }
+        if out_dir is not None:
+            Path(out_dir).mkdir(parents=True, exist_ok=True)
+            (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+        if ended is not None:
+            ended(summary)
+            if serve is not None and not interrupted:
+                keep_serving(serve, server)
     finally:
-        for f in feeds:
-            close = getattr(f.frames, "close", None)  # a generator's clean-up (a camera's reader thread)
-            if close is not None:
-                with contextlib.suppress(ValueError):  # still running in a feed that did not end in time
-                    close()
-        bar.close()
-        view.close()
-        engine.stop()
-        writer.close()  # writes what is queued; raises a sink's error
-
-    def model_entry(m: dict[str, Any], results: Mapping[str, Any] | None = None) -> dict[str, Any]:
-        return {
-            "target_hz": m["target_hz"],
-            "achieved_hz": m["runs"] / wall if wall > 0 else 0.0,
-            "runs": m["runs"],
-            "skipped": m["skipped"],
-            "dropped": m["dropped"],
-            "errors": m["errors"],
-            "restarts": m["restarts"],
-            "latency_ms": {"p50": m["latency_ms"]["p50"], "p99": m["latency_ms"]["p99"]},
-            **(results or {}),
-        }
-
-    def head_results(cams: list[str], head: str) -> dict[str, Any]:
-        return {
-            "e2e_latency_ms": _percentiles([x for c in cams for x in latencies[(c, head)]]),
-            "results_received": sum(received[(c, head)] for c in cams),
-        }
-
-    models = {}
-    for name, m in stats["models"].items():
-        extra = None
-        if name in heads:
-            extra = {
-                **head_results(list(served), name),
-                "results_missed": stats["results"][name]["missed"],
-                "results_unwritten": writer.unwritten[name],
-            }
-        models[name] = model_entry(m, extra)
-    submitted = sum(f.submitted for f in feeds)
-    summary = {
-        "config": cfg.name,
-        "source": ", ".join(_describe(s) if c is None else f"{c}={_describe(s)}" for c, s in sources.items()),
-        "pace": pace,
-        "frames_submitted": submitted,
-        "source_missed": sum(getattr(s, "missed", 0) for s in sources.values()),
-        "inputs_skipped": [x for s in sources.values() for x in getattr(s, "skipped", [])],
-        "inputs_partial": [x for s in sources.values() for x in getattr(s, "partial", [])],
-        "interrupted": interrupted,
-        "wall_s": wall,
-        "input_hz": submitted / wall if wall > 0 else 0.0,
-        "mode": cfg.mode,
-        "device": cfg.device,
-        "models": models,
-        "warnings": engine.plan.warnings,
-    }
-    if several:  # each camera's frames and models, from stats()["cameras"] (Note [Cameras] in runtime/worker.py)
-        by_camera = {f.camera: f for f in feeds}
-        summary["cameras"] = {
-            c: {
-                "source": _describe(by_camera[c].source),
-                "frames_submitted": by_camera[c].submitted,
-                "source_missed": getattr(by_camera[c].source, "missed", 0),
-                "models": {
-                    name: {
-                        **model_entry(
-                            m,
-                            {**head_results([c], name), "results_unwritten": unwritten[(c, name)]}
-                            if name in heads
-                            else None,
-                        ),
-                        "late": m.get("late", 0),
-                        "deferred": m.get("deferred", 0),
-                    }
-                    for name, m in stats["cameras"].get(c, {}).items()
-                },
-            }
-            for c in served
-        }
-    if out_dir is not None:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+        live.close()
     return summary
 
 
@@ -381,95 +387,6 @@ def _describe(source: Any) -> str:
     return str(getattr(source, "path", type(source).__name__))
 
 
-# Note [Several sources]: with several cameras (``--source NAME=SPEC`` repeated) each source feeds its own camera,
-# on its own timeline: a file's frames are stamped by their position at its own rate, so each camera's rate limits
-# hold on its own clock. Lockstep takes the next frame of every source that still has frames, submits them all and
-# waits until every head has answered each, then takes the next round: nothing is skipped, and a source that ends
-# drops out while the others go on. Realtime feeds each source from a thread of its own at its own rate (a live
-# camera at its own pace, Note [Live capture]), as separate cameras would deliver; the loop collects the results.
-# One source is the same loop with one feed.
-def _lockstep(
-    feeds: list[_Feed],
-    max_frames: int | None,
-    stop: threading.Event,
-    submit: Callable[[_Feed, Any, float | None], int],
-    engine: Any,
-    handle: Callable[[Iterable[Any]], None],
-    progressed: Callable[[int], None],
-) -> None:
-    active = list(feeds)
-    done = 0
-    while active and not stop.is_set():
-        fids = []
-        for feed in list(active):
-            frame = None
-            if max_frames is None or feed.submitted < max_frames:
-                frame = next(feed.frames, None)
-            if frame is None:
-                active.remove(feed)
-                continue
-            stamp = frame.timestamp
-            if stamp is None:  # a file without stamps: its own timeline at its pace
-                stamp = feed.submitted * feed.period
-            fids.append(submit(feed, frame, stamp))
-        for fid in fids:
-            try:
-                handle(engine.wait(fid, timeout=60.0).values())
-            except TimeoutError as e:
-                log.warning("%s", e)
-        done += len(fids)
-        progressed(done)
-
-
-def _realtime(
-    feeds: list[_Feed],
-    max_frames: int | None,
-    stop: threading.Event,
-    submit: Callable[[_Feed, Any, float | None], int],
-    engine: Any,
-    handle: Callable[[Iterable[Any]], None],
-    progressed: Callable[[int], None],
-) -> None:
-    errors: list[BaseException] = []
-
-    def feed_loop(feed: _Feed) -> None:
-        next_t = time.monotonic()
-        try:
-            for frame in feed.frames:
-                if stop.is_set() or (max_frames is not None and feed.submitted >= max_frames):
-                    return
-                if not feed.self_paced:
-                    wait = next_t - time.monotonic()
-                    if wait > 0 and stop.wait(wait):
-                        return
-                    next_t = max(next_t + feed.period, time.monotonic() - feed.period)
-                submit(feed, frame, frame.timestamp)
-        except BaseException as e:
-            errors.append(e)
-            stop.set()  # one failed source ends the run, as it did alone
-
-    threads = [
-        threading.Thread(target=feed_loop, args=(f,), name=f"vpengine-feed-{f.camera or 'camera'}", daemon=True)
-        for f in feeds
-    ]
-    for t in threads:
-        t.start()
-    try:
-        while any(t.is_alive() for t in threads):
-            handle(engine.results(timeout=0.05))
-            progressed(sum(f.submitted for f in feeds))
-    except BaseException:
-        stop.set()  # a second Ctrl-C, a failed writer: the feeds end at their next frame
-        raise
-    finally:
-        for t in threads:
-            t.join(timeout=2.0)
-    handle(engine.results(0))
-    progressed(sum(f.submitted for f in feeds))
-    if errors:
-        raise errors[0]
-
-
 def video_paths(video: str | Path, cameras: Sequence[str] | None) -> dict[str | None, Path]:
     """Where ``--video PATH`` writes: PATH itself for one camera (key None), ``<stem>_<camera><suffix>`` beside it
     for each of several cameras."""
@@ -477,32 +394,6 @@ def video_paths(video: str | Path, cameras: Sequence[str] | None) -> dict[str | 
     if not cameras:
         return {None: p}
     return {c: p.with_name(f"{p.stem}_{c}{p.suffix}") for c in cameras}
-
-
-@contextmanager
-def _ctrl_c() -> Iterator[threading.Event]:
-    """Note [Ctrl-C]: the first Ctrl-C (SIGINT) during a run sets the event; the frame loop ends after the frame in
-    hand, and the engine is stopped, queued outputs are written and the summary is made as after the last frame.
-    It is not raised where it lands: a KeyboardInterrupt inside ``submit`` or ``wait`` could leave the engine's
-    locks held and hang the stop that follows. A second Ctrl-C raises KeyboardInterrupt at once (a source that
-    delivers no frame, a head that never answers). Only the main thread can take signals; elsewhere the event is
-    never set."""
-    stop = threading.Event()
-    if threading.current_thread() is not threading.main_thread():
-        yield stop
-        return
-
-    def on_sigint(signum: int, frame: Any) -> None:
-        if stop.is_set():
-            raise KeyboardInterrupt
-        stop.set()
-        print("\nstopping after this frame (Ctrl-C again to abort)", file=sys.stderr, flush=True)
-
-    previous = signal.signal(signal.SIGINT, on_sigint)
-    try:
-        yield stop
-    finally:
-        signal.signal(signal.SIGINT, previous)
 
 
 def _json_default(o: Any) -> Any:
@@ -657,6 +548,17 @@ def main(args: argparse.Namespace) -> int:
                 )
 
             factories.append(bag_sink)
+
+        def report(summary: dict[str, Any]) -> None:
+            print(format_summary(summary))
+            if args.out:
+                print(f"outputs and summary.json in {args.out}")
+            for path in videos.values():
+                print(f"annotated video in {path}")
+            if args.out_bag:
+                print(f"outputs recorded to bag {args.out_bag}")
+            sys.stdout.flush()  # before a wait in the live view (Note [Serving on])
+
         summary = run_pipeline(
             cfg,
             sources if cameras else sources[None],
@@ -671,14 +573,8 @@ def main(args: argparse.Namespace) -> int:
             depth_format=args.depth_format,
             video=args.video,
             serve=serve,
+            ended=report,
         )
-    print(format_summary(summary))
-    if args.out:
-        print(f"outputs and summary.json in {args.out}")
-    for path in videos.values():
-        print(f"annotated video in {path}")
-    if args.out_bag:
-        print(f"outputs recorded to bag {args.out_bag}")
     return 130 if summary["interrupted"] else 0
 
 

@@ -5,16 +5,20 @@ runs an engine.
 
     add_serve_arguments(parser)                      # --serve, --serve-token, --foxglove
     ...
-    with serving(serve_options(args), engine, frames=lookup):
+    with serving(options := serve_options(args), engine, frames=lookup) as server:
         ...                                          # the engine runs; the view answers at the printed address
+        keep_serving(options, server)                # a run that ended: its last state until Ctrl-C (Note [Serving on])
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import os
+import signal
 import sys
+import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from typing import Any
@@ -67,11 +71,14 @@ def add_serve_arguments(p: argparse.ArgumentParser) -> None:
 
 def serve_options(args: argparse.Namespace) -> ServeOptions | None:
     """What ``--serve``, ``--serve-token`` and ``--foxglove`` ask for (None: no view); ValueError for a bad
-    address, or a non-loopback one without a token."""
+    address, or a non-loopback one without a token; ModuleNotFoundError (which ``vpengine``'s ``EXTRAS`` turns into
+    the extra to install) when the view's dependency is missing."""
     web = parse_address(args.serve) if getattr(args, "serve", None) else None
     fox = parse_address(args.foxglove, "--foxglove") if getattr(args, "foxglove", None) else None
     if web is None and fox is None:
         return None
+    if web is not None:
+        _require("prometheus_client")  # before the engine starts, not after a wait for it
     from vpengine.web.server import is_loopback
 
     token = args.serve_token or os.environ.get(TOKEN_ENV) or None
@@ -120,10 +127,55 @@ def serving(
         yield server
 
 
+def _require(module: str) -> None:
+    """ModuleNotFoundError naming ``module`` when it cannot be imported, for ``vpengine``'s table of extras."""
+    try:
+        found = importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # an import hook that refuses it, a module that failed half-way
+        found = False
+    if not found:
+        raise ModuleNotFoundError(f"No module named {module!r}", name=module)
+
+
 def _start(flag: str, address: tuple[str, int], make: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
     try:
         return make(*args, **kwargs)
+    except ModuleNotFoundError:
+        raise  # its name finds the extra in vpengine's table (cli/main.py's EXTRAS); its text alone names none
     except ImportError as e:
         raise RuntimeError(f"{flag}: {e}") from None
     except OSError as e:
         raise RuntimeError(f"{flag} {address[0]}:{address[1]}: cannot listen there ({e})") from None
+
+
+# Note [Serving on]: a run over a file, a folder, a bag or a counted synthetic scene ends in seconds, often before
+# anyone could open its live view. So once such a run has ended on its own (not by Ctrl-C), its summary printed and
+# its files written, the view stays up on the engine, now idle: the page, /api/stats and /metrics show the run's
+# counters and each head's last picture, until Ctrl-C or SIGTERM (either ends the wait; the run's exit status is
+# unchanged). The engine is kept rather than a snapshot of it, so every route answers as during the run (the
+# achieved rates fall to 0, truthfully: nothing runs; rates can still be set, with nothing left to run).
+def keep_serving(options: ServeOptions, server: Any) -> None:
+    """After a run that ended on its own: say so, then keep the view (``server``, :func:`serving`'s) up until
+    SIGINT or SIGTERM (Note [Serving on]). Returns at once off the main thread, where no signal can end the wait."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    views = [f"live view stays at {server.url}"] if server is not None else []
+    if options.foxglove is not None:
+        views.append("Foxglove view stays up")  # its address was printed when it started
+    done = threading.Event()
+
+    def on_signal(signum: int, frame: Any) -> None:
+        done.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        print(
+            f"vpengine: the run has ended; its {' and its '.join(views)} until Ctrl-C",
+            file=sys.stderr,
+            flush=True,
+        )
+        while not done.wait(0.5):  # a timed wait: signal handlers run between waits on every platform
+            pass
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)

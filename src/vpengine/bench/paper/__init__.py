@@ -27,7 +27,7 @@ EXPERIMENTS = ("E1", "E2", "E3", "E4", "E5", "floor")
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--config",
-        default="configs/bench.yaml",
+        default="bench",
         help="engine config whose heads named depth, seg and det are the templates (default: %(default)s)",
     )
     add_overrides_argument(p, "mode=thread", "a field of the engine config")
@@ -131,5 +131,5 @@ def main(args: argparse.Namespace) -> int:
             res[key]["seconds"] = time.monotonic() - t
             # after every experiment: a crash keeps what was measured
             path = write_results(args.out, name, res)
-    log(f"-> {path}; figures and tables: vpengine bench report --results {path.parent}")
+    log(f"-> {path}; figures and tables: vpengine bench report --results {path.parent} --out {path.parent}")
     return 0

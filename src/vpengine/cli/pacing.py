@@ -1,0 +1,144 @@
+"""How ``vpengine run`` feeds its sources to the engine: lockstep or realtime pacing, one feed per camera, and
+what Ctrl-C does to a run (Notes [Several sources] and [Ctrl-C]).
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any
+
+log = logging.getLogger("vpengine.run")
+
+
+@dataclass
+class Feed:
+    """One camera's source in the frame loop (Note [Several sources])."""
+
+    camera: str | None  # None: the engine's one camera, unnamed
+    source: Any
+    period: float  # its pace and the spacing of its stamps when its frames have none
+    self_paced: bool  # a live camera without --fps: it delivers at its own rate (Note [Live capture])
+    frames: Iterator[Any]
+    submitted: int = 0
+
+
+# Note [Several sources]: with several cameras (``--source NAME=SPEC`` repeated) each source feeds its own camera,
+# on its own timeline: a file's frames are stamped by their position at its own rate, so each camera's rate limits
+# hold on its own clock. Lockstep takes the next frame of every source that still has frames, submits them all and
+# waits until every head has answered each, then takes the next round: nothing is skipped, and a source that ends
+# drops out while the others go on. Realtime feeds each source from a thread of its own at its own rate (a live
+# camera at its own pace, Note [Live capture]), as separate cameras would deliver; the loop collects the results.
+# One source is the same loop with one feed.
+def lockstep(
+    feeds: list[Feed],
+    max_frames: int | None,
+    stop: threading.Event,
+    submit: Callable[[Feed, Any, float | None], int],
+    engine: Any,
+    handle: Callable[[Iterable[Any]], None],
+    progressed: Callable[[int], None],
+) -> None:
+    active = list(feeds)
+    done = 0
+    while active and not stop.is_set():
+        fids = []
+        for feed in list(active):
+            frame = None
+            if max_frames is None or feed.submitted < max_frames:
+                frame = next(feed.frames, None)
+            if frame is None:
+                active.remove(feed)
+                continue
+            stamp = frame.timestamp
+            if stamp is None:  # a file without stamps: its own timeline at its pace
+                stamp = feed.submitted * feed.period
+            fids.append(submit(feed, frame, stamp))
+        for fid in fids:
+            try:
+                handle(engine.wait(fid, timeout=60.0).values())
+            except TimeoutError as e:
+                log.warning("%s", e)
+        done += len(fids)
+        progressed(done)
+
+
+def realtime(
+    feeds: list[Feed],
+    max_frames: int | None,
+    stop: threading.Event,
+    submit: Callable[[Feed, Any, float | None], int],
+    engine: Any,
+    handle: Callable[[Iterable[Any]], None],
+    progressed: Callable[[int], None],
+) -> None:
+    errors: list[BaseException] = []
+
+    def feed_loop(feed: Feed) -> None:
+        next_t = time.monotonic()
+        try:
+            for frame in feed.frames:
+                if stop.is_set() or (max_frames is not None and feed.submitted >= max_frames):
+                    return
+                if not feed.self_paced:
+                    wait = next_t - time.monotonic()
+                    if wait > 0 and stop.wait(wait):
+                        return
+                    next_t = max(next_t + feed.period, time.monotonic() - feed.period)
+                submit(feed, frame, frame.timestamp)
+        except BaseException as e:
+            errors.append(e)
+            stop.set()  # one failed source ends the run, as it did alone
+
+    threads = [
+        threading.Thread(target=feed_loop, args=(f,), name=f"vpengine-feed-{f.camera or 'camera'}", daemon=True)
+        for f in feeds
+    ]
+    for t in threads:
+        t.start()
+    try:
+        while any(t.is_alive() for t in threads):
+            handle(engine.results(timeout=0.05))
+            progressed(sum(f.submitted for f in feeds))
+    except BaseException:
+        stop.set()  # a second Ctrl-C, a failed writer: the feeds end at their next frame
+        raise
+    finally:
+        for t in threads:
+            t.join(timeout=2.0)
+    handle(engine.results(0))
+    progressed(sum(f.submitted for f in feeds))
+    if errors:
+        raise errors[0]
+
+
+@contextmanager
+def ctrl_c() -> Iterator[threading.Event]:
+    """Note [Ctrl-C]: the first Ctrl-C (SIGINT) during a run sets the event; the frame loop ends after the frame in
+    hand, and the engine is stopped, queued outputs are written and the summary is made as after the last frame.
+    It is not raised where it lands: a KeyboardInterrupt inside ``submit`` or ``wait`` could leave the engine's
+    locks held and hang the stop that follows. A second Ctrl-C raises KeyboardInterrupt at once (a source that
+    delivers no frame, a head that never answers). Only the main thread can take signals; elsewhere the event is
+    never set."""
+    stop = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        if stop.is_set():
+            raise KeyboardInterrupt
+        stop.set()
+        print("\nstopping after this frame (Ctrl-C again to abort)", file=sys.stderr, flush=True)
+
+    previous = signal.signal(signal.SIGINT, on_sigint)
+    try:
+        yield stop
+    finally:
+        signal.signal(signal.SIGINT, previous)

@@ -140,19 +140,26 @@ def test_the_view_of_a_finished_run_answers_until_ctrl_c(tmp_path):
         get(url + "api/stats")
 
 
-def test_predict_serves_the_view_too(tmp_path):
+def test_predict_serves_the_view_too_and_keeps_it_after_the_last_picture(tmp_path):
     proc = start(
-        "predict", "synthetic:160x120@30:600", "-o", str(tmp_path / "pred"), "--no-progress", "--mode", "thread",
+        "predict", "synthetic:160x120@30:20", "-o", str(tmp_path / "pred"), "--no-progress", "--mode", "thread",
         "--serve", "0",
     )  # fmt: skip
     try:
         url = view_url(proc)
         stats = json.loads(eventually(lambda: (s := get(url + "api/stats"))[0] == 200 and s[2], 60, "stats"))
         assert set(stats["models"]) == {"foundation", "depth", "seg", "det"}
-        eventually(lambda: get(url + "api/latest/depth.jpg")[0] == 200, 30, "a depth picture")
-    finally:
+        summary = summary_lines(proc)  # printed when the run ends, before the wait
+        assert any(line.startswith("20 frames in ") for line in summary), summary
+        assert ended_line(proc) == url  # the run is over; its view stays (Note [Serving on])
+        assert get(url + "api/latest/depth.jpg")[0] == 200
+        assert len(list((tmp_path / "pred").glob("*.jpg"))) == 20
         proc.send_signal(signal.SIGINT)
-        proc.communicate(timeout=120)
+        _out, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert proc.returncode == 0, err
 
 
 def test_serving_beyond_loopback_needs_a_token_and_then_every_request_carries_it():

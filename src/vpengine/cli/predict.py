@@ -98,6 +98,10 @@ def main(args: argparse.Namespace) -> int:
             # several cameras: one folder of pictures each, out/<camera>/
             return per_camera(served, heads, lambda camera, infos: AnnotatedSink(infos, pictures=out / (camera or "")))
 
+        def report(summary: dict[str, Any]) -> None:  # before a --serve view stays up (Note [Serving on])
+            print(format_summary(summary))
+            print(f"annotated pictures and summary.json in {out}", flush=True)
+
         summary = run_pipeline(
             cfg,
             sources if cameras else sources[None],
@@ -108,7 +112,6 @@ def main(args: argparse.Namespace) -> int:
             sink_factories=[pictures],
             folder=False,
             serve=serve,
+            ended=report,
         )
-    print(format_summary(summary))
-    print(f"annotated pictures and summary.json in {out}")
     return 130 if summary["interrupted"] else 0

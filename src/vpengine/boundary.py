@@ -29,8 +29,8 @@ what lay wholly in the band comes out with zero width or height (on a 300x1 fram
 detection names no pixel of the frame, so :func:`drop_empty_boxes` drops it together with its row of every output
 of the same length (scores, labels), and lowers ``count``. A fixed-capacity head keeps its shapes: the kept rows
 move to the front, in their order, and the rows past the new count hold 0 (integers: -1), the detection heads'
-padding. Boxes the head keeps in the canvas grid (``output.grid: native``) and boxes of a frame of the canvas's size
-are not mapped and pass as the head made them.
+padding. The same holds for boxes that are not mapped (a frame of the canvas's size, a head that keeps the canvas
+grid with ``output.grid: native``) and for borrowed results: no result has a zero-area box.
 """
 
 from __future__ import annotations
@@ -165,8 +165,9 @@ def _resize_tensor(region: torch.Tensor, size: tuple[int, int], labels: bool, sh
 
 def drop_empty_boxes(outputs: dict[str, Any], kinds: dict[str, GridKind]) -> dict[str, Any]:
     """``outputs`` (mapped to a frame) without the detections whose box has zero width or height (Note [Empty
-    boxes]); unchanged when none has or the head has no one ``[M, 4]`` boxes output. Numpy arrays or tensors; with
-    tensors it all stays on their device (no sync), a fixed-capacity head's shapes kept."""
+    boxes]); unchanged when none has or the head has no one ``[M, 4]`` boxes output. Numpy arrays or tensors. A
+    fixed-capacity head (one with a ``count``) keeps its shapes, and its tensors stay on their device without a
+    sync; without a count the rows kept are picked by a boolean mask, which waits for the device."""
     keys = [k for k, kind in kinds.items() if kind == "boxes" and k in outputs]
     if len(keys) != 1:
         return outputs

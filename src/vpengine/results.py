@@ -406,12 +406,14 @@ class Outbox:
                     outputs[k] = change.to_frame(kinds[k], v)
                 else:
                     outputs[k] = self._host_outputs.copy(head, k, v) if isinstance(v, np.ndarray) else t.clone()
-            outputs = drop_empty_boxes(outputs, kinds)  # Note [Empty boxes] in boundary.py
         else:
             outputs = {
                 k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()
                 for k, t in slot.tensors.items()
             }
+        # Note [Empty boxes] in boundary.py: in every grid and every way of handing out (a borrowed result's box rows
+        # become copies only when one is dropped)
+        outputs = drop_empty_boxes(outputs, self.boundary.kinds[head])
         if all(isinstance(v, np.ndarray) for v in outputs.values()):
             outputs = self.heads[head].finalize(outputs)
         p = self.placements[slot.origin]

@@ -76,3 +76,21 @@ def test_predict_draws_odd_frames(folder, tmp_path):
     assert cli(["predict", "-c", "tiny", "--mode", "thread", str(folder), "-o", str(out), "--no-progress"]) == 0
     assert sorted(p.name for p in out.glob("*.jpg")) == sorted(f"{h}x{w}.jpg" for h, w in SHAPES)
     assert (out / "summary.json").is_file()
+
+
+@pytest.mark.parametrize(
+    ("grid", "hw", "copy"),
+    [("frame", (120, 160), True), ("native", (90, 200), True), ("frame", (120, 160), False)],
+    ids=["frame-of-canvas-size", "native-grid", "borrowed"],
+)
+def test_a_heads_own_empty_box_is_never_returned(grid, hw, copy):
+    """Note [Empty boxes]: boxes that are not mapped (a frame of the canvas's size, the native grid, a borrowed
+    result) lose their empty ones too; only the real box is left, in its row, with the count lowered."""
+    cfg = tiny("thread", "heads.det.model=helpers.models:EdgeBoxesDet", f"heads.det.output.grid={grid}")
+    with Engine(cfg) as e:
+        fid = e.submit(image(hw))
+        det = e.wait(fid, heads=["det"], timeout=30, copy=copy)["det"]
+        assert det.grid == grid
+        assert det["count"] == 1 and len(det["boxes"]) == 1 and det["labels"].tolist() == [2], det.outputs
+        if grid == "native" or hw == (120, 160):
+            assert det["boxes"].tolist() == [[20.0, 10.0, 60.0, 50.0]]

@@ -37,3 +37,10 @@ def test_a_nested_subcommand_takes_v_after_it(capsys, monkeypatch):
     monkeypatch.setattr(cli_main.logging, "basicConfig", lambda level, **kw: seen.append(level))
     assert cli_main.main(["config", "list", "-vv"]) == 0
     assert seen == [cli_main.logging.DEBUG] and "tiny" in capsys.readouterr().out
+
+
+def test_an_abbreviated_verbose_before_the_subcommand_still_counts(monkeypatch):
+    seen = []
+    monkeypatch.setattr(cli_main.logging, "basicConfig", lambda level, **kw: seen.append(level))
+    assert cli_main.main(["--verb", "config", "list", "-v"]) == 0
+    assert seen == [cli_main.logging.DEBUG]

@@ -77,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     argv, verbose = _take_verbose(sys.argv[1:] if argv is None else list(argv))
     args = parser.parse_args(argv)
-    args.verbose = verbose
+    args.verbose += verbose  # what argparse saw as well (an abbreviation such as --verb before the subcommand)
     if not getattr(args, "_module", None):
         parser.print_help()
         return 2

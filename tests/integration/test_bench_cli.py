@@ -184,3 +184,14 @@ def test_run_street_viz_runs_from_a_clone_on_the_shipped_sample_into_a_folder_of
     assert f"results in {out.name}/run_street_viz_cpu.json" in p.stdout
     now = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
     assert now == tracked
+
+
+def test_resources_reports_how_long_each_engine_took_to_start(tmp_path):
+    p = vpengine(
+        "bench", "resources", "--config", "tiny", "--heads", "1", "--modes", "thread", "--seconds", "0.2",
+        "--device", "cpu", "--height", "120", "--width", "160", "--out", str(tmp_path), timeout=300,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    (row,) = json.loads((tmp_path / "resources_gpu.json").read_text())["rows"]
+    assert row["mode"] == "thread" and row["heads"] == 1 and 0 < row["start_s"] < 300
+    assert f"started in {row['start_s']:.1f} s" in p.stdout

@@ -1,4 +1,5 @@
-"""Resources on a GPU: device memory per extra head (process and thread mode) and CPU use, idle and at 30 Hz.
+"""Resources on a GPU: start time, device memory per extra head (process and thread mode) and CPU use, idle and at
+30 Hz.
 
 Device memory is what the driver reports (NVML: every process of the engine, CUDA contexts and our VMM mailboxes
 included), measured as the increase over the GPU's usage before the engine started. CPU is the sum over the engine's
@@ -62,7 +63,11 @@ def measure(
     before = device_memory_used(0)
     frames = [np.random.default_rng(i).integers(0, 255, (h, w, 3), dtype=np.uint8) for i in range(4)]
     out: dict[str, Any] = {"mode": mode, "heads": n_heads}
-    with Engine(_config(config, n_heads, mode, h, w, overrides)) as e:
+    engine = Engine(_config(config, n_heads, mode, h, w, overrides))
+    t0 = time.monotonic()
+    engine.start()  # every worker built, warmed up and serving: what a user waits for
+    out["start_s"] = time.monotonic() - t0
+    with engine as e:
         for i in range(30):
             e.wait(e.submit(frames[i % 4]), timeout=30)
         time.sleep(0.5)
@@ -173,7 +178,7 @@ def main(args: argparse.Namespace) -> int:
                 )
             )
             mem = "n/a" if r["device_mem_mb"] is None else f"+{r['device_mem_mb']:.0f} MB"
-            print(f"{mode:8s} heads={n}: device memory {mem}{extra}", flush=True)
+            print(f"{mode:8s} heads={n}: started in {r['start_s']:.1f} s, device memory {mem}{extra}", flush=True)
     summary = {}
     for mode in args.modes.split(","):
         pts = [(r["heads"], r["device_mem_mb"]) for r in rows if r["mode"] == mode and r["device_mem_mb"] is not None]

@@ -156,3 +156,121 @@ def test_a_stream_that_opens_but_gives_no_frame_says_so(capfd):
     with FileServer(Path(SAMPLES), ranges=False) as server:  # the sample's index is at its end: out of reach
         msg = refusal(server.url + "street.mp4", capfd)
     assert msg.startswith(f"stream '{server.url}street.mp4' opened but gave no frame")
+
+
+# ------------------------------------------------------------------------------------- secrets (Note [Redacting])
+SECRETS = ("p@ss", "hunter2", "tok3n")
+
+
+def with_secrets(url: str) -> str:
+    """``url`` (http://127.0.0.1:PORT/PATH) with a password holding an '@' and a token in its query."""
+    return url.replace("http://", "http://admin:p@ss@", 1) + "?user=admin&token=tok3n"
+
+
+def test_a_stream_with_credentials_keeps_them_out_of_its_refusal_its_warnings_and_its_debug_log(capfd, caplog):
+    caplog.set_level("DEBUG", logger="vpengine.sources")
+    msg = refusal(with_secrets(f"http://127.0.0.1:{closed_port()}/live"), capfd)
+    assert msg.startswith("cannot open stream 'http://admin:***@127.0.0.1:") and msg.endswith(
+        "/live?user=admin&token=***': Connection refused"
+    )
+    with MjpegCamera(close_after=4) as cam, open_source(with_secrets(cam.url)) as src:
+        assert src.what == f"stream 'http://admin:***@127.0.0.1:{cam.port}/cam?user=admin&token=***'"
+        list(src)
+    assert f"{src.what} ended after " in caplog.text
+    assert not [s for s in SECRETS if s in msg + caplog.text]
+
+
+def test_the_run_summary_names_a_stream_without_its_password(tmp_path):
+    from tests_paths import tiny
+    from vpengine.cli.run import run_pipeline
+
+    with MjpegCamera(width=64, height=48, fps=30) as cam, open_source(with_secrets(cam.url)) as src:
+        summary = run_pipeline(tiny("thread"), src, out_dir=tmp_path, max_frames=2, progress=False, folder=False)
+    written = (tmp_path / "summary.json").read_text()
+    assert summary["source"] == f"http://admin:***@127.0.0.1:{cam.port}/cam?user=admin&token=***"
+    assert summary["source"] in written and not [s for s in SECRETS if s in written]
+
+
+# what OpenCV 4.5 writes to descriptor 2 when its GStreamer backend is given parameters, and for a missing element
+BAILOUT = (
+    b"[ERROR:0] global cap_gstreamer.cpp (1234) open VIDEOIO/GStreamer: unsupported parameters in .open(), "
+    b"see logger INFO channel for details. Bailout\n"
+)
+NO_ELEMENT = (
+    b"[ WARN:0] global /build/cap_gstreamer.cpp (711) open OpenCV | GStreamer warning: "
+    b'Error opening bin: no element "nosuchsrc"\n'
+    b"[ WARN:0] global /build/cap_gstreamer.cpp (480) isPipelinePlaying OpenCV | GStreamer warning: GStreamer: "
+    b"pipeline have not been created\n"
+)
+
+
+class OldOpenCV:
+    """cv2 as an OpenCV whose GStreamer backend takes no timeouts (before 4.7; Ubuntu's, JetPack 5's): an open with
+    parameters is refused, as OpenCV does, with its ERROR line on descriptor 2 (``how='bailout'``), or raises
+    TypeError (``how='no overload'``: before 4.5.2). Without parameters a pipeline opens, unless it names an element
+    GStreamer does not have."""
+
+    CAP_GSTREAMER, CAP_FFMPEG, CAP_PROP_POS_MSEC = 1800, 1900, 0
+    CAP_PROP_OPEN_TIMEOUT_MSEC, CAP_PROP_READ_TIMEOUT_MSEC = 53, 54
+    __version__ = "4.5.4"
+    error = RuntimeError
+
+    def __init__(self, how: str) -> None:
+        self.opened: list[tuple[str, list[int] | None]] = []
+        self.videoio_registry = self
+
+        fake = self
+
+        class Capture:
+            def __init__(self, target: str, api: int, params: list[int] | None = None) -> None:
+                fake.opened.append((target, params))
+                self.ok = True
+                if params is not None:
+                    if how == "no overload":
+                        raise TypeError("VideoCapture() takes at most 2 arguments (3 given)")
+                    os.write(2, BAILOUT)
+                    self.ok = False
+                elif "nosuchsrc" in target:
+                    os.write(2, NO_ELEMENT)
+                    self.ok = False
+
+            def isOpened(self) -> bool:
+                return self.ok
+
+            def read(self):
+                import numpy as np
+
+                return True, np.zeros((4, 6, 3), np.uint8)
+
+            def get(self, prop: int) -> float:
+                return 0.0
+
+            def release(self) -> None:
+                pass
+
+        self.VideoCapture = Capture
+
+    def hasBackend(self, api: int) -> bool:
+        return True
+
+
+@pytest.mark.parametrize("how", ["bailout", "no overload"])
+def test_a_pipeline_on_an_opencv_whose_gstreamer_takes_no_timeouts_opens_without_them(how, monkeypatch, capfd, caplog):
+    cv2 = OldOpenCV(how)
+    monkeypatch.setattr(live, "_cv2", lambda: cv2)
+    caplog.set_level("DEBUG", logger="vpengine.sources")
+    capfd.readouterr()
+    o = live.open_live("gst:videotestsrc ! videoconvert ! appsink")
+    assert [p is None for _, p in cv2.opened] == [False, True]  # with the timeouts, then once without
+    assert o.read_timeout is None and o.image.shape == (4, 6, 3)  # reads wait as long as GStreamer does
+    assert "opened without timeouts" in caplog.text and "its reads have no timeout" in caplog.text
+    assert capfd.readouterr() == ("", "")
+
+
+def test_a_pipeline_an_old_opencv_refuses_says_gstreamers_reason_without_secrets(monkeypatch, capfd):
+    monkeypatch.setattr(live, "_cv2", lambda: OldOpenCV("bailout"))
+    msg = refusal("nosuchsrc location=rtsp://admin:p@ss@cam/h264 user-pw=hunter2 ! appsink", capfd)
+    assert msg == (
+        "cannot open GStreamer pipeline 'nosuchsrc location=rtsp://admin:***@cam/h264 user-pw=*** ! appsink': "
+        'Error opening bin: no element "nosuchsrc"'
+    )

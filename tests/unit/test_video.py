@@ -5,6 +5,7 @@ id), not from a tool."""
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -92,3 +93,34 @@ def test_a_video_of_odd_size_is_refused_by_the_writer_itself(tmp_path):
     with pytest.raises(ValueError, match="video size must be even numbers of pixels .*, got 81x60"):
         video.VideoWriter(tmp_path / "v.mp4", 10, (81, 60))
     assert video.even_size(81, 59) == (82, 60) and video.even_size(2, 2) == (2, 2)
+
+
+def test_opencvs_h264_is_probed_once_per_process_not_per_file(tmp_path, monkeypatch):
+    # each borrowing of stderr (Note [Borrowing stderr]) swallows other threads' stderr too: once, not per video
+    monkeypatch.setitem(sys.modules, "av", None)  # PyAV not installed: OpenCV writes
+    monkeypatch.setattr(video, "_avc1", None, raising=False)  # not probed yet in this process
+    borrowed = []
+    real_dup2 = os.dup2
+
+    def dup2(fd: int, fd2: int, inheritable: bool = True) -> int:
+        if fd2 == 2:
+            borrowed.append(fd)
+        return real_dup2(fd, fd2, inheritable)
+
+    monkeypatch.setattr(os, "dup2", dup2)
+    for name in ("a.mp4", "b.mp4", "c.mp4"):
+        write_frames(tmp_path / name, (60, 80))
+    assert len(borrowed) == 2  # to a file and back, once
+    assert all(mp4_codec(tmp_path / n) in ("avc1", "mp4v") for n in ("a.mp4", "b.mp4", "c.mp4"))
+
+
+def test_a_video_is_written_by_a_process_without_a_stderr(tmp_path, monkeypatch):
+    monkeypatch.setitem(sys.modules, "av", None)
+    monkeypatch.setattr(video, "_avc1", None, raising=False)
+
+    def no_stderr(fd: int) -> int:
+        raise OSError(9, "Bad file descriptor")
+
+    monkeypatch.setattr(os, "dup", no_stderr)
+    write_frames(tmp_path / "v.mp4", (60, 80))
+    assert len(read_back(tmp_path / "v.mp4")) == 3

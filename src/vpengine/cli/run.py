@@ -48,6 +48,7 @@ from vpengine.cli import (
 )
 from vpengine.cli.pacing import Feed, ctrl_c, lockstep, realtime
 from vpengine.cli.serve import ServeOptions, add_serve_arguments, keep_serving, serve_options, serving
+from vpengine.redact import redact
 
 log = logging.getLogger("vpengine.run")
 
@@ -384,7 +385,8 @@ def _live(source: Any) -> bool:
 
 
 def _describe(source: Any) -> str:
-    return str(getattr(source, "path", type(source).__name__))
+    """How the summary names ``source``: its path or URL without a password (Note [Redacting] in vpengine/redact.py)."""
+    return redact(str(getattr(source, "path", type(source).__name__)))
 
 
 def video_paths(video: str | Path, cameras: Sequence[str] | None) -> dict[str | None, Path]:

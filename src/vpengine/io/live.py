@@ -4,7 +4,8 @@ FFmpeg) and GStreamer pipelines (``gst:PIPELINE``, or a pipeline that ends in ``
 
 Opening checks what can be checked before OpenCV is asked (the device file, the backend), then opens with a timeout
 and reads one frame, so a source that cannot work is refused before the engine starts, in one line that names what
-failed and why. :func:`vpengine.io.sources.open_source` then reads the frames with a ``VideoSource``, on its
+failed and why, with any password in it masked (Note [Redacting] in vpengine/redact.py).
+:func:`vpengine.io.sources.open_source` then reads the frames with a ``VideoSource``, on its
 capture thread, newest frame wins (Note [Live capture]). A network stream that has a length (a video file on a web
 server) is read as a file: every frame, on the video's own timeline.
 """
@@ -18,7 +19,6 @@ import os
 import re
 import stat
 import sys
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -26,6 +26,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from vpengine.io.stderr import captured_stderr
+from vpengine.redact import redact
 
 log = logging.getLogger("vpengine.sources")
 
@@ -71,7 +74,13 @@ def open_live(spec: str, timeout: float | None = None) -> Opened:
     """The capture of a live spec (:func:`is_live`), opened and checked: it has delivered one frame. ``timeout``:
     seconds a stream may take to open and each frame to come (default :data:`TIMEOUT_S`). ValueError, one line,
     naming what failed and why, when it cannot be read. Any other spec is taken as a device path."""
-    timeout = TIMEOUT_S if timeout is None else timeout
+    try:
+        return _open_live(spec, TIMEOUT_S if timeout is None else timeout)
+    except ValueError as e:  # whatever the message quotes (the spec, OpenCV's words) goes out without its secrets
+        raise ValueError(redact(str(e))) from None
+
+
+def _open_live(spec: str, timeout: float) -> Opened:
     if spec.startswith("camera:"):
         index = spec.split(":", 1)[1]
         if not index.isdigit():
@@ -150,7 +159,7 @@ def _char_device(path: Path) -> bool:
 
 # --------------------------------------------------------------------------------------------- streams, pipelines
 def _open_stream(url: str, timeout: float) -> Opened:
-    what = f"stream {_redacted(url)!r}"
+    what = f"stream {redact(url)!r}"
     cv2 = _cv2()
     if not _has_backend(cv2, "CAP_FFMPEG"):
         raise ValueError(
@@ -158,14 +167,14 @@ def _open_stream(url: str, timeout: float) -> Opened:
             "one), or read it with a gst: pipeline"
         )
     why = "no video there (refused, not found, or not a format FFmpeg reads)"
-    cap = _open_timed(url, cv2.CAP_FFMPEG, what, timeout, why)
+    cap, read_timeout = _open_timed(url, cv2.CAP_FFMPEG, what, timeout, why)
     frames = cap.get(cv2.CAP_PROP_FRAME_COUNT)
     remote_file = math.isfinite(frames) and frames > 0  # a live stream has no length
-    return _probed(cap, url, what, live=not remote_file, read_timeout=timeout)
+    return _probed(cap, url, what, live=not remote_file, read_timeout=read_timeout)
 
 
 def _open_pipeline(pipeline: str, timeout: float) -> Opened:
-    what = f"GStreamer pipeline {pipeline!r}"
+    what = f"GStreamer pipeline {redact(pipeline)!r}"
     cv2 = _cv2()
     if not _has_backend(cv2, "CAP_GSTREAMER"):
         raise ValueError(
@@ -173,31 +182,47 @@ def _open_pipeline(pipeline: str, timeout: float) -> Opened:
             "GStreamer (e.g. the system's python3-opencv), or give the stream's URL or device instead"
         )
     why = "GStreamer refused it (does it end in appsink? try it with gst-launch-1.0)"
-    return _probed(_open_timed(pipeline, cv2.CAP_GSTREAMER, what, timeout, why), pipeline, what, read_timeout=timeout)
+    cap, read_timeout = _open_timed(pipeline, cv2.CAP_GSTREAMER, what, timeout, why)
+    return _probed(cap, pipeline, what, read_timeout=read_timeout)
 
 
-def _open_timed(target: str, api: int, what: str, timeout: float, refused: str) -> Any:
-    """A capture of ``target`` through backend ``api`` (FFmpeg and GStreamer honour both timeouts), opened within
-    ``timeout`` s; ValueError naming why not (FFmpeg's last error, else ``refused``)."""
+def _open_timed(target: str, api: int, what: str, timeout: float, refused: str) -> tuple[Any, float | None]:
+    """(a capture of ``target`` through backend ``api``, opened within ``timeout`` s; the read timeout it has, None
+    for none: Note [Timeouts on older OpenCV]); ValueError naming why not (what OpenCV or FFmpeg said, else
+    ``refused``).
+
+    Note [Timeouts on older OpenCV]: FFmpeg's backend honours the open and read timeouts since OpenCV 4.5.2 (the
+    properties came with it), GStreamer's only since 4.7, and Ubuntu's and JetPack 5's OpenCV are older. A backend
+    that does not know a parameter refuses the whole open ("unsupported parameters in .open() ... Bailout"), so a
+    quick refusal is tried once more without the timeouts, unless FFmpeg got as far as saying why it failed (then
+    it took them). Opened that way, a read waits as long as the backend
+    does: a stream that stops may hang the run instead of ending its source."""
     cv2 = _cv2()
     ms = int(timeout * 1000)
-    params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms]
-    t0 = time.monotonic()
-    cap, said = _attempt(lambda cv2: cv2.VideoCapture(target, api, params))
-    if cap is None:
+    keys = getattr(cv2, "CAP_PROP_OPEN_TIMEOUT_MSEC", None), getattr(cv2, "CAP_PROP_READ_TIMEOUT_MSEC", None)
+    said: list[str] = []
+    if None not in keys:
+        t0 = time.monotonic()
+        cap, said = _attempt(lambda cv2: cv2.VideoCapture(target, api, [keys[0], ms, keys[1], ms]))
+        if cap is not None:
+            return cap, timeout
         if time.monotonic() - t0 >= 0.9 * timeout:
             raise ValueError(f"cannot open {what}: it did not answer within {timeout:g} s")
+        if _ffmpeg_error(said):
+            raise ValueError(f"cannot open {what}: {_because(said)}")
+    cap, said = _attempt(lambda cv2: cv2.VideoCapture(target, api))
+    if cap is None:  # the first refusal's words may be only about the parameters: this one's are the reason
         raise ValueError(f"cannot open {what}: {_because(said) or refused}")
-    return cap
+    log.debug(
+        "%s: opened without timeouts, which this OpenCV (%s) does not take there; its reads have no timeout",
+        what,
+        _opencv(),
+    )
+    return cap, None
 
 
 def _bare_pipeline(spec: str) -> bool:
     return "!" in spec and spec.rstrip().split("!")[-1].split()[0:1] == ["appsink"]
-
-
-def _redacted(url: str) -> str:
-    """``url`` without a password (``rtsp://user:***@host/...``): it goes into messages and logs."""
-    return re.sub(r"^([A-Za-z][A-Za-z0-9+.-]*://[^/@:]*):[^/@]*@", r"\1:***@", url)
 
 
 # ------------------------------------------------------------------------------------------------ opening, probing
@@ -212,57 +237,66 @@ def _probed(cap: Any, path: str | int, what: str, live: bool = True, read_timeou
         if read_timeout is not None and time.monotonic() - t0 >= 0.9 * read_timeout:
             raise ValueError(f"{what} opened but sent no frame within {read_timeout:g} s")
         why = _because(said)
-        raise ValueError(f"{what} opened but gave no frame" + (f" (FFmpeg said: {why})" if why else ""))
+        raise ValueError(f"{what} opened but gave no frame" + (f" ({why})" if why else ""))
     return Opened(path, cap, what, np.ascontiguousarray(img), stamp, live, read_timeout)
 
 
 def _attempt(make: Callable[[Any], Any]) -> tuple[Any, list[str]]:
     """(the capture ``make`` opened, or None; what OpenCV said meanwhile)."""
     cv2 = _cv2()
+    # an OpenCV without the overload that takes parameters raises TypeError; one in exception mode, cv2.error
+    refusals = (TypeError, getattr(cv2, "error", TypeError))
     with _quiet() as said:
-        cap = make(cv2)
-        if not cap.isOpened():
-            cap.release()
+        try:
+            cap = make(cv2)
+        except refusals as e:
             cap = None
+            log.debug("opencv refused: %s", redact(str(e)))
+        else:
+            if not cap.isOpened():
+                cap.release()
+                cap = None
     return cap, said
 
 
 @contextlib.contextmanager
 def _quiet() -> Iterator[list[str]]:
     """Note [OpenCV's chatter]: while a capture opens, OpenCV writes a WARN line for each backend it tries and fails
-    with, and FFmpeg its own errors, straight to the process's stderr (file descriptor 2, below Python's
-    sys.stderr). Around our one-line refusal they read as a crash, so for the open and the first read, and only
-    then, descriptor 2 goes to a file; the lines come back in the list (filled when the block ends), are logged at
-    DEBUG (``vpengine -vv`` shows them) and the last FFmpeg error becomes the refusal's reason. OpenCV's log level
-    alone would not do: FFmpeg's messages do not pass through it. Anything else the process writes to stderr in that
-    window is logged at DEBUG too; the CLI opens its sources before anything else runs."""
-    said: list[str] = []
-    sys.stderr.flush()
-    try:
-        saved = os.dup(2)
-    except OSError:  # no stderr to guard
+    with, and FFmpeg its own errors, to descriptor 2. For the open and the first read, and only then, they are
+    captured (Note [Borrowing stderr] in io/stderr.py, which says what that costs other threads): the lines come
+    back in the list, are logged at DEBUG without their secrets (``vpengine -vv`` shows them), and
+    :func:`_because` makes the refusal's reason of them. The CLI opens its sources before anything else runs."""
+    with captured_stderr() as said:
         yield said
-        return
-    with tempfile.TemporaryFile() as tmp:
-        os.dup2(tmp.fileno(), 2)
-        try:
-            yield said
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
-            tmp.seek(0)
-            said.extend(line for line in tmp.read().decode(errors="replace").splitlines() if line.strip())
-            for line in said:
-                log.debug("opencv: %s", line)
+    for line in said:
+        log.debug("opencv: %s", redact(line))
+
+
+# OpenCV's own log line: '[ WARN:0@0.01] global cap_gstreamer.cpp:1127 open OpenCV | GStreamer warning: ...'
+# (before 4.6: '[ WARN:0] global /path/cap_gstreamer.cpp (711) open OpenCV | ...'); its tail is the reason
+_OPENCV_LINE = re.compile(r"^\[\s*(?:WARN|ERROR)[^\]]*\]\s+\S+\s+\S+?(?::\d+| \(\d+\))\s+\S+\s+(.+)$")
 
 
 def _because(said: list[str]) -> str:
-    """The last FFmpeg error in what OpenCV said (``[tcp @ 0x...] Connection to ... failed: Connection refused``)
-    as a reason (``Connection refused``), or ""."""
+    """A reason, from what OpenCV said, or "": the last FFmpeg error (``[tcp @ 0x...] Connection to ... failed:
+    Connection refused`` gives ``Connection refused``), else OpenCV's first warning or error that says something
+    (``Error opening bin: no element "foo"``)."""
+    ffmpeg = _ffmpeg_error(said)
+    if ffmpeg:
+        return redact(ffmpeg.rsplit("failed: ", 1)[-1])
+    for line in said:
+        m = _OPENCV_LINE.match(line.strip())
+        if m and "can't be used to capture by name" not in m.group(1):  # the backend list, not the reason
+            return redact(m.group(1).split("GStreamer warning: ", 1)[-1])
+    return ""
+
+
+def _ffmpeg_error(said: list[str]) -> str:
+    """The last line FFmpeg wrote (``[tcp @ 0x55d0...] Connection to ... failed``), without its prefix, or ""."""
     for line in reversed(said):
         m = re.match(r"^\[[^\]@]+ @ 0x[0-9a-fA-F]+\] (.+)$", line.strip())
         if m:
-            return m.group(1).rsplit("failed: ", 1)[-1]
+            return m.group(1)
     return ""
 
 

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from vpengine.io.base import Frame, Source
+from vpengine.redact import redact
 
 log = logging.getLogger("vpengine.sources")
 
@@ -364,7 +365,7 @@ def open_source(spec: str, topic: str | None = None, fps: float | None = None, s
             )
     if topic is not None:
         source.close()
-        raise ValueError(f"--topic {topic!r} applies to rosbag2 bags only; source {spec!r} is not a bag")
+        raise ValueError(f"--topic {topic!r} applies to rosbag2 bags only; source {redact(spec)!r} is not a bag")
     return source
 
 

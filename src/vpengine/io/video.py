@@ -9,8 +9,10 @@ against 24 ms for mp4v. So an mp4 is written, in this order, by:
 
 1. PyAV (``pip install 'vpengine[video]'``), whose wheels ship FFmpeg with x264: H.264 at the ``veryfast`` preset,
    22 ms per 1536x576 picture and a third of mp4v's size;
-2. OpenCV's 'avc1', where OpenCV's FFmpeg has an H.264 encoder (distribution and JetPack builds often do; FFmpeg
-   prints why it cannot to the terminal, so that attempt is made with the process's stderr muted);
+2. OpenCV's 'avc1', where OpenCV's FFmpeg has an H.264 encoder (distribution and JetPack builds often do). Where
+   it has none, FFmpeg prints why to the terminal, so whether it has one is probed once per process, on a tiny
+   file, with the process's stderr borrowed (Note [Borrowing stderr] in io/stderr.py: that window also swallows
+   other threads' stderr, so it happens once, not per file);
 3. OpenCV's 'mp4v', with a warning that browsers will not play it and how to get H.264.
 
 A ``.webm`` name asks for WebM: VP8 through OpenCV (slow, as said). H.264 and 4:2:0 colour need an even width and
@@ -19,16 +21,16 @@ height: the picture's size is rounded up to even numbers and :func:`fit` letterb
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
-import sys
-from collections.abc import Iterator
+import tempfile
+import threading
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from vpengine.io.stderr import captured_stderr
 
 log = logging.getLogger("vpengine")
 
@@ -64,8 +66,7 @@ class VideoWriter:
             self.codec = H264
             return
         self.codec = H264
-        with _muted_stderr():
-            self._cv = _opencv_writer(self.path, "avc1", fps, size)
+        self._cv = _opencv_writer(self.path, "avc1", fps, size) if _opencv_writes_h264() else None
         if self._cv is None:
             self.codec = MP4V
             self._cv = _opencv_writer(self.path, "mp4v", fps, size)
@@ -135,17 +136,21 @@ def _opencv_writer(path: Path, fourcc: str, fps: float, size: tuple[int, int]) -
     return None
 
 
-@contextlib.contextmanager
-def _muted_stderr() -> Iterator[None]:
-    """The process's stderr (file descriptor 2, where FFmpeg's C code writes) sent to /dev/null for a moment."""
-    fd = 2
-    with contextlib.suppress(Exception):
-        sys.stderr.flush()
-    saved = os.dup(fd)
-    try:
-        with open(os.devnull, "w") as null:
-            os.dup2(null.fileno(), fd)
-            yield
-    finally:
-        os.dup2(saved, fd)
-        os.close(saved)
+# whether OpenCV's 'avc1' opens here: None until probed (once per process, under the lock)
+_avc1: bool | None = None
+_avc1_lock = threading.Lock()
+
+
+def _opencv_writes_h264() -> bool:
+    """Whether OpenCV's 'avc1' writer opens here (Note [Browser video]), probed on the first call only."""
+    global _avc1
+    with _avc1_lock:
+        if _avc1 is None:
+            with tempfile.TemporaryDirectory(prefix="vpengine-avc1-") as d, captured_stderr() as said:
+                probe = _opencv_writer(Path(d) / "probe.mp4", "avc1", 10.0, (64, 64))
+                if probe is not None:
+                    probe.release()
+            for line in said:
+                log.debug("opencv avc1: %s", line)
+            _avc1 = probe is not None
+        return _avc1

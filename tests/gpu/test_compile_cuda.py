@@ -404,3 +404,23 @@ def test_engine_with_compiled_models_on_cuda_matches_eager(mode):
         keep_g = got["det"]["scores"] > THRESHOLD + 1e-3
         keep_w = want["det"]["scores"] > THRESHOLD + 1e-3
         np.testing.assert_allclose(got["det"]["boxes"][keep_g], want["det"]["boxes"][keep_w])
+
+
+def test_compiled_faster_rcnn_on_cuda_never_recompiles_once_warm_whatever_the_batch_and_box_count():
+    """tests/unit/test_backends.py checks the guards with aot_eager on the CPU; here inductor compiles the detector on
+    CUDA, as a GPU engine does: once warm, no batch size or box count recompiles (Note [RoIAlign runs eagerly])."""
+    cfg = tiny(
+        "thread",
+        "device=cuda",
+        "heads.det.model=frcnn_dinov2_lite",
+        "heads.det.options={num_classes: 3}",
+        "weights.random_weights=true",
+    )
+    model = build(cfg, "det")
+    ex = make_executor(model, "compile", CUDA, "det", options={"fullgraph": False}, max_batch=2)
+    g = torch.Generator().manual_seed(0)
+    with torch.compiler.set_stance("fail_on_recompile"):
+        for i, (b, scale) in enumerate([(1, 1.0), (2, 4.0), (1, 0.1), (2, 0.5), (1, 8.0), (2, 2.0)]):
+            x = {k: (torch.randn((b, *s.shape), generator=g) * scale).to(CUDA) for k, s in model.input_spec.items()}
+            out = ex(x)
+            assert out["count"].shape == (b,), f"frame {i}"

@@ -6,8 +6,9 @@
 * ``verify [NAME...]``: re-hash cached files, report OK / MISMATCH / MISSING, exit 1 on any problem;
 * ``path NAME``: where the file of NAME lives (exit 1 if it is not there yet).
 
-A catalog entry without a published sha256 is trusted on first use: the digest of what is fetched is recorded in the
-cache, said in one line, and checked on every later use. A custom ``--url`` entry needs ``--sha256 HEX`` or
+An entry of the shipped catalog without a published sha256, fetched over HTTPS, is trusted on first use: the digest
+of what is fetched is recorded in the cache, said in one line, and checked on every later use. Any other entry
+without one (a custom ``--url``, a $VPENGINE_CATALOG entry, a plain-HTTP source) needs ``--sha256 HEX`` or
 ``--trust-on-first-use``. Offline or with the server unreachable, each file gets one line: why, the path to place it
 at and the URL to get it from.
 """
@@ -55,7 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--trust-on-first-use",
         action="store_true",
         help="for an entry without a published sha256: accept the digest of what is there now, even over an "
-        "earlier pin (catalog entries are trusted on first use without it)",
+        "earlier pin (shipped catalog entries fetched over HTTPS are trusted on first use without it)",
     )
     f.add_argument("--url", help="download a custom entry NAME from this URL (needs --sha256 or --trust-on-first-use)")
     f.add_argument("--file", help="file name of a custom --url entry (default: the URL's last path part)")

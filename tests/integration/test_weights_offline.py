@@ -98,8 +98,12 @@ def test_a_login_in_a_url_or_the_hub_endpoint_never_shows_in_messages(dead, env,
         assert cli(["weights", "fetch", hub.name]) == 1
         mine = ["weights", "fetch", "my_head", "--url", f"http://robot:s3cret@{host}/my_head.pth", "--sha256", DIGEST]
         assert cli(mine) == 1
+        assert cli([*mine, "--offline"]) == 1
+        assert cli(["weights", "path", hub.name]) == 1
     err = capsys.readouterr().err
     assert "s3cret" not in err and "robot" not in err
     lines = err.strip().splitlines()
-    assert len(lines) == 2 and all(f": {host} is unreachable (" in line for line in lines), err
+    assert len(lines) == 4 and all(f": {host} is unreachable (" in line for line in lines[:2]), err
     assert f"download it from http://{host}/org/repo/resolve/main/c.pth;" in lines[0]
+    assert lines[2].endswith(f"offline mode: not downloading my_head from http://{host}/my_head.pth")
+    assert f"(from http://{host}/org/repo/resolve/main/c.pth)" in lines[3]  # `weights path`: the mirror in force

@@ -167,7 +167,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def cmd_fetch(args: argparse.Namespace) -> int:
     from vpengine.models import download
-    from vpengine.models.catalog import CatalogError, custom_entry
+    from vpengine.models.catalog import CatalogError, custom_entry, shown_url
     from vpengine.models.weights import CheckpointError, place_hint
 
     def usage(msg: str) -> int:
@@ -201,7 +201,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
         try:
             if args.url:
                 if is_offline:
-                    raise CheckpointError(f"offline mode: not downloading {name} from {args.url}")
+                    raise CheckpointError(f"offline mode: not downloading {name} from {shown_url(args.url)}")
                 entry = custom_entry(name, args.url, file=args.file)
             elif entry is None:
                 entry = _lookup(name, cache)
@@ -285,6 +285,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_path(args: argparse.Namespace) -> int:
+    from vpengine.models.catalog import shown_url
+
     cache = _cache()
     entry = _lookup(args.name, cache)
     path = entry.path(cache)
@@ -292,7 +294,7 @@ def cmd_path(args: argparse.Namespace) -> int:
     if not path.is_file():
         print(
             f"{entry.name} is not cached yet: `vpengine weights fetch {entry.name}`, or place the file at the "
-            f"path above (from {entry.url})",
+            f"path above (from {shown_url(entry.source_url())})",
             file=sys.stderr,
         )
         return 1

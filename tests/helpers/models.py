@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import threading
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import torch
 
 from vpengine.models.base import BuildContext, Model
 from vpengine.models.tiny import TinyDepthHead, TinyDetHead, TinyHeadOptions, TinyViT
+from vpengine.models.weights import apply_state_dict, configured_or_default, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
 
 
@@ -68,3 +69,28 @@ class EdgeBoxesDet(TinyDetHead):
         out["labels"][:, :2] = torch.tensor([1, 2], dtype=torch.int32)
         out["count"] = torch.full((b,), 2, dtype=torch.int32)
         return out
+
+
+class OwnWeightsHead(TinyDepthHead):
+    """A user head that gets its weights its own way in ``load_checkpoint`` (here: fixed values; in life a file
+    beside its code or a download of its own) and declares no checkpoint, so the engine has nothing to check."""
+
+    loaded: ClassVar[list[str]] = []
+
+    def load_checkpoint(self, ctx: BuildContext) -> None:
+        with torch.no_grad():
+            self.proj.weight.fill_(0.5)
+        OwnWeightsHead.loaded.append(ctx.name)
+
+
+class DeclaredCheckpointHead(TinyDepthHead):
+    """A user head that loads the checkpoint its config names, else its default catalog name ``my_site_depth``,
+    declared once (``needed_checkpoint``) for both the engine's check and its ``load_checkpoint``."""
+
+    def needed_checkpoint(self, cfg: Any) -> str | None:
+        return configured_or_default(cfg, "my_site_depth")
+
+    def load_checkpoint(self, ctx: BuildContext) -> None:
+        path = resolve_checkpoint(ctx, self)
+        if path is not None:
+            apply_state_dict(self, read_state_dict(path), str(path), ctx.name)

@@ -1,7 +1,7 @@
 """Every `vpengine weights` command that README.md and docs/weights.md show works as written, from an empty folder
 and an empty cache, with the network replaced by one HTTP server on 127.0.0.1: it serves a stand-in for each file
-of the shipped catalog (plain URLs rewritten to it, Hub files through $HF_ENDPOINT), with the same kind of digest as
-the real entry (published or none), so the commands meet the catalog as it ships.
+of the shipped catalog (plain https URLs answered by it through urllib's opener, Hub files through $HF_ENDPOINT), with
+the same kind of digest as the real entry (published or none), so the commands meet the catalog as it ships.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 
+from helpers.https import https_served_by
 from tests_paths import ROOT
 from vpengine.cli.main import main as cli
 from vpengine.models import catalog
@@ -91,7 +92,6 @@ def net(tmp_path, monkeypatch) -> Iterator[dict[str, bytes]]:
         entries.append(
             replace(
                 e,
-                url=e.url if e.hub is not None else url + path,
                 sha256=hashlib.sha256(data).hexdigest() if e.sha256 else None,
                 size=len(data) if e.size else None,
             )
@@ -106,7 +106,7 @@ def net(tmp_path, monkeypatch) -> Iterator[dict[str, bytes]]:
     empty.mkdir()
     monkeypatch.chdir(empty)  # as a user would, not from a clone
     try:
-        with catalog.use(Catalog(entries)):
+        with catalog.use(Catalog(entries)), https_served_by(url):
             yield files
     finally:
         httpd.shutdown()

@@ -7,8 +7,10 @@ The catalog is swapped for one whose entries point at the local servers, so noth
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import http.server
+import json
 import os
 import threading
 import time
@@ -18,13 +20,14 @@ from pathlib import Path
 
 import pytest
 
+from helpers.https import https_served_by
 from vpengine.cli.main import main as cli
 from vpengine.config import load_config
 from vpengine.models import catalog, download
-from vpengine.models.base import BuildContext
+from vpengine.models.base import BuildContext, Model
 from vpengine.models.catalog import Catalog, Entry
 from vpengine.models.download import offline
-from vpengine.models.weights import CheckpointError, cached_checkpoint, resolve_checkpoint
+from vpengine.models.weights import CheckpointError, cached_checkpoint, configured_or_default, resolve_checkpoint
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -244,6 +247,17 @@ def test_verify_detects_a_corrupted_cached_file(server, env, capsys):
         assert cli(["weights", "verify", entry.name, "--no-progress"]) == 0
 
 
+class Declares(Model):
+    """A model that loads its configured checkpoint, else ``default``, as the zoo's recipes declare it."""
+
+    def __init__(self, default: str | None = None) -> None:
+        super().__init__()
+        self.default = default
+
+    def needed_checkpoint(self, cfg):  # type: ignore[no-untyped-def]
+        return configured_or_default(cfg, self.default)
+
+
 def test_loading_never_downloads_and_finds_the_fetched_file_by_catalog_name(server, env, capsys):
     entry = make_entry(server)
     cfg = load_config("configs/tiny.yaml", [f"foundation_model.checkpoint={entry.name}"])
@@ -251,7 +265,7 @@ def test_loading_never_downloads_and_finds_the_fetched_file_by_catalog_name(serv
     with catalog.use(Catalog([entry])):
         # Not cached: the error says where to put the file and what fetches it, and nothing is requested.
         with pytest.raises(CheckpointError) as e:
-            resolve_checkpoint(ctx, None)
+            resolve_checkpoint(ctx, Declares())
         msg = str(e.value)
         assert msg.startswith("foundation: ") and str(entry.path(env)) in msg and entry.url in msg
         assert f"vpengine weights fetch {entry.name}" in msg and "--config" in msg
@@ -262,24 +276,31 @@ def test_loading_never_downloads_and_finds_the_fetched_file_by_catalog_name(serv
         cfg_file.write_text(cfg.model_dump_json())
         assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 0
         assert f"{entry.name}: downloaded" in capsys.readouterr().out
-        path = resolve_checkpoint(ctx, None)
+        path = resolve_checkpoint(ctx, Declares())
         assert path == entry.path(env) and path.read_bytes() == PAYLOAD
-        assert resolve_checkpoint(ctx, None) == path
+        assert resolve_checkpoint(ctx, Declares()) == path
         assert len(server.requests) == 1
 
         offline_cfg = load_config(cfg, ["weights.offline=true"])
         ctx_off = BuildContext("foundation", "foundation", offline_cfg.foundation_model, offline_cfg, {})
-        assert resolve_checkpoint(ctx_off, None) == path
+        assert resolve_checkpoint(ctx_off, Declares()) == path
 
         # A recipe default resolves through the catalog as well.
         cfg_default = load_config(cfg, ["foundation_model.checkpoint=null"])
         ctx_def = BuildContext("foundation", "foundation", cfg_default.foundation_model, cfg_default, {})
-        assert resolve_checkpoint(ctx_def, entry.name) == path
+        assert resolve_checkpoint(ctx_def, Declares(entry.name)) == path
+        with pytest.raises(CheckpointError, match="^foundation: no checkpoint configured and recipe 'tiny_vit'"):
+            resolve_checkpoint(ctx_def, Declares())
+        assert resolve_checkpoint(ctx_def, Model()) is None  # declares none: nothing to resolve
+
+
+#: A publisher's HTTPS URL; https_served_by answers it from the local server.
+HTTPS_URL = "https://weights.example/ckpt/model.pth"
 
 
 def test_a_catalog_entry_without_a_digest_is_trusted_on_first_use_and_says_so(server, env, capsys):
-    entry = make_entry(server, sha256=None, size=None, sha256_missing="nobody publishes one")
-    with catalog.use(Catalog([entry])):
+    entry = make_entry(server, url=HTTPS_URL, sha256=None, size=None, sha256_missing="nobody publishes one")
+    with catalog.use(Catalog([entry])), https_served_by(server.url):
         wrong = hashlib.sha256(b"nope").hexdigest()
         assert cli(["weights", "fetch", entry.name, "--sha256", wrong, "--no-progress"]) == 1
         assert f"expected {wrong}, got {DIGEST}" in capsys.readouterr().err
@@ -313,7 +334,7 @@ def test_a_catalog_entry_without_a_digest_is_trusted_on_first_use_and_says_so(se
 
 
 def test_a_file_placed_by_hand_without_a_digest_is_pinned_by_fetch_without_a_request(server, env, capsys):
-    entry = make_entry(server, sha256=None, size=None, sha256_missing="nobody publishes one")
+    entry = make_entry(server, url=HTTPS_URL, sha256=None, size=None, sha256_missing="nobody publishes one")
     entry.path(env).parent.mkdir(parents=True)
     entry.path(env).write_bytes(PAYLOAD)
     with catalog.use(Catalog([entry])):
@@ -322,6 +343,41 @@ def test_a_file_placed_by_hand_without_a_digest_is_pinned_by_fetch_without_a_req
         assert cli(["weights", "fetch", entry.name, "--offline", "--no-progress"]) == 0
         assert f"trusted on first use: sha256 {DIGEST}" in capsys.readouterr().err
     assert cached_checkpoint(entry, env) == entry.path(env) and server.requests == []
+
+
+@pytest.mark.parametrize("source", ["plain http", "site catalog", "site catalog over a shipped name"])
+def test_only_a_shipped_https_entry_is_trusted_on_first_use(source, server, env, tmp_path, monkeypatch, capsys):
+    missing = {"sha256": None, "size": None, "sha256_missing": "nobody publishes one"}
+    reason = {
+        "plain http": f"it would come over plain HTTP ({server.url}/ckpt/model.pth)",
+        "site catalog": "its entry comes from $VPENGINE_CATALOG, not from the catalog vpengine ships",
+        "site catalog over a shipped name": "its entry comes from $VPENGINE_CATALOG, not from the catalog vpengine",
+    }[source]
+    if source == "plain http":  # in the shipped catalog (here: the one installed in code), but over http://
+        entry = make_entry(server, **missing)
+        scope: contextlib.AbstractContextManager = catalog.use(Catalog([entry]))
+    else:  # a site's catalog file: its URLs were never reviewed, whatever their scheme or name
+        name = "site_model" if source == "site catalog" else "dinov2_vits14_ade20k_linear_head"
+        entry = make_entry(server, name=name, url=HTTPS_URL, **missing)
+        site = tmp_path / "site.json"
+        site.write_text(json.dumps(Catalog([entry]).to_dict()))
+        monkeypatch.setenv("VPENGINE_CATALOG", str(site))
+        scope = https_served_by(server.url)
+    with scope:
+        assert catalog.find(entry.name) == entry
+        assert cli(["weights", "fetch", entry.name, "--no-progress"]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"vpengine weights fetch: {entry.name}: {entry.name} has no known sha256 and {reason}")
+        assert len(err.splitlines()) == 1
+        assert "`--sha256 HEX`" in err and "`--trust-on-first-use`" in err
+        assert server.requests == [] and files_under(env) == []
+        with pytest.raises(CheckpointError, match="--trust-on-first-use` then records the digest"):
+            cached_checkpoint(entry, env)  # the load-time error names the flag too
+
+        # The user's word is enough.
+        assert cli(["weights", "fetch", entry.name, "--trust-on-first-use", "--no-progress"]) == 0
+        assert f"trusted on first use: sha256 {DIGEST}" in capsys.readouterr().err
+        assert cached_checkpoint(entry, env) == entry.path(env)
 
 
 def test_a_published_digest_cannot_be_overridden(server, env, capsys):
@@ -544,7 +600,8 @@ def test_offline_a_hub_file_is_not_requested_and_the_error_names_its_place(hub, 
     with catalog.use(Catalog([entry])):
         assert cli(["weights", "fetch", entry.name]) == 1
         err = capsys.readouterr().err
-        assert str(entry.path(env)) in err and HUB_URL in err and "offline mode" in err
+        assert str(entry.path(env)) in err and "offline mode" in err
+        assert f"download it from {hub.endpoint}{HUB_PATH};" in err  # the mirror in force, not huggingface.co
         assert hub.requests == []
 
         # A file placed there by hand is used offline once it hashes right.

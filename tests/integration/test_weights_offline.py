@@ -31,7 +31,7 @@ def dead() -> str:
 @pytest.fixture
 def env(tmp_path, monkeypatch):
     monkeypatch.setenv("VPENGINE_CACHE", str(tmp_path / "cache"))
-    for var in ("VPENGINE_OFFLINE", "HF_HUB_OFFLINE", "VPENGINE_CATALOG"):
+    for var in ("VPENGINE_OFFLINE", "HF_HUB_OFFLINE", "VPENGINE_CATALOG", "HF_ENDPOINT"):
         monkeypatch.delenv(var, raising=False)
     return tmp_path / "cache"
 
@@ -54,12 +54,14 @@ def entries(dead: str) -> list[Entry]:
     ]
 
 
-def assert_one_line_each(err: str, cat: list[Entry], cache, why: str) -> None:
+def assert_one_line_each(err: str, cat: list[Entry], cache, why: str, hub: str = "https://huggingface.co") -> None:
+    """``hub``: the Hub endpoint in force, whose URL the line names for a Hub file."""
     lines = err.strip().splitlines()
     assert len(lines) == len(cat), err
     for line, e in zip(lines, cat):
         assert line.startswith(f"vpengine weights fetch: {e.name}: ") and why in line
-        assert f"place the file at {e.path(cache)} (download it from {e.url}" in line
+        url = e.url.replace("https://huggingface.co", hub)
+        assert f"place the file at {e.path(cache)} (download it from {url};" in line
     assert "Retrying" not in err and "Traceback" not in err and "WARNING" not in err
 
 
@@ -69,7 +71,7 @@ def test_unreachable_servers_give_one_line_per_file_without_retries(dead, env, m
     with catalog.use(Catalog(cat)):
         assert cli(["weights", "fetch", *(e.name for e in cat)]) == 1
     err = capsys.readouterr().err
-    assert_one_line_each(err, cat, env, f"{dead.removeprefix('http://')} is unreachable (")
+    assert_one_line_each(err, cat, env, f"{dead.removeprefix('http://')} is unreachable (", hub=dead)
     assert not list(env.rglob("*.pth*"))  # nothing half-written
 
 
@@ -86,3 +88,22 @@ def test_fetch_raises_unreachable_naming_the_host_and_the_place_for_the_file(dea
         download.fetch(cat[0], env, progress=False)
     assert e.value.host == dead.removeprefix("http://") and str(cat[0].path(env)) in str(e.value)
     assert isinstance(e.value, CheckpointError)
+
+
+def test_a_login_in_a_url_or_the_hub_endpoint_never_shows_in_messages(dead, env, monkeypatch, capsys):
+    host = dead.removeprefix("http://")
+    monkeypatch.setenv("HF_ENDPOINT", f"http://robot:hf_s3cret@{host}")  # a mirror behind a login
+    hub = entries(dead)[2]
+    with catalog.use(Catalog([hub])):
+        assert cli(["weights", "fetch", hub.name]) == 1
+        mine = ["weights", "fetch", "my_head", "--url", f"http://robot:s3cret@{host}/my_head.pth", "--sha256", DIGEST]
+        assert cli(mine) == 1
+        assert cli([*mine, "--offline"]) == 1
+        assert cli(["weights", "path", hub.name]) == 1
+    err = capsys.readouterr().err
+    assert "s3cret" not in err and "robot" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 4 and all(f": {host} is unreachable (" in line for line in lines[:2]), err
+    assert f"download it from http://{host}/org/repo/resolve/main/c.pth;" in lines[0]
+    assert lines[2].endswith(f"offline mode: not downloading my_head from http://{host}/my_head.pth")
+    assert f"(from http://{host}/org/repo/resolve/main/c.pth)" in lines[3]  # `weights path`: the mirror in force

@@ -7,11 +7,13 @@ from __future__ import annotations
 import logging
 
 import pytest
+import torch
 
 from vpengine.cli.main import main as cli
 from vpengine.config import load_config
 from vpengine.engine import Engine
 from vpengine.models.base import ModelBuildError
+from vpengine.models.build import build_model
 from vpengine.models.weights import CheckpointError
 from vpengine.runtime.plan import make_plan
 
@@ -115,3 +117,45 @@ def test_the_flagship_config_without_checkpoints_says_so_without_a_traceback(emp
     err = capsys.readouterr().err
     assert "Traceback" not in err and len(err.splitlines()) <= 5
     assert "foundation, depth: " in err and "seg: " in err and "det: " in err
+
+
+def user_head(model: str, **head: object):
+    return load_config(
+        {
+            "mode": "thread",
+            "device": "cpu",
+            "input": {"height": 56, "width": 56},
+            "foundation_model": {"model": "tiny_vit"},
+            "heads": [{"name": "mine", "model": f"helpers.models:{model}", **head}],
+        }
+    )
+
+
+def test_a_user_head_that_loads_its_own_weights_is_never_refused(empty_cache):
+    from helpers.models import OwnWeightsHead
+
+    cfg = user_head("OwnWeightsHead")
+    Engine(cfg)  # planned, no checkpoint asked for: nothing to refuse
+    plan = make_plan(cfg)
+    head = build_model(cfg, "mine", "head", plan.features, plan.feature_meta, torch.device("cpu"), plan_only=False)
+    assert OwnWeightsHead.loaded[-1:] == ["mine"] and bool((head.proj.weight == 0.5).all())
+
+
+def test_the_checkpoint_a_model_declares_is_the_one_checked_at_plan_time_and_loaded(empty_cache, tmp_path):
+    cfg = user_head("DeclaredCheckpointHead")
+    with pytest.raises(CheckpointError) as e:
+        Engine(cfg)
+    lines = str(e.value).splitlines()
+    assert len(lines) == 2 and lines[1].startswith("mine: checkpoint 'my_site_depth' is neither an existing file")
+    plan = make_plan(cfg)
+    with pytest.raises(CheckpointError, match="^mine: checkpoint 'my_site_depth' is neither"):
+        build_model(cfg, "mine", "head", plan.features, plan.feature_meta, torch.device("cpu"), plan_only=False)
+
+    # A file in the config wins over the declared default, for the check and the load alike.
+    meta = build_model(cfg, "mine", "head", plan.features, plan.feature_meta, torch.device("cpu"), plan_only=True)
+    sd = {k: torch.full(v.shape, 0.25) for k, v in meta.state_dict().items()}
+    torch.save(sd, tmp_path / "mine.pth")
+    cfg = user_head("DeclaredCheckpointHead", checkpoint=str(tmp_path / "mine.pth"))
+    Engine(cfg)
+    head = build_model(cfg, "mine", "head", plan.features, plan.feature_meta, torch.device("cpu"), plan_only=False)
+    assert bool((head.proj.weight == 0.25).all())

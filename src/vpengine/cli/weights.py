@@ -6,8 +6,9 @@
 * ``verify [NAME...]``: re-hash cached files, report OK / MISMATCH / MISSING, exit 1 on any problem;
 * ``path NAME``: where the file of NAME lives (exit 1 if it is not there yet).
 
-A catalog entry without a published sha256 is trusted on first use: the digest of what is fetched is recorded in the
-cache, said in one line, and checked on every later use. A custom ``--url`` entry needs ``--sha256 HEX`` or
+An entry of the shipped catalog without a published sha256, fetched over HTTPS, is trusted on first use: the digest
+of what is fetched is recorded in the cache, said in one line, and checked on every later use. Any other entry
+without one (a custom ``--url``, a $VPENGINE_CATALOG entry, a plain-HTTP source) needs ``--sha256 HEX`` or
 ``--trust-on-first-use``. Offline or with the server unreachable, each file gets one line: why, the path to place it
 at and the URL to get it from.
 """
@@ -55,7 +56,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--trust-on-first-use",
         action="store_true",
         help="for an entry without a published sha256: accept the digest of what is there now, even over an "
-        "earlier pin (catalog entries are trusted on first use without it)",
+        "earlier pin (shipped catalog entries fetched over HTTPS are trusted on first use without it)",
     )
     f.add_argument("--url", help="download a custom entry NAME from this URL (needs --sha256 or --trust-on-first-use)")
     f.add_argument("--file", help="file name of a custom --url entry (default: the URL's last path part)")
@@ -166,7 +167,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def cmd_fetch(args: argparse.Namespace) -> int:
     from vpengine.models import download
-    from vpengine.models.catalog import CatalogError, custom_entry
+    from vpengine.models.catalog import CatalogError, custom_entry, shown_url
     from vpengine.models.weights import CheckpointError, place_hint
 
     def usage(msg: str) -> int:
@@ -200,7 +201,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
         try:
             if args.url:
                 if is_offline:
-                    raise CheckpointError(f"offline mode: not downloading {name} from {args.url}")
+                    raise CheckpointError(f"offline mode: not downloading {name} from {shown_url(args.url)}")
                 entry = custom_entry(name, args.url, file=args.file)
             elif entry is None:
                 entry = _lookup(name, cache)
@@ -284,6 +285,8 @@ def cmd_verify(args: argparse.Namespace) -> int:
 
 
 def cmd_path(args: argparse.Namespace) -> int:
+    from vpengine.models.catalog import shown_url
+
     cache = _cache()
     entry = _lookup(args.name, cache)
     path = entry.path(cache)
@@ -291,7 +294,7 @@ def cmd_path(args: argparse.Namespace) -> int:
     if not path.is_file():
         print(
             f"{entry.name} is not cached yet: `vpengine weights fetch {entry.name}`, or place the file at the "
-            f"path above (from {entry.url})",
+            f"path above (from {shown_url(entry.source_url())})",
             file=sys.stderr,
         )
         return 1

@@ -146,8 +146,20 @@ class Model(nn.Module):
     def from_config(cls, ctx: BuildContext) -> Model:
         raise NotImplementedError(f"{cls.__name__} does not implement from_config")
 
+    def needed_checkpoint(self, cfg: ModelConfig) -> str | None:
+        """The checkpoint this model loads: a file path or catalog name, or None (the default) when it needs none
+        or loads its own weights in :meth:`load_checkpoint`.
+
+        The one place a model says so: the engine checks the answer on disk while planning, before any worker
+        starts, and ``weights.resolve_checkpoint(ctx, self)`` in ``load_checkpoint`` turns it into the verified
+        file. A recipe that cannot run without weights returns ``weights.configured_or_default(cfg, default)``:
+        ``cfg.checkpoint``, else its default, else a CheckpointError saying that none is configured. Only asked when
+        ``weights.random_weights`` is off.
+        """
+        return None
+
     def load_checkpoint(self, ctx: BuildContext) -> None:
-        """Load weights named by ``ctx.cfg.checkpoint`` (or the recipe's default). Default: nothing to load."""
+        """Load this model's weights (usually from ``weights.resolve_checkpoint(ctx, self)``). Default: nothing."""
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -188,6 +200,10 @@ class Pipeline(Model):
         self.output_spec = dict(models[-1].output_spec)
         for m in models:
             self.meta.update(m.meta)
+
+    def needed_checkpoint(self, cfg: ModelConfig) -> str | None:
+        # The stages share one config, so one checkpoint: the first stage that needs one names it.
+        return next((n for m in self.stages if (n := m.needed_checkpoint(cfg)) is not None), None)  # type: ignore[operator]
 
     def load_checkpoint(self, ctx: BuildContext) -> None:
         for m in self.stages:

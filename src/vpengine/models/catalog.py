@@ -165,6 +165,13 @@ class Entry:
             return None
         return HubFile(m[1], urllib.parse.unquote(m[2]), urllib.parse.unquote(m[3]))
 
+    def source_url(self) -> str:
+        """The URL a fetch asks now: a Hub file's place under the endpoint in force (:func:`hub_endpoint`), else
+        ``url``."""
+        if self.hub is None:
+            return self.url
+        return hub_endpoint() + urllib.parse.urlsplit(self.url).path
+
     def directory(self, cache: str | Path) -> Path:
         return Path(cache) / "weights" / self.name.replace("/", "--")
 
@@ -272,6 +279,55 @@ def use(catalog: Catalog) -> Iterator[Catalog]:
         yield catalog
     finally:
         _override = before
+
+
+def hub_endpoint() -> str:
+    """The Hugging Face Hub in force: $HF_ENDPOINT (a mirror), else https://huggingface.co.
+
+    Read at every call, like huggingface_hub's own downloads here, so a mirror set after import still counts.
+    """
+    return (os.environ.get("HF_ENDPOINT") or "https://huggingface.co").rstrip("/")
+
+
+def url_host(url: str) -> str:
+    """``host[:port]`` of ``url``, for messages: never the ``user:token@`` a URL may carry."""
+    parts = urllib.parse.urlsplit(url)
+    host = parts.hostname or ""
+    if ":" in host:
+        host = f"[{host}]"  # IPv6
+    try:
+        port = parts.port
+    except ValueError:  # a malformed port: leave it out rather than fail while reporting another failure
+        port = None
+    return f"{host}:{port}" if port is not None else host
+
+
+def shown_url(url: str) -> str:
+    """``url`` for messages: without the ``user:token@`` of a login (a custom --url or $HF_ENDPOINT may carry one)."""
+    parts = urllib.parse.urlsplit(url)
+    if "@" not in parts.netloc:
+        return url
+    return urllib.parse.urlunsplit(parts._replace(netloc=url_host(url)))
+
+
+def first_use_refusal(entry: Entry) -> str | None:
+    """Why ``entry``, which has no digest, is not trusted on first use without the user's word; None when it is.
+
+    Note [Trust on first use]: a fetch may record the digest of what arrives only for an entry whose URL was reviewed
+    with the code, i.e. as it stands in the shipped catalog (or the one a program installs with :func:`use`), and
+    only when the file comes over HTTPS (for a Hub file: from the endpoint in force). A $VPENGINE_CATALOG file's or a
+    custom --url entry was never reviewed, and plain HTTP can be altered on the way; those need ``--sha256`` or
+    ``--trust-on-first-use``.
+    """
+    reviewed = (_override if _override is not None else shipped()).find(entry.name)
+    if reviewed is None or (reviewed.url, reviewed.file) != (entry.url, entry.file):
+        if active().find(entry.name) is None:
+            return "it is a custom --url entry"
+        return f"its entry comes from ${CATALOG_ENV}, not from the catalog vpengine ships"
+    source = entry.source_url()
+    if urllib.parse.urlsplit(source).scheme != "https":
+        return f"it would come over plain HTTP ({shown_url(source)})"
+    return None
 
 
 # ----------------------------------------------------------------------------- the cache, user pins, custom entries

@@ -62,6 +62,7 @@ from torchvision.ops import MultiScaleRoIAlign
 from torchvision.ops.poolers import initLevelMapper
 
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options
+from vpengine.models.weights import apply_state_dict, configured_or_default, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
 
 #: Pyramid levels by scale relative to the token grid: their state-dict names.
@@ -469,11 +470,12 @@ class FasterRCNNHead(Model):
         _init_weights_(head, opts.seed)
         return head.to(ctx.device)
 
+    def needed_checkpoint(self, cfg: Any) -> str | None:
+        return configured_or_default(cfg, None)  # no default catalog entry: a file, or random weights
+
     def load_checkpoint(self, ctx: BuildContext) -> None:
         """Load ``checkpoint`` strictly (there is no default catalog entry: a file, or random weights)."""
-        from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
-
-        path = resolve_checkpoint(ctx, None)
+        path = resolve_checkpoint(ctx, self)
         if path is None:
             return
         sd = read_state_dict(path)

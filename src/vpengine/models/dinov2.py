@@ -43,7 +43,7 @@ import math
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 import torch.nn.functional as F
@@ -52,8 +52,17 @@ from pydantic import Field, model_validator
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options, Pipeline
 from vpengine.models.preprocess import ImagePreprocess
 from vpengine.models.tiny import N_LAYERS, feature_specs
-from vpengine.models.weights import CheckpointError, apply_state_dict, read_state_dict, resolve_checkpoint
+from vpengine.models.weights import (
+    CheckpointError,
+    apply_state_dict,
+    configured_or_default,
+    read_state_dict,
+    resolve_checkpoint,
+)
 from vpengine.specs import TensorSpec
+
+if TYPE_CHECKING:
+    from vpengine.config import ModelConfig
 
 PATCH_SIZE = 14
 #: The pretraining resolution of every released DINOv2: a 37 x 37 position grid.
@@ -521,9 +530,12 @@ class DinoV2(Model):
         self.refresh_position_cache()
         return layout or "timm"  # keys this model accepted without conversion are timm's
 
+    def needed_checkpoint(self, cfg: ModelConfig) -> str | None:
+        return configured_or_default(cfg, self.default_checkpoint)
+
     def load_checkpoint(self, ctx: BuildContext) -> None:
         """Load ``ctx.cfg.checkpoint`` (file or catalog name), else the recipe's default; nothing when random."""
-        path = resolve_checkpoint(ctx, self.default_checkpoint)
+        path = resolve_checkpoint(ctx, self)
         if path is None:
             return
         expected = f"{ctx.name} ({ctx.cfg.model}: {self.describe()})"

@@ -24,7 +24,6 @@ import logging
 import os
 import shutil
 import urllib.error
-import urllib.parse
 import urllib.request
 from collections.abc import Iterator
 from dataclasses import dataclass, replace
@@ -41,7 +40,6 @@ from vpengine.models.weights import (
     place_hint,
     sha256_file,
     stamp_path,
-    unverifiable_error,
     write_stamp,
 )
 
@@ -66,9 +64,9 @@ class Unreachable(CheckpointError):
 
 
 def source_host(entry: Entry) -> str:
-    """The host a fetch of ``entry`` talks to: the Hub's endpoint ($HF_ENDPOINT) for a Hub file, else the URL's."""
-    url = (os.environ.get("HF_ENDPOINT") or "https://huggingface.co") if entry.hub is not None else entry.url
-    return urllib.parse.urlsplit(url).netloc
+    """The ``host[:port]`` a fetch of ``entry`` talks to: the Hub's endpoint ($HF_ENDPOINT) for a Hub file, else the
+    URL's (never a login the URL carries)."""
+    return catalog.url_host(entry.source_url())
 
 
 @dataclass
@@ -103,11 +101,13 @@ def fetch(
 ) -> FetchResult:
     """Make sure the verified file of ``entry`` is in ``cache``, downloading it if needed.
 
-    A catalog entry without a published digest is trusted on first use: the digest of the file fetched (or found)
-    now is recorded as a pin in the cache, every later use is checked against it, and the result says so
-    (``pinned``). A custom ``--url`` entry needs the user's word instead: ``sha256`` (a digest to check against; it
-    must agree with a published one) or ``trust_on_first_use``, which also replaces an earlier pin by the digest of
-    what is there now. ``force`` downloads again even if a verified copy is cached.
+    An entry of the shipped catalog without a published digest, served over HTTPS, is trusted on first use: the
+    digest of the file fetched (or found) now is recorded as a pin in the cache, every later use is checked against
+    it, and the result says so (``pinned``). Any other entry without a digest (a custom ``--url``, a
+    $VPENGINE_CATALOG entry, a plain-HTTP source; Note [Trust on first use] in ``catalog.py``) needs the user's word
+    instead: ``sha256`` (a digest to check against; it must agree with a published one) or ``trust_on_first_use``,
+    which also replaces an earlier pin by the digest of what is there now. ``force`` downloads again even if a
+    verified copy is cached.
     """
     if sha256 is not None:
         sha256 = parse_sha256(sha256, f"--sha256 for {entry.name}")
@@ -127,10 +127,12 @@ def fetch(
     # Trust-on-first-use deliberately ignores an earlier pin: the user asks to accept what is there now.
     expected = sha256 or (None if trust_on_first_use else eff.sha256)
     if expected is None and not trust_on_first_use:
-        # Why a catalog entry may be trusted on first use and a custom URL may not: the catalog's URL was reviewed
-        # (the publisher's own HTTPS download) and a pin guards every later use; a typed URL was not.
-        if catalog.active().find(entry.name) is None:
-            raise unverifiable_error(entry)
+        why = catalog.first_use_refusal(entry)
+        if why is not None:
+            raise CheckpointError(
+                f"{entry.name} has no known sha256 and {why}, so it is not trusted on first use: give "
+                f"`--sha256 HEX` (a digest you trust) or `--trust-on-first-use` (record the digest of what arrives)"
+            )
         trust_on_first_use = True
     dest = entry.path(cache)
     pin_how = "--sha256" if sha256 is not None and entry.sha256 is None else None
@@ -190,14 +192,14 @@ def _download(entry: Entry, dest: Path, expected: str | None, progress: bool, ti
     if entry.size is not None and size != entry.size:
         _discard(got, hub)
         raise CheckpointError(
-            f"download of {entry.name} from {entry.url} has {size} bytes, the catalog says {entry.size}; "
+            f"download of {entry.name} from {catalog.shown_url(entry.url)} has {size} bytes, the catalog says {entry.size}; "
             "the downloaded file was deleted"
         )
     digest = sha256_file(got, progress, f"verifying {entry.name}")
     if expected is not None and digest != expected:
         _discard(got, hub)
         raise CheckpointError(
-            f"sha256 mismatch for {entry.name} from {entry.url}: expected {expected}, got {digest}; "
+            f"sha256 mismatch for {entry.name} from {catalog.shown_url(entry.url)}: expected {expected}, got {digest}; "
             "the downloaded file was deleted and nothing was cached"
         )
     if got != dest:
@@ -235,7 +237,7 @@ def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: f
     except HfHubHTTPError:
         pass  # the Hub answered (not found, gated, ...): hf_hub_download below says what, in its words
     except Exception as e:  # DNS, refused, TLS, timeout: whatever the HTTP client of this version raises
-        raise Unreachable(urllib.parse.urlsplit(url).netloc, e) from None
+        raise Unreachable(catalog.url_host(url), e) from None
     try:
         with _hub_progress(progress), _quiet_hub_log():
             got = hf_hub_download(
@@ -306,9 +308,11 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
         e.close()  # it holds the response's socket
         if e.code == 416 and offset:  # nothing left to send: the partial file is checked as it is
             return part
-        raise CheckpointError(f"download of {entry.name} from {entry.url} failed: HTTP {e.code} {e.reason}") from None
+        raise CheckpointError(
+            f"download of {entry.name} from {catalog.shown_url(entry.url)} failed: HTTP {e.code} {e.reason}"
+        ) from None
     except (urllib.error.URLError, OSError) as e:  # DNS, refused, TLS, timeout: the server was not reached
-        raise Unreachable(urllib.parse.urlsplit(entry.url).netloc, getattr(e, "reason", e)) from None
+        raise Unreachable(catalog.url_host(entry.url), getattr(e, "reason", e)) from None
     with resp:
         if offset and resp.status != 206:
             log.warning("%s: the server does not resume downloads; starting again", entry.name)
@@ -333,7 +337,7 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
     if error is not None or written < (sent or total or 0):
         why = f" ({type(error).__name__}: {error})" if error is not None else ""
         raise CheckpointError(
-            f"download of {entry.name} from {entry.url} was interrupted after {human_size(written)} of "
+            f"download of {entry.name} from {catalog.shown_url(entry.url)} was interrupted after {human_size(written)} of "
             f"{human_size(total)}{why}; the partial file {part} is kept: fetch again to resume"
         )
     return part

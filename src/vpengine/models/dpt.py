@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import torch
 import torch.nn.functional as F
@@ -33,8 +33,11 @@ from torch import nn
 
 from vpengine import colormaps
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options, Pipeline
-from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
+from vpengine.models.weights import apply_state_dict, configured_or_default, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
+
+if TYPE_CHECKING:
+    from vpengine.config import ModelConfig
 
 N_LAYERS = 4
 
@@ -233,9 +236,12 @@ class DPTDepthHead(Model):
             return head
         return Pipeline(head, DepthColormap(head.out_hw, post.cmap, keep_depth=post.output == "both"))
 
+    def needed_checkpoint(self, cfg: ModelConfig) -> str | None:
+        return configured_or_default(cfg, self.default_checkpoint)
+
     def load_checkpoint(self, ctx: BuildContext) -> None:
         """Load ``depth_head.*`` of a Depth-Anything-V2 checkpoint strictly (all keys, all shapes, or nothing)."""
-        path = resolve_checkpoint(ctx, self.default_checkpoint)
+        path = resolve_checkpoint(ctx, self)
         if path is None:  # weights.random_weights: the same stand-in weights in every process
             seeded_init_(self, seed=0)
             # Non-negative last weights on ReLU'd features: random depth that varies instead of a map of zeros.

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from pydantic import Field
@@ -30,8 +30,11 @@ from vpengine.models import palettes
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options
 from vpengine.models.dpt import seeded_init_
 from vpengine.models.upsample_argmax import fused_unavailable, fused_upsample_argmax, upsample_argmax
-from vpengine.models.weights import apply_state_dict, read_state_dict, resolve_checkpoint
+from vpengine.models.weights import apply_state_dict, configured_or_default, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
+
+if TYPE_CHECKING:
+    from vpengine.config import ModelConfig
 
 log = logging.getLogger(__name__)
 
@@ -159,9 +162,12 @@ class LinearSegHead(Model):
     def from_config(cls, ctx: BuildContext) -> Model:
         return cls(ctx, ctx.options(LinearSegOptions))
 
+    def needed_checkpoint(self, cfg: ModelConfig) -> str | None:
+        return configured_or_default(cfg, self.default_checkpoint)
+
     def load_checkpoint(self, ctx: BuildContext) -> None:
         """Load ``decode_head.{bn,conv_seg}.*`` of an official head file strictly (all keys and shapes, or nothing)."""
-        path = resolve_checkpoint(ctx, self.default_checkpoint)
+        path = resolve_checkpoint(ctx, self)
         if path is None:  # weights.random_weights: the same stand-in weights in every process
             seeded_init_(self, seed=0)
             return

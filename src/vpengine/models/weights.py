@@ -9,6 +9,11 @@ Resolution of a model's ``checkpoint`` field (:func:`resolve_checkpoint`):
   (``vpengine weights fetch``, ``download.py``).
 * null -> the recipe's default catalog name.
 
+Which checkpoint a model loads is said in one place, :meth:`Model.needed_checkpoint`: the engine's check before any
+worker starts (:func:`check_checkpoints`) and the model's own ``load_checkpoint`` (through
+:func:`resolve_checkpoint`) both ask it. A model that does not say (a user head loading its own weights) is left
+alone.
+
 Verification: a cached file is hashed in full unless its ``.verified`` stamp (size, mtime and sha256 of the last full
 hash) still matches; a file whose digest differs from the pin is refused. Reading: ``.safetensors`` through
 safetensors; anything else through ``torch.load(weights_only=True)``, which refuses pickled code. Applying: every key
@@ -32,7 +37,7 @@ import torch
 from torch import nn
 
 from vpengine.models import catalog
-from vpengine.models.base import BuildContext, Model, ModelBuildError, Pipeline
+from vpengine.models.base import BuildContext, Model, ModelBuildError
 from vpengine.models.catalog import Entry, human_size
 
 log = logging.getLogger("vpengine.weights")
@@ -47,8 +52,9 @@ class CheckpointError(ModelBuildError):
     """A checkpoint that cannot be used: missing, unverifiable, corrupt, unreadable, or for another model."""
 
 
-def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
-    """The local file to load for this model, or None for random weights (or while planning)."""
+def resolve_checkpoint(ctx: BuildContext, model: Model) -> Path | None:
+    """The local file of the checkpoint ``model`` declares (:meth:`Model.needed_checkpoint`), or None for random
+    weights, while planning, or when it declares none."""
     if ctx.plan_only:
         return None
     if ctx.engine.weights.random_weights:
@@ -60,10 +66,27 @@ def resolve_checkpoint(ctx: BuildContext, default: str | None) -> Path | None:
             )
             _RANDOM_WARNED.add(ctx.name)
         return None
-    return locate_checkpoint(ctx.name, ctx.cfg.model, ctx.cfg.checkpoint or default)
+    try:
+        name = model.needed_checkpoint(ctx.cfg)
+    except CheckpointError as e:
+        raise CheckpointError(f"{ctx.name}: {e}") from None
+    return None if name is None else locate_checkpoint(ctx.name, ctx.cfg.model, name)
 
 
-def locate_checkpoint(model: str, recipe: str, name: str | None) -> Path:
+def configured_or_default(cfg: Any, default: str | None) -> str:
+    """``cfg.checkpoint``, else the recipe's ``default``: what a recipe that cannot run without weights returns from
+    :meth:`Model.needed_checkpoint`; a CheckpointError when neither is set."""
+    if cfg.checkpoint:
+        return str(cfg.checkpoint)
+    if default:
+        return default
+    raise CheckpointError(
+        f"no checkpoint configured and recipe {cfg.model!r} has no default; set checkpoint to a file or catalog "
+        "name, or weights.random_weights: true"
+    )
+
+
+def locate_checkpoint(model: str, recipe: str, name: str) -> Path:
     """The verified local file of checkpoint ``name`` (a path or a catalog name) for ``model``; a one-line
     CheckpointError starting with the model's name, naming the file and how to get it otherwise. Never downloads."""
     try:
@@ -72,12 +95,7 @@ def locate_checkpoint(model: str, recipe: str, name: str | None) -> Path:
         raise CheckpointError(f"{model}: {e}") from None
 
 
-def _locate(recipe: str, name: str | None) -> Path:
-    if name is None:
-        raise CheckpointError(
-            f"no checkpoint configured and recipe {recipe!r} has no default; set checkpoint to a file or catalog "
-            "name, or weights.random_weights: true"
-        )
+def _locate(recipe: str, name: str) -> Path:
     path = Path(name).expanduser()
     if path.is_file():
         return path
@@ -95,25 +113,23 @@ def _locate(recipe: str, name: str | None) -> Path:
     )
 
 
-def check_checkpoints(cfg: Any, models: Mapping[str, nn.Module]) -> None:
+def check_checkpoints(cfg: Any, models: Mapping[str, Model]) -> None:
     """Raise one CheckpointError, a line per checkpoint, unless every model of ``models`` (name -> the model as
     planned) finds its checkpoint verified on disk. Runs in the parent before any worker starts (Engine), so a
     missing file is a few lines naming model, file and remedy rather than a traceback from every worker.
 
-    A model loads a checkpoint when one of its modules overrides :meth:`Model.load_checkpoint`; the recipe's default
-    catalog name is that module's ``default_checkpoint`` attribute (None or absent: no default).
+    What each model needs is what it declares (:meth:`Model.needed_checkpoint`), the same answer its
+    ``load_checkpoint`` gets; a model that declares none is not checked.
     """
     if cfg.weights.random_weights:
         return
     problems: dict[str, list[str]] = {}  # message -> the models it concerns (a file shared by two: one line)
     for name, model in models.items():
-        loaders = [m for m in model.modules() if _loads_checkpoint(m)]
-        if not loaders:
-            continue
         mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
-        default = next((d for m in loaders if (d := getattr(m, "default_checkpoint", None))), None)
         try:
-            _locate(mcfg.model, mcfg.checkpoint or default)
+            needed = model.needed_checkpoint(mcfg)
+            if needed is not None:
+                _locate(mcfg.model, needed)
         except CheckpointError as e:
             problems.setdefault(str(e), []).append(name)
     if problems:
@@ -122,14 +138,6 @@ def check_checkpoints(cfg: Any, models: Mapping[str, nn.Module]) -> None:
             f"{len(lines)} checkpoint(s) not available, so no worker was started (the engine downloads nothing; "
             "--random-weights runs without checkpoints):\n" + "\n".join(lines)
         )
-
-
-def _loads_checkpoint(module: nn.Module) -> bool:
-    return (
-        isinstance(module, Model)
-        and not isinstance(module, Pipeline)
-        and type(module).load_checkpoint is not Model.load_checkpoint
-    )
 
 
 def cached_checkpoint(entry: Entry, cache: str | Path, for_model: str | None = None) -> Path:
@@ -154,11 +162,15 @@ def place_hint(entry: Entry, cache: str | Path) -> str:
     if eff.sha256 is not None:
         check = f"sha256 {eff.sha256}, {human_size(eff.size)}"
     else:
-        check = (
-            f"no sha256 is published: `vpengine weights fetch {entry.name}` then records the digest of the file "
-            "you placed"
-        )
-    return f"place the file at {entry.path(cache)} (download it from {entry.url}; {check})"
+        check = f"no sha256 is published: {_pin_command(entry)} then records the digest of the file you placed"
+    # The URL a fetch would use: with $HF_ENDPOINT set, the mirror, since huggingface.co may be out of reach
+    return f"place the file at {entry.path(cache)} (download it from {catalog.shown_url(entry.source_url())}; {check})"
+
+
+def _pin_command(entry: Entry) -> str:
+    """The command that pins the digest of what is there now (Note [Trust on first use] in ``catalog.py``)."""
+    flag = "" if catalog.first_use_refusal(entry) is None else " --trust-on-first-use"
+    return f"`vpengine weights fetch {entry.name}{flag}`"
 
 
 def missing_error(
@@ -180,8 +192,8 @@ def unverifiable_error(entry: Entry) -> CheckpointError:
     """The error for a file in the cache that has no digest to check it against (neither published nor pinned)."""
     return CheckpointError(
         f"checkpoint {entry.name!r} has no known sha256 ({entry.sha256_missing or 'none recorded'}), so vpengine "
-        f"will not use it unverified: `vpengine weights fetch {entry.name}` records the digest of the file there "
-        f"now (trust on first use), `vpengine weights fetch {entry.name} --sha256 HEX` checks it against one you trust"
+        f"will not use it unverified: {_pin_command(entry)} records the digest of the file there now (trust on "
+        f"first use), `vpengine weights fetch {entry.name} --sha256 HEX` checks it against one you trust"
     )
 
 

@@ -129,6 +129,7 @@ def _digest_kind(entry: Any, cache: Path) -> str:
 
 def cmd_list(args: argparse.Namespace) -> int:
     from vpengine.models import catalog
+    from vpengine.models.catalog import shown_url
 
     cache = _cache()
     rows = []
@@ -143,7 +144,7 @@ def cmd_list(args: argparse.Namespace) -> int:
                 "sha256": eff.sha256,
                 "digest": _digest_kind(e, cache),
                 "recipes": list(e.recipes),
-                "url": e.url,
+                "url": shown_url(e.url),
                 "path": str(e.path(cache)),
             }
         )

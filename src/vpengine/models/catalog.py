@@ -303,11 +303,14 @@ def url_host(url: str) -> str:
 
 
 def shown_url(url: str) -> str:
-    """``url`` for messages: without the ``user:token@`` of a login (a custom --url or $HF_ENDPOINT may carry one)."""
+    """``url`` for messages and listings: without the ``user:token@`` of a login (a custom --url or $HF_ENDPOINT may
+    carry one) and with secret query values masked (a signed link's ``?token=``; Note [Redacting] in redact.py)."""
+    from vpengine.redact import redact
+
     parts = urllib.parse.urlsplit(url)
-    if "@" not in parts.netloc:
-        return url
-    return urllib.parse.urlunsplit(parts._replace(netloc=url_host(url)))
+    if "@" in parts.netloc:
+        url = urllib.parse.urlunsplit(parts._replace(netloc=url_host(url)))
+    return redact(url)
 
 
 def first_use_refusal(entry: Entry) -> str | None:

@@ -54,56 +54,23 @@ import logging
 import os
 import queue
 import socket
-import struct
 import subprocess
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
 from vpengine.runtime.control import POLL_S, STOPPED
+from vpengine.runtime.sockets import Failed, Init, Ready, Stop, hold_parent_end, peer_uid, release_parent_end, send_fds
+from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tests have always found it
 from vpengine.runtime.supervisor import EngineStartError, Runner
-from vpengine.runtime.worker import WorkerSpec
 from vpengine.runtime.zygote import WorkerProc, Zygote, worker_path
 
 log = logging.getLogger("vpengine.process")
-
-
-def peer_uid(sock_fd: int) -> tuple[int, int]:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(sock_fd))
-    try:
-        raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    finally:
-        sock.close()
-    pid, uid, _gid = struct.unpack("3i", raw)
-    return pid, uid
-
-
-def send_fds(conn: Connection, fds: list[int]) -> None:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
-    try:
-        socket.send_fds(sock, [struct.pack("i", len(fds))], fds)
-    finally:
-        sock.close()
-
-
-def recv_fds(conn: Connection) -> list[int]:
-    _pid, uid = peer_uid(conn.fileno())
-    if uid != os.getuid():
-        raise PermissionError(f"handle socket peer runs as uid {uid}, not {os.getuid()}; refusing its handles")
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
-    try:
-        msg, fds, _flags, _addr = socket.recv_fds(sock, 4, 256)
-    finally:
-        sock.close()
-    expected = struct.unpack("i", msg)[0] if len(msg) == 4 else -1
-    if len(fds) != expected:
-        raise RuntimeError(f"expected {expected} file descriptors from the engine, got {len(fds)}")
-    return fds
 
 
 def package_env() -> dict[str, str]:
@@ -114,53 +81,6 @@ def package_env() -> dict[str, str]:
     src = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join([src, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
     return env
-
-
-# ----------------------------------------------------------------------------------- messages on the socket
-@dataclass(frozen=True)
-class Init:
-    """Parent -> worker, first: what to run (the fds of its rings follow, Note [Child lifecycle])."""
-
-    spec: WorkerSpec
-    log_level: str
-    log_file: str | None
-
-
-@dataclass(frozen=True)
-class Ready:
-    """Worker -> parent: loaded, warmed up and serving."""
-
-    pid: int
-
-
-@dataclass(frozen=True)
-class Failed:
-    """Worker -> parent: it could not start, or its loop raised; its traceback."""
-
-    text: str
-
-
-@dataclass(frozen=True)
-class Stop:
-    """Parent -> worker: leave the loop."""
-
-
-# Note [Child lifecycle]: the parent's socket ends, replaced by /dev/null in any process forked from the parent
-_PARENT_ENDS: set[int] = set()
-
-
-def _drop_parent_ends() -> None:
-    if not _PARENT_ENDS:
-        return
-    null = os.open(os.devnull, os.O_RDWR)
-    for fd in list(_PARENT_ENDS):
-        with contextlib.suppress(OSError):  # the number stays valid: what closes it later closes /dev/null
-            os.dup2(null, fd, inheritable=False)
-    os.close(null)
-    _PARENT_ENDS.clear()
-
-
-os.register_at_fork(after_in_child=_drop_parent_ends)
 
 
 class _Spawner:
@@ -230,7 +150,7 @@ class _Child:
 
     def close(self) -> None:
         if not self.conn.closed:
-            _PARENT_ENDS.discard(self.conn.fileno())
+            release_parent_end(self.conn.fileno())
         with contextlib.suppress(OSError):
             self.conn.close()
 
@@ -282,12 +202,12 @@ class ProcessRunner(Runner):
             spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
         )
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        _PARENT_ENDS.add(ours.fileno())
+        hold_parent_end(ours.fileno())
         try:
             env = {**os.environ, **self._env_for(name)}
             proc = self._live_zygote().fork(env, worker_path(), os.getcwd(), theirs.fileno())
         except BaseException:
-            _PARENT_ENDS.discard(ours.fileno())
+            release_parent_end(ours.fileno())
             ours.close()
             raise
         finally:

@@ -27,7 +27,8 @@ from multiprocessing.connection import Connection
 from pathlib import Path
 from typing import Any
 
-from vpengine.runtime.child import _die_with_parent
+from vpengine.runtime.child import die_with_parent
+from vpengine.runtime.sockets import hold_parent_end, recv_fds, release_parent_end, send_fds
 
 #: What every worker imports: the zygote imports it once, and its forks find it loaded.
 PRELOAD = (
@@ -99,12 +100,11 @@ def zygote_command(fd: int) -> list[str]:
 def main(fd: int, parent_pid: int, base_path: list[str]) -> None:
     """The zygote's entry: preload, say so, then fork a worker per request and report each one's exit, until the
     engine's end of the socket closes."""
-    _die_with_parent(parent_pid)
+    die_with_parent(parent_pid)
     conn = Connection(fd)
     try:
         for name in PRELOAD:
             importlib.import_module(name)
-        from vpengine.runtime.process import recv_fds
     except BaseException:
         conn.send(ZygoteError(traceback.format_exc()))
         os._exit(3)
@@ -116,12 +116,12 @@ def main(fd: int, parent_pid: int, base_path: list[str]) -> None:
     conn.send(Forked(os.getpid()))
     try:
         while True:
-            readable, _, _ = select.select([conn, wake_r], [], [])
+            readable, _, _ = select.select([fd, wake_r], [], [])
             if wake_r in readable:
                 with contextlib.suppress(BlockingIOError):
                     os.read(wake_r, 4096)
             _reap(conn)
-            if conn in readable:
+            if fd in readable:
                 try:
                     request = conn.recv()
                     fds = recv_fds(conn)
@@ -263,15 +263,13 @@ class Zygote:
         notify: Callable[[], None],
         abort: Callable[[], bool],
     ) -> None:
-        from vpengine.runtime.process import _PARENT_ENDS
-
         self._notify, self._abort = notify, abort
         self._procs: dict[int, WorkerProc] = {}
         self._replies: queue.SimpleQueue[WorkerProc | ZygoteError | None] = queue.SimpleQueue()
         self._lock = threading.Lock()  # one start request at a time
         self._lost = threading.Event()
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        _PARENT_ENDS.add(ours.fileno())
+        hold_parent_end(ours.fileno())
         self._fd = ours.fileno()
         try:
             self.proc: subprocess.Popen[bytes] = spawn(
@@ -280,7 +278,7 @@ class Zygote:
                 )
             )
         except BaseException:
-            _PARENT_ENDS.discard(ours.fileno())
+            release_parent_end(ours.fileno())
             ours.close()
             raise
         finally:
@@ -319,8 +317,6 @@ class Zygote:
 
     def fork(self, env: dict[str, str], path: list[str], cwd: str, fd: int) -> WorkerProc:
         """Start a worker with this environment, import path and working directory, talking over socket ``fd``."""
-        from vpengine.runtime.process import send_fds
-
         with self._lock:
             if self._lost.is_set():
                 raise RuntimeError(f"the worker zygote (pid {self.pid}) is gone")
@@ -386,8 +382,6 @@ class Zygote:
     def close(self, timeout: float) -> None:
         """End the zygote (EOF on its socket; then SIGTERM, then SIGKILL) and wait for it, bounded. Its workers
         should be gone already: any left die with it."""
-        from vpengine.runtime.process import _PARENT_ENDS
-
         with contextlib.suppress(OSError):
             sock = socket.socket(fileno=os.dup(self._conn.fileno()))
             try:
@@ -403,6 +397,6 @@ class Zygote:
         reader = getattr(self, "_reader", None)
         if reader is not None and reader is not threading.current_thread():
             reader.join(_ORPHAN_GRACE_S + 2.0)
-        _PARENT_ENDS.discard(self._fd)
+        release_parent_end(self._fd)
         with contextlib.suppress(OSError):
             self._conn.close()

@@ -171,6 +171,7 @@ class ProcessRunner(Runner):
         self._env_for = env_for or (lambda name: {})
         self._children: dict[str, _Child] = {}
         self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)  # a full pipe already wakes the monitor: never block a writer on it
         self._wake_lock = threading.Lock()  # the zygote's reader wakes us until stop closes the pipe
         self._monitor: threading.Thread | None = None
         self._spawner = _Spawner()
@@ -179,7 +180,8 @@ class ProcessRunner(Runner):
     def _wake(self) -> None:
         with self._wake_lock:
             if self._wake_w >= 0:
-                os.write(self._wake_w, b"x")
+                with contextlib.suppress(BlockingIOError):
+                    os.write(self._wake_w, b"x")
 
     def _live_zygote(self) -> Zygote:
         """The zygote to fork from: a new one if there is none yet or the last one died (its workers with it)."""

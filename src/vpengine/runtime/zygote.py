@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import gc
 import importlib
+import logging
 import os
 import queue
 import select
@@ -29,6 +30,8 @@ from typing import Any
 
 from vpengine.runtime.child import die_with_parent
 from vpengine.runtime.sockets import hold_parent_end, recv_fds, release_parent_end, send_fds
+
+log = logging.getLogger("vpengine.zygote")
 
 #: What every worker imports: the zygote imports it once, and its forks find it loaded.
 PRELOAD = (
@@ -360,6 +363,10 @@ class Zygote:
                     self._replies.put(msg)
         except (EOFError, OSError):
             pass
+        except Exception:  # a message we cannot read: treat the zygote as lost rather than wait on it for ever
+            log.exception("reading from the worker zygote (pid %d) failed; starting afresh", self.pid)
+            with contextlib.suppress(OSError):
+                self.proc.kill()
         self._lost.set()
         self._replies.put(None)
         self._bury(list(self._procs.values()))

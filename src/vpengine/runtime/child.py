@@ -13,9 +13,9 @@ from multiprocessing.connection import Connection
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent(parent_pid: int) -> None:
-    """Have the kernel SIGKILL us when the parent dies (Note [Child lifecycle]), however we are doing then:
-    stopped, or hung in C code that holds the GIL. Plain libc through ctypes, not vpengine.transport.linux, whose
+def die_with_parent(parent_pid: int) -> None:
+    """Have the kernel SIGKILL us when our parent (``parent_pid``: the zygote, or for the zygote the engine) dies
+    (Note [Child lifecycle]), however we are doing then: stopped, or hung in C code that holds the GIL. Plain libc through ctypes, not vpengine.transport.linux, whose
     package imports torch: this runs before anything slow."""
     libc = ctypes.CDLL(None, use_errno=True)
     if libc.prctl(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0) != 0:
@@ -25,11 +25,11 @@ def _die_with_parent(parent_pid: int) -> None:
 
 
 def main(fd: int, parent_pid: int) -> None:
-    _die_with_parent(parent_pid)
+    die_with_parent(parent_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C belongs to the parent, which stops us in order
     conn = Connection(fd)
     try:
-        from vpengine.runtime.process import Init
+        from vpengine.runtime.sockets import Init
 
         init = conn.recv()
         assert isinstance(init, Init), init
@@ -39,7 +39,7 @@ def main(fd: int, parent_pid: int) -> None:
     logging.basicConfig(level=log_level, format=f"%(asctime)s %(levelname)s [{spec.name}] %(name)s: %(message)s")
 
     from vpengine.runtime.control import ControlBlock
-    from vpengine.runtime.process import Failed, Ready, Stop, recv_fds
+    from vpengine.runtime.sockets import Failed, Ready, Stop, recv_fds
     from vpengine.runtime.supervisor import log_to_file
     from vpengine.runtime.worker import describe_exception, prepare_worker
     from vpengine.transport.ring import SlotRing

@@ -2,34 +2,49 @@
 
 Note [Child lifecycle]
 ~~~~~~~~~~~~~~~~~~~~~~
-* Children are fresh interpreters, never forks: the parent may have initialised CUDA, and a forked CUDA context is
-  unusable. Unlike multiprocessing's spawn, the user's ``__main__`` script is not re-imported in the child, so
-  scripts need no ``if __name__ == "__main__"`` guard and a ROS node's top-level code never runs twice. Children get
-  their own session, so a Ctrl-C in the terminal reaches only the parent, which then stops them in order.
-* A child imports nothing from its working directory: it runs isolated (``python -I``: no current directory or
-  script directory on ``sys.path``, no PYTHON* variables, no user site) with an explicit ``sys.path``: the folder
-  of this vpengine package, then the parent's ``sys.path`` as absolute paths, so a user head the parent can import
-  (``package.module:Class``) the child imports from the same place. Before, ``python -m`` put the current directory
-  first, and a ``yaml.py`` planted in a shared directory ran in every worker. The working directory itself stays
-  the parent's (relative checkpoint and log paths mean what they mean to the parent); only imports ignore it. A
-  parent whose own ``sys.path`` holds its current directory ('' in a REPL or ``python -c``) passes it on: the child
-  then imports from where the parent already does, nowhere else.
-* Each child inherits exactly one file descriptor: its end of a UNIX socketpair. Over it the parent sends the
-  child's spec and then the file descriptors of every region it maps (memfds, CUDA VMM handles) with SCM_RIGHTS --
-  no socket file, no /dev/shm name, so no other process can attach -- and both ends check the peer's uid with
-  SO_PEERCRED. The child answers READY (or its traceback) once its model is loaded and warmed up; the parent waits
-  at most ``runtime.ready_timeout_s``.
-* The same socket is the death pipe: a watcher thread in the child blocks on it, and when the parent dies (even by
-  SIGKILL) the kernel closes the parent's end, the read returns EOF, and the child exits at once. That needs the
-  child's interpreter to run (not SIGSTOPped, not hung in C code holding the GIL) and no other process to hold the
-  parent's end (a helper the user's program forked inherits it). So the kernel kills the child too: it asks for
-  SIGKILL when its parent dies (``PR_SET_PDEATHSIG``) first thing, then checks that the parent is still the one
-  that started it (had it died before, nobody would send the signal). The kernel sends it when the *thread* that
-  started the child ends, so every child is started by one spawner thread that lives as long as the runner. And a
-  process forked from the parent gets /dev/null in place of the parent's socket ends (``os.register_at_fork``).
-* The parent's monitor thread waits on a pidfd of every child (EOF of its socket on kernels without pidfd); a
-  death is handled by ``Runner._on_exit``.
-* ``stop`` asks politely (stop flag + message), then terminate -> wait(timeout) -> kill. It always returns.
+* Workers are forked from a zygote (runtime/zygote.py), never from the engine: the engine may have initialised CUDA,
+  and a forked CUDA context is unusable. The zygote is a fresh interpreter, started once per runner, that imports
+  what every worker needs (torch, the worker loop, the rings) and then only forks: it never initialises CUDA (it
+  checks before each fork), runs no model and is single-threaded in Python (the one native thread torch's import
+  leaves, OpenBLAS's pool, shuts itself down around fork). A fork of it is as clean as a fresh interpreter that has
+  done those imports, so a worker starts, and restarts, without paying the import of torch again (seconds of CPU
+  each, more on a Jetson). Unlike multiprocessing's spawn or forkserver, the user's ``__main__`` script is never
+  re-imported, so scripts need no ``if __name__ == "__main__"`` guard and a ROS node's top-level code never runs
+  twice. The zygote and every worker get their own session, so a Ctrl-C in the terminal reaches only the engine,
+  which then stops them in order.
+* Nothing comes from the working directory: the zygote runs isolated (``python -I``: no current directory or script
+  directory on ``sys.path``, no PYTHON* variables, no user site) with an explicit ``sys.path``: the folder of this
+  vpengine package, then the engine's ``sys.path`` as absolute paths, so a user head the engine can import
+  (``package.module:Class``) a worker imports from the same place. Before, ``python -m`` put the current directory
+  first, and a ``yaml.py`` planted in a shared directory ran in every worker. Each start request carries the
+  engine's import path, working directory and environment (its own and ``env_for``'s, e.g. the MPS variables) as
+  they are at that (re)start; the fork takes them over before it imports anything of the worker's own. The working
+  directory stays the engine's (relative checkpoint and log paths mean what they mean to the engine); only imports
+  ignore it. An engine whose own ``sys.path`` holds its current directory ('' in a REPL or ``python -c``) passes it
+  on: the worker then imports from where the engine already does, nowhere else.
+* Each worker holds exactly one file descriptor of ours: its end of a UNIX socketpair, which the engine hands the
+  zygote with SCM_RIGHTS in the start request (the zygote closes its copy and its own socket in the fork). Over it
+  the engine sends the worker's spec and then the file descriptors of every region it maps (memfds, CUDA VMM
+  handles) with SCM_RIGHTS -- no socket file, no /dev/shm name, so no other process can attach -- and both ends
+  check the peer's uid with SO_PEERCRED. The worker answers READY (or its traceback) once its model is loaded and
+  warmed up; the engine waits at most ``runtime.ready_timeout_s``.
+* The same socket is the death pipe: a watcher thread in the worker blocks on it, and when the engine dies (even by
+  SIGKILL) the kernel closes the engine's end, the read returns EOF, and the worker exits at once. That needs the
+  worker's interpreter to run (not SIGSTOPped, not hung in C code holding the GIL) and no other process to hold the
+  engine's end (a helper the user's program forked inherits it). So the kernel kills them too, in a chain: the
+  zygote asks for SIGKILL when its parent dies (``PR_SET_PDEATHSIG``) first thing, then checks that the parent is
+  still the one that started it (had it died before, nobody would send the signal); each worker does the same
+  towards the zygote. The kernel sends the signal when the *thread* that started the process ends, so the zygote
+  is started by one spawner thread that lives as long as the runner (the zygote forks from its only thread). Killing
+  the engine kills the zygote, which kills the workers; a zygote that dies (a crash, the OOM killer) takes its
+  workers with it, and the runner restarts them, from a new zygote. A process forked from the engine gets /dev/null
+  in place of the engine's socket ends (``os.register_at_fork``).
+* Only a parent can reap, so the zygote reaps its workers and reports each ``(pid, returncode)`` (``Popen``'s
+  convention) to the engine, where a ``WorkerProc`` stands in for a ``Popen``; signals go through a pidfd opened when
+  the pid is known. The monitor thread wakes on those reports (and on the workers' sockets); a death is handled by
+  ``Runner._on_exit``.
+* ``stop`` asks politely (stop flag + message), then terminate -> wait(timeout) -> kill; then it closes the zygote
+  (EOF, then terminate -> kill) and waits for it. It always returns.
 """
 
 from __future__ import annotations
@@ -39,56 +54,23 @@ import logging
 import os
 import queue
 import socket
-import struct
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
 from vpengine.runtime.control import POLL_S, STOPPED
+from vpengine.runtime.sockets import Failed, Init, Ready, Stop, hold_parent_end, peer_uid, release_parent_end, send_fds
+from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tests have always found it
 from vpengine.runtime.supervisor import EngineStartError, Runner
-from vpengine.runtime.worker import WorkerSpec
+from vpengine.runtime.zygote import WorkerProc, Zygote, worker_path
 
 log = logging.getLogger("vpengine.process")
-
-
-def peer_uid(sock_fd: int) -> tuple[int, int]:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(sock_fd))
-    try:
-        raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
-    finally:
-        sock.close()
-    pid, uid, _gid = struct.unpack("3i", raw)
-    return pid, uid
-
-
-def send_fds(conn: Connection, fds: list[int]) -> None:
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
-    try:
-        socket.send_fds(sock, [struct.pack("i", len(fds))], fds)
-    finally:
-        sock.close()
-
-
-def recv_fds(conn: Connection) -> list[int]:
-    _pid, uid = peer_uid(conn.fileno())
-    if uid != os.getuid():
-        raise PermissionError(f"handle socket peer runs as uid {uid}, not {os.getuid()}; refusing its handles")
-    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM, fileno=os.dup(conn.fileno()))
-    try:
-        msg, fds, _flags, _addr = socket.recv_fds(sock, 4, 256)
-    finally:
-        sock.close()
-    expected = struct.unpack("i", msg)[0] if len(msg) == 4 else -1
-    if len(fds) != expected:
-        raise RuntimeError(f"expected {expected} file descriptors from the engine, got {len(fds)}")
-    return fds
 
 
 def package_env() -> dict[str, str]:
@@ -99,68 +81,6 @@ def package_env() -> dict[str, str]:
     src = str(Path(__file__).resolve().parents[2])
     env["PYTHONPATH"] = os.pathsep.join([src, *([env["PYTHONPATH"]] if env.get("PYTHONPATH") else [])])
     return env
-
-
-# ----------------------------------------------------------------------------------- messages on the socket
-@dataclass(frozen=True)
-class Init:
-    """Parent -> worker, first: what to run (the fds of its rings follow, Note [Child lifecycle])."""
-
-    spec: WorkerSpec
-    log_level: str
-    log_file: str | None
-
-
-@dataclass(frozen=True)
-class Ready:
-    """Worker -> parent: loaded, warmed up and serving."""
-
-    pid: int
-
-
-@dataclass(frozen=True)
-class Failed:
-    """Worker -> parent: it could not start, or its loop raised; its traceback."""
-
-    text: str
-
-
-@dataclass(frozen=True)
-class Stop:
-    """Parent -> worker: leave the loop."""
-
-
-# A worker's interpreter: isolated (-I), with the import path given on its command line (Note [Child lifecycle]).
-_BOOT = (
-    "import sys; sys.path[:0] = sys.argv[3:]; del sys.argv[3:]; "
-    "from vpengine.runtime.child import main; main(int(sys.argv[1]), int(sys.argv[2]))"
-)
-
-
-def child_command(fd: int) -> list[str]:
-    """The command line of a worker that talks over socket ``fd``: this package's folder, then the parent's
-    ``sys.path`` made absolute (as the parent resolves it now), is the child's import path; never its cwd."""
-    src = str(Path(__file__).resolve().parents[2])
-    path = [src, *(os.path.abspath(p) for p in sys.path)]
-    return [sys.executable, "-I", "-c", _BOOT, str(fd), str(os.getpid()), *dict.fromkeys(path)]
-
-
-# Note [Child lifecycle]: the parent's socket ends, replaced by /dev/null in any process forked from the parent
-_PARENT_ENDS: set[int] = set()
-
-
-def _drop_parent_ends() -> None:
-    if not _PARENT_ENDS:
-        return
-    null = os.open(os.devnull, os.O_RDWR)
-    for fd in list(_PARENT_ENDS):
-        with contextlib.suppress(OSError):  # the number stays valid: what closes it later closes /dev/null
-            os.dup2(null, fd, inheritable=False)
-    os.close(null)
-    _PARENT_ENDS.clear()
-
-
-os.register_at_fork(after_in_child=_drop_parent_ends)
 
 
 class _Spawner:
@@ -196,23 +116,17 @@ class _Spawner:
 
 
 class _Child:
-    def __init__(self, proc: subprocess.Popen[bytes], conn: Connection) -> None:
+    def __init__(self, proc: WorkerProc, conn: Connection) -> None:
         self.proc = proc
         self.conn = conn
         self.ready = False
         self.error: str | None = None
         self.eof = False  # its socket reached EOF (it is exiting)
         self.handled = False  # its death was handled (cleanup, restart scheduled)
-        try:
-            self.pidfd: int | None = os.pidfd_open(proc.pid)
-        except (AttributeError, OSError):  # kernel < 5.3: the socket's EOF tells us instead
-            self.pidfd = None
-
-    @property
-    def sentinel(self) -> Any:
-        return self.pidfd if self.pidfd is not None else self.conn
 
     def alive(self) -> bool:
+        """Not reported gone by the zygote (Note [Child lifecycle]): a worker whose socket closed is alive until its
+        exit report comes, moments later."""
         return self.proc.poll() is None
 
     def join(self, timeout: float) -> bool:
@@ -236,16 +150,13 @@ class _Child:
 
     def close(self) -> None:
         if not self.conn.closed:
-            _PARENT_ENDS.discard(self.conn.fileno())
+            release_parent_end(self.conn.fileno())
         with contextlib.suppress(OSError):
             self.conn.close()
-        if self.pidfd is not None:
-            with contextlib.suppress(OSError):
-                os.close(self.pidfd)
-            self.pidfd = None
 
 
 _TERM_GRACE_S = 2.0  # how long stop waits after SIGTERM, and after SIGKILL, for all children together
+_ZYGOTE_GRACE_S = 1.0  # how long stop waits for the zygote to leave at EOF (it only has to exit) before SIGTERM
 
 
 def _join_all(children: list[_Child], timeout: float) -> None:
@@ -260,8 +171,29 @@ class ProcessRunner(Runner):
         self._env_for = env_for or (lambda name: {})
         self._children: dict[str, _Child] = {}
         self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)  # a full pipe already wakes the monitor: never block a writer on it
+        self._wake_lock = threading.Lock()  # the zygote's reader wakes us until stop closes the pipe
         self._monitor: threading.Thread | None = None
         self._spawner = _Spawner()
+        self._zygote: Zygote | None = None
+
+    def _wake(self) -> None:
+        with self._wake_lock:
+            if self._wake_w >= 0:
+                with contextlib.suppress(BlockingIOError):
+                    os.write(self._wake_w, b"x")
+
+    def _live_zygote(self) -> Zygote:
+        """The zygote to fork from: a new one if there is none yet or the last one died (its workers with it)."""
+        if self._zygote is None or not self._zygote.alive():
+            if self._zygote is not None:
+                log.warning("the worker zygote (pid %d) is gone: starting a new one", self._zygote.pid)
+                self._zygote.close(0.0)
+                self._zygote = None
+            self._zygote = Zygote(
+                self._spawner.call, self.cfg.runtime.ready_timeout_s, self._wake, lambda: self._stopping
+            )
+        return self._zygote
 
     def _launch(self, name: str) -> None:
         spec = self.specs[name]
@@ -272,18 +204,12 @@ class ProcessRunner(Runner):
             spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
         )
         ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        _PARENT_ENDS.add(ours.fileno())
+        hold_parent_end(ours.fileno())
         try:
-            proc = self._spawner.call(
-                lambda: subprocess.Popen(
-                    child_command(theirs.fileno()),
-                    pass_fds=[theirs.fileno()],
-                    env={**os.environ, **self._env_for(name)},
-                    start_new_session=True,
-                )
-            )
+            env = {**os.environ, **self._env_for(name)}
+            proc = self._live_zygote().fork(env, worker_path(), os.getcwd(), theirs.fileno())
         except BaseException:
-            _PARENT_ENDS.discard(ours.fileno())
+            release_parent_end(ours.fileno())
             ours.close()
             raise
         finally:
@@ -296,7 +222,7 @@ class ProcessRunner(Runner):
         conn.send(Init(child_spec, self.cfg.logging.level, self.cfg.logging.file))
         send_fds(conn, fds)
         self._children[name] = _Child(proc, conn)
-        os.write(self._wake_w, b"x")
+        self._wake()
 
     def threads_alive(self) -> list[threading.Thread]:
         return [self._monitor] if self._monitor is not None and self._monitor.is_alive() else []
@@ -316,15 +242,10 @@ class ProcessRunner(Runner):
                     f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
                     "(runtime.ready_timeout_s)"
                 )
-            by_obj: dict[Any, str] = {}
-            for name in waiting:
-                ch = self._children[name]
-                by_obj[ch.conn] = name
-                by_obj[ch.sentinel] = name
-            for obj in wait(list(by_obj), timeout=remaining):
-                name = by_obj[obj]
-                if name not in waiting:
-                    continue
+            objs: list[Any] = [self._wake_r, *(self._children[n].conn for n in waiting if not self._children[n].eof)]
+            if self._wake_r in wait(objs, timeout=remaining):
+                os.read(self._wake_r, 4096)
+            for name in list(waiting):
                 ch = self._children[name]
                 ch.drain()
                 if ch.ready:
@@ -332,8 +253,7 @@ class ProcessRunner(Runner):
                 elif ch.error is not None:
                     errors.append(ch.error)
                     waiting.discard(name)
-                elif ch.eof or not ch.alive():
-                    ch.join(1.0)
+                elif not ch.alive():
                     errors.append(f"{name} exited with code {ch.proc.returncode} before it was ready")
                     waiting.discard(name)
         if errors:
@@ -346,38 +266,26 @@ class ProcessRunner(Runner):
     def _watch(self) -> None:
         while not self._stopping:
             timeout = min(self._run_due_restarts(), POLL_S)
-            by_obj: dict[Any, str] = {self._wake_r: ""}
+            objs: list[Any] = [self._wake_r]
             with self._lock:
+                for name, ch in self._children.items():
+                    if name not in self._pending and not ch.handled and not ch.eof:
+                        objs.append(ch.conn)
+            if self._wake_r in wait(objs, timeout=max(0.01, timeout)):
+                with contextlib.suppress(OSError):
+                    os.read(self._wake_r, 4096)
+            with self._lock:
+                if self._stopping:
+                    return
                 for name, ch in self._children.items():
                     if name in self._pending or ch.handled:
                         continue
-                    if not ch.eof:
-                        by_obj[ch.conn] = name
-                    if ch.pidfd is not None:  # keep watching past EOF: the socket closes before the reaping
-                        by_obj[ch.pidfd] = name
-            for obj in wait(list(by_obj), timeout=max(0.01, timeout)):
-                name = by_obj[obj]
-                if not name:
-                    os.read(self._wake_r, 4096)
-                    continue
-                with self._lock:
-                    if self._stopping:
-                        return
-                    child = self._children.get(name)
-                    if child is None or name in self._pending:
-                        continue
-                    ch = child
                     was_ready = ch.ready
                     ch.drain()
                     if ch.ready and not was_ready:
                         log.info("%s is ready again (pid %d)", name, ch.proc.pid)
-                    if ch.pidfd is not None and ch.alive():
-                        continue  # its pidfd becomes readable when it is gone
-                    if ch.pidfd is None and not ch.eof:
-                        continue  # no pidfd (old kernel): the socket's EOF is the sign of exit
-                    if not ch.join(2.0):  # exiting but lingering: make sure it is gone
-                        ch.proc.kill()
-                        ch.join(2.0)
+                    if ch.alive():
+                        continue  # its socket may be closed already: the zygote's exit report wakes us
                     code = ch.proc.returncode
                     reason = f"exit code {code}" if code is None or code >= 0 else f"killed by signal {-code}"
                     if ch.error:
@@ -405,11 +313,11 @@ class ProcessRunner(Runner):
 
     # -------------------------------------------------------------------------------------------- stop
     def stop(self) -> list[str]:
+        self._stopping = True  # before the lock: a launch waiting on the zygote, lock held, gives up
         with self._lock:
-            self._stopping = True
             self._pending.clear()
         with contextlib.suppress(OSError):
-            os.write(self._wake_w, b"x")
+            self._wake()
         self.control.request_stop()
         for ring in self.rings.values():
             ring.wake_all()
@@ -432,12 +340,16 @@ class ProcessRunner(Runner):
         for name, ch in children:
             self.control.set_state(name, STOPPED)
             ch.close()
+        if self._zygote is not None:  # after the workers: its end would SIGKILL those still there
+            self._zygote.close(_ZYGOTE_GRACE_S)
         self._spawner.close()
         if self._monitor is not None and self._monitor is not threading.current_thread():
             self._monitor.join(2.0)
-        for fd in (self._wake_r, self._wake_w):
-            with contextlib.suppress(OSError):
-                os.close(fd)
+        with self._wake_lock:
+            for fd in (self._wake_r, self._wake_w):
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+            self._wake_r = self._wake_w = -1
         if forced:
             log.warning(
                 "workers %s did not stop within %.1f s and were terminated",

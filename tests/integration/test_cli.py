@@ -89,7 +89,9 @@ def test_run_with_the_synthetic_source_needs_no_files(tmp_path):
     s = json.loads((tmp_path / "summary.json").read_text())
     assert s["pace"] == "realtime" and s["frames_submitted"] == 60 and s["mode"] == "thread"
     seg = s["models"]["seg"]
-    assert seg["target_hz"] == 10 and 15 <= seg["runs"] <= 22  # 2 s at 10 Hz, +-1 plus the drain
+    # 2 s of frames at 10 Hz: 20 runs on an idle machine; a loaded one that falls behind the camera's pace takes
+    # longer and runs seg more often, yet never above 10 Hz of the run's own time (+-1 and the drain)
+    assert seg["target_hz"] == 10 and 10 <= seg["runs"] <= 10 * s["wall_s"] + 2, (seg, s["wall_s"])
     fm = s["models"]["foundation"]
     assert fm["runs"] + fm["skipped"] == 60
     # a live source never waits for the writer (Note [Sink thread]); a result it could not write is counted

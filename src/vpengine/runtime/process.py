@@ -68,7 +68,8 @@ from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.sockets import Failed, Init, Ready, Stop, hold_parent_end, peer_uid, release_parent_end, send_fds
 from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tests have always found it
 from vpengine.runtime.supervisor import EngineStartError, Runner
-from vpengine.runtime.zygote import WorkerProc, Zygote, worker_path
+from vpengine.runtime.zygote import worker_path
+from vpengine.runtime.zygote_handle import WorkerProc, Zygote, describe_exit
 
 log = logging.getLogger("vpengine.process")
 
@@ -159,6 +160,15 @@ _TERM_GRACE_S = 2.0  # how long stop waits after SIGTERM, and after SIGKILL, for
 _ZYGOTE_GRACE_S = 1.0  # how long stop waits for the zygote to leave at EOF (it only has to exit) before SIGTERM
 
 
+def _affinity() -> list[int]:
+    """The engine's CPU affinity: its main thread's (the process's, as ``taskset -p`` sets it), not the calling
+    thread's, which kept what it had when it was started."""
+    try:
+        return sorted(os.sched_getaffinity(os.getpid()))
+    except OSError:  # the main thread has ended
+        return sorted(os.sched_getaffinity(0))
+
+
 def _join_all(children: list[_Child], timeout: float) -> None:
     deadline = time.monotonic() + timeout
     for ch in children:
@@ -175,7 +185,9 @@ class ProcessRunner(Runner):
         self._wake_lock = threading.Lock()  # the zygote's reader wakes us until stop closes the pipe
         self._monitor: threading.Thread | None = None
         self._spawner = _Spawner()
-        self._zygote: Zygote | None = None
+        self._zygote: Zygote | None = None  # the one new workers are forked from
+        self._retired: list[Zygote] = []  # older ones, still the parents of workers they forked
+        self._owner = os.getpid()  # Note [Child lifecycle]: a fork of the engine stops nothing
 
     def _wake(self) -> None:
         with self._wake_lock:
@@ -183,13 +195,23 @@ class ProcessRunner(Runner):
                 with contextlib.suppress(BlockingIOError):
                     os.write(self._wake_w, b"x")
 
-    def _live_zygote(self) -> Zygote:
-        """The zygote to fork from: a new one if there is none yet or the last one died (its workers with it)."""
-        if self._zygote is None or not self._zygote.alive():
-            if self._zygote is not None:
-                log.warning("the worker zygote (pid %d) is gone: starting a new one", self._zygote.pid)
-                self._zygote.close(0.0)
-                self._zygote = None
+    def _live_zygote(self, env: dict[str, str]) -> Zygote:
+        """The zygote to fork a worker with ``env`` from: a new one if there is none yet, the last one died (its
+        workers with it), or ``env`` changes a variable its libraries read as they loaded (then the old one stays,
+        the parent of the workers it forked, until none is left)."""
+        old = self._zygote
+        if old is not None and not old.alive():
+            log.warning("the worker zygote (pid %d) is gone: starting a new one", old.pid)
+            old.close(0.0)
+            self._zygote = None
+        elif old is not None and (changed := old.stale(env)):
+            log.info("%s changed since the worker zygote started: workers are forked from a new one", changed)
+            self._retired.append(old)
+            self._zygote = None
+        for z in [z for z in self._retired if z.idle()]:
+            self._retired.remove(z)
+            z.close(_ZYGOTE_GRACE_S)
+        if self._zygote is None:
             self._zygote = Zygote(
                 self._spawner.call, self.cfg.runtime.ready_timeout_s, self._wake, lambda: self._stopping
             )
@@ -207,7 +229,7 @@ class ProcessRunner(Runner):
         hold_parent_end(ours.fileno())
         try:
             env = {**os.environ, **self._env_for(name)}
-            proc = self._live_zygote().fork(env, worker_path(), os.getcwd(), theirs.fileno())
+            proc = self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs.fileno())
         except BaseException:
             release_parent_end(ours.fileno())
             ours.close()
@@ -269,8 +291,12 @@ class ProcessRunner(Runner):
             objs: list[Any] = [self._wake_r]
             with self._lock:
                 for name, ch in self._children.items():
-                    if name not in self._pending and not ch.handled and not ch.eof:
+                    if name in self._pending or ch.handled:
+                        continue
+                    if not ch.eof:
                         objs.append(ch.conn)
+                    if ch.proc.pidfd is not None:  # a death the zygote does not report wakes us too
+                        objs.append(ch.proc.pidfd)
             if self._wake_r in wait(objs, timeout=max(0.01, timeout)):
                 with contextlib.suppress(OSError):
                     os.read(self._wake_r, 4096)
@@ -285,9 +311,8 @@ class ProcessRunner(Runner):
                     if ch.ready and not was_ready:
                         log.info("%s is ready again (pid %d)", name, ch.proc.pid)
                     if ch.alive():
-                        continue  # its socket may be closed already: the zygote's exit report wakes us
-                    code = ch.proc.returncode
-                    reason = f"exit code {code}" if code is None or code >= 0 else f"killed by signal {-code}"
+                        continue  # gone without a report yet: poll() gives the zygote REPORT_GRACE_S to send one
+                    reason = describe_exit(ch.proc.returncode)
                     if ch.error:
                         reason += ": " + ch.error.strip().splitlines()[-1]
                     ch.close()
@@ -313,6 +338,9 @@ class ProcessRunner(Runner):
 
     # -------------------------------------------------------------------------------------------- stop
     def stop(self) -> list[str]:
+        if os.getpid() != self._owner:  # Note [Child lifecycle]: a fork's copy drops its references, nothing more
+            self._children, self._zygote, self._retired = {}, None, []
+            return []
         self._stopping = True  # before the lock: a launch waiting on the zygote, lock held, gives up
         with self._lock:
             self._pending.clear()
@@ -340,8 +368,8 @@ class ProcessRunner(Runner):
         for name, ch in children:
             self.control.set_state(name, STOPPED)
             ch.close()
-        if self._zygote is not None:  # after the workers: its end would SIGKILL those still there
-            self._zygote.close(_ZYGOTE_GRACE_S)
+        for z in [*self._retired, *([self._zygote] if self._zygote else [])]:
+            z.close(_ZYGOTE_GRACE_S)  # after the workers: its end would SIGKILL those still there
         self._spawner.close()
         if self._monitor is not None and self._monitor is not threading.current_thread():
             self._monitor.join(2.0)

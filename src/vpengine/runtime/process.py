@@ -5,8 +5,9 @@ Note [Child lifecycle]
 * Workers are forked from a zygote (runtime/zygote.py), never from the engine: the engine may have initialised CUDA,
   and a forked CUDA context is unusable. The zygote is a fresh interpreter, started once per runner, that imports
   what every worker needs (torch, the worker loop, the rings) and then only forks: it never initialises CUDA (it
-  checks before each fork), runs no model and is single-threaded in Python (the one native thread torch's import
-  leaves, OpenBLAS's pool, shuts itself down around fork). A fork of it is as clean as a fresh interpreter that has
+  checks before each fork: torch's flag, and libcuda in its memory maps, whoever loaded it), runs no model and has
+  one Python thread. It is not single-threaded natively: OpenBLAS (numpy's import) keeps a thread per extra core,
+  and its pthread_atfork handler quiesces them around each fork, which is what makes the fork safe. A fork of it is as clean as a fresh interpreter that has
   done those imports, so a worker starts, and restarts, without paying the import of torch again (seconds of CPU
   each, more on a Jetson). Unlike multiprocessing's spawn or forkserver, the user's ``__main__`` script is never
   re-imported, so scripts need no ``if __name__ == "__main__"`` guard and a ROS node's top-level code never runs
@@ -21,7 +22,13 @@ Note [Child lifecycle]
   they are at that (re)start; the fork takes them over before it imports anything of the worker's own. The working
   directory stays the engine's (relative checkpoint and log paths mean what they mean to the engine); only imports
   ignore it. An engine whose own ``sys.path`` holds its current directory ('' in a REPL or ``python -c``) passes it
-  on: the worker then imports from where the engine already does, nowhere else.
+  on: the worker then imports from where the engine already does, nowhere else. The fork invalidates the import
+  system's directory caches (they are the zygote's, maybe old) and takes over the engine's CPU affinity as it is at
+  that (re)start. What a library read as it loaded stays what the zygote read: ``LOAD_TIME_ENV`` in zygote.py
+  (LD_PRELOAD, LD_LIBRARY_PATH, the OpenMP/OpenBLAS/MKL thread counts, TORCH_LOGS); when a start request sets one
+  otherwise, a new zygote is started and forks the workers from then on (the old one stays while workers it forked
+  live). The rest a worker inherits from the zygote, i.e. from the engine as it was when the zygote started, not as
+  it is now: rlimits, umask, nice value, scheduling class, the real and effective ids.
 * Each worker holds exactly one file descriptor of ours: its end of a UNIX socketpair, which the engine hands the
   zygote with SCM_RIGHTS in the start request (the zygote closes its copy and its own socket in the fork). Over it
   the engine sends the worker's spec and then the file descriptors of every region it maps (memfds, CUDA VMM
@@ -38,13 +45,25 @@ Note [Child lifecycle]
   is started by one spawner thread that lives as long as the runner (the zygote forks from its only thread). Killing
   the engine kills the zygote, which kills the workers; a zygote that dies (a crash, the OOM killer) takes its
   workers with it, and the runner restarts them, from a new zygote. A process forked from the engine gets /dev/null
-  in place of the engine's socket ends (``os.register_at_fork``).
+  in place of the engine's socket ends (``os.register_at_fork``), and its copies of the runner and the zygote
+  handle, which record the pid that made them, send no signal and no message: the engine's finalizer runs at the
+  exit of a plain ``os.fork()`` child too, and its ``stop()`` only drops references there.
 * Only a parent can reap, so the zygote reaps its workers and reports each ``(pid, returncode)`` (``Popen``'s
-  convention) to the engine, where a ``WorkerProc`` stands in for a ``Popen``; signals go through a pidfd opened when
-  the pid is known. The monitor thread wakes on those reports (and on the workers' sockets); a death is handled by
-  ``Runner._on_exit``.
-* ``stop`` asks politely (stop flag + message), then terminate -> wait(timeout) -> kill; then it closes the zygote
-  (EOF, then terminate -> kill) and waits for it. It always returns.
+  convention) to the engine, where a ``WorkerProc`` (zygote_handle.py) stands in for a ``Popen``. The zygote opens
+  each worker's pidfd right after the fork, before it can reap it, and sends it with ``Forked`` (SCM_RIGHTS): it
+  names that process, never a later one with the same pid. Signals go through it; without pidfds (kernel < 5.3) they
+  go as a message to the zygote, which signals only children it has not reaped. The engine never signals a bare pid
+  it did not reap. The monitor thread wakes on the reports, the workers' sockets and their pidfds: a worker gone
+  (pidfd readable) with no report for ``REPORT_GRACE_S`` (1 s) means the zygote is stopped or stuck; it is killed
+  and its workers, dead with an unknown exit code or killed with it, are restarted from a new one. A death is
+  handled by ``Runner._on_exit``.
+* ``start`` waits for the zygote at most ``runtime.ready_timeout_s``, for each fork's answer at most 30 s
+  (milliseconds in practice; a zygote that does not answer is killed), then for READY at most
+  ``runtime.ready_timeout_s``: at most 2 x ``ready_timeout_s`` + 30 s per worker, plus ``stop``'s bound when it fails.
+* ``stop`` asks politely (stop flag + message) and waits ``runtime.stop_timeout_s``, then SIGTERM and 2 s, then
+  SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
+  its reader thread 4 s; then the monitor thread 2 s: at most ``stop_timeout_s`` + 13.5 s (7.5 s more for each older
+  zygote still kept for its workers). It always returns, in practice within ``stop_timeout_s``.
 """
 
 from __future__ import annotations

@@ -271,6 +271,8 @@ class Zygote:
                         self._notify()
                 elif isinstance(msg, Forked):
                     fds = recv_fds(self._conn)
+                    for f in fds:  # recvmsg does not set close-on-exec: a program the engine runs must not get it
+                        os.set_inheritable(f, False)
                     # registered before the next message is read: this worker's exit report comes after it
                     self._procs[msg.pid] = WorkerProc(
                         msg.pid, fds[0] if fds else None, self._signal, self.declare_lost, self.owner

@@ -27,6 +27,7 @@ from __future__ import annotations
 import collections
 import functools
 import logging
+import os
 import shutil
 import threading
 import time
@@ -86,9 +87,14 @@ class _Resources:
         self.dirs: list[str] = []  # private temporary directories (e.g. the no-MPS pipe directory)
         self.fence = MappingFence()  # Note [Unmapping at stop]
         self.log_file: logging.Handler | None = None
+        self.owner = os.getpid()
 
     def close(self) -> list[str]:
         forced: list[str] = []
+        if os.getpid() != self.owner:
+            # A process forked from the engine's (Note [Child lifecycle]), its finalizer run at its exit: the
+            # workers, the control block and the directories are the engine's; only drop the references.
+            self.runner, self.dirs = None, []
         if self.runner is not None:
             forced = self.runner.stop()
             for thread in self.runner.threads_alive():  # abandoned workers: unmap once they are gone
@@ -383,8 +389,6 @@ class Engine:
 
             by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
             if by_pid:
-                import os
-
                 pids = {n: ctl.get(n, "pid") for n in ctl.names}
                 report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
                 report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())

@@ -9,6 +9,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import textwrap
@@ -187,3 +188,153 @@ def test_stop_leaves_no_process_even_with_workers_stopped_by_sigstop():
     e.stop()
     assert not alive([zygote.pid, *pids])
     assert not alive({p.pid for p in psutil.Process().children(recursive=True)} - before)
+
+
+def test_a_worker_that_dies_while_the_zygote_is_stopped_is_restarted_from_a_new_zygote(restart_backoff, caplog):
+    # the stopped zygote reports nothing: the worker's pidfd tells its death, and the zygote counts as lost
+    restart_backoff(0.1)
+    caplog.set_level(logging.WARNING, logger="vpengine")
+    e = Engine(tiny("process")).start()
+    try:
+        (old,) = zygotes()
+        before = worker_pids(e)
+        old.suspend()
+        os.kill(before["seg"], signal.SIGKILL)
+        wait_for(lambda: all_running(e, 1), timeout=90, what="every worker restarted", show=lambda: e.stats())
+        (new,) = zygotes()
+        assert new.pid != old.pid and not alive([old.pid, *before.values()])
+        assert "did not report a worker's exit" in caplog.text
+        assert "seg stopped (exit code unknown" in caplog.text
+        after = worker_pids(e)
+        serves_every_head(e, 0)
+    finally:
+        e.stop()
+    assert not alive([new.pid, *after.values()])
+
+
+FORKING_ENGINE = """
+    import json, os, sys
+    from helpers.frames import frame
+    from tests_paths import tiny
+    from vpengine.engine import Engine
+    e = Engine(tiny("process")).start()
+    before = {n: m["pid"] for n, m in e.stats()["models"].items()}
+    child = os.fork()
+    if child == 0:
+        sys.exit(0)  # a helper of the user's program that ends normally: at exit, its copy of the engine is finalised
+    _, status = os.waitpid(child, 0)
+    fid = e.submit(frame(0))
+    got = e.wait(fid, timeout=20)
+    stats = e.stats()["models"]
+    print(json.dumps({
+        "child_status": status,
+        "served": sorted(h for h, r in got.items() if r.frame_id == fid),
+        "same_workers": {n: m["pid"] for n, m in stats.items()} == before,
+        "restarts": sum(m["restarts"] for m in stats.values()),
+    }), flush=True)
+    e.stop()
+"""
+
+
+def test_a_process_forked_from_the_engine_that_exits_leaves_the_workers_serving():
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests")])}
+    out = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(FORKING_ENGINE)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=150,
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got == {"child_status": 0, "served": sorted(HEADS), "same_workers": True, "restarts": 0}, out.stderr
+
+
+@pytest.mark.skipif(len(os.sched_getaffinity(0)) < 2, reason="needs two CPUs to narrow the affinity")
+def test_a_restarted_worker_takes_the_engines_affinity_and_load_time_variables(restart_backoff, monkeypatch):
+    restart_backoff(0.1)
+    e = Engine(tiny("process")).start()
+    cpus = os.sched_getaffinity(0)
+    try:
+        (old,) = zygotes()
+        before = worker_pids(e)
+        os.sched_setaffinity(0, {min(cpus)})  # this thread is the engine's main thread
+        monkeypatch.setenv("OMP_NUM_THREADS", "1" if os.environ.get("OMP_NUM_THREADS") != "1" else "2")
+        os.kill(before["seg"], signal.SIGKILL)
+        wait_for(lambda: e.stats()["models"]["seg"]["restarts"] == 1, what="seg restarted", show=e.stats)
+        wait_for(lambda: e.stats()["models"]["seg"]["state"] == "running", what="seg running", show=e.stats)
+        seg = psutil.Process(e.stats()["models"]["seg"]["pid"])
+        assert seg.cpu_affinity() == [min(cpus)]
+        new = [z for z in zygotes() if z.pid != old.pid]
+        assert len(new) == 1 and seg.ppid() == new[0].pid  # OpenMP read OMP_NUM_THREADS as the old zygote loaded
+        assert new[0].environ()["OMP_NUM_THREADS"] == os.environ["OMP_NUM_THREADS"]
+        assert all(psutil.Process(p).ppid() == old.pid for n, p in worker_pids(e).items() if n != "seg")
+        serves_every_head(e, 0)
+        zs = [old.pid, new[0].pid]
+    finally:
+        os.sched_setaffinity(0, cpus)
+        e.stop()
+    assert not alive([*zs, seg.pid, *before.values()])
+
+
+def _fork_a_worker(z):
+    from vpengine.runtime.zygote import worker_path
+
+    ours, theirs = socket.socketpair()
+    try:
+        return z.fork(dict(os.environ), worker_path(), os.getcwd(), sorted(os.sched_getaffinity(0)), theirs.fileno())
+    finally:
+        theirs.close()
+        ours.close()  # the worker reads EOF and leaves (exit code 2)
+
+
+def test_a_worker_has_the_pidfd_its_zygote_opened_and_a_second_close_releases_nothing():
+    from vpengine.runtime import sockets
+    from vpengine.runtime.zygote_handle import Zygote
+
+    z = Zygote(lambda f: f(), 120, lambda: None, lambda: False)
+    try:
+        proc = _fork_a_worker(z)
+        assert f"Pid:\t{proc.pid}\n" in Path(f"/proc/self/fdinfo/{proc.pidfd}").read_text()
+        assert proc.wait(30) == 2
+    finally:
+        z.close(1.0)
+    fd = z._fd
+    sockets.hold_parent_end(fd)  # the number now belongs to another engine's socket
+    try:
+        z.close(1.0)  # a failed start stops twice
+        assert fd in sockets._PARENT_ENDS
+    finally:
+        sockets.release_parent_end(fd)
+
+
+def test_without_pidfd_a_worker_is_signalled_through_its_zygote(monkeypatch):
+    from vpengine.runtime import zygote, zygote_handle
+
+    # a zygote whose kernel has no pidfd (< 5.3)
+    monkeypatch.setattr(zygote, "_BOOT", "import os; del os.pidfd_open; " + zygote._BOOT)
+    z = zygote_handle.Zygote(lambda f: f(), 120, lambda: None, lambda: False)
+    try:
+        ours, theirs = socket.socketpair()
+        try:
+            proc = z.fork(
+                dict(os.environ), zygote.worker_path(), os.getcwd(), sorted(os.sched_getaffinity(0)), theirs.fileno()
+            )
+        finally:
+            theirs.close()
+        assert proc.pidfd is None
+        proc.kill()
+        assert proc.wait(30) == -signal.SIGKILL
+        proc.kill()  # reaped: nothing is sent, and nothing else is signalled
+        ours.close()
+    finally:
+        z.close(1.0)
+
+
+def test_system_exit_in_a_worker_exits_as_the_interpreter_would(capsys):
+    from vpengine.runtime.zygote import exit_status
+
+    assert exit_status(None) == 0 and exit_status(3) == 3
+    assert exit_status("bye") == 1
+    assert "bye" in capsys.readouterr().err

@@ -5,8 +5,9 @@ Note [Child lifecycle]
 * Workers are forked from a zygote (runtime/zygote.py), never from the engine: the engine may have initialised CUDA,
   and a forked CUDA context is unusable. The zygote is a fresh interpreter, started once per runner, that imports
   what every worker needs (torch, the worker loop, the rings) and then only forks: it never initialises CUDA (it
-  checks before each fork), runs no model and is single-threaded in Python (the one native thread torch's import
-  leaves, OpenBLAS's pool, shuts itself down around fork). A fork of it is as clean as a fresh interpreter that has
+  checks before each fork: torch's flag, and libcuda in its memory maps, whoever loaded it), runs no model and has
+  one Python thread. It is not single-threaded natively: OpenBLAS (numpy's import) keeps a thread per extra core,
+  and its pthread_atfork handler quiesces them around each fork, which is what makes the fork safe. A fork of it is as clean as a fresh interpreter that has
   done those imports, so a worker starts, and restarts, without paying the import of torch again (seconds of CPU
   each, more on a Jetson). Unlike multiprocessing's spawn or forkserver, the user's ``__main__`` script is never
   re-imported, so scripts need no ``if __name__ == "__main__"`` guard and a ROS node's top-level code never runs
@@ -21,7 +22,13 @@ Note [Child lifecycle]
   they are at that (re)start; the fork takes them over before it imports anything of the worker's own. The working
   directory stays the engine's (relative checkpoint and log paths mean what they mean to the engine); only imports
   ignore it. An engine whose own ``sys.path`` holds its current directory ('' in a REPL or ``python -c``) passes it
-  on: the worker then imports from where the engine already does, nowhere else.
+  on: the worker then imports from where the engine already does, nowhere else. The fork invalidates the import
+  system's directory caches (they are the zygote's, maybe old) and takes over the engine's CPU affinity as it is at
+  that (re)start. What a library read as it loaded stays what the zygote read: ``LOAD_TIME_ENV`` in zygote.py
+  (LD_PRELOAD, LD_LIBRARY_PATH, the OpenMP/OpenBLAS/MKL thread counts, TORCH_LOGS); when a start request sets one
+  otherwise, a new zygote is started and forks the workers from then on (the old one stays while workers it forked
+  live). The rest a worker inherits from the zygote, i.e. from the engine as it was when the zygote started, not as
+  it is now: rlimits, umask, nice value, scheduling class, the real and effective ids.
 * Each worker holds exactly one file descriptor of ours: its end of a UNIX socketpair, which the engine hands the
   zygote with SCM_RIGHTS in the start request (the zygote closes its copy and its own socket in the fork). Over it
   the engine sends the worker's spec and then the file descriptors of every region it maps (memfds, CUDA VMM
@@ -38,13 +45,25 @@ Note [Child lifecycle]
   is started by one spawner thread that lives as long as the runner (the zygote forks from its only thread). Killing
   the engine kills the zygote, which kills the workers; a zygote that dies (a crash, the OOM killer) takes its
   workers with it, and the runner restarts them, from a new zygote. A process forked from the engine gets /dev/null
-  in place of the engine's socket ends (``os.register_at_fork``).
+  in place of the engine's socket ends (``os.register_at_fork``), and its copies of the runner and the zygote
+  handle, which record the pid that made them, send no signal and no message: the engine's finalizer runs at the
+  exit of a plain ``os.fork()`` child too, and its ``stop()`` only drops references there.
 * Only a parent can reap, so the zygote reaps its workers and reports each ``(pid, returncode)`` (``Popen``'s
-  convention) to the engine, where a ``WorkerProc`` stands in for a ``Popen``; signals go through a pidfd opened when
-  the pid is known. The monitor thread wakes on those reports (and on the workers' sockets); a death is handled by
-  ``Runner._on_exit``.
-* ``stop`` asks politely (stop flag + message), then terminate -> wait(timeout) -> kill; then it closes the zygote
-  (EOF, then terminate -> kill) and waits for it. It always returns.
+  convention) to the engine, where a ``WorkerProc`` (zygote_handle.py) stands in for a ``Popen``. The zygote opens
+  each worker's pidfd right after the fork, before it can reap it, and sends it with ``Forked`` (SCM_RIGHTS): it
+  names that process, never a later one with the same pid. Signals go through it; without pidfds (kernel < 5.3) they
+  go as a message to the zygote, which signals only children it has not reaped. The engine never signals a bare pid
+  it did not reap. The monitor thread wakes on the reports, the workers' sockets and their pidfds: a worker gone
+  (pidfd readable) with no report for ``REPORT_GRACE_S`` (1 s) means the zygote is stopped or stuck; it is killed
+  and its workers, dead with an unknown exit code or killed with it, are restarted from a new one. A death is
+  handled by ``Runner._on_exit``.
+* ``start`` waits for the zygote at most ``runtime.ready_timeout_s``, for each fork's answer at most 30 s
+  (milliseconds in practice; a zygote that does not answer is killed), then for READY at most
+  ``runtime.ready_timeout_s``: at most 2 x ``ready_timeout_s`` + 30 s per worker, plus ``stop``'s bound when it fails.
+* ``stop`` asks politely (stop flag + message) and waits ``runtime.stop_timeout_s``, then SIGTERM and 2 s, then
+  SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
+  its reader thread 4 s; then the monitor thread 2 s: at most ``stop_timeout_s`` + 13.5 s (7.5 s more for each older
+  zygote still kept for its workers). It always returns, in practice within ``stop_timeout_s``.
 """
 
 from __future__ import annotations
@@ -68,7 +87,8 @@ from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.sockets import Failed, Init, Ready, Stop, hold_parent_end, peer_uid, release_parent_end, send_fds
 from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tests have always found it
 from vpengine.runtime.supervisor import EngineStartError, Runner
-from vpengine.runtime.zygote import WorkerProc, Zygote, worker_path
+from vpengine.runtime.zygote import worker_path
+from vpengine.runtime.zygote_handle import WorkerProc, Zygote, describe_exit
 
 log = logging.getLogger("vpengine.process")
 
@@ -159,6 +179,15 @@ _TERM_GRACE_S = 2.0  # how long stop waits after SIGTERM, and after SIGKILL, for
 _ZYGOTE_GRACE_S = 1.0  # how long stop waits for the zygote to leave at EOF (it only has to exit) before SIGTERM
 
 
+def _affinity() -> list[int]:
+    """The engine's CPU affinity: its main thread's (the process's, as ``taskset -p`` sets it), not the calling
+    thread's, which kept what it had when it was started."""
+    try:
+        return sorted(os.sched_getaffinity(os.getpid()))
+    except OSError:  # the main thread has ended
+        return sorted(os.sched_getaffinity(0))
+
+
 def _join_all(children: list[_Child], timeout: float) -> None:
     deadline = time.monotonic() + timeout
     for ch in children:
@@ -175,7 +204,9 @@ class ProcessRunner(Runner):
         self._wake_lock = threading.Lock()  # the zygote's reader wakes us until stop closes the pipe
         self._monitor: threading.Thread | None = None
         self._spawner = _Spawner()
-        self._zygote: Zygote | None = None
+        self._zygote: Zygote | None = None  # the one new workers are forked from
+        self._retired: list[Zygote] = []  # older ones, still the parents of workers they forked
+        self._owner = os.getpid()  # Note [Child lifecycle]: a fork of the engine stops nothing
 
     def _wake(self) -> None:
         with self._wake_lock:
@@ -183,13 +214,23 @@ class ProcessRunner(Runner):
                 with contextlib.suppress(BlockingIOError):
                     os.write(self._wake_w, b"x")
 
-    def _live_zygote(self) -> Zygote:
-        """The zygote to fork from: a new one if there is none yet or the last one died (its workers with it)."""
-        if self._zygote is None or not self._zygote.alive():
-            if self._zygote is not None:
-                log.warning("the worker zygote (pid %d) is gone: starting a new one", self._zygote.pid)
-                self._zygote.close(0.0)
-                self._zygote = None
+    def _live_zygote(self, env: dict[str, str]) -> Zygote:
+        """The zygote to fork a worker with ``env`` from: a new one if there is none yet, the last one died (its
+        workers with it), or ``env`` changes a variable its libraries read as they loaded (then the old one stays,
+        the parent of the workers it forked, until none is left)."""
+        old = self._zygote
+        if old is not None and not old.alive():
+            log.warning("the worker zygote (pid %d) is gone: starting a new one", old.pid)
+            old.close(0.0)
+            self._zygote = None
+        elif old is not None and (changed := old.stale(env)):
+            log.info("%s changed since the worker zygote started: workers are forked from a new one", changed)
+            self._retired.append(old)
+            self._zygote = None
+        for z in [z for z in self._retired if z.idle()]:
+            self._retired.remove(z)
+            z.close(_ZYGOTE_GRACE_S)
+        if self._zygote is None:
             self._zygote = Zygote(
                 self._spawner.call, self.cfg.runtime.ready_timeout_s, self._wake, lambda: self._stopping
             )
@@ -207,7 +248,7 @@ class ProcessRunner(Runner):
         hold_parent_end(ours.fileno())
         try:
             env = {**os.environ, **self._env_for(name)}
-            proc = self._live_zygote().fork(env, worker_path(), os.getcwd(), theirs.fileno())
+            proc = self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs.fileno())
         except BaseException:
             release_parent_end(ours.fileno())
             ours.close()
@@ -269,8 +310,12 @@ class ProcessRunner(Runner):
             objs: list[Any] = [self._wake_r]
             with self._lock:
                 for name, ch in self._children.items():
-                    if name not in self._pending and not ch.handled and not ch.eof:
+                    if name in self._pending or ch.handled:
+                        continue
+                    if not ch.eof:
                         objs.append(ch.conn)
+                    if ch.proc.pidfd is not None:  # a death the zygote does not report wakes us too
+                        objs.append(ch.proc.pidfd)
             if self._wake_r in wait(objs, timeout=max(0.01, timeout)):
                 with contextlib.suppress(OSError):
                     os.read(self._wake_r, 4096)
@@ -285,9 +330,8 @@ class ProcessRunner(Runner):
                     if ch.ready and not was_ready:
                         log.info("%s is ready again (pid %d)", name, ch.proc.pid)
                     if ch.alive():
-                        continue  # its socket may be closed already: the zygote's exit report wakes us
-                    code = ch.proc.returncode
-                    reason = f"exit code {code}" if code is None or code >= 0 else f"killed by signal {-code}"
+                        continue  # gone without a report yet: poll() gives the zygote REPORT_GRACE_S to send one
+                    reason = describe_exit(ch.proc.returncode)
                     if ch.error:
                         reason += ": " + ch.error.strip().splitlines()[-1]
                     ch.close()
@@ -313,6 +357,9 @@ class ProcessRunner(Runner):
 
     # -------------------------------------------------------------------------------------------- stop
     def stop(self) -> list[str]:
+        if os.getpid() != self._owner:  # Note [Child lifecycle]: a fork's copy drops its references, nothing more
+            self._children, self._zygote, self._retired = {}, None, []
+            return []
         self._stopping = True  # before the lock: a launch waiting on the zygote, lock held, gives up
         with self._lock:
             self._pending.clear()
@@ -340,8 +387,8 @@ class ProcessRunner(Runner):
         for name, ch in children:
             self.control.set_state(name, STOPPED)
             ch.close()
-        if self._zygote is not None:  # after the workers: its end would SIGKILL those still there
-            self._zygote.close(_ZYGOTE_GRACE_S)
+        for z in [*self._retired, *([self._zygote] if self._zygote else [])]:
+            z.close(_ZYGOTE_GRACE_S)  # after the workers: its end would SIGKILL those still there
         self._spawner.close()
         if self._monitor is not None and self._monitor is not threading.current_thread():
             self._monitor.join(2.0)

@@ -3,16 +3,16 @@
 Note [Child lifecycle]
 ~~~~~~~~~~~~~~~~~~~~~~
 * Workers are forked from a zygote (runtime/zygote.py), never from the engine: the engine may have initialised CUDA,
-  and a forked CUDA context is unusable. The zygote is a fresh interpreter, started once per runner, that imports
-  what every worker needs (torch, the worker loop, the rings) and then only forks: it never initialises CUDA (it
-  checks before each fork: torch's flag, and libcuda in its memory maps, whoever loaded it), runs no model and has
-  one Python thread. It is not single-threaded natively: OpenBLAS (numpy's import) keeps a thread per extra core,
-  and its pthread_atfork handler quiesces them around each fork, which is what makes the fork safe. A fork of it is as clean as a fresh interpreter that has
-  done those imports, so a worker starts, and restarts, without paying the import of torch again (seconds of CPU
-  each, more on a Jetson). Unlike multiprocessing's spawn or forkserver, the user's ``__main__`` script is never
-  re-imported, so scripts need no ``if __name__ == "__main__"`` guard and a ROS node's top-level code never runs
-  twice. The zygote and every worker get their own session, so a Ctrl-C in the terminal reaches only the engine,
-  which then stops them in order.
+  and a forked CUDA context is unusable. The zygote is a fresh interpreter, started once per runner, that imports what
+  every worker needs (torch, the worker loop, the rings) and then only forks: it never initialises CUDA (it checks
+  torch's flag before each fork; a CUDA build of torch maps libcuda at import, which creates no context), runs no
+  model and has one Python thread. It is not single-threaded natively: OpenBLAS (numpy's import) keeps a thread per
+  extra core, and its pthread_atfork handler quiesces them around each fork, which is what makes the fork safe. A fork
+  of it is as clean as a fresh interpreter that has done those imports, so a worker starts, and restarts, without
+  paying the import of torch again (seconds of CPU each, more on a Jetson). Unlike multiprocessing's spawn or
+  forkserver, the user's ``__main__`` script is never re-imported, so scripts need no ``if __name__ == "__main__"``
+  guard and a ROS node's top-level code never runs twice. The zygote and every worker get their own session, so a
+  Ctrl-C in the terminal reaches only the engine, which then stops them in order.
 * Nothing comes from the working directory: the zygote runs isolated (``python -I``: no current directory or script
   directory on ``sys.path``, no PYTHON* variables, no user site) with an explicit ``sys.path``: the folder of this
   vpengine package, then the engine's ``sys.path`` as absolute paths, so a user head the engine can import

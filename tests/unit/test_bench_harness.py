@@ -85,7 +85,8 @@ def test_engine_settings_have_no_flags_of_their_own(flag, capsys):
 
 def test_set_is_the_way_in_as_in_vpengine_run():
     a = _parser().parse_args(["paper", "--set", "mode=thread", "--set", "heads.depth.backend=eager"])
-    assert a.overrides == ["mode=thread", "heads.depth.backend=eager"] and a.config == "bench"  # a shipped config, by name
+    assert a.overrides == ["mode=thread", "heads.depth.backend=eager"]
+    assert a.config == "bench"  # a shipped config, by name
 
 
 @pytest.mark.parametrize(

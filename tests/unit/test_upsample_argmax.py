@@ -66,13 +66,14 @@ def test_fused_kernel_is_the_argmax_of_bilinear_upsampling(kernel, k, src, dst):
 def test_fused_kernel_runs_a_batch_in_one_launch_each_frame_as_if_alone(kernel):
     # one program grid over every frame: each must read its own logits and candidates and write its own map
     g = torch.Generator().manual_seed(5)
-    logits = torch.cat([smooth_logits(9, (5, 6), seed=6), torch.randn(1, 9, 5, 6, generator=g)])  # few, many
+    # a small token grid (Triton's interpreter runs one program per token cell) and a map of several pixel blocks
+    logits = torch.cat([smooth_logits(9, (3, 4), seed=6), torch.randn(1, 9, 3, 4, generator=g)])  # few, many
     logits = torch.cat([logits, logits[:1] * -1])  # a third frame whose classes win elsewhere
     out = torch.full((3, 17, 23), 255, dtype=torch.uint8)
-    counts = kernel.launch(logits, out, max_candidates=4).view(3, 5, 6)
+    counts = kernel.launch(logits, out, max_candidates=4).view(3, 3, 4)
     for i in range(3):
         alone = torch.full((17, 23), 255, dtype=torch.uint8)
-        alone_counts = kernel.launch(logits[i : i + 1], alone, max_candidates=4).view(5, 6)
+        alone_counts = kernel.launch(logits[i : i + 1], alone, max_candidates=4).view(3, 4)
         assert torch.equal(out[i], alone), i
         assert torch.equal(counts[i], alone_counts), i
         up, best = reference(logits[i : i + 1], (17, 23))

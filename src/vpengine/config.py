@@ -265,6 +265,11 @@ class EngineConfig(_Strict):
     logging: LoggingConfig = Field(default_factory=LoggingConfig)  # type: ignore[arg-type]
     weights: WeightsConfig = Field(default_factory=WeightsConfig)  # type: ignore[arg-type]
 
+    @field_validator("mps", mode="before")
+    @classmethod
+    def _mps_off(cls, v: Any) -> Any:
+        return "off" if v is False else v  # YAML 1.1 reads a bare `off` (mps: off, --set mps=off) as false
+
     @field_validator("device")
     @classmethod
     def _device(cls, v: str) -> str:

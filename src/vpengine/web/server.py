@@ -43,6 +43,7 @@ from importlib import resources
 from typing import Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
+from vpengine import checks
 from vpengine.web.pictures import DEFAULT_WIDTH, FrameLookup, Pictures
 
 log = logging.getLogger("vpengine.web")
@@ -77,19 +78,16 @@ def _json_safe(v: Any) -> Any:
     return str(v)
 
 
-def parse_rate(body: bytes) -> float | None:
-    """The ``hz`` of a ``PUT /api/rate`` body; ValueError saying what is accepted."""
-    want = 'a JSON object {"hz": RATE} with RATE a number >= 0 (0 pauses) or null (unlimited)'
+def parse_rate(body: bytes, model: str) -> float | None:
+    """The ``hz`` of a ``PUT /api/rate/<model>`` body; ValueError saying what is accepted."""
+    want = f'a JSON object {{"hz": RATE}} with RATE a number from 0 to {checks.MAX_RATE_HZ:g} (0 pauses) or null (no limit)'
     try:
         doc = json.loads(body or b"null")
     except (ValueError, UnicodeDecodeError):
         raise ValueError(f"expected {want}; the body is not JSON") from None
     if not isinstance(doc, dict) or "hz" not in doc:
         raise ValueError(f"expected {want}; got {doc!r}"[:300])
-    hz = doc["hz"]
-    if hz is not None and (isinstance(hz, bool) or not isinstance(hz, (int, float))):
-        raise ValueError(f"expected {want}; got hz={hz!r}"[:300])
-    return None if hz is None else float(hz)
+    return checks.rate(model, doc["hz"])
 
 
 class WebServer:
@@ -335,7 +333,7 @@ class _Handler(BaseHTTPRequestHandler):
     def _put_rate(self, model: str, body: bytes) -> None:
         eng = self._engine()
         try:
-            hz = parse_rate(body)
+            hz = parse_rate(body, model)
             eng.set_rate(model, hz)
         except (ValueError, KeyError) as e:
             raise _HttpError(HTTPStatus.BAD_REQUEST, str(e.args[0]) if e.args else str(e)) from None

@@ -14,12 +14,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from vpengine.cli import (
-    add_config_argument,
-    add_overrides_argument,
-    positive_int,
-    prepare_out_dir,
-)
+from vpengine.arguments import add_config_argument, add_overrides_argument, positive_int
+from vpengine.cli import prepare_out_dir
 from vpengine.cli.run import SOURCE_HELP, SOURCES_HELP
 from vpengine.cli.serve import add_serve_arguments, serve_options
 

@@ -38,14 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.cli import (
-    add_config_argument,
-    add_overrides_argument,
-    positive_float,
-    positive_int,
-    prepare_out_dir,
-    prepare_out_file,
-)
+from vpengine.arguments import add_config_argument, add_overrides_argument, positive_float, positive_int
+from vpengine.cli import prepare_out_dir, prepare_out_file
 from vpengine.cli.pacing import Feed, ctrl_c, lockstep, realtime
 from vpengine.cli.serve import ServeOptions, add_serve_arguments, keep_serving, serve_options, serving
 from vpengine.redact import redact

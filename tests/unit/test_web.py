@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from vpengine import checks
+from vpengine.boundary import Boundary
 from vpengine.cli.serve import parse_address
 from vpengine.results import Result
 from vpengine.visualize import colorize_depth, overlay_segmentation
@@ -47,6 +48,16 @@ def model_stats(runs: int, target: float | None) -> dict:
     }
 
 
+class DoorOut(Boundary):
+    """The engine's door out (``Boundary.to_frame``, the real one) with the kinds the engine's boundary works out for
+    these heads (Note [Frame grid]) and the heads that keep the canvas grid (``native``); no door in."""
+
+    def __init__(self, native: tuple[str, ...] = ()) -> None:
+        kinds = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
+        self.kinds = dict.fromkeys(INFOS, kinds)  # type: ignore[arg-type]
+        self.native = set(native)
+
+
 class StandIn:
     """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, boundary, running.
     ``results``: head -> its newest result; ``camera_results``, with several ``cameras``: (camera, head) -> it."""
@@ -56,9 +67,7 @@ class StandIn:
         self.cameras = list(cameras)
         served = served or {}
         self.config = SimpleNamespace(model_cameras=lambda head: served.get(head, self.cameras))
-        # how each head's outputs lie in the model's grid, as the engine's boundary works it out (Note [Frame grid])
-        kinds = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
-        self.boundary = SimpleNamespace(kinds=dict.fromkeys(INFOS, kinds))
+        self.boundary = DoorOut()
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)
         self.camera_results: dict[tuple[str, str], Result] = {}
@@ -324,6 +333,7 @@ def test_a_native_grid_picture_is_mapped_to_its_frame():
     r = result("seg", 7, 1, {"classes": classes}, frame_size=(fh, fw))
     r.grid, r.placement = "native", placement
     engine = StandIn()
+    engine.boundary = DoorOut(native=("seg",))
     engine.results["seg"] = r
     frame = np.full((fh, fw, 3), 100, np.uint8)
     pic = Pictures({7: frame}.get).latest(engine, "seg", width=fw)

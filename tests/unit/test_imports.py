@@ -269,14 +269,19 @@ def test_imports_by_name_are_edges_and_each_allowed_circle_is_needed():
         assert cycles(closed), f"{edge} closes no circle: drop it from ALLOWED_CIRCLES ({why})"
 
 
+def imports_in(package: str) -> Iterator[Import]:
+    """Every import (by name too) of the modules in ``package``."""
+    for m, parsed in PARSED.items():
+        if m == package or m.startswith(package + "."):
+            yield from parsed.imports
+
+
 def test_no_benchmark_imports_the_cli():
     """cli/ loads the benchmarks by name; bench/ runs the CLI only as a child process (``python -m vpengine``)."""
     found = [
-        str(imp)
-        for m, parsed in PARSED.items()
-        if m.startswith("vpengine.bench")
-        for imp in parsed.imports
-        if imp.target == "vpengine.cli" or imp.target.startswith("vpengine.cli.")
+        str(i)
+        for i in imports_in("vpengine.bench")
+        if i.target == "vpengine.cli" or i.target.startswith("vpengine.cli.")
     ]
     assert found == []
 
@@ -316,11 +321,9 @@ BELOW_MODELS = (
 
 def test_models_import_nothing_above_them():
     upward = [
-        str(imp)
-        for m, parsed in PARSED.items()
-        if m.startswith("vpengine.models")
-        for imp in parsed.imports
-        if imp.target != "vpengine" and not imp.target.startswith(BELOW_MODELS)
+        str(i)
+        for i in imports_in("vpengine.models")
+        if i.target != "vpengine" and not i.target.startswith(BELOW_MODELS)
     ]
     assert upward == []
 

@@ -67,7 +67,7 @@ class Pipeline:
     def __init__(
         self,
         config: EngineConfig | str | Path,
-        source: Source | Mapping[str, Source],
+        source: Source | Mapping[str | None, Source],
         out_dir: str | Path | None = None,
         pace: str | None = None,
         fps: float | None = None,
@@ -225,7 +225,7 @@ class Pipeline:
 
 def run_pipeline(
     config: EngineConfig | str | Path,
-    source: Source | Mapping[str, Source],
+    source: Source | Mapping[str | None, Source],
     out_dir: str | Path | None = None,
     **options: Any,
 ) -> dict[str, Any]:

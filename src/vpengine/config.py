@@ -9,13 +9,14 @@ by its ``name`` or its index).
 from __future__ import annotations
 
 import json
-import math
 import re
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from vpengine import checks
 
 Precision = Literal["fp32", "fp16", "bf16"]
 #: The one camera of an engine that configures none.
@@ -107,12 +108,10 @@ class ModelConfig(_Strict):
         "model then runs on ever older frames until they are overwritten.",
     )
 
-    @field_validator("rate_hz")
+    @field_validator("rate_hz", mode="before")
     @classmethod
-    def _rate(cls, v: float | None) -> float | None:
-        if v is not None and (not math.isfinite(v) or v < 0 or v > 10000):
-            raise ValueError(f"rate_hz must be null or a number from 0 to 10000, got {v}")
-        return v
+    def _rate(cls, v: Any) -> float | None:
+        return checks.rate(None, v)  # before pydantic's coercion: the same values as every other door
 
 
 class FoundationModelConfig(ModelConfig):

@@ -67,8 +67,8 @@ def test_run_with_two_named_sources_writes_each_cameras_outputs_at_its_size_and_
 
 
 def test_realtime_feeds_each_camera_at_its_own_rate_until_its_own_end(tmp_path):
-    from vpengine.cli.run import run_pipeline
     from vpengine.io.sources import SyntheticSource
+    from vpengine.pipeline.run import run_pipeline
 
     sources = {"fast": SyntheticSource(160, 120, fps=30, frames=30), "slow": SyntheticSource(64, 48, fps=10, frames=5)}
     t0 = time.monotonic()

@@ -13,8 +13,9 @@ import pytest
 
 from helpers.frames import frame
 from tests_paths import TINY, tiny
-from vpengine.cli.run import parse_sources, video_paths
+from vpengine.cli.run import parse_sources
 from vpengine.config import config_for_cameras, split_camera
+from vpengine.pipeline.run import video_paths
 from vpengine.ros2.core import Header, Ros2Core, input_topics, model_at, parse_rate_command, plan_outputs
 
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -223,7 +223,7 @@ def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) 
     cmd = [
         sys.executable,
         "-m",
-        "vpengine.cli.main",
+        "vpengine",  # the console script in a child process, not an import of cli/
         "ros2",
         "--config",
         args.config,
@@ -462,9 +462,3 @@ def main(args: argparse.Namespace) -> int:
         print("  decode ms per frame: " + ", ".join(f"{k} {v:.2f}" for k, v in res["decode_ms"].items()))
     print(f"-> {path}")
     return 0
-
-
-if __name__ == "__main__":  # python -m vpengine.bench.ros2_bridge
-    from vpengine.cli.main import main as cli
-
-    sys.exit(cli(["bench", "ros2-bridge", *sys.argv[1:]]))

@@ -61,21 +61,12 @@ from vpengine.ros2.core import (
 
 log = logging.getLogger("vpengine.bag")
 
-BAG_FILE_EXTS = (".mcap", ".db3")
 STORAGES = ("mcap", "sqlite3")
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 _HEADERS_KEPT = 4096
 #: Roles whose images are pictures to look at, written as JPEG (Note [Bag contents])
 PICTURE_ROLES = ("depth_color", "overlay")
 JPEG_FORMAT = "bgr8; jpeg compressed bgr8"  # image_transport's: BGR pixels, JPEG
-
-
-def is_bag(path: str | Path) -> bool:
-    """A rosbag2 bag: a folder with metadata.yaml, or a .mcap / .db3 file."""
-    p = Path(path)
-    if p.is_dir():
-        return (p / "metadata.yaml").is_file()
-    return p.is_file() and p.suffix.lower() in BAG_FILE_EXTS
 
 
 def _topic_list(conns: list[Any]) -> str:

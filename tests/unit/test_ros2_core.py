@@ -13,26 +13,12 @@ import pytest
 
 from helpers.frames import frame
 from tests_paths import tiny
-from vpengine.ros2.core import (
-    ERROR,
-    OK,
-    WARN,
-    ControlLoop,
-    FrameBook,
-    Header,
-    InputError,
-    Rejections,
-    Ros2Core,
-    compressed_to_frame,
-    detections_out,
-    image_to_frame,
-    model_status,
-    normalize_namespace,
-    parse_rate,
-    parse_rate_command,
-    plan_outputs,
-    receive_buffer_advice,
-)
+from vpengine.ros2.control import ControlLoop, parse_rate, parse_rate_command
+from vpengine.ros2.core import Ros2Core
+from vpengine.ros2.diagnostics import ERROR, OK, WARN, Rejections, model_status, receive_buffer_advice
+from vpengine.ros2.frames import FrameBook
+from vpengine.ros2.messages import Header, InputError, compressed_to_frame, image_to_frame
+from vpengine.ros2.outputs import detections_out, normalize_namespace, plan_outputs
 
 STAMP = SimpleNamespace(sec=1_700_000_123, nanosec=987_654_321)
 

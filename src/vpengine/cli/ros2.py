@@ -120,7 +120,7 @@ def main(args: argparse.Namespace) -> int:
         dds_config=loopback_config() if args.loopback else None,
     )
     if serve is not None:  # the view draws overlays and boxes on the input frames
-        from vpengine.ros2.core import FrameBook
+        from vpengine.ros2.frames import FrameBook
 
         core.book = FrameBook(frames=16 * len(core.cameras))
     bridge = Ros2Bridge(core, opts)

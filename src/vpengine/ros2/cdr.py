@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.ros2.core import Header, ImageOut
+from vpengine.ros2.messages import Header, ImageOut
 
 #: encapsulation identifier -> struct byte order (CDR_BE, CDR_LE, PLAIN_CDR2_BE, PLAIN_CDR2_LE)
 ENCAPSULATIONS = {b"\x00\x00": ">", b"\x00\x01": "<", b"\x00\x06": ">", b"\x00\x07": "<"}

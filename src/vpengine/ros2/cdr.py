@@ -33,19 +33,6 @@ class CdrError(ValueError):
 
 
 @dataclass
-class ImageView:
-    """A decoded sensor_msgs/Image; ``data`` is a read-only numpy view of the received bytes (no copy)."""
-
-    header: Header
-    height: int
-    width: int
-    encoding: str
-    is_bigendian: int
-    step: int
-    data: np.ndarray
-
-
-@dataclass
 class CompressedImageView:
     """A decoded sensor_msgs/CompressedImage; ``data`` is a view of the received bytes."""
 
@@ -123,7 +110,7 @@ class _Reader:
         return Header(sec, nanosec, self.string("header.frame_id"))
 
 
-def decode_image(buf: Any) -> ImageView:
+def decode_image(buf: Any) -> ImageOut:
     """sensor_msgs/Image from CDR bytes (with the encapsulation header); pixels are a view, not a copy."""
     r = _Reader(buf, "sensor_msgs/Image")
     header = r.header()
@@ -132,7 +119,7 @@ def decode_image(buf: Any) -> ImageView:
     encoding = r.string("encoding")
     big = r.u8("is_bigendian")
     step = r.u32("step")
-    return ImageView(header, height, width, encoding, big, step, r.octets("data"))
+    return ImageOut(header, height, width, encoding, big, step, r.octets("data"))
 
 
 def decode_compressed_image(buf: Any) -> CompressedImageView:

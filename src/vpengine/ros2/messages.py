@@ -1,7 +1,8 @@
 """ROS 2 message types as neutral objects, and decoding the two image inputs.
 
 Messages are read duck-typed (``msg.height``, ``msg.encoding``, ``msg.data``, ``msg.header.stamp.sec`` ...), so a
-cyclonedds IDL object, an rclpy message, a rosbags message or :class:`vpengine.ros2.cdr.ImageView` all work. What goes out is built as a small neutral object (:class:`ImageOut`,
+cyclonedds IDL object, an rclpy message, a rosbags message or an :class:`ImageOut` decoded by
+:func:`vpengine.ros2.cdr.decode_image` all work. What goes out is built as a small neutral object (:class:`ImageOut`,
 :class:`DetectionsOut`, :class:`vpengine.ros2.diagnostics.DiagnosticsOut`) that each transport turns into its own
 message objects or bytes. No middleware here.
 """
@@ -21,9 +22,6 @@ COMPRESSED_CODECS = ("jpeg", "png")
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 DETECTIONS_TYPE = "vision_msgs/msg/Detection2DArray"
-DIAGNOSTICS_TYPE = "diagnostic_msgs/msg/DiagnosticArray"
-KEYVALUE_TYPE = "diagnostic_msgs/msg/KeyValue"
-STRING_TYPE = "std_msgs/msg/String"
 
 
 class InputError(ValueError):
@@ -75,7 +73,9 @@ class Header:
 # ------------------------------------------------------------------------------------------------ messages
 @dataclass
 class ImageOut:
-    """A sensor_msgs/Image to publish; ``data`` is a flat uint8 view of the pixels (no copy)."""
+    """A sensor_msgs/Image, to publish (:func:`vpengine.ros2.outputs.image_out`) or as received
+    (:func:`vpengine.ros2.cdr.decode_image`); ``data`` is a flat uint8 view of the pixels, no copy (of received
+    bytes: read-only)."""
 
     header: Header
     height: int

@@ -40,6 +40,57 @@ def image_msg(arr: np.ndarray, encoding: str, pad: int = 0, big: int = 0, frame_
     )
 
 
+# ------------------------------------------------------------------------------------------------ import
+_IMPORT_AND_SUBMIT = """
+import importlib, pkgutil, time, warnings
+import cv2, cyclonedds.core, numpy, torch, vpengine.engine, vpengine.visualize  # filters of their own are not ours
+before = list(warnings.filters)
+import vpengine.ros2
+for m in pkgutil.iter_modules(vpengine.ros2.__path__):
+    if m.name != "node":  # the rclpy node needs a ROS 2 installation
+        importlib.import_module("vpengine.ros2." + m.name)
+added = [f for f in warnings.filters if f not in before]
+assert warnings.filters == before, f"importing vpengine.ros2 changed warnings.filters: {added}"
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.ros2 import cdr
+from vpengine.ros2.core import Ros2Core
+from vpengine.ros2.messages import Header
+from vpengine.ros2.outputs import image_out
+
+warnings.simplefilter("error")  # any warning on the way in or out fails
+msg = cdr.decode_image(bytes(cdr.encode_image(image_out(frame(1), "bgr8", Header(1, 2)))))
+assert not msg.data.flags.writeable  # a view of the received bytes, as the bridge hands it in
+core = Ros2Core(tiny("thread"), seg_overlay=True)
+core.start()
+try:
+    assert core.handle_image(msg) is not None, core.rejected.counts
+    out, deadline = [], time.monotonic() + 60
+    while len(out) < len(core.topics) and time.monotonic() < deadline:
+        out += core.poll_outputs(0.2)
+    assert len(out) == len(core.topics), out
+finally:
+    core.stop()
+"""
+
+
+@pytest.mark.timeout(200)
+def test_importing_ros2_changes_no_warning_filter_and_read_only_frames_go_through_without_warnings():
+    """Importing vpengine.ros2 changes nothing global, and nothing needs it to: a frame that is a read-only view of
+    received bytes goes in and its outputs come out with every warning an error. A fresh interpreter, since PyTorch
+    warns about a read-only array once per process, and this one has already imported everything."""
+    import os
+    import subprocess
+    import sys
+
+    from tests_paths import ROOT
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests")])}
+    p = subprocess.run([sys.executable, "-c", _IMPORT_AND_SUBMIT], env=env, capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stderr[-3000:]
+
+
 # ------------------------------------------------------------------------------------------------ decoding
 def test_bgr8_without_padding_is_a_zero_copy_view_of_the_message_bytes():
     img = frame(3)

@@ -22,7 +22,6 @@ import logging
 import math
 import threading
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from typing import Any, Literal
 
@@ -52,10 +51,6 @@ from vpengine.ros2.outputs import OutputTopic, Payload, normalize_namespace, pay
 from vpengine.ros2.outputs import ros_name as ros_name
 
 log = logging.getLogger("vpengine.ros2")
-
-# Input frames are zero-copy, read-only views of received message bytes; Engine.submit only copies *from* them, so
-# PyTorch's warning about wrapping a non-writable array (torch.from_numpy) does not apply. Filter exactly that one.
-warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning)
 
 
 # --------------------------------------------------------------------------------------------------- input

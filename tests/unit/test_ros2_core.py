@@ -286,6 +286,16 @@ def test_rate_commands_parse_hz_pause_and_unlimited_and_name_bad_values():
         parse_rate_command("dpth", "5", ["foundation", "depth"])
 
 
+def test_numeric_rates_stay_numbers_and_negative_or_infinite_ones_mean_no_limit():
+    models = ["foundation", "depth"]
+    assert parse_rate_command("depth", 2.5, models) == ("depth", 2.5)
+    assert parse_rate_command("depth", 0, models) == ("depth", 0.0)
+    for unlimited in (None, -1.0, -3, float("inf")):
+        assert parse_rate_command("depth", unlimited, models) == ("depth", None)
+    with pytest.raises(ValueError, match="rate nan is NaN; accepted: Hz >= 0"):
+        parse_rate_command("depth", float("nan"), models)
+
+
 def _stats(state="running", target=None, **kw):
     m = {
         "state": state,
@@ -432,14 +442,14 @@ def test_core_rate_commands_reach_the_engine_and_bad_ones_are_counted():
         assert core.engine.stats()["models"]["seg"]["target_hz"] == 2.5
         core.set_rate("seg", "max")
         assert core.engine.stats()["models"]["seg"]["target_hz"] is None
-        core.set_rate_hz("depth", 0.0)
+        core.set_rate("depth", 0.0)  # a number, as the services carry it
         assert core.engine.stats()["models"]["depth"]["target_hz"] == 0.0
-        core.set_rate_hz("depth", -1.0)  # the services' "unlimited"
+        core.set_rate("depth", -1.0)  # the services' "unlimited"
         assert core.engine.stats()["models"]["depth"]["target_hz"] is None
         with pytest.raises(ValueError, match="unknown model 'nope'"):
             core.set_rate("nope", "5")
         with pytest.raises(ValueError, match="NaN"):
-            core.set_rate_hz("depth", float("nan"))
+            core.set_rate("depth", float("nan"))
         assert core.counters["rate_commands"] == 4 and core.counters["rate_commands_rejected"] == 2
     finally:
         core.stop()

@@ -39,13 +39,26 @@ def parse_rate(text: str) -> float | None:
     return hz
 
 
+def numeric_rate(hz: float | None) -> float | None:
+    """A rate as services and parameters carry it, a number: Hz >= 0 (0 pauses); None, a negative number or inf for
+    no limit. Raises ValueError for NaN."""
+    if hz is None:
+        return None
+    hz = float(hz)
+    if math.isnan(hz):
+        raise ValueError(f"rate {hz} is NaN; accepted: Hz >= 0 (0 pauses), or a negative number or inf for no limit")
+    return None if hz < 0 or math.isinf(hz) else hz
+
+
 def parse_rate_command(
-    key: str, value: str, models: Sequence[str], cameras: Sequence[str] = ()
+    key: str, value: str | float | None, models: Sequence[str], cameras: Sequence[str] = ()
 ) -> tuple[str, float | None]:
-    """A rate command (diagnostic_msgs/KeyValue ``{key: model, value: rate}``) -> (model, Hz or None). ``key`` may
-    be ``model@camera``: that model's rate for one of ``cameras`` alone (:func:`model_at` splits it)."""
+    """A rate command -> (key, Hz or None). ``value`` is text as the set_rate topic carries it (diagnostic_msgs/
+    KeyValue ``{key: model, value: rate}``, :func:`parse_rate`) or a number as services carry it
+    (:func:`numeric_rate`). ``key`` may be ``model@camera``: that model's rate for one of ``cameras`` alone
+    (:func:`model_at` splits it)."""
     model_at(key, models, cameras)
-    return str(key).strip(), parse_rate(value)
+    return str(key).strip(), parse_rate(value) if isinstance(value, str) else numeric_rate(value)
 
 
 def model_at(key: str, models: Sequence[str], cameras: Sequence[str] = ()) -> tuple[str, str | None]:

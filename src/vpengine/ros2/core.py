@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -365,9 +364,10 @@ class Ros2Core:
         self.published[topic.topic] += 1
 
     # ------------------------------------------------------------------------------------------- control
-    def set_rate(self, key: str, value: str) -> tuple[str, float | None]:
-        """Apply a rate command (model name, or ``model@camera`` for one camera's rate; rate text). Raises ValueError
-        naming what is wrong; counted."""
+    def set_rate(self, key: str, value: str | float | None) -> tuple[str, float | None]:
+        """Apply a rate command: ``key`` a model name, or ``model@camera`` for one camera's rate; ``value`` the rate
+        as text (the set_rate topic) or as a number (services, parameters), see :func:`parse_rate_command`. Raises
+        ValueError naming what is wrong; counted."""
         try:
             key, hz = parse_rate_command(key, value, self.model_names, self.cameras)
             model, camera = model_at(key, self.model_names, self.cameras)
@@ -380,14 +380,6 @@ class Ros2Core:
         self.counters["rate_commands"] += 1
         log.info("rate of %s set to %s", key, "unlimited" if hz is None else f"{hz:g} Hz")
         return key, hz
-
-    def set_rate_hz(self, model: str, hz: float | None) -> tuple[str, float | None]:
-        """Apply a numeric rate (services): Hz >= 0 (0 pauses); None, a negative number or inf = unlimited."""
-        if hz is not None and math.isnan(hz):
-            self.counters["rate_commands_rejected"] += 1
-            raise ValueError(f"rate for {model!r} is NaN; accepted: Hz >= 0, or negative/inf for no limit")
-        unlimited = hz is None or hz < 0 or math.isinf(hz)
-        return self.set_rate(model, "max" if unlimited else repr(float(hz)))  # type: ignore[arg-type]
 
     def diagnostics(self, now: float | None = None) -> DiagnosticsOut:
         """One status per model (see :func:`model_status`), one for the interface itself and, with several cameras,

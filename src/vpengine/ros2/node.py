@@ -261,8 +261,7 @@ def build_node(argv: list[str] | None = None) -> Any:
 
                 def on_change(req: Any, res: Any) -> Any:
                     try:
-                        hz = float(req.new_rate)
-                        core.set_rate_hz(req.model_name, hz)
+                        core.set_rate(req.model_name, float(req.new_rate))
                         res.success = True
                     except ValueError as e:
                         self.get_logger().warning(f"ChangeModelRate refused: {e}")
@@ -294,7 +293,7 @@ def build_node(argv: list[str] | None = None) -> Any:
                 for prm in params:
                     if prm.name.startswith("rate."):
                         try:
-                            core.set_rate_hz(prm.name[5:], float(prm.value))
+                            core.set_rate(prm.name[5:], float(prm.value))
                         except (ValueError, TypeError) as e:
                             return SetParametersResult(successful=False, reason=str(e))
                 return SetParametersResult(successful=True)

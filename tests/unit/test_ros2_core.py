@@ -339,6 +339,18 @@ def _poll_until(core: Ros2Core, n: int, timeout: float = 20.0) -> list:
     return out
 
 
+def test_keep_frames_keeps_the_input_pictures_for_a_viewer():
+    assert not Ros2Core(tiny("thread")).book.keeps_frames  # no overlays, no viewer: headers only
+    core = Ros2Core(tiny("thread"), keep_frames=True)
+    core.start()
+    try:
+        img = frame(6)
+        fid = core.handle_image(image_msg(np.ascontiguousarray(img[..., ::-1]), "rgb8"))
+        np.testing.assert_array_equal(core.book.frame(fid), img)  # BGR, whatever the message's order
+    finally:
+        core.stop()
+
+
 def test_core_outputs_carry_the_exact_input_header_on_every_topic():
     core = Ros2Core(tiny("thread"), depth_color=True, seg_overlay=True)
     core.start()

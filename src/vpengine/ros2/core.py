@@ -22,7 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable, Sequence
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
@@ -48,6 +48,9 @@ from vpengine.ros2.messages import Header, InputError, as_uint8, compressed_to_f
 from vpengine.ros2.messages import ImageOut as ImageOut
 from vpengine.ros2.outputs import OutputTopic, Payload, normalize_namespace, payload_for, plan_outputs
 from vpengine.ros2.outputs import ros_name as ros_name
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
 
 log = logging.getLogger("vpengine.ros2")
 
@@ -93,6 +96,9 @@ class Ros2Core:
     is handed in with its camera (``handle_image(msg, camera)``, from one thread per topic if need be), and each
     camera's outputs go out under its own namespace, ``<ns>/<camera>/<head>/...``, with that camera's input header.
     Rate commands may name ``head@camera``; /diagnostics has a status per camera.
+
+    ``keep_frames`` keeps recent input frames in :attr:`book` for a viewer that draws on them (the web view), as
+    ``seg_overlay`` does for its overlays.
     """
 
     def __init__(
@@ -105,6 +111,7 @@ class Ros2Core:
         seg_overlay: bool = False,
         overrides: Sequence[str] = (),
         cameras: Sequence[str] | None = None,
+        keep_frames: bool = False,
     ) -> None:
         from vpengine.config import config_for_cameras
 
@@ -128,9 +135,9 @@ class Ros2Core:
         self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
         for t in self.topics:
             self._by_head[(t.camera, t.head)].append(t)
-        self.book = FrameBook(frames=16 * len(self.cameras) if seg_overlay else 0)
+        self.book = FrameBook(frames=16 * len(self.cameras) if seg_overlay or keep_frames else 0)
         self._next_fid = 0  # engine frame ids are ours, so a header is booked before its frame is submitted
-        self.engine: Any = None
+        self.engine: Engine | None = None
         self._engine_ready = threading.Event()
         self._start_lock = threading.Lock()
         self.counters: collections.Counter[str] = collections.Counter()
@@ -160,7 +167,7 @@ class Ros2Core:
         self.hardware_id = f"vpengine {self.config.name} ({self.config.device})"
         self.status_prefix = self.namespace.strip("/").replace("/", ".") or "vpengine"
 
-    def _new_engine(self, cfg: Any) -> Any:
+    def _new_engine(self, cfg: Any) -> Engine:
         from vpengine.engine import Engine
 
         return Engine(cfg)
@@ -187,9 +194,6 @@ class Ros2Core:
                 cfg.input.width,
                 cfg.input.height,
             )
-
-    def wait_ready(self, timeout: float | None = None) -> bool:
-        return self._engine_ready.wait(timeout)
 
     def stop(self) -> None:
         eng, self.engine = self.engine, None

@@ -77,7 +77,7 @@ def live():
     """A running tiny engine fed 30 Hz synthetic frames by a thread, served on 127.0.0.1 (a free port)."""
     from vpengine.engine import Engine
     from vpengine.io.sources import SyntheticSource
-    from vpengine.pipeline.frames import RecentFrames
+    from vpengine.recent_frames import RecentFrames
     from vpengine.web import serve
 
     cfg = tiny("thread", "input.height=240", "input.width=320")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vpengine.pipeline.frames import RecentFrames
+from vpengine.recent_frames import RecentFrames
 
 
 def image(v: int) -> np.ndarray:

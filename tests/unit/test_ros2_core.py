@@ -13,10 +13,10 @@ import pytest
 
 from helpers.frames import frame
 from tests_paths import tiny
+from vpengine.recent_frames import RecentFrames
 from vpengine.ros2.control import ControlLoop, parse_rate, parse_rate_command
 from vpengine.ros2.core import Ros2Core
 from vpengine.ros2.diagnostics import ERROR, OK, WARN, Rejections, model_status, receive_buffer_advice
-from vpengine.ros2.frames import FrameBook
 from vpengine.ros2.messages import Header, InputError, compressed_to_frame, image_to_frame
 from vpengine.ros2.outputs import detections_out, normalize_namespace, plan_outputs
 
@@ -214,10 +214,10 @@ def test_headers_are_kept_exactly_and_the_book_is_bounded():
     # a float cannot carry the nanoseconds: this is why outputs look headers up by frame id
     assert Header.from_seconds(h.seconds, "cam") != h
     assert abs(Header.from_seconds(h.seconds).ns - h.ns) < 1000
-    book = FrameBook(headers=3, frames=2)
+    book = RecentFrames[Header](frames=2, tags=3)
     for i in range(5):
         book.add(i, Header(i, i, "f"), np.full((2, 2, 3), i, np.uint8))
-    assert [book.header(i) for i in range(5)] == [
+    assert [book.tag(i) for i in range(5)] == [
         None,
         None,
         Header(2, 2, "f"),

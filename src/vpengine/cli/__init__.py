@@ -6,9 +6,6 @@ from __future__ import annotations
 import tempfile
 from pathlib import Path
 
-# cli/ros2.py's import (that file is being split elsewhere): switch it to vpengine.arguments and drop this line
-from vpengine.arguments import add_overrides_argument as add_overrides_argument
-
 
 def prepare_out_dir(path: str | Path, exist_ok: bool, what: str = "--out") -> Path:
     """Create the output folder of a run before the engine starts, or fail in one line: a folder that holds files

@@ -22,7 +22,7 @@ import threading
 import time
 from typing import Any
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 from vpengine.cli.serve import add_serve_arguments, serve_options, serving
 
 

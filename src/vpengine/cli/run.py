@@ -27,7 +27,7 @@ if TYPE_CHECKING:  # the pipeline imports the engine (and torch): only once a co
     from vpengine.io.base import Source
     from vpengine.pipeline.run import Pipeline
     from vpengine.results import Result
-    from vpengine.ros2.core import Header
+    from vpengine.ros2.messages import Header
 
 SOURCE_HELP = (
     "an image, a folder or a glob of images ('frames/*.jpg'), a video file, a rosbag2 bag (folder or .mcap/.db3), "
@@ -290,7 +290,7 @@ def main(args: argparse.Namespace) -> int:
 def _input_headers(sources: Mapping[str | None, Source]) -> Callable[[Result, str], Header] | None:
     """The output bag's header of each result: its input message's, exactly, where its camera's source is a bag
     (``BagSource.header_for``), else its capture time and camera; None when no source is a bag (the sink's own)."""
-    from vpengine.ros2.core import Header
+    from vpengine.ros2.messages import Header
 
     lookups = {c: s.header_for for c, s in sources.items()}
     if not any(lookups.values()):

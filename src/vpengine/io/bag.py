@@ -7,7 +7,7 @@ as a sink that records every head's outputs with the same message types and head
   png) from one topic, in log-time order; each frame's timestamp is its message's ``header.stamp``. A bag is a folder
   with ``metadata.yaml`` or a bare ``.mcap`` / ``.db3`` file. A message that cannot be used (corrupt bytes, an
   unsupported encoding, short data ...) is skipped and listed (``skipped``), and logged in one line naming the bag,
-  topic and message index (Note [Rejection log] in :mod:`vpengine.ros2.core`), so one bad frame does not end a long
+  topic and message index (Note [Rejection log] in :mod:`vpengine.ros2.diagnostics`), so one bad frame does not end a long
   recording; ``strict=True`` stops at the first one instead, with that line as the error.
 * the sink writes the input image, ``<ns>/input/compressed`` (sensor_msgs/CompressedImage, JPEG), and every
   head's outputs: ``<ns>/<head>/depth`` (32FC1), ``<ns>/<head>/classes`` (mono8), ``<ns>/<head>/detections``
@@ -43,21 +43,17 @@ import numpy as np
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import JPEG_QUALITY, Sink
 from vpengine.results import Result
-from vpengine.ros2.core import (
+from vpengine.ros2.diagnostics import Rejections
+from vpengine.ros2.messages import (
     COMPRESSED_TYPE,
     IMAGE_TYPE,
     Header,
     ImageOut,
     InputError,
-    OutputTopic,
-    Rejections,
     compressed_to_frame,
     image_to_frame,
-    normalize_namespace,
-    payload_for,
-    plan_outputs,
-    ros_name,
 )
+from vpengine.ros2.outputs import OutputTopic, normalize_namespace, payload_for, plan_outputs, ros_name
 
 log = logging.getLogger("vpengine.bag")
 

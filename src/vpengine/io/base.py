@@ -14,7 +14,7 @@ from vpengine.redact import redact
 
 if TYPE_CHECKING:
     from vpengine.results import Result
-    from vpengine.ros2.core import Header
+    from vpengine.ros2.messages import Header
 
 
 @dataclass

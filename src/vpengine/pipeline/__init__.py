@@ -3,7 +3,8 @@
 - :mod:`vpengine.pipeline.run`: :class:`~vpengine.pipeline.run.Pipeline` (start, run, summary), ``run_pipeline``,
   and opening the sources of a run;
 - :mod:`vpengine.pipeline.pacing`: lockstep and realtime feeding, one feed per camera, Ctrl-C;
-- :mod:`vpengine.pipeline.summary`: what a run counts and the summary it makes;
-- :mod:`vpengine.pipeline.frames`: :class:`~vpengine.pipeline.frames.RecentFrames`, the one store of recent input
-  frames by frame id that pictures, overlays and output headers look up.
+- :mod:`vpengine.pipeline.summary`: what a run counts and the summary it makes.
+
+Recent input frames (for pictures, overlays and output headers) are kept in :mod:`vpengine.recent_frames`, below
+both this package and ros2/, which share it.
 """

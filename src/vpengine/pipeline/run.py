@@ -40,9 +40,9 @@ from vpengine.config import EngineConfig, config_for_cameras
 from vpengine.engine import Engine
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import AnnotatedSink, FolderSink, Sink, SinkThread, per_camera
-from vpengine.pipeline.frames import RecentFrames
 from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, realtime
 from vpengine.pipeline.summary import Tally, summarize, write_summary
+from vpengine.recent_frames import RecentFrames
 from vpengine.results import Result
 
 log = logging.getLogger("vpengine.run")

@@ -8,9 +8,9 @@ recent frames), :mod:`~vpengine.ros2.control` (rate commands, the control thread
 
 Note [Output headers]: every output of a head carries the ``header`` (stamp *and* frame_id) of the input message it
 was computed from, never the time of publishing. The engine only knows integer frame ids and a float capture time;
-a float cannot hold a ROS stamp exactly (1.7e9 s has a resolution of ~240 ns), so :class:`FrameBook` keeps the exact
+a float cannot hold a ROS stamp exactly (1.7e9 s has a resolution of ~240 ns), so :attr:`Ros2Core.book` keeps the exact
 input header per engine frame id, and outputs look their header up by the result's frame id. Only if the book has
-already forgotten that frame (more than ``FrameBook.headers`` frames in flight, which the engine never has) does the
+already forgotten that frame (more than ``HEADERS_KEPT`` frames in flight, which the engine never has) does the
 header fall back to the float capture time, which is still the input's time; that is counted
 (``header_fallbacks``).
 """
@@ -26,6 +26,7 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from vpengine.recent_frames import RecentFrames
 from vpengine.ros2.control import model_at, parse_rate_command
 from vpengine.ros2.diagnostics import (
     OK,
@@ -38,21 +39,15 @@ from vpengine.ros2.diagnostics import (
     model_status,
     receive_buffer_advice,
 )
-from vpengine.ros2.frames import FrameBook
-
-# The ``X as X`` imports are io/bag.py's, which imports them (and others this module uses) from here; they go once
-# io/bag.py imports from messages and outputs.
-from vpengine.ros2.messages import COMPRESSED_TYPE as COMPRESSED_TYPE
-from vpengine.ros2.messages import IMAGE_TYPE as IMAGE_TYPE
 from vpengine.ros2.messages import Header, InputError, as_uint8, compressed_to_frame, image_to_frame
-from vpengine.ros2.messages import ImageOut as ImageOut
 from vpengine.ros2.outputs import OutputTopic, Payload, normalize_namespace, payload_for, plan_outputs
-from vpengine.ros2.outputs import ros_name as ros_name
 
 if TYPE_CHECKING:
     from vpengine.engine import Engine
 
 log = logging.getLogger("vpengine.ros2")
+#: Input headers kept for the outputs still to come (Note [Output headers])
+HEADERS_KEPT = 4096
 
 
 # --------------------------------------------------------------------------------------------------- input
@@ -135,7 +130,9 @@ class Ros2Core:
         self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
         for t in self.topics:
             self._by_head[(t.camera, t.head)].append(t)
-        self.book = FrameBook(frames=16 * len(self.cameras) if seg_overlay or keep_frames else 0)
+        self.book = RecentFrames[Header](
+            frames=16 * len(self.cameras) if seg_overlay or keep_frames else 0, tags=HEADERS_KEPT
+        )
         self._next_fid = 0  # engine frame ids are ours, so a header is booked before its frame is submitted
         self.engine: Engine | None = None
         self._engine_ready = threading.Event()
@@ -293,7 +290,7 @@ class Ros2Core:
             topics = self._by_head.get((r.camera if self.several else None, r.head))
             if not topics:
                 continue
-            header = self.book.header(r.frame_id)
+            header = self.book.tag(r.frame_id)
             if header is None:  # see Note [Output headers]
                 self.counters["header_fallbacks"] += 1
                 header = Header.from_seconds(r.capture_time)

@@ -5,8 +5,8 @@ Note [Pictures and frames]
 Segmentation overlays and detection boxes are drawn on the input frame, which the engine does not keep. Whoever
 feeds the engine (a pipeline, the ROS 2 core) keeps recent frames by frame id in one store,
 :class:`vpengine.recent_frames.RecentFrames`, and lends its lookup: ``frames.frame(frame_id) -> image or None``.
-A picture is drawn on the frame *of the result's own frame id* or on nothing (a dark canvas of the frame's size): never on the newest frame, which would pair a result with a frame it
-was not computed from. ``Picture.on_frame`` says which it was.
+A picture is drawn on the frame *of the result's own frame id* or on nothing (a dark canvas of the frame's size):
+never on the newest frame, which would pair a result with a frame it was not computed from. ``Picture.on_frame`` says which it was.
 
 The picture is drawn in the result's frame's own grid (``Result.frame_size``, Note [Frame grid] in boundary.py),
 never in the config's input size: a frame of another size than the input gets its overlays at its own size, and a

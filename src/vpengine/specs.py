@@ -60,9 +60,6 @@ class TensorSpec:
     def nbytes(self) -> int:
         return self.numel * self.itemsize
 
-    def with_dtype(self, dtype: str) -> TensorSpec:
-        return TensorSpec(self.shape, dtype)
-
     def matches(self, t: torch.Tensor | np.ndarray) -> bool:
         if isinstance(t, np.ndarray):
             return tuple(t.shape) == self.shape and str(t.dtype) == self.dtype

@@ -55,9 +55,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Literal
 
 import torch
@@ -90,10 +89,6 @@ _R_ACTIVE, _R_MODE, _R_CURSOR, _R_READS, _R_MISSED, _R_PINNED, _R_PID = range(7)
 #: Longest single futex sleep. Waits are re-checked at least this often so stop flags are seen promptly even if a
 #: wake-up is missed for any reason (they are not, but a robot should not depend on that).
 _MAX_SLEEP = 0.25
-
-
-class RingClosedError(RuntimeError):
-    pass
 
 
 @dataclass(frozen=True)
@@ -137,7 +132,6 @@ class SlotInfo:
     #: The tag it was published with (a camera's index, Note [Tagged slots]) and its place in that tag's sequence.
     tag: int = 0
     tag_seq: int = 0
-    extra: dict[str, object] = field(default_factory=dict)
 
 
 def _meta_bytes(n_slots: int, n_readers: int, n_tags: int) -> int:
@@ -254,10 +248,6 @@ class SlotRing:
     @property
     def data_region(self) -> Region:
         return self._data
-
-    @property
-    def meta_region(self) -> HostRegion:
-        return self._meta
 
     def close(self) -> None:
         self.views = []
@@ -580,10 +570,6 @@ class RingReader:
                     q[self._b + _R_CURSOR] = q[_H_LAST_SEQ] if self.tag is None else q[ring._t0 + self.tag]
                 q[self._b + _R_ACTIVE] = 1
 
-    def deactivate(self) -> None:
-        with self.ring._mutex:
-            self.ring._q[self._b + _R_ACTIVE] = 0
-
     @property
     def active(self) -> bool:
         return bool(self.ring._q[self._b + _R_ACTIVE])
@@ -749,16 +735,6 @@ class RingReader:
             if remaining <= 0:
                 return False
             linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
-
-    @contextmanager
-    def read(self, timeout: float = 0.0, peek: bool = False) -> Iterator[SlotInfo | None]:
-        """``with reader.read(timeout) as slot:`` pins, yields (None on timeout) and always releases."""
-        slot = self.pin(timeout, peek=peek)
-        try:
-            yield slot
-        finally:
-            if slot is not None:
-                self.release(slot)
 
 
 def latest_buffer(name: str, specs: SpecDict, readers: list[str], n_slots: int | None = None, **kw: object) -> SlotRing:

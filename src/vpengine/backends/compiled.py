@@ -92,18 +92,10 @@ class CompiledExecutor(Executor):
     """
 
     backend = "compile"
+    options = CompileOptions
+    opts: CompileOptions
 
-    def __init__(
-        self,
-        model: Model,
-        device: torch.device | str,
-        precision: str,
-        name: str,
-        opts: CompileOptions | None = None,
-        max_batch: int = 1,
-    ) -> None:
-        super().__init__(model, device, precision, name, max_batch)
-        self.opts = opts or CompileOptions.model_validate({})
+    def _setup(self, model: Model) -> None:
         self.model = cast_model_(model, self.dtype)
         self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
         mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
@@ -114,8 +106,8 @@ class CompiledExecutor(Executor):
         self._keys = list(self.input_spec)
         # One buffer per key for max_batch frames; batch size b reads its first b frames, through views made once
         # here, so each batch size always sees the same tensors (Note [CUDA graphs]).
-        full = model.example_inputs(self.device, max_batch)
-        self._static = {b: {k: full[k][:b] for k in self._keys} for b in range(1, max_batch + 1)}
+        full = model.example_inputs(self.device, self.max_batch)
+        self._static = {b: {k: full[k][:b] for k in self._keys} for b in range(1, self.max_batch + 1)}
         self._graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self._graph_out: dict[int, dict[str, torch.Tensor]] = {}
         self._side: torch.cuda.Stream | None = None
@@ -129,7 +121,7 @@ class CompiledExecutor(Executor):
         self.warmup_s = time.perf_counter() - t0
         log.info(
             "%s: compiled (%s) in %.1f s",
-            name,
+            self.name,
             ", ".join(f"{k}={v}" for k, v in self.describe().items()),
             self.warmup_s,
         )
@@ -278,7 +270,7 @@ class CompiledExecutor(Executor):
 class _RawLaunch:
     """A slot-bound run's three graphs launched on a given stream with ``cudaGraphLaunch`` (CUDA Python bindings),
     so a thread need not make that stream current first: after an idle wait, switching streams around the replays
-    costs 0.1 ms on an H100 VM and three raw launches a third of that (Note [Launch path] in runtime/worker.py).
+    costs 0.1 ms on an H100 VM and three raw launches a third of that (Note [Launch path] in runtime/handoff.py).
 
     ``CUDAGraph.replay`` also advances the CUDA generator past the random numbers the graph draws; a raw launch
     does not, so ``make`` returns None for a model graph that draws any (seen by replaying it once), and when the

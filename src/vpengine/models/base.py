@@ -36,14 +36,12 @@ import torch
 from pydantic import BaseModel, ConfigDict, ValidationError
 from torch import nn
 
-from vpengine.specs import SpecDict, format_specs
+from vpengine.specs import PRECISION_DTYPES, SpecDict, dtype_name, format_specs
 
 if TYPE_CHECKING:
     from vpengine.config import EngineConfig, ModelConfig
 
 Role = Literal["foundation", "head"]
-
-_PRECISION_DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
 
 
 class ModelBuildError(ValueError):
@@ -80,11 +78,11 @@ class BuildContext:
 
     @property
     def dtype(self) -> torch.dtype:
-        return _PRECISION_DTYPES[self.precision]
+        return PRECISION_DTYPES[self.precision]
 
     @property
     def dtype_name(self) -> str:
-        return {"fp32": "float32", "fp16": "float16", "bf16": "bfloat16"}[self.precision]
+        return dtype_name(self.dtype)
 
     @property
     def input_hw(self) -> tuple[int, int]:

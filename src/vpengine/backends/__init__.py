@@ -51,7 +51,8 @@ def make_executor(
     """The executor that runs ``model`` (built on ``device``, in eval mode) with ``backend``.
 
     ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` a
-    cache folder (ONNX exports go to its ``onnx`` subfolder; None: the checkpoint cache, ``catalog.cache_dir()``),
+    cache folder (ONNX exports go to its ``onnx`` subfolder, compile caches to its ``compile`` subfolder: Note
+    [Compile cache key] in ``compile_cache.py``; None: the checkpoint cache, ``catalog.cache_dir()``),
     ``max_batch`` the most frames one call computes (Note [Executor contract] in ``base.py``).
     Compilation, export and CUDA graph capture (for every batch size up to ``max_batch``) happen here. The eager
     and compile backends cast ``model`` to the precision in place and keep it; the onnx backend leaves it untouched

@@ -40,6 +40,9 @@ feeds the compiled code from the static input buffers: each batch size always se
 guards (dtype, shape, strides, whether a tensor is an inference tensor) cannot fail and recompile in the steady
 state, and inductor's alignment assumptions hold (per-key views carved out of one mailbox allocation need not be
 16-byte aligned).
+
+What inductor and Triton write to disk goes to a folder keyed on the release (Note [Compile cache key] in
+compile_cache.py), so a start never reads what another release compiled.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ from typing import Any
 import torch
 
 from vpengine.backends.base import Executor, PrecisionRunner, cast_model_
+from vpengine.backends.compile_cache import use_compile_cache
 from vpengine.backends.options import BackendError, CompileOptions
 from vpengine.models.base import Model
 
@@ -97,6 +101,8 @@ class CompiledExecutor(Executor):
 
     def _setup(self, model: Model) -> None:
         self.model = cast_model_(model, self.dtype)
+        # Before anything compiles: no entry of another release is ever read (Note [Compile cache key]).
+        self.compile_cache = use_compile_cache(self.cache_dir / "compile")
         self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
         mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
         self._compiled = torch.compile(
@@ -264,6 +270,7 @@ class CompiledExecutor(Executor):
             "cudagraphs": bool(self._graphs),
             "slot_bound": bool(self._in_graphs),
             "raw_launch": self._raw is not None,
+            "compile_cache": self.compile_cache["TORCHINDUCTOR_CACHE_DIR"],
         }
 
 

@@ -38,6 +38,7 @@ def entries(folder: Path) -> dict[str, bytes]:
     return {p.relative_to(folder).as_posix(): p.read_bytes() for p in folder.rglob("*") if p.is_file()}
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(1200)
 def test_a_stale_compile_cache_of_another_release_neither_breaks_nor_changes_a_start(tmp_path):
     (tmp_path / "tmp").mkdir()

@@ -1,0 +1,94 @@
+"""Exact static NMS (Note [Exact static NMS]): the keep mask equals torchvision's batched_nms, on the CPU path and
+on the Triton kernels under Triton's interpreter."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+import torch
+from torchvision.ops import batched_nms
+
+from vpengine.models.nms import greedy_nms, threshold32
+
+
+def crowded(n: int, t: int, seed: int, classes: int = 3) -> tuple[torch.Tensor, ...]:
+    """``n`` segments of ``t`` boxes piled onto a 56x56 area, so most pairs overlap, with many tied scores.
+
+    Integer coordinates make every IoU the same float in torchvision's batched_nms (which shifts boxes by class
+    before its nms when there are few) and here, and they give IoUs of exactly 0.5 and other ties with the
+    threshold, where suppression must need IoU strictly above it."""
+    g = torch.Generator().manual_seed(seed)
+    xy = torch.randint(0, 24, (n, t, 2), generator=g).float()
+    wh = torch.randint(4, 32, (n, t, 2), generator=g).float()
+    boxes = torch.cat([xy, xy + wh], -1)
+    scores = torch.randint(0, 12, (n, t), generator=g).float() / 12  # ties everywhere
+    labels = torch.randint(0, classes, (n, t), generator=g)
+    valid = torch.rand(n, t, generator=g) > 0.2
+    return boxes, scores, labels, valid
+
+
+def torchvision_keep(boxes, scores, labels, valid, threshold) -> list[set[int]]:
+    """Per segment: indices kept by torchvision's batched_nms among the valid boxes."""
+    out = []
+    for b, s, c, v in zip(boxes, scores, labels, valid):
+        idx = torch.nonzero(v).flatten()
+        out.append(set(idx[batched_nms(b[idx], s[idx], c[idx], threshold)].tolist()))
+    return out
+
+
+def static_keep(nms, boxes, scores, labels, valid, threshold) -> list[set[int]]:
+    """Per segment: indices kept by the static NMS after sorting as the caller must (stable, descending)."""
+    order = scores.sort(dim=1, descending=True, stable=True).indices
+    take = order[..., None].expand(-1, -1, 4)
+    keep = nms(boxes.gather(1, take), valid.gather(1, order), labels.gather(1, order), threshold)
+    assert keep.dtype == torch.bool and keep.shape == valid.shape
+    return [set(o[k].tolist()) for o, k in zip(order, keep)]
+
+
+@pytest.mark.parametrize("threshold", [0.3, 0.5, 0.7, 1.0])
+@pytest.mark.parametrize("t", [1, 31, 32, 33, 200])
+def test_static_nms_keeps_what_batched_nms_keeps(threshold, t):
+    boxes, scores, labels, valid = crowded(4, t, seed=t)
+    want = torchvision_keep(boxes, scores, labels, valid, threshold)
+    got = static_keep(greedy_nms, boxes, scores, labels, valid, threshold)
+    assert got == want
+    if t == 200:  # the crowd makes NMS matter: many valid boxes are suppressed, and by their own class only
+        kept, n_valid = sum(map(len, got)), int(valid.sum())
+        one_class = sum(map(len, static_keep(greedy_nms, boxes, scores, torch.zeros_like(labels), valid, threshold)))
+        if threshold < 1.0:
+            assert one_class < kept < n_valid
+        else:  # an IoU is never above 1
+            assert kept == one_class == n_valid
+
+
+def test_threshold_rounds_so_float32_comparisons_match_double_ones():
+    for t in (0.1, 0.3, 0.5, 0.7, 1 / 3, 0.9999999):
+        f = torch.tensor(threshold32(t), dtype=torch.float32)
+        up = torch.nextafter(f, torch.tensor(2.0))
+        assert float(f) <= t < float(up) or float(f) == t  # the largest float32 not above t
+        assert not float(f) > t
+
+
+@pytest.fixture
+def kernel(monkeypatch):
+    """The Triton NMS kernels built for Triton's interpreter (CPU tensors), rebuilt as usual after."""
+    pytest.importorskip("triton")
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    import vpengine.models._triton_nms as module
+
+    yield importlib.reload(module)
+    monkeypatch.delenv("TRITON_INTERPRET")
+    importlib.reload(module)
+
+
+@pytest.mark.parametrize("t", [1, 32, 45, 200])
+@pytest.mark.parametrize("threshold", [0.5, 0.7])
+def test_triton_kernels_keep_what_batched_nms_keeps(kernel, t, threshold):
+    boxes, scores, labels, valid = crowded(3, t, seed=100 + t)
+    want = torchvision_keep(boxes, scores, labels, valid, threshold)
+
+    def launch(b, v, c, thr):
+        return kernel.launch(b.contiguous(), v.contiguous(), c.to(torch.int32).contiguous(), thr)
+
+    assert static_keep(launch, boxes, scores, labels, valid, threshold) == want

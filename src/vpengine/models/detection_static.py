@@ -115,7 +115,7 @@ def pooled_features(
     """Step 2's RoIAlign: ``[B * P, C, S, S]`` features of every proposal slot, and the boxes it pooled."""
     pool = head.roi_heads.box_roi_pool
     b, p = valid.shape
-    unit = torch.tensor([0.0, 0.0, 1.0, 1.0], device=boxes.device)
+    unit = (torch.arange(4, device=boxes.device) >= 2).to(boxes.dtype)  # [0, 0, 1, 1], without a host copy
     flat = torch.where(valid[..., None], boxes, unit).reshape(b * p, 4)
     frame = torch.arange(b, device=boxes.device, dtype=flat.dtype)[:, None].expand(b, p).reshape(b * p)
     rois = torch.cat([frame[:, None], flat], 1)  # torchvision's roi format: frame index, x1, y1, x2, y2

@@ -7,43 +7,9 @@ import importlib
 
 import pytest
 import torch
-from torchvision.ops import batched_nms
 
+from helpers.detection import crowded, static_keep, torchvision_keep
 from vpengine.models.nms import greedy_nms, threshold32
-
-
-def crowded(n: int, t: int, seed: int, classes: int = 3) -> tuple[torch.Tensor, ...]:
-    """``n`` segments of ``t`` boxes piled onto a 56x56 area, so most pairs overlap, with many tied scores.
-
-    Integer coordinates make every IoU the same float in torchvision's batched_nms (which shifts boxes by class
-    before its nms when there are few) and here, and they give IoUs of exactly 0.5 and other ties with the
-    threshold, where suppression must need IoU strictly above it."""
-    g = torch.Generator().manual_seed(seed)
-    xy = torch.randint(0, 24, (n, t, 2), generator=g).float()
-    wh = torch.randint(4, 32, (n, t, 2), generator=g).float()
-    boxes = torch.cat([xy, xy + wh], -1)
-    scores = torch.randint(0, 12, (n, t), generator=g).float() / 12  # ties everywhere
-    labels = torch.randint(0, classes, (n, t), generator=g)
-    valid = torch.rand(n, t, generator=g) > 0.2
-    return boxes, scores, labels, valid
-
-
-def torchvision_keep(boxes, scores, labels, valid, threshold) -> list[set[int]]:
-    """Per segment: indices kept by torchvision's batched_nms among the valid boxes."""
-    out = []
-    for b, s, c, v in zip(boxes, scores, labels, valid):
-        idx = torch.nonzero(v).flatten()
-        out.append(set(idx[batched_nms(b[idx], s[idx], c[idx], threshold)].tolist()))
-    return out
-
-
-def static_keep(nms, boxes, scores, labels, valid, threshold) -> list[set[int]]:
-    """Per segment: indices kept by the static NMS after sorting as the caller must (stable, descending)."""
-    order = scores.sort(dim=1, descending=True, stable=True).indices
-    take = order[..., None].expand(-1, -1, 4)
-    keep = nms(boxes.gather(1, take), valid.gather(1, order), labels.gather(1, order), threshold)
-    assert keep.dtype == torch.bool and keep.shape == valid.shape
-    return [set(o[k].tolist()) for o, k in zip(order, keep)]
 
 
 @pytest.mark.parametrize("threshold", [0.3, 0.5, 0.7, 1.0])

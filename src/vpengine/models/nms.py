@@ -24,15 +24,16 @@ threshold.
 Two steps, as torchvision's CUDA kernel: (1) the pairwise mask, bit ``j % 32`` of word ``j // 32`` of row ``i`` set
 when ``j > i``, same class and IoU above the threshold, computed in parallel; (2) the walk: rows in order, a kept
 row ORs its mask into the set of removed candidates. On CUDA both are Triton kernels (``_triton_nms.py``; the walk
-is one program per segment, 32 rows per step); elsewhere PyTorch computes the mask and NumPy walks it. Both sit
-behind the custom op ``vpengine::greedy_nms``: ``torch.compile`` sees one opaque node (no unrolled loop of ``T``
-steps, no graph break) and a CUDA graph captures its kernels.
+is one program per segment, 32 rows per step). Elsewhere torchvision's CPU ``nms`` itself runs per segment and
+class. Both sit behind the custom op ``vpengine::greedy_nms``: ``torch.compile`` sees one opaque node (no unrolled
+loop of ``T`` steps, no graph break) and a CUDA graph captures its kernels.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import torch
+from torchvision.ops import nms
 
 #: Candidates one mask word covers (int32 words: Triton's and PyTorch's common integer width).
 WORD = 32
@@ -49,27 +50,15 @@ def threshold32(threshold: float) -> float:
     return float(t)
 
 
-def suppression_matrix(boxes: torch.Tensor, classes: torch.Tensor, threshold: float) -> torch.Tensor:
-    """``[N, T, T]`` bool: row ``i`` would suppress ``j`` (``j > i``, same class, IoU above ``threshold``)."""
-    x1, y1, x2, y2 = boxes.unbind(-1)
-    area = (x2 - x1) * (y2 - y1)
-    w = (torch.minimum(x2[:, :, None], x2[:, None, :]) - torch.maximum(x1[:, :, None], x1[:, None, :])).clamp(min=0)
-    h = (torch.minimum(y2[:, :, None], y2[:, None, :]) - torch.maximum(y1[:, :, None], y1[:, None, :])).clamp(min=0)
-    inter = w * h
-    iou = inter / (area[:, :, None] + area[:, None, :] - inter)  # torchvision's association: (a_i + a_j) - inter
-    t = boxes.shape[1]
-    later = torch.ones(t, t, dtype=torch.bool, device=boxes.device).triu(1)
-    return (iou > threshold32(threshold)) & later & (classes[:, :, None] == classes[:, None, :])
-
-
-def _walk(suppress: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    keep = np.zeros_like(valid)
+def _keep_cpu(boxes: torch.Tensor, valid: torch.Tensor, classes: torch.Tensor, threshold: float) -> torch.Tensor:
+    # torchvision's own CPU kernel, one call per segment and class, on descending ranks so that it walks the
+    # candidates in the order given
+    keep = torch.zeros_like(valid)
+    rank = torch.arange(valid.shape[1], 0, -1, dtype=torch.float32)
     for n in range(valid.shape[0]):
-        removed = ~valid[n]
-        for i in np.flatnonzero(valid[n]):
-            if not removed[i]:
-                keep[n, i] = True
-                removed |= suppress[n, i]
+        for c in classes[n][valid[n]].unique().tolist():
+            idx = torch.nonzero(valid[n] & (classes[n] == c)).flatten()
+            keep[n, idx[nms(boxes[n, idx], rank[idx], threshold)]] = True
     return keep
 
 
@@ -79,9 +68,7 @@ def _greedy_nms_op(boxes: torch.Tensor, valid: torch.Tensor, classes: torch.Tens
         from vpengine.models import _triton_nms
 
         return _triton_nms.launch(boxes, valid, classes, threshold)
-    suppress = suppression_matrix(boxes, classes, threshold).cpu().numpy()
-    keep = _walk(suppress, valid.cpu().numpy())
-    return torch.from_numpy(keep).to(valid.device)
+    return _keep_cpu(boxes.cpu(), valid.cpu(), classes.cpu(), threshold).to(valid.device)
 
 
 @_greedy_nms_op.register_fake

@@ -51,3 +51,29 @@ def test_triton_kernels_keep_what_batched_nms_keeps(kernel, t, threshold):
         return kernel.launch(b.contiguous(), v.contiguous(), c.to(torch.int32).contiguous(), thr)
 
     assert static_keep(launch, boxes, scores, labels, valid, threshold) == want
+
+
+@pytest.mark.parametrize("wpad", [1, 64, 256])
+def test_triton_kernels_compile_for_a_gpu(wpad):
+    # Triton's compiler runs without a GPU: type errors that its CPU interpreter lets pass fail here, not on a robot
+    triton = pytest.importorskip("triton")
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    from vpengine.models import _triton_nms as module
+
+    sizes = {"T": "i32", "W": "i32"}
+    kernels = {
+        module._mask_kernel: (
+            {"boxes": "*fp32", "classes": "*i32", "mask": "*i32", **sizes, "threshold": "fp32", "WORD": "constexpr"},
+            {"WORD": module.WORD},
+        ),
+        module._walk_kernel: (
+            {"mask": "*i32", "valid": "*i8", "keep": "*i8", **sizes, "WORD": "constexpr", "WPAD": "constexpr"},
+            {"WORD": module.WORD, "WPAD": wpad},
+        ),
+    }
+    for fn, (signature, constants) in kernels.items():
+        source = ASTSource(fn=fn, signature=signature, constexprs=constants)
+        compiled = triton.compile(source, target=GPUTarget("cuda", 90, 32))  # an H100's / H200's architecture
+        assert compiled.asm["cubin"], fn.__name__

@@ -48,7 +48,7 @@ def test_triton_kernels_keep_what_batched_nms_keeps(kernel, t, threshold):
     want = torchvision_keep(boxes, scores, labels, valid, threshold)
 
     def launch(b, v, c, thr):
-        return kernel.launch(b.contiguous(), v.contiguous(), c.to(torch.int32).contiguous(), thr)
+        return kernel.launch(b.contiguous(), v.contiguous(), c.to(torch.int32).contiguous(), threshold32(thr))
 
     assert static_keep(launch, boxes, scores, labels, valid, threshold) == want
 

@@ -12,7 +12,8 @@ import torch
 import triton
 import triton.language as tl
 
-from vpengine.models.nms import WORD, threshold32
+#: Candidates one mask word covers (int32 words).
+WORD = 32
 
 
 @triton.jit
@@ -87,14 +88,15 @@ def _walk_kernel(mask, valid, keep, T, W, WORD: tl.constexpr, WPAD: tl.constexpr
 
 def launch(boxes: torch.Tensor, valid: torch.Tensor, classes: torch.Tensor, threshold: float) -> torch.Tensor:
     """Keep mask ``bool[N, T]`` for contiguous ``boxes: float32[N, T, 4]``, ``valid: bool[N, T]``, ``classes:
-    int32[N, T]`` (Note [Exact static NMS])."""
+    int32[N, T]``, suppressing where the float32 IoU > ``threshold`` (rounded as ``nms.threshold32`` does; Note
+    [Exact static NMS])."""
     n, t = valid.shape
     w = triton.cdiv(t, WORD)
     mask = torch.empty((n, w * WORD, w), dtype=torch.int32, device=boxes.device)
     keep = torch.empty((n, t), dtype=torch.int8, device=boxes.device)
     if n == 0 or t == 0:
         return keep.bool()
-    _mask_kernel[(w, w, n)](boxes, classes, mask, t, w, threshold32(threshold), WORD=WORD)
+    _mask_kernel[(w, w, n)](boxes, classes, mask, t, w, threshold, WORD=WORD)
     wpad = triton.next_power_of_2(w)
     _walk_kernel[(n,)](mask, valid.view(torch.int8), keep, t, w, WORD=WORD, WPAD=wpad, num_warps=1 if wpad <= 64 else 4)
     return keep.view(torch.bool)

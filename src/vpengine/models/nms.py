@@ -35,9 +35,6 @@ import numpy as np
 import torch
 from torchvision.ops import nms
 
-#: Candidates one mask word covers (int32 words: Triton's and PyTorch's common integer width).
-WORD = 32
-
 
 def threshold32(threshold: float) -> float:
     """The float32 ``t`` with ``iou > t`` exactly when ``iou > threshold`` for every float32 ``iou``.
@@ -67,7 +64,7 @@ def _greedy_nms_op(boxes: torch.Tensor, valid: torch.Tensor, classes: torch.Tens
     if boxes.device.type == "cuda":
         from vpengine.models import _triton_nms
 
-        return _triton_nms.launch(boxes, valid, classes, threshold)
+        return _triton_nms.launch(boxes, valid, classes, threshold32(threshold))
     return _keep_cpu(boxes.cpu(), valid.cpu(), classes.cpu(), threshold).to(valid.device)
 
 

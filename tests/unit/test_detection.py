@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from vpengine.config import load_config
+from vpengine.models import detection_static
 from vpengine.models.base import BuildContext, ModelBuildError, check_outputs
 from vpengine.models.build import build_model
 from vpengine.models.detection import FasterRCNNHead
@@ -211,13 +212,20 @@ def test_count_never_exceeds_capacity_and_keeps_the_best():
     torch.testing.assert_close(out["boxes"], everything["boxes"][:5])
 
 
-def test_several_objects_give_several_detections_in_the_padded_output(monkeypatch):
+@pytest.mark.parametrize("path", ["static", "torchvision"])
+def test_several_objects_give_several_detections_in_the_padded_output(monkeypatch, path):
     plan, head = build(config({"max_detections": 6}))
     force_class(head, label=1)
     props = torch.tensor([[10.0, 10.0, 40.0, 40.0], [60.0, 20.0, 100.0, 90.0], [110.0, 50.0, 150.0, 100.0]])
-    monkeypatch.setattr(head.rpn, "forward", lambda images, features, targets=None: ([props], {}))
+    if path == "static":  # the proposal stage's fixed-size answer: 4 slots, the last one padding
+        padded = (torch.cat([props, torch.tensor([[0.0, 0.0, 50.0, 50.0]])])[None], torch.tensor([[1, 1, 1, 0]]) > 0)
+        monkeypatch.setattr(detection_static, "proposals", lambda head, maps: padded)
+        run = head
+    else:
+        monkeypatch.setattr(head.rpn, "forward", lambda images, features, targets=None: ([props], {}))
+        run = head.forward_reference
     with torch.inference_mode():
-        out = {k: v[0] for k, v in head({"patch.3": tokens_of(plan)}).items()}
+        out = {k: v[0] for k, v in run({"patch.3": tokens_of(plan)}).items()}
     assert int(out["count"]) == 3
     found = sorted(map(tuple, out["boxes"][:3].tolist()))
     expected = sorted(map(tuple, head.boxes_to_input(props).tolist()))

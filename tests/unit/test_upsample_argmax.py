@@ -3,13 +3,12 @@ interpreter; tests/gpu/test_upsample_argmax_cuda.py runs it compiled on CUDA), b
 
 from __future__ import annotations
 
-import importlib
-
 import pytest
 import torch
 import torch.nn.functional as F
 
 from helpers.classmaps import assert_argmax_of, reference
+from helpers.triton_interpreter import interpreted
 from vpengine.models.upsample_argmax import upsample_argmax
 
 
@@ -32,13 +31,7 @@ def test_upsample_argmax_in_class_chunks_equals_one_big_resize_and_keeps_first_o
 @pytest.fixture
 def kernel(monkeypatch):
     """The kernel module with its kernel built for Triton's interpreter (CPU tensors), rebuilt as usual after."""
-    pytest.importorskip("triton")
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
-    import vpengine.models._triton_upsample_argmax as module
-
-    yield importlib.reload(module)
-    monkeypatch.delenv("TRITON_INTERPRET")
-    importlib.reload(module)
+    yield from interpreted(monkeypatch, "vpengine.models._triton_upsample_argmax")
 
 
 @pytest.mark.parametrize(

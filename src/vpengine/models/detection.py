@@ -6,15 +6,19 @@ feature pyramid the way ViTDet does for a plain ViT (transposed convolutions up,
 + ``RegionProposalNetwork`` for proposals, ``MultiScaleRoIAlign`` + ``TwoMLPHead`` + ``FastRCNNPredictor`` inside
 ``RoIHeads`` for classification, box decoding and per-class NMS.
 
+Inference (``forward``) runs those modules' layers through a path with static shapes and no host sync
+(Note [Static detection] in detection_static.py), one CUDA graph per batch size under the compile backend; it gives
+the detections torchvision's RPN and RoIHeads give (``predict``, ``forward_reference``), which training, ONNX export
+and the tests use.
+
 There is no ``GeneralizedRCNNTransform``: the engine already resized and normalised the frame for the foundation
 model. The head knows that preprocessed size (``upstream_meta["image_size"]``) and the input frame size
 (``ctx.input_hw``), works in preprocessed-image pixels inside, and maps boxes back to input-frame pixels on the way
 out (see :meth:`FasterRCNNHead.boxes_to_input`).
 
 Outputs are fixed-capacity so they fit preallocated mailbox slots (M = ``max_detections``), per frame of a batch
-(Note [Batched models] in base.py: the pyramid and the RPN and box heads' layers run on the whole batch at once;
-torchvision's proposal filtering, RoI sampling and NMS take lists with one entry per frame and treat each frame on
-its own, so a frame's detections never depend on the other frames)::
+(Note [Batched models] in base.py: everything runs on the whole batch at once, but proposals, RoIs and NMS are per
+frame, so a frame's detections never depend on the other frames)::
 
     boxes  float32[M, 4]   x1, y1, x2, y2 in input-frame pixels, best first; 0 past ``count``
     scores float32[M]      0 past ``count``
@@ -22,7 +26,6 @@ its own, so a frame's detections never depend on the other frames)::
     count  int32[]         detections that passed score threshold and NMS (<= M)
 
 Detections narrower or shorter than ``min_size`` input pixels (slivers clipped at the frame border) are dropped.
-Its output count is data dependent (NMS), so it is meant for the eager backend.
 
 Note [Geometry in float32]: the learned layers (pyramid, RPN head, box head) run at the engine's precision, but
 everything that handles coordinates stays float32 whatever it is: anchors, the RPN and box-predictor outputs that
@@ -50,7 +53,6 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from pydantic import Field, model_validator
 from torch import nn
 from torchvision.models.detection.anchor_utils import AnchorGenerator
@@ -61,14 +63,11 @@ from torchvision.models.detection.rpn import RegionProposalNetwork, RPNHead
 from torchvision.ops import MultiScaleRoIAlign
 from torchvision.ops.poolers import initLevelMapper
 
+from vpengine.models import detection_static
 from vpengine.models.base import BuildContext, Model, ModelBuildError, Options
+from vpengine.models.detection_pyramid import LEVEL_NAMES, LayerNorm2d, SimpleFeaturePyramid
 from vpengine.models.weights import apply_state_dict, configured_or_default, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
-
-#: Pyramid levels by scale relative to the token grid: their state-dict names.
-LEVEL_NAMES: dict[float, str] = {4.0: "up4", 2.0: "up2", 1.0: "same", 0.5: "down2"}
-#: The extra level max-pooled from the coarsest one (RPN only, as in torchvision's FPN).
-TOP_LEVEL = "pool"
 
 
 class FasterRCNNOptions(Options):
@@ -155,91 +154,6 @@ class FasterRCNNOptions(Options):
             return list(self.class_names)
         assert self.num_classes is not None
         return [f"class_{i}" for i in range(self.num_classes)]
-
-
-class LayerNorm2d(nn.Module):
-    """LayerNorm over the channels of an NCHW map (ViTDet's norm): independent of batch size, unlike BatchNorm,
-    which matters because the head is trained on small batches of cached features."""
-
-    def __init__(self, channels: int, eps: float = 1e-6) -> None:
-        super().__init__()
-        self.weight = nn.Parameter(torch.ones(channels))
-        self.bias = nn.Parameter(torch.zeros(channels))
-        self.eps = eps
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = F.layer_norm(x.permute(0, 2, 3, 1), self.weight.shape, self.weight, self.bias, self.eps)
-        return x.permute(0, 3, 1, 2)
-
-
-class ConvNorm(nn.Sequential):
-    """Conv (no bias) + LayerNorm2d: keys ``conv.weight``, ``norm.weight``, ``norm.bias``."""
-
-    def __init__(self, cin: int, cout: int, kernel: int) -> None:
-        super().__init__(
-            OrderedDict(
-                conv=nn.Conv2d(cin, cout, kernel, padding=kernel // 2, bias=False),
-                norm=LayerNorm2d(cout),
-            )
-        )
-
-
-class PyramidLevel(nn.Module):
-    """One level: resample the token map (``resample``), project to ``out_channels`` (``lateral``, 1x1), then
-    smooth (``output``, 3x3)."""
-
-    def __init__(self, dim: int, out_channels: int, scale: float) -> None:
-        super().__init__()
-        c = dim
-        if scale == 4.0:
-            if dim % 4:
-                raise ModelBuildError(f"pyramid scale 4 needs an embed dim divisible by 4, got {dim}")
-            self.resample: nn.Module = nn.Sequential(
-                nn.ConvTranspose2d(dim, dim // 2, 2, stride=2),
-                LayerNorm2d(dim // 2),
-                nn.GELU(),
-                nn.ConvTranspose2d(dim // 2, dim // 4, 2, stride=2),
-            )
-            c = dim // 4
-        elif scale == 2.0:
-            if dim % 2:
-                raise ModelBuildError(f"pyramid scale 2 needs an even embed dim, got {dim}")
-            self.resample = nn.ConvTranspose2d(dim, dim // 2, 2, stride=2)
-            c = dim // 2
-        elif scale == 1.0:
-            self.resample = nn.Identity()
-        else:
-            # ceil_mode: an odd grid keeps its last column; pooled cell i still covers tokens 2i and 2i+1, so the
-            # stride stays exactly twice the token stride.
-            self.resample = nn.MaxPool2d(2, stride=2, ceil_mode=True)
-        self.lateral = ConvNorm(c, out_channels, 1)
-        self.output = ConvNorm(out_channels, out_channels, 3)
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.output(self.lateral(self.resample(x)))
-
-
-class SimpleFeaturePyramid(nn.Module):
-    """ViTDet's simple feature pyramid from one stride-``patch`` token map: ``{level name: [B, out, h_l, w_l]}``."""
-
-    def __init__(self, dim: int, out_channels: int, scales: list[float], top_block: bool, patch: int) -> None:
-        super().__init__()
-        self.level_names = [LEVEL_NAMES[s] for s in scales]
-        for s, name in zip(scales, self.level_names):
-            self.add_module(name, PyramidLevel(dim, out_channels, s))
-        self.top_block = top_block
-        #: Exact stride of every level in preprocessed-image pixels (Note [Strides that are not powers of two]).
-        self.strides = [patch / s for s in scales] + ([2 * patch / scales[-1]] if top_block else [])
-        self.names = self.level_names + ([TOP_LEVEL] if top_block else [])
-
-    def forward(self, x: torch.Tensor) -> OrderedDict[str, torch.Tensor]:
-        out: OrderedDict[str, torch.Tensor] = OrderedDict()
-        for name in self.level_names:
-            out[name] = getattr(self, name)(x)
-        if self.top_block:
-            # kernel 1, stride 2: every other cell, ceil(n/2) of them, exactly twice the stride
-            out[TOP_LEVEL] = F.max_pool2d(out[self.level_names[-1]], 1, stride=2)
-        return out
 
 
 class ExactStrideAnchors(AnchorGenerator):
@@ -334,12 +248,12 @@ def input_box_scale(ctx: BuildContext, image_hw: tuple[int, int]) -> tuple[float
 
 
 class _EagerRoIAlign(MultiScaleRoIAlign):
-    """Note [RoIAlign runs eagerly]: under torch.compile, RoIAlign would be specialised for every pyramid level's
+    """Note [RoIAlign runs eagerly]: on the torchvision path (``predict``), under torch.compile, RoIAlign would be specialised for every pyramid level's
     feature size times every batch size and number of boxes it meets, and the boxes' number depends on the frame: new
     combinations keep coming after warm-up, each a recompilation of hundreds of milliseconds in the middle of a stream
     until dynamo's recompile limit is hit (seen with four cameras on an H100). It is one kernel per level either way,
-    so compiling it gains nothing: it always runs as the plain torchvision op, a graph break in a compiled head (which
-    its data-dependent NMS needs anyway: compile this head with ``backend_options: {fullgraph: false}``)."""
+    so compiling it gains nothing: it always runs as the plain torchvision op, a graph break (which that path's
+    data-dependent NMS needs anyway). The static path (``forward``) pools a fixed number of boxes and compiles whole."""
 
     @torch.compiler.disable
     def forward(self, *args: Any, **kwargs: Any) -> torch.Tensor:
@@ -350,8 +264,9 @@ class FasterRCNNHead(Model):
     """Faster R-CNN on ``patch.3``: fixed-capacity detections in input-frame pixels (see the module docstring)."""
 
     role = "head"
-    # torchvision's RPN and RoIHeads filter by score and run NMS on a data-dependent number of boxes, which
-    # torch.export cannot guard on (GuardOnDataDependentSymNode); the tracing exporter records those ops as they are.
+    # An export traces forward_reference: torchvision's RPN and RoIHeads run NMS on a data-dependent number of boxes,
+    # which torch.export cannot guard on (GuardOnDataDependentSymNode); the tracing exporter records those ops as they
+    # are, and ONNX has its own NMS op where it has none for vpengine::greedy_nms.
     onnx_exporter = "torchscript"
 
     def __init__(self, ctx: BuildContext, opts: FasterRCNNOptions) -> None:
@@ -572,6 +487,15 @@ class FasterRCNNHead(Model):
         return {**rpn_losses, **box_losses}
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        if torch.jit.is_tracing() or torch.onnx.is_in_onnx_export():
+            # ONNX has no export of vpengine::greedy_nms; the traced torchvision path keeps its NMS op (see
+            # onnx_exporter above)
+            return self.forward_reference(inputs)
+        return detection_static.detect(self, inputs[self.layer])
+
+    def forward_reference(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """:meth:`forward` through torchvision's RPN and RoIHeads (data-dependent shapes, host syncs): the reference
+        the static path equals (Note [Static detection])."""
         dets = self.predict(inputs[self.layer])
         fixed = [self._fixed_capacity(det) for det in dets]
         return {k: torch.stack([f[k] for f in fixed]) for k in self.output_spec}

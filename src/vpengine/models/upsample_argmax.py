@@ -25,8 +25,8 @@ CUDA graphs capture:
    cast follow. The upsampled logits are never written.
 
 A batch of frames is one launch of each kernel: the frame is the last axis of both grids, and each program offsets
-its pointers to its own frame's logits, candidates and class map (not yet run on a GPU: the CPU tests run it under
-Triton's interpreter and compile it for an H100 without one).
+its pointers to its own frame's logits, candidates and class map, so a frame's class map never depends on the
+other frames of its batch (tests: under Triton's interpreter on the CPU, and on CUDA in tests/gpu).
 
 The result is the argmax of the float32 interpolation, the same with or without candidates (tested bit for bit): it
 equals the float64 argmax except at near-ties (1-4 pixels in 10^6 in the tests), and PyTorch's on float32 logits up
@@ -34,9 +34,8 @@ to the last bit of rounding. PyTorch's eager CUDA path rounds the upsampled logi
 its argmax (float16: about 3 decimal digits), so on float16 logits the two disagree only where two classes are within
 that rounding of each other, on class boundaries. Everywhere else (the CPU, ONNX export, no Triton, ``upsample:
 torch``) the PyTorch path runs, and so it does, with a warning that says why, on a GPU Triton cannot compile for
-(compute capability below 7.0; ``fused_unavailable``). That check has not run on a GPU yet: it came after the last
-GPU session's time was spent. Any other failure of the kernels (a broken toolchain, say) stops the head at warm-up
-with the error, and ``upsample: torch`` is the way round it.
+(compute capability below 7.0; ``fused_unavailable``). Any other failure of the kernels (a broken toolchain, say)
+stops the head at warm-up with the error, and ``upsample: torch`` is the way round it.
 
 Why candidates: logits that change slowly from token to token, as a trained head's do, leave a cell few
 candidates, so the class map reads a small fraction of the classes. Logits that are noise from token to token are

@@ -30,10 +30,12 @@ def to_cuda(*xs: torch.Tensor) -> list[torch.Tensor]:
 
 @pytest.mark.parametrize("threshold", [0.3, 0.5, 0.7])
 @pytest.mark.parametrize("t", [1, 33, 1000, 4000])
-def test_triton_nms_keeps_what_batched_nms_keeps_on_cuda_and_cpu(t, threshold):
+def test_triton_nms_keeps_what_batched_nms_keeps_on_the_cpu(t, threshold):
+    # The reference is torchvision on the CPU, whose sort keeps tied scores in their order, as the head's stable
+    # sort does. Its CUDA nms sorts without that promise, so with these ties it need not agree even with itself on
+    # the CPU: it is no reference here.
     boxes, scores, labels, valid = crowded(4, t, seed=t)
     want = torchvision_keep(boxes, scores, labels, valid, threshold)
-    assert torchvision_keep(*to_cuda(boxes, scores, labels, valid), threshold) == want
     assert static_keep(greedy_nms, *to_cuda(boxes, scores, labels, valid), threshold) == want
 
 

@@ -45,10 +45,11 @@ from vpengine.config import EngineConfig, load_config
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.models.weights import check_checkpoints
 from vpengine.results import Outbox, Result
-from vpengine.runtime.control import ControlBlock, camera_entry, control_names, reader_name
+from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.gpu import CudaSetup, prepare_cuda, worker_env
 from vpengine.runtime.handoff import Handoffs
+from vpengine.runtime.lanes import Lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
@@ -279,11 +280,10 @@ class Engine:
                 res.rings[m["name"]] = SlotRing.create(**m)
             if cfg.logging.file:
                 res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
-            served = {m: cfg.model_cameras(m) for m in cfg.model_names()}
-            res.control = ControlBlock.create(control_names(served, self.cameras))
-            for m, cams in served.items():
-                for c in cams:  # Note [Cameras]: a rate per camera
-                    res.control.set_rate(camera_entry(m, c, self.cameras), cfg.model(m).rate_hz)
+            res.control = ControlBlock.create(self.lanes.control_names())
+            for m, lanes in self.lanes.by_model.items():
+                for lane in lanes:  # Note [Cameras]: a rate per camera
+                    res.control.set_rate(lane.entry, cfg.model(m).rate_hz)
             specs = self._worker_specs()
             if shared:
                 from vpengine.runtime.process import ProcessRunner
@@ -312,8 +312,7 @@ class Engine:
             self._handoffs,
             self.boundary,
             self._placements,
-            self.cameras,
-            {m: cfg.model_cameras(m) for m in cfg.model_names()},
+            self.lanes,
         )
         self._t_start = time.monotonic()
         self._state = "running"
@@ -340,8 +339,8 @@ class Engine:
                 config=dump,
                 upstream=plan.frame_spec,
                 upstream_meta={},
+                lanes=plan.lanes.of("foundation"),
                 in_ring=rings["input"].desc,
-                in_reader="foundation",
                 out_ring=rings["features"].desc,
                 notify_output=False,
             )
@@ -354,8 +353,8 @@ class Engine:
                     config=dump,
                     upstream=plan.features,
                     upstream_meta=plan.feature_meta,
+                    lanes=plan.lanes.of(name),
                     in_ring=rings["features"].desc,
-                    in_reader=name,
                     out_ring=rings[f"out.{name}"].desc,
                     notify_output=True,
                 )
@@ -506,19 +505,18 @@ class Engine:
 
     def _camera(self, camera: str | None) -> int:
         """The index (slot tag) of ``camera``; None: the only camera. ValueError naming the cameras otherwise."""
-        names = self.cameras
-        if camera is None:
-            if len(names) > 1:
-                raise ValueError(f"this engine has cameras {names}: say which one with camera=")
-            return 0
-        if camera not in names:
-            raise ValueError(f"no camera named {camera!r}; cameras: {names}")
-        return names.index(camera)
+        return self.lanes.tag(camera)
 
     @property
     def cameras(self) -> list[str]:
         """The cameras, in priority order (``cameras`` in the config; one named ``camera`` without)."""
-        return self.config.camera_names()
+        return list(self.lanes.cameras)
+
+    @property
+    def lanes(self) -> Lanes:
+        """Every (model, camera) pair: its camera's name and tag, its reader, its control-block entry (Note [Lanes]
+        in runtime/lanes.py). ``engine.lanes.of("depth")``: the lanes of head ``depth``, in priority order."""
+        return self.plan.lanes
 
     def _staging(self, size: tuple[int, int]) -> np.ndarray:
         """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size (``buffer_for``)."""
@@ -569,10 +567,8 @@ class Engine:
         self._require_running()
         tag = None
         if camera is not None:
-            tag = self._camera(camera)
-            served = self.config.model_cameras(self._outbox.head(head))
-            if camera not in served:
-                raise ValueError(f"{head!r} serves cameras {served}, not {camera!r}")
+            self._camera(camera)
+            tag = self.lanes.select(self._outbox.head(head), camera)[0].tag
         return self._outbox.latest(head, copy, tag)
 
     @_fenced
@@ -647,10 +643,7 @@ class Engine:
 
     def _entries(self, model: str, camera: str | None) -> list[str]:
         """The control-block entries holding ``model``'s rate for ``camera`` (None: all its cameras)."""
-        served = self.config.model_cameras(model)
-        if camera is not None and camera not in served:
-            raise ValueError(f"{model!r} serves cameras {served}, not {camera!r}")
-        return [camera_entry(model, c, self.cameras) for c in ([camera] if camera else served)]
+        return [lane.entry for lane in self.lanes.select(model, camera)]
 
     def _model_control(self, model: str) -> ControlBlock:
         """The running engine's control block, once ``model`` is known to be one of its models."""
@@ -674,22 +667,20 @@ class Engine:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None
-        cams = self.cameras
         models, per_camera = {}, {}
-        for name in self.config.model_names():
-            served = self.config.model_cameras(name)
-            entries = [camera_entry(name, c, cams) for c in served]
-            snap = ctl.snapshot(name, cameras=entries if len(cams) > 1 else None)
+        for name, lanes in self.lanes.by_model.items():
+            several = not lanes[0].only
+            snap = ctl.snapshot(name, cameras=[lane.entry for lane in lanes] if several else None)
             readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
-            mine = [readers[reader_name(name, c, cams)] for c in served]  # type: ignore[index]
+            mine = [readers[lane.reader] for lane in lanes]  # type: ignore[index]
             snap["frames_seen"] = sum(r["reads"] + r["missed"] for r in mine)
             snap["pending"] = sum(r["pending"] for r in mine)
             models[name] = snap
-            if len(cams) > 1:  # Note [Cameras]: each camera's rate, counters and latencies
-                for c, entry, r in zip(served, entries, mine):
-                    one = ctl.snapshot(entry)
+            if several:  # Note [Cameras]: each camera's rate, counters and latencies
+                for lane, r in zip(lanes, mine):
+                    one = ctl.snapshot(lane.entry)
                     one["frames_seen"], one["pending"] = r["reads"] + r["missed"], r["pending"]
-                    per_camera.setdefault(c, {})[name] = one
+                    per_camera.setdefault(lane.camera, {})[name] = one
         results = self._outbox.stats()
         return {
             "engine": {

@@ -9,8 +9,9 @@ import time
 import pytest
 
 from tests_paths import tiny
-from vpengine.runtime.control import ControlBlock, camera_entry, control_names
+from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.lanes import make_lanes
 from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import ReaderDecl, SlotRing
@@ -25,15 +26,16 @@ def worker():
     readers = [ReaderDecl(f"foundation@{c}", tag=i) for i, c in enumerate(CAMERAS)]
     in_ring = SlotRing.create("input", X, 5, readers, n_tags=2)
     out_ring = SlotRing.create("features", F, 5, [ReaderDecl("peek")], n_tags=2)
-    control = ControlBlock.create(control_names({"foundation": CAMERAS}, CAMERAS))
+    lanes = make_lanes(cfg)
+    control = ControlBlock.create(lanes.control_names())
     spec = WorkerSpec(
         name="foundation",
         role="foundation",
         config=cfg.model_dump(mode="json"),
         upstream={},
         upstream_meta={},
+        lanes=lanes.of("foundation"),
         in_ring=in_ring.desc,
-        in_reader="foundation",
         out_ring=out_ring.desc,
         notify_output=False,
     )
@@ -65,7 +67,7 @@ def worker():
         return found
 
     def entry(camera: str, key: str) -> int:
-        return control.get(camera_entry("foundation", camera, CAMERAS), key)
+        return control.get(lanes.select("foundation", camera)[0].entry, key)
 
     yield core, submit, overloaded, outputs, entry
     core.run(lambda: True)  # leaves at once, letting go of what it holds
@@ -106,7 +108,7 @@ def test_a_deferred_frame_of_a_camera_paused_since_is_answered_and_let_go(worker
     rear = submit("rear", 2.0)
     overloaded()
     core._take_batch()
-    core.control.set_rate(camera_entry("foundation", "rear", CAMERAS), 0.0)
+    core.control.set_rate(core.lanes[1].entry, 0.0)  # rear's
     core.poll_s = 0.01
     core._take_batch()
     assert rear not in outputs() and entry("rear", "decided") == rear and entry("rear", "skipped") == 1

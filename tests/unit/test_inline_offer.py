@@ -9,9 +9,11 @@ from types import SimpleNamespace
 
 import torch
 
+from vpengine.config import load_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import InlineLaunch, WorkerHandoff
+from vpengine.runtime.lanes import make_lanes
 from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import latest_buffer
@@ -140,8 +142,8 @@ def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, Con
         config={},
         upstream={},
         upstream_meta={},
+        lanes=make_lanes(load_config({})).of("foundation"),
         in_ring=in_ring.desc,
-        in_reader="foundation",
         out_ring=out_ring.desc,
         notify_output=False,
     )

@@ -57,7 +57,7 @@ import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -65,9 +65,10 @@ import torch
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.base import Role, check_outputs
 from vpengine.models.build import build_lock, build_model, model_config
-from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc, camera_entry
+from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
+from vpengine.runtime.lanes import Lane
 from vpengine.runtime.rate import RateGate
 from vpengine.specs import SpecDict
 from vpengine.transport.ring import RingDesc, RingReader, SlotInfo, SlotRing
@@ -84,12 +85,11 @@ class WorkerSpec:
     config: dict[str, Any]  # EngineConfig.model_dump(mode="json")
     upstream: SpecDict
     upstream_meta: dict[str, Any]
+    lanes: tuple[Lane, ...]  # the cameras it serves, in priority order (Note [Lanes] in lanes.py)
     in_ring: RingDesc
-    in_reader: str
     out_ring: RingDesc
     notify_output: bool
     control: ControlDesc | None = None
-    extra: dict[str, Any] = field(default_factory=dict)
 
     def engine_config(self) -> EngineConfig:
         return load_config(self.config)
@@ -97,16 +97,22 @@ class WorkerSpec:
 
 @dataclass
 class _Lane:
-    """One camera's share of a model's work (Note [Cameras])."""
+    """A lane's state in its worker (Note [Cameras])."""
 
-    camera: str
-    tag: int
+    lane: Lane
     reader: RingReader
     gate: RateGate
-    entry: str  # its control-block entry
     last_arrival: float = -math.inf  # when its last frame reached the engine (monotonic)
     interval: float = 0.0  # moving average of its frames' spacing (0: not known yet)
     deferred: bool = False  # its last frame was left for a later batch (Note [Cameras])
+
+    @property
+    def tag(self) -> int:
+        return self.lane.tag
+
+    @property
+    def entry(self) -> str:
+        return self.lane.entry
 
     def arrived(self, t: float) -> None:
         if self.last_arrival > -math.inf and t > self.last_arrival:
@@ -143,19 +149,8 @@ class WorkerCore:
         self.model = model
         self.output_spec = output_spec
         cfg = spec.engine_config()
-        cameras = cfg.camera_names()
-        # Note [Cameras]: one lane per camera this model serves; a one-camera engine has one lane, named after the
-        # model, with the model's own reader and control-block entry
-        self.lanes = [
-            _Lane(
-                camera=c,
-                tag=cameras.index(c),
-                reader=in_ring.reader(spec.in_reader if len(cameras) == 1 else f"{spec.name}@{c}"),
-                gate=RateGate(),
-                entry=camera_entry(spec.name, c, cameras),
-            )
-            for c in cfg.model_cameras(spec.name)
-        ]
+        # Note [Cameras]: one lane per camera this model serves (Note [Lanes] in lanes.py)
+        self.lanes = [_Lane(lane, in_ring.reader(lane.reader), RateGate()) for lane in spec.lanes]
         self._by_tag = {lane.tag: lane for lane in self.lanes}
         self.window = cfg.runtime.batch_window_ms * 1e-3
         self.reader, self.gate = self.lanes[0].reader, self.lanes[0].gate  # the one-camera path
@@ -638,7 +633,7 @@ def prepare_worker(
                 spec.name,
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
-                max_batch=len(cfg.model_cameras(spec.name)),  # Note [Cameras]: a frame of each camera at once
+                max_batch=len(spec.lanes),  # Note [Cameras]: a frame of each camera at once
             )
             # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,
             # so the steady state allocates nothing (Invariant: constant memory).

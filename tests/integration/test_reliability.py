@@ -266,12 +266,12 @@ def test_stop_gives_hung_workers_one_grace_period_together():
 
 # ------------------------------------------------------------------------------------- 7: restart budget
 def test_a_head_that_fails_now_and_then_is_restarted_every_time(monkeypatch, restart_backoff):
-    """max_restarts counts restarts within the supervisor's RESTART_WINDOW_S: a head that raises on every 10th frame of each life
+    """max_restarts counts restarts within the supervisor's RESTART_WINDOW_S: a head that hits a CUDA error on every 10th frame of each life
     (every ~0.5 s here) is restarted again and again, never marked failed; one in a crash loop still is
     (test_faults.py::test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on)."""
     cfg = tiny(
         "thread",
-        heads("depth", 'seg:{"raise_at_run": 10}'),
+        heads("depth", 'seg:{"raise_at_run": 10, "cuda_error": true}'),
         "runtime.max_restarts=1",
     )
     monkeypatch.setattr(supervisor, "RESTART_WINDOW_S", 0.3)
@@ -320,7 +320,7 @@ def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_wh
     ids=["process-os._exit(0)", "thread-raise"],
 )
 def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(tmp_path, mode, fault, restart_backoff):
-    opts = json.dumps({fault: 3, "once_marker": str(tmp_path / "once"), "sleep_ms": 20})
+    opts = json.dumps({fault: 3, "cuda_error": True, "once_marker": str(tmp_path / "once"), "sleep_ms": 20})
     restart_backoff(0.1)
     with Engine(tiny(mode, heads("depth", f"seg:{opts}"))) as e:
         pump_until(e, lambda: e.stats()["models"]["seg"]["restarts"] == 1, "seg died and was restarted")

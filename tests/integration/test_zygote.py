@@ -92,12 +92,14 @@ def test_the_workers_of_an_engine_are_forks_of_one_zygote_that_imported_torch():
 
 @pytest.mark.parametrize(
     "fault,expected",
-    [("sigsegv", "killed by signal 11"), ("raise", "exit code 1: RuntimeError: injected failure at run 2")],
+    [("sigsegv", "killed by signal 11"), ("raise", "exit code 1: RuntimeError: CUDA error: injected failure at run 2")],
 )
 def test_a_crashed_worker_restarts_from_the_zygote_and_its_exit_reaches_stats_and_log(
     tmp_path, caplog, restart_backoff, fault, expected
 ):
-    opts = json.dumps({"raise_at_run": 2 if fault == "raise" else None, "once_marker": str(tmp_path / "once")})
+    opts = json.dumps(
+        {"raise_at_run": 2 if fault == "raise" else None, "cuda_error": True, "once_marker": str(tmp_path / "once")}
+    )
     cfg = tiny("process", "heads.seg.model=helpers.faulty:FaultyHead", f"heads.seg.options={opts}")
     restart_backoff(0.1)
     caplog.set_level(logging.WARNING, logger="vpengine")

@@ -80,10 +80,10 @@ def test_a_deferred_frame_is_not_answered_and_runs_in_the_next_batch(worker):
     core, submit, overloaded, outputs, entry = worker
     front, rear = submit("front", 1.0), submit("rear", 2.0)
     overloaded()
-    core._take_batch()
+    core._take()
     assert outputs() == {front: 2.0} and entry("rear", "deferred") == 1
     assert entry("rear", "decided") < rear  # not answered: a caller waiting for it keeps waiting
-    core._take_batch()  # nothing new came: the next batch is the deferred frame
+    core._take()  # nothing new came: the next batch is the deferred frame
     assert outputs() == {front: 2.0, rear: 4.0}
     assert entry("rear", "decided") == entry("rear", "last_run") == rear
     assert entry("rear", "runs") == 1 and entry("rear", "skipped") == 0
@@ -94,9 +94,9 @@ def test_a_newer_frame_of_its_camera_replaces_a_deferred_one_which_is_answered_s
     submit("front", 1.0)
     old = submit("rear", 2.0)
     overloaded()
-    core._take_batch()
+    core._take()
     new = submit("rear", 3.0)  # newest wins
-    core._take_batch()
+    core._take()
     assert old not in outputs() and outputs()[new] == 6.0
     assert entry("rear", "skipped") == 1 and entry("rear", "runs") == 1
     assert entry("rear", "decided") == entry("rear", "last_run") == new
@@ -107,8 +107,8 @@ def test_a_deferred_frame_of_a_camera_paused_since_is_answered_and_let_go(worker
     submit("front", 1.0)
     rear = submit("rear", 2.0)
     overloaded()
-    core._take_batch()
+    core._take()
     core.control.set_rate(core.lanes[1].entry, 0.0)  # rear's
     core.poll_s = 0.01
-    core._take_batch()
+    core._take()
     assert rear not in outputs() and entry("rear", "decided") == rear and entry("rear", "skipped") == 1

@@ -128,12 +128,12 @@ def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type
 
 
 def step(core: WorkerCore) -> None:
-    slot = core.reader.pin(timeout=1.0)
+    slot = core.lanes[0].reader.pin(timeout=1.0)
     assert slot is not None
     try:
-        core._step(slot)
+        core._run([slot])
     finally:
-        core.reader.release(slot)
+        core.lanes[0].reader.release(slot)
 
 
 def submit(rings, i: int) -> None:  # type: ignore[no-untyped-def]

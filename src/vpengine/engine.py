@@ -42,6 +42,8 @@ import torch
 from vpengine import checks
 from vpengine.boundary import Boundary, Placement, buffer_for
 from vpengine.config import EngineConfig, load_config
+from vpengine.engine_stats import memory_report, model_stats
+from vpengine.intake import FrameSlot
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.models.weights import check_checkpoints
 from vpengine.results import Outbox, Result
@@ -57,7 +59,7 @@ from vpengine.transport.ring import SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
 
-__all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"]  # Result: from results.py
+__all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"]  # FrameSlot, Result: re-exported
 
 _ORIGINS_KEPT = 8192
 
@@ -120,113 +122,6 @@ class _Resources:
             self.control = None
 
 
-class FrameSlot:
-    """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
-
-    def __init__(
-        self,
-        engine: Engine,
-        frame_id: int | None,
-        timestamp: float | None,
-        size: tuple[int, int] | None,
-        camera: int,
-    ) -> None:
-        self._engine = engine
-        self._camera = camera
-        # capture time in seconds; may be set inside the block (default: when it ends)
-        self.timestamp = timestamp
-        self._frame_id_arg = frame_id
-        self._size = size
-        self.frame_id: int | None = None  # set when the block ends and the frame is submitted
-        self._array: np.ndarray | None = None
-        self._slot: SlotInfo | None = None
-        self._cancelled = False
-
-    @property
-    def array(self) -> np.ndarray | None:
-        """The writable frame: ``(height, width, 3)`` of the input dtype (None outside the block)."""
-        return self._array
-
-    @array.setter
-    def array(self, value: np.ndarray) -> None:
-        """``ok, slot.array = cap.read(image=slot.array)``: what a writer hands back must be the lent array itself.
-        A writer that allocated a new array instead (OpenCV does when the sizes differ) wrote nothing into the
-        slot: refused, naming both sizes, rather than submitting whatever the slot held before."""
-        arr = self._array
-        if arr is None:
-            raise RuntimeError("a FrameSlot's array exists only inside its with-block")
-        if not isinstance(value, np.ndarray) or value.__array_interface__["data"][0] != arr.ctypes.data:
-            got = (
-                f"{value.shape[1]}x{value.shape[0]}"
-                if isinstance(value, np.ndarray) and value.ndim >= 2
-                else (type(value).__name__)
-            )
-            raise ValueError(
-                f"the frame was written into a new {got} array, not into the {arr.shape[1]}x{arr.shape[0]} slot "
-                f"(a writer allocates one when the sizes differ): open the slot with frame_slot(size=(height, width)) "
-                "of your frames"
-            )
-        if value.shape != arr.shape or value.dtype != arr.dtype:
-            raise ValueError(
-                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: open the slot "
-                "with frame_slot(size=(height, width)) of your frames"
-            )
-
-    def cancel(self) -> None:
-        """Submit nothing when the block ends (e.g. the camera returned no frame)."""
-        self._cancelled = True
-
-    def __enter__(self) -> FrameSlot:
-        eng = self._engine
-        if self._slot is not None or self.frame_id is not None or self._cancelled:
-            raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
-        fence = eng._res.fence
-        fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
-        eng._submit_lock.acquire()
-        try:
-            eng._require_running()
-            slot = eng._acquire_input()
-        except BaseException:
-            eng._submit_lock.release()
-            fence.leave()
-            raise
-        eng._filling = threading.get_ident()
-        self._slot = slot
-        # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
-        # (Note [Frame grid] in boundary.py)
-        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._size)
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        eng, slot, arr = self._engine, self._slot, self._array
-        assert slot is not None and arr is not None
-        self._array, self._slot = None, None  # the slot is the engine's again: no writes after the block
-        try:
-            if exc_type is not None or self._cancelled or eng._state != "running":
-                eng._input_writer.abort(slot)
-                return
-            t_submit = time.monotonic()
-            try:
-                stamp = checks.timestamp(self.timestamp)  # may have been set inside the block
-            except ValueError:
-                eng._input_writer.abort(slot)
-                raise
-            t_capture = time.time() if stamp is None else stamp
-            if self._size is None:
-                placement = eng.boundary.placement(arr.shape[:2])
-            else:
-                try:
-                    placement = eng.boundary.write(eng.boundary.check(arr), eng._frame_views[slot.index])
-                except BaseException:
-                    eng._input_writer.abort(slot)
-                    raise
-            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit, placement, self._camera)
-        finally:
-            eng._filling = None
-            eng._submit_lock.release()
-            eng._res.fence.leave()
-
-
 class Engine:
     """One foundation model shared by many heads. See the module docstring for a tour."""
 
@@ -281,9 +176,9 @@ class Engine:
             if cfg.logging.file:
                 res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
             res.control = ControlBlock.create(self.lanes.control_names())
-            for m, lanes in self.lanes.by_model.items():
+            for model, lanes in self.lanes.by_model.items():
                 for lane in lanes:  # Note [Cameras]: a rate per camera
-                    res.control.set_rate(lane.entry, cfg.model(m).rate_hz)
+                    res.control.set_rate(lane.entry, cfg.model(model).rate_hz)
             specs = self._worker_specs()
             if shared:
                 from vpengine.runtime.process import ProcessRunner
@@ -316,7 +211,7 @@ class Engine:
         )
         self._t_start = time.monotonic()
         self._state = "running"
-        self.memory_report = self._memory_report()
+        self.memory_report = memory_report(res.rings, res.control, device)
         log.info(
             "engine %r running: %s mode on %s, foundation %s + heads %s; mailboxes %.1f MB host, %.1f MB device",
             cfg.name,
@@ -360,38 +255,6 @@ class Engine:
                 )
             )
         return specs
-
-    def _memory_report(self) -> dict[str, Any]:
-        rings = self._res.rings
-        per = {
-            n: {
-                "bytes": r.layout.total_bytes,
-                "slots": r.n_slots,
-                "slot_bytes": r.layout.slot_bytes,
-                "location": str(r.data_region.device),
-            }
-            for n, r in rings.items()
-        }
-        host = sum(v["bytes"] for v in per.values() if v["location"] == "cpu")
-        dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
-        ctl = self._res.control
-        workers = {n: ctl.get(n, "device_mem_bytes") for n in ctl.names} if ctl else {}
-        report: dict[str, Any] = {
-            "mailboxes": per,
-            "mailbox_host_bytes": host,
-            "mailbox_device_bytes": dev,
-            "workers_torch_reserved_bytes": workers,
-        }
-        device = torch.device(self.config.device)
-        if device.type == "cuda" and ctl is not None:
-            from vpengine.runtime.gpu import process_memory
-
-            by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
-            if by_pid:
-                pids = {n: ctl.get(n, "pid") for n in ctl.names}
-                report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
-                report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
-        return report
 
     def stop(self) -> None:
         """Stop every worker and free every buffer. Always returns (within stop_timeout_s + a few seconds)."""
@@ -451,12 +314,9 @@ class Engine:
         self._refuse_inside_frame_slot()
         with self._submit_lock:
             slot = self._acquire_input()
-            try:  # an error gives the slot back: a leaked slot is a frame the ring never gets again
-                placement = self.boundary.write(arr, self._frame_views[slot.index])
-                return self._publish_input(slot, frame_id, t_capture, t_submit, placement, cam)
-            except BaseException:
-                self._input_writer.abort(slot)
-                raise
+            return self._enter_frame(
+                slot, lambda view: self.boundary.write(arr, view), frame_id, t_capture, t_submit, cam
+            )
 
     @_fenced
     def frame_slot(
@@ -531,6 +391,28 @@ class Engine:
         slot = self._input_writer.acquire()
         assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
         return slot
+
+    def _enter_frame(
+        self,
+        slot: SlotInfo,
+        fill: Callable[[np.ndarray], Placement],
+        frame_id: int | None,
+        timestamp: float | None,
+        t_submit: float,
+        camera: int,
+    ) -> int:
+        """Check, write and publish a frame into input ``slot`` (``submit``, and a ``frame_slot`` block's end):
+        ``fill`` writes it into the slot's frame array (or finds it written there) and says where it lies;
+        ``timestamp`` is its capture time (None: now). Its frame id. Anything that raises gives the slot back
+        unpublished: a leaked slot is a frame the ring never gets again. The caller holds ``_submit_lock``."""
+        try:
+            stamp = checks.timestamp(timestamp)
+            t_capture = time.time() if stamp is None else stamp
+            placement = fill(self._frame_views[slot.index])
+            return self._publish_input(slot, frame_id, t_capture, t_submit, placement, camera)
+        except BaseException:
+            self._input_writer.abort(slot)
+            raise
 
     def _publish_input(
         self,
@@ -667,20 +549,7 @@ class Engine:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None
-        models, per_camera = {}, {}
-        for name, lanes in self.lanes.by_model.items():
-            several = not lanes[0].only
-            snap = ctl.snapshot(name, cameras=[lane.entry for lane in lanes] if several else None)
-            readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
-            mine = [readers[lane.reader] for lane in lanes]  # type: ignore[index]
-            snap["frames_seen"] = sum(r["reads"] + r["missed"] for r in mine)
-            snap["pending"] = sum(r["pending"] for r in mine)
-            models[name] = snap
-            if several:  # Note [Cameras]: each camera's rate, counters and latencies
-                for lane, r in zip(lanes, mine):
-                    one = ctl.snapshot(lane.entry)
-                    one["frames_seen"], one["pending"] = r["reads"] + r["missed"], r["pending"]
-                    per_camera.setdefault(lane.camera, {})[name] = one
+        models, per_camera = model_stats(self.lanes, ctl, rings)
         results = self._outbox.stats()
         return {
             "engine": {

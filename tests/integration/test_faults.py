@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import os
@@ -15,6 +16,7 @@ import numpy as np
 import psutil
 import pytest
 
+from helpers import waiting
 from helpers.frames import frame
 from helpers.inline import inline_launch
 from tests_paths import ROOT, tiny
@@ -37,33 +39,7 @@ def pump(e: Engine, n: int, heads=("depth", "det"), start: int = 0) -> list[dict
     return out
 
 
-def wait_for(cond, timeout=15.0, what="condition", show=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}" + (f": {show()}" if show else ""))
-
-
-@pytest.mark.parametrize("mode", ["process", "thread"])
-def test_head_with_a_cuda_error_on_frame_k_is_restarted_and_others_keep_serving(tmp_path, mode, restart_backoff):
-    """A CUDA error leaves the worker's context unusable: it is restarted (Note [Frame errors])."""
-    restart_backoff(0.2)
-    cfg = faulty_cfg(tmp_path, mode, raise_at_run=5, cuda_error=True, once_marker=str(tmp_path / "raised"))
-    with Engine(cfg) as e:
-        got = pump(e, 30)
-        assert all(set(r) == {"depth", "det"} for r in got)  # the healthy heads never missed a beat
-        wait_for(
-            lambda: e.stats()["models"]["seg"]["state"] == "running" and e.stats()["models"]["seg"]["restarts"] == 1,
-            what="seg restarted",
-            show=lambda: e.stats()["models"]["seg"],
-        )
-        seg = e.stats()["models"]["seg"]
-        assert seg["errors"] == 1 and seg["restarts"] == 1
-        assert "RuntimeError: CUDA error: injected failure at run 5" in seg["last_error"]
-        fid = e.submit(frame(99))
-        assert e.wait(fid, heads=["seg"], timeout=10)["seg"].frame_id == fid  # serving again
+wait_for = functools.partial(waiting.wait_for, timeout=15.0)
 
 
 @pytest.mark.parametrize("mode", ["process", "thread"])

@@ -18,10 +18,10 @@ import threading
 import time
 import weakref
 
-import psutil
 import pytest
 
 from helpers.frames import frame
+from helpers.waiting import alive, wait_for
 from tests_paths import ROOT, tiny
 from vpengine.engine import Engine
 from vpengine.runtime import supervisor
@@ -39,26 +39,6 @@ def heads(*entries: str) -> str:
             f"{{name: {name}, model: {FAULTY}, options: {opts}}}" if opts else f"{{name: {name}, model: tiny_depth}}"
         )
     return "heads=[" + ", ".join(out) + "]"
-
-
-def wait_for(cond, timeout=20.0, what="condition", show=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}" + (f": {show()}" if show else ""))
-
-
-def alive(pids) -> list[int]:
-    out = []
-    for p in pids:
-        try:
-            if psutil.Process(p).status() != psutil.STATUS_ZOMBIE:
-                out.append(p)
-        except psutil.NoSuchProcess:
-            pass
-    return out
 
 
 def run_script(code: str, *args: str, timeout: float = 90) -> subprocess.CompletedProcess:

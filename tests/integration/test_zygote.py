@@ -5,6 +5,7 @@ engine."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -14,13 +15,14 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from pathlib import Path
 
 import psutil
 import pytest
 
+from helpers import waiting
 from helpers.frames import frame
+from helpers.waiting import alive
 from tests_paths import ROOT, tiny
 from vpengine.engine import Engine
 
@@ -28,24 +30,7 @@ pytestmark = pytest.mark.timeout(180)
 HEADS = ("depth", "seg", "det")
 
 
-def wait_for(cond, timeout=30.0, what="condition", show=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}" + (f": {show()}" if show else ""))
-
-
-def alive(pids) -> list[int]:
-    out = []
-    for p in pids:
-        try:
-            if psutil.Process(p).status() != psutil.STATUS_ZOMBIE:
-                out.append(p)
-        except psutil.NoSuchProcess:
-            pass
-    return out
+wait_for = functools.partial(waiting.wait_for, timeout=30.0)
 
 
 def zygotes(parent: psutil.Process | None = None) -> list[psutil.Process]:

@@ -17,6 +17,7 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 from vpengine.config import EngineConfig
 from vpengine.runtime.control import FAILED, RESTARTING, ControlBlock
@@ -73,6 +74,7 @@ class Runner(ABC):
         self._stopping = False
         self._restarted_at: dict[str, collections.deque[float]] = {s.name: collections.deque() for s in specs}
         self._pending: dict[str, _Restart] = {}
+        self._monitor: threading.Thread | None = None  # runs _watch once every worker is ready
 
     # --------------------------------------------------------------------------------------- interface
     @abstractmethod
@@ -86,6 +88,27 @@ class Runner(ABC):
     @abstractmethod
     def _launch(self, name: str) -> None:
         """(Re)start one worker without waiting for READY."""
+
+    @abstractmethod
+    def _watch(self) -> None:
+        """The monitor's loop, until stop: notice deaths and hangs, run due restarts."""
+
+    def _started(self, errors: list[str]) -> None:
+        """The end of ``start``, every worker heard from: ``errors`` (their start-up failures) stop them all and
+        raise; else the monitor starts watching them."""
+        if errors:
+            self.stop()
+            raise EngineStartError("worker start-up failed:\n" + "\n".join(errors))
+        self._monitor = threading.Thread(target=self._watch, name="vpengine-monitor", daemon=True)
+        self._monitor.start()
+
+    def _not_ready(self, waiting: set[str]) -> NoReturn:
+        """``start`` waited past ``runtime.ready_timeout_s`` for ``waiting``: stop every worker and raise."""
+        self.stop()
+        raise EngineStartError(
+            f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
+            "(runtime.ready_timeout_s)"
+        )
 
     @property
     def stopping(self) -> bool:

@@ -176,9 +176,9 @@ class Engine:
             if cfg.logging.file:
                 res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
             res.control = ControlBlock.create(self.lanes.control_names())
-            for model, lanes in self.lanes.by_model.items():
+            for lanes in self.lanes.by_model.values():
                 for lane in lanes:  # Note [Cameras]: a rate per camera
-                    res.control.set_rate(lane.entry, cfg.model(model).rate_hz)
+                    res.control.set_rate(lane.entry, lane.rate_hz)
             specs = self._worker_specs()
             if shared:
                 from vpengine.runtime.process import ProcessRunner

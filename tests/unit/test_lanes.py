@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 
 from tests_paths import tiny
+from vpengine.engine import Engine
 from vpengine.runtime.lanes import make_lanes
 
 SRC = Path(__file__).resolve().parents[2] / "src" / "vpengine"
@@ -40,6 +41,15 @@ def test_several_cameras_give_a_lane_per_served_camera_in_priority_order():
     assert lanes.find(head, 1) is None and lanes.find(head, 2) is lanes.of(head)[1]
     assert lanes.select(head, "left") == (lanes.of(head)[1],) and lanes.select(head, None) == lanes.of(head)
     assert pickle.loads(pickle.dumps(lanes.of(head))) == lanes.of(head)  # crosses into a worker's child
+
+
+def test_the_engine_hands_out_the_plans_lanes_with_their_configured_rates():
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", "heads.0.rate_hz=7")
+    engine = Engine(cfg)  # planned, not started
+    head = cfg.heads[0].name
+    assert engine.lanes is engine.plan.lanes and engine.lanes == make_lanes(cfg)
+    assert [lane.rate_hz for lane in engine.lanes.of(head)] == [7.0, 7.0]
+    assert engine.cameras == ["front", "rear"]
 
 
 def test_bad_cameras_and_models_are_refused_naming_the_good_ones():

@@ -5,7 +5,7 @@ Note [Lanes]
 A *lane* is one model's share of one camera's frames: the camera's name and tag (its index in the configured
 order, which tags its frames' slots, Note [Tagged slots] in transport/ring.py), the model's reader of its input ring
 for that camera, and the model's control-block entry for it (rate, counters, latencies, answered frames; Note
-[Answered frames] in worker.py). :func:`make_lanes` builds them from the config once (``Plan.lanes``), and the
+[Answered frames] in worker.py), and the rate it starts with. :func:`make_lanes` builds them from the config once (``Plan.lanes``), and the
 engine, the workers (``WorkerSpec.lanes``), the supervisor, the results and the control block's layout all read
 them from there: this module is the only one that turns a camera into its index, reader or entry (a test in
 tests/unit/test_lanes.py keeps it so). One camera is the case of one lane per model: its reader and entry are then
@@ -31,6 +31,7 @@ class Lane:
     reader: str  # the model's reader of its input ring for this camera
     entry: str  # the model's control-block entry for this camera
     only: bool  # the engine's only camera: its readers take every slot, untagged
+    rate_hz: float | None  # the configured rate limit it starts with (None: unlimited; set_rate changes the entry's)
 
     @property
     def reader_tag(self) -> int | None:
@@ -98,6 +99,7 @@ def make_lanes(cfg: EngineConfig) -> Lanes:
 
     def lane(model: str, camera: str) -> Lane:
         name = model if only else f"{model}@{camera}"
-        return Lane(model, camera, cameras.index(camera), reader=name, entry=name, only=only)
+        rate = cfg.model(model).rate_hz
+        return Lane(model, camera, cameras.index(camera), reader=name, entry=name, only=only, rate_hz=rate)
 
     return Lanes(cameras, {m: tuple(lane(m, c) for c in cfg.model_cameras(m)) for m in cfg.model_names()})

@@ -1,4 +1,5 @@
-"""Frames into the engine without a copy: ``Engine.frame_slot`` lends an input slot (Note [Frame slots] in engine.py)."""
+"""Frames into the engine without a copy: ``Engine.frame_slot`` lends an input slot (Note [Frame slots] in
+engine.py)."""
 
 from __future__ import annotations
 

@@ -2,14 +2,14 @@
 
 Note [Lanes]
 ~~~~~~~~~~~~
-A *lane* is one model's share of one camera's frames: the camera's name and tag (its index in the configured
-order, which tags its frames' slots, Note [Tagged slots] in transport/ring.py), the model's reader of its input ring
-for that camera, and the model's control-block entry for it (rate, counters, latencies, answered frames; Note
-[Answered frames] in worker.py), and the rate it starts with. :func:`make_lanes` builds them from the config once (``Plan.lanes``), and the
-engine, the workers (``WorkerSpec.lanes``), the supervisor, the results and the control block's layout all read
-them from there: this module is the only one that turns a camera into its index, reader or entry (a test in
-tests/unit/test_lanes.py keeps it so). One camera is the case of one lane per model: its reader and entry are then
-the model's own name (which keeps one-camera stats and ring names as they always were); with several cameras both are
+A *lane* is one model's share of one camera's frames: the camera's name and tag (its index in the configured order,
+which tags its frames' slots, Note [Tagged slots] in transport/ring.py), the model's reader of its input ring for that
+camera, and the model's control-block entry for it (rate, counters, latencies, answered frames; Note [Answered frames]
+in worker.py), and the rate it starts with. :func:`make_lanes` builds them from the config once (``Plan.lanes``), and
+the engine, the workers (``WorkerSpec.lanes``), the supervisor, the results and the control block's layout all read them
+from there: this module is the only one that turns a camera into its index, reader or entry (a test in
+tests/unit/test_lanes.py keeps it so). One camera is the case of one lane per model: its reader and entry are then the
+model's own name (which keeps one-camera stats and ring names as they always were); with several cameras both are
 ``model@camera``.
 """
 

@@ -137,7 +137,10 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
     tags = len(lanes.cameras)
 
     def readers(model: str, mode: str) -> list[ReaderDecl]:
-        return [ReaderDecl(lane.reader, mode, tag=lane.reader_tag) for lane in lanes.of(model)]  # type: ignore[arg-type]
+        return [
+            ReaderDecl(lane.reader, mode, tag=lane.reader_tag)  # type: ignore[arg-type]
+            for lane in lanes.of(model)
+        ]
 
     fifo_fm = FIFO_MARGIN if cfg.foundation_model.input_mode == "fifo" else 0
     fifo_heads = FIFO_MARGIN if any(h.input_mode == "fifo" for h in cfg.heads) else 0

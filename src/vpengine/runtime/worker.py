@@ -27,21 +27,21 @@ answered by the newer frame it took.
 Note [Cameras]
 ~~~~~~~~~~~~~~
 Several cameras feed one engine: one backbone's weights, one set of workers and mailboxes. Every frame is tagged with
-its camera (Note [Tagged slots] in transport/ring.py) and a model keeps one *lane* per camera it serves: that
-camera's reader of its input ring, its rate gate, and its control-block entry (``model@camera``: rate, counters,
-latencies, answered frames), so rates, counts and Note [Answered frames] hold per camera. A model takes its lanes'
-frames as one batch (``_take_ring``): it waits for the first frame of any camera, then at most
-``runtime.batch_window_ms`` for the other cameras whose next frame is due by then; a camera whose frame comes later
-goes in the next batch, counted ``late``. The frames the gates admit (several: copied into preallocated batch
-buffers of one frame per lane; one: its slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model
-has a graph for every batch size up to its lanes), and each frame's outputs are copied into its own slot and published
-with its camera's tag. When the model cannot keep up (its last batch took longer
-than the cameras' frame interval), the camera last in the configured order leaves its frame for the next batch,
-counted ``deferred`` (never twice in a row, so no camera starves): the first cameras keep their rate and latency.
-The deferred frame stays pinned and unanswered, and runs in the next batch unless a newer frame of its camera is
-there by then (newest wins: the deferred one is then skipped and answered). A deferral is a guess from wall-clock
-averages and may be wrong (one slow batch under load is enough), so it must never cost a frame on its own: a caller
-that waits for every frame (lockstep pacing) gets every output, only a batch later.
+its camera (Note [Tagged slots] in transport/ring.py) and a model keeps one *lane* per camera it serves: that camera's
+reader of its input ring, its rate gate, and its control-block entry (``model@camera``: rate, counters, latencies,
+answered frames), so rates, counts and Note [Answered frames] hold per camera. A model takes its lanes' frames as one
+batch (``_take_ring``): it waits for the first frame of any camera, then at most ``runtime.batch_window_ms`` for the
+other cameras whose next frame is due by then; a camera whose frame comes later goes in the next batch, counted
+``late``. The frames the gates admit (several: copied into preallocated batch buffers of one frame per lane; one: its
+slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model has a graph
+for every batch size up to its lanes), and each frame's outputs are copied into its own slot and published with its
+camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the camera
+last in the configured order leaves its frame for the next batch, counted ``deferred`` (never twice in a row, so no
+camera starves): the first cameras keep their rate and latency. The deferred frame stays pinned and unanswered, and runs
+in the next batch unless a newer frame of its camera is there by then (newest wins: the deferred one is then skipped and
+answered). A deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it
+must never cost a frame on its own: a caller that waits for every frame (lockstep pacing) gets every output, only a
+batch later.
 With one lane there is no window to wait and no frame to defer: each frame is a batch of one, which the foundation
 may also take from the submitting thread (Note [Inline launch]).
 

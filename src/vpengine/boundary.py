@@ -300,6 +300,15 @@ class Boundary:
                 log.info("%s; set input.height/width to that size to spare the resizing", p.describe())
         return p
 
+    def to_frame(self, head: str, outputs: dict[str, Any], placement: Placement | None) -> dict[str, Any]:
+        """``head``'s ``outputs`` (host arrays or tensors) in the grid of the frame at ``placement``: as they are,
+        unless the head keeps the canvas grid (``output.grid: native``), whose maps and boxes are then mapped the way
+        the engine maps every other head's (Note [Frame grid]). For whoever draws a result on its frame."""
+        if head not in self.native or placement is None or placement.identity:
+            return outputs
+        kinds = self.kinds[head]
+        return {k: placement.to_frame(kinds[k], v) if k in kinds else v for k, v in outputs.items()}
+
     def write(self, frame: np.ndarray, dst: np.ndarray) -> Placement:
         """Fit a checked ``frame`` into the canvas ``dst`` (an input slot); returns where it went."""
         p = self.placement(frame.shape[:2])

@@ -57,11 +57,20 @@ def timeout(value: Any, what: str = "timeout") -> float:
     return max(t, 0.0)
 
 
-def rate(model: str, value: Any) -> float | None:
-    """A rate limit for ``model``: None (unlimited) or a finite real number >= 0 Hz (0 pauses)."""
+#: The highest rate limit accepted anywhere (config, ``Engine.set_rate``, ROS 2, the live view): far above any
+#: camera, low enough that a typo (an extra zero or three) is caught rather than run.
+MAX_RATE_HZ = 10_000.0
+
+
+def rate(model: str | None, value: Any) -> float | None:
+    """The one check of a rate limit, for every door that takes one: None (no limit) or a real number from 0 (pause)
+    to :data:`MAX_RATE_HZ`. ``model`` names whose rate it is in the message (None: the caller's context does)."""
     if value is None:
         return None
     hz = _real(value)
-    if hz is None or not math.isfinite(hz) or hz < 0:
-        raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {value!r}")
+    if hz is None or not 0 <= hz <= MAX_RATE_HZ:  # NaN compares False
+        whose = "rate" if model is None else f"rate for {model!r}"
+        raise ValueError(
+            f"{whose} must be None (no limit) or a number of Hz from 0 to {MAX_RATE_HZ:g} (0 pauses), got {value!r}"
+        )
     return hz

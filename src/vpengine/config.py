@@ -9,13 +9,14 @@ by its ``name`` or its index).
 from __future__ import annotations
 
 import json
-import math
 import re
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from vpengine import checks
 
 Precision = Literal["fp32", "fp16", "bf16"]
 #: The one camera of an engine that configures none.
@@ -107,12 +108,10 @@ class ModelConfig(_Strict):
         "model then runs on ever older frames until they are overwritten.",
     )
 
-    @field_validator("rate_hz")
+    @field_validator("rate_hz", mode="before")
     @classmethod
-    def _rate(cls, v: float | None) -> float | None:
-        if v is not None and (not math.isfinite(v) or v < 0 or v > 10000):
-            raise ValueError(f"rate_hz must be null or a number from 0 to 10000, got {v}")
-        return v
+    def _rate(cls, v: Any) -> float | None:
+        return checks.rate(None, v)  # before pydantic's coercion: the same values as every other door
 
 
 class FoundationModelConfig(ModelConfig):
@@ -264,6 +263,11 @@ class EngineConfig(_Strict):
     runtime: RuntimeConfig = Field(default_factory=RuntimeConfig)  # type: ignore[arg-type]
     logging: LoggingConfig = Field(default_factory=LoggingConfig)  # type: ignore[arg-type]
     weights: WeightsConfig = Field(default_factory=WeightsConfig)  # type: ignore[arg-type]
+
+    @field_validator("mps", mode="before")
+    @classmethod
+    def _mps_off(cls, v: Any) -> Any:
+        return "off" if v is False else v  # YAML 1.1 reads a bare `off` (mps: off, --set mps=off) as false
 
     @field_validator("device")
     @classmethod

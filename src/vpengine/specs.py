@@ -27,6 +27,12 @@ _TORCH_DTYPES: dict[str, torch.dtype] = {
     "int64": torch.int64,
     "bool": torch.bool,
 }
+#: The dtype a model computes in for each ``precision`` of the config (Note [Precision] in backends/base.py).
+PRECISION_DTYPES: dict[str, torch.dtype] = {
+    "fp32": torch.float32,
+    "fp16": torch.float16,
+    "bf16": torch.bfloat16,
+}
 
 
 @dataclass(frozen=True)
@@ -59,9 +65,6 @@ class TensorSpec:
     @property
     def nbytes(self) -> int:
         return self.numel * self.itemsize
-
-    def with_dtype(self, dtype: str) -> TensorSpec:
-        return TensorSpec(self.shape, dtype)
 
     def matches(self, t: torch.Tensor | np.ndarray) -> bool:
         if isinstance(t, np.ndarray):

@@ -67,8 +67,8 @@ def test_run_with_two_named_sources_writes_each_cameras_outputs_at_its_size_and_
 
 
 def test_realtime_feeds_each_camera_at_its_own_rate_until_its_own_end(tmp_path):
-    from vpengine.cli.run import run_pipeline
     from vpengine.io.sources import SyntheticSource
+    from vpengine.pipeline.run import run_pipeline
 
     sources = {"fast": SyntheticSource(160, 120, fps=30, frames=30), "slow": SyntheticSource(64, 48, fps=10, frames=5)}
     t0 = time.monotonic()
@@ -164,8 +164,10 @@ def test_the_dds_bridge_takes_a_topic_per_camera_and_publishes_under_each_camera
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
     from vpengine.ros2.bridge import BridgeOptions, Ros2Bridge
-    from vpengine.ros2.core import Header, Ros2Core, image_out
+    from vpengine.ros2.core import Ros2Core
     from vpengine.ros2.dds import DdsContext, loopback_config
+    from vpengine.ros2.messages import Header
+    from vpengine.ros2.outputs import image_out
 
     domain = 20 + (os.getpid() * 31 + int(time.time() * 1000)) % 200
     monkeypatch.setenv("CYCLONEDDS_URI", loopback_config())  # this process's own participants stay on loopback

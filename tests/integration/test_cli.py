@@ -105,8 +105,9 @@ def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_i
 ):
     """Note [Live capture]: a camera is read on its own thread; the loop takes the newest frame, never a stale one
     from the driver's queue, and the ones it never took are in the summary."""
-    from vpengine.cli.run import format_summary, run_pipeline
+    from vpengine.cli.run import format_summary
     from vpengine.io.sources import VideoSource
+    from vpengine.pipeline.run import run_pipeline
 
     cam = FakeCamera(end_at=150, width=160, height=120)
     source = VideoSource(0, capture=cam)

@@ -7,8 +7,8 @@ from __future__ import annotations
 import pytest
 
 from tests_paths import MEDIA, tiny
-from vpengine.cli.run import run_pipeline
 from vpengine.io.sources import VideoSource
+from vpengine.pipeline.run import run_pipeline
 
 
 @pytest.mark.parametrize("mode", ["thread", "process"])

@@ -123,7 +123,8 @@ def wait_matched(writer, timeout: float = 30.0) -> None:
 def image_bytes(i: int, encoding: str, sec: int, nanosec: int) -> bytearray:
     from helpers.frames import frame
     from vpengine.ros2 import cdr
-    from vpengine.ros2.core import Header, image_out
+    from vpengine.ros2.messages import Header
+    from vpengine.ros2.outputs import image_out
 
     img = frame(i)
     if encoding == "rgb8":
@@ -468,8 +469,9 @@ def test_compressed_input_in_process_bridge_with_the_sensor_data_profile():
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
     from vpengine.ros2.bridge import BridgeOptions, Ros2Bridge
-    from vpengine.ros2.core import Header, Ros2Core
+    from vpengine.ros2.core import Ros2Core
     from vpengine.ros2.dds import DdsContext, loopback_config
+    from vpengine.ros2.messages import Header
 
     domain = (DOMAIN + 1) % 220 + 1
     core = Ros2Core(tiny("thread"), namespace="/vp2")
@@ -513,7 +515,8 @@ LO_ONLY = (
 
 def hd_frame(i: int, encoding: str = "bgr8") -> bytearray:
     from vpengine.ros2 import cdr
-    from vpengine.ros2.core import Header, image_out
+    from vpengine.ros2.messages import Header
+    from vpengine.ros2.outputs import image_out
 
     img = np.random.default_rng(i % 4).integers(0, 256, (1080, 1920, 3), dtype=np.uint8)
     return cdr.encode_image(image_out(img, encoding, Header(1_900_000_000 + i, 0, "hd")))
@@ -548,8 +551,8 @@ def test_best_effort_1080p_frames_arrive_though_the_users_config_names_only_the_
     """With cyclonedds' default 1 MB receive buffer such a bridge received 0 of 30 frames and said nothing; it
     now asks for a buffer that holds frames, and says so when the kernel's limit (rmem_max) is too small."""
     from vpengine.ros2 import dds_types as T
-    from vpengine.ros2.core import receive_buffer_limit
     from vpengine.ros2.dds import DdsContext
+    from vpengine.ros2.diagnostics import receive_buffer_limit
 
     ctx = DdsContext(DOMAIN + 2)
     try:

@@ -188,8 +188,9 @@ def test_ros2_serves_the_view_with_pictures_on_the_messages_frames(monkeypatch):
 
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
-    from vpengine.ros2.core import Header, image_out
     from vpengine.ros2.dds import DdsContext, loopback_config
+    from vpengine.ros2.messages import Header
+    from vpengine.ros2.outputs import image_out
 
     domain = 20 + (os.getpid() * 7919 + int(time.time() * 1000)) % 200
     env = {"CYCLONEDDS_URI": loopback_config()}

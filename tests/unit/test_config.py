@@ -168,3 +168,12 @@ def test_a_syntax_error_is_one_line_naming_file_line_column_and_reason(tmp_path,
     kind = "JSON" if name.endswith(".json") else "YAML"
     assert msg.startswith(f"config file {str(path)!r} is not valid {kind}: {where}: "), msg
     assert why in msg, msg
+
+
+def test_mps_off_unquoted_is_off_in_a_file_and_on_the_command_line(tmp_path):
+    # YAML 1.1 reads a bare `off` as false: the field must still mean "off", not fail with "got false"
+    (tmp_path / "c.yaml").write_text("mps: off\n")
+    assert load_config(str(tmp_path / "c.yaml")).mps == "off"
+    assert load_config("tiny", ["mps=off"]).mps == "off"
+    with pytest.raises(ConfigError, match="mps"):
+        load_config("tiny", ["mps=true"])  # on is not a setting: auto or required say which

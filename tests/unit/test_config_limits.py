@@ -94,7 +94,7 @@ def test_huge_values_are_clipped_in_error_messages():
 
 
 BAD = [
-    ({"foundation_model": {"rate_hz": ".nan"}}, "finite number"),
+    ({"foundation_model": {"rate_hz": ".nan"}}, "from 0 to 10000"),
     ({"runtime": {"stop_timeout_s": ".inf"}}, "finite number"),
     ({"runtime": {"ready_timeout_s": ".inf"}}, "finite number"),
     ({"runtime": {"batch_window_ms": ".inf"}}, "finite number"),

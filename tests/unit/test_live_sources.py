@@ -182,7 +182,7 @@ def test_a_stream_with_credentials_keeps_them_out_of_its_refusal_its_warnings_an
 
 def test_the_run_summary_names_a_stream_without_its_password(tmp_path):
     from tests_paths import tiny
-    from vpengine.cli.run import run_pipeline
+    from vpengine.pipeline.run import run_pipeline
 
     with MjpegCamera(width=64, height=48, fps=30) as cam, open_source(with_secrets(cam.url)) as src:
         summary = run_pipeline(tiny("thread"), src, out_dir=tmp_path, max_frames=2, progress=False, folder=False)

@@ -94,6 +94,27 @@ def test_check_outputs_wants_one_leading_batch_dimension_on_every_output():
         check_outputs("h", spec, {"depth": good["depth"]})
 
 
+def test_check_outputs_names_the_batch_size_it_assumed_and_never_takes_a_frame_dimension_for_one():
+    spec = {"seg": TensorSpec((6, 8), "uint8")}
+    unbatched = {"seg": torch.zeros(6, 8, dtype=torch.uint8)}  # one frame's map, its batch dimension forgotten
+    with pytest.raises(
+        ModelBuildError,
+        match=r"so uint8\[B, 6, 8\] for a batch of B; got torch.uint8\[6, 8\].*\(B: none was given, and no output has",
+    ):
+        check_outputs("seg", spec, unbatched)  # not "a batch of 6": 6 is the map's height
+    with pytest.raises(
+        ModelBuildError,
+        match=r"so uint8\[1, 6, 8\] for a batch of 1; .*\(a batch of 1: the frames the model was given\)",
+    ):
+        check_outputs("seg", spec, unbatched, batch=1)
+    with_count = {**spec, "count": TensorSpec((), "int32")}
+    with pytest.raises(
+        ModelBuildError,
+        match=r"so uint8\[2, 6, 8\] for a batch of 2; .*\(a batch of 2: read off the leading dimension of 'count'",
+    ):
+        check_outputs("seg", with_count, {**unbatched, "count": torch.zeros(2, dtype=torch.int32)})
+
+
 def test_example_inputs_are_a_batch_of_the_specs():
     fm = make_plan(tiny()).foundation
     one, three = fm.example_inputs(batch=1), fm.example_inputs(batch=3)

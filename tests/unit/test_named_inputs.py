@@ -13,9 +13,13 @@ import pytest
 
 from helpers.frames import frame
 from tests_paths import TINY, tiny
-from vpengine.cli.run import parse_sources, video_paths
+from vpengine.cli.run import parse_sources
 from vpengine.config import config_for_cameras, split_camera
-from vpengine.ros2.core import Header, Ros2Core, input_topics, model_at, parse_rate_command, plan_outputs
+from vpengine.pipeline.run import video_paths
+from vpengine.ros2.control import model_at, parse_rate_command
+from vpengine.ros2.core import Ros2Core, input_topics
+from vpengine.ros2.messages import Header
+from vpengine.ros2.outputs import plan_outputs
 
 
 def test_a_name_is_a_camera_name_before_the_first_equals_sign():

@@ -8,8 +8,9 @@ import pytest
 
 from vpengine.ros2 import cdr
 from vpengine.ros2 import dds_types as T
-from vpengine.ros2.core import Detection, DetectionsOut, Header, ImageOut, image_out
 from vpengine.ros2.dds import dds_topic, qos
+from vpengine.ros2.messages import Detection, DetectionsOut, Header, ImageOut
+from vpengine.ros2.outputs import image_out
 from vpengine.ros2.rosbags_msgs import to_rosbags, typestore
 
 
@@ -115,7 +116,7 @@ def test_malformed_bytes_are_rejected_with_a_reason():
 def test_detections_and_diagnostics_idl_agree_with_rosbags_vision_msgs_4():
     """Two independent declarations (cyclonedds IDL here, .msg text for rosbags) of vision_msgs 4.x."""
     from vpengine.ros2.bridge import detections_to_dds, diagnostics_to_dds
-    from vpengine.ros2.core import DiagnosticsOut, Status
+    from vpengine.ros2.diagnostics import DiagnosticsOut, Status
 
     d = DetectionsOut(
         Header(10, 20, "cam"),

@@ -13,26 +13,12 @@ import pytest
 
 from helpers.frames import frame
 from tests_paths import tiny
-from vpengine.ros2.core import (
-    ERROR,
-    OK,
-    WARN,
-    ControlLoop,
-    FrameBook,
-    Header,
-    InputError,
-    Rejections,
-    Ros2Core,
-    compressed_to_frame,
-    detections_out,
-    image_to_frame,
-    model_status,
-    normalize_namespace,
-    parse_rate,
-    parse_rate_command,
-    plan_outputs,
-    receive_buffer_advice,
-)
+from vpengine.recent_frames import RecentFrames
+from vpengine.ros2.control import ControlLoop, parse_rate, parse_rate_command
+from vpengine.ros2.core import Ros2Core
+from vpengine.ros2.diagnostics import ERROR, OK, WARN, Rejections, model_status, receive_buffer_advice
+from vpengine.ros2.messages import Header, InputError, compressed_to_frame, image_to_frame
+from vpengine.ros2.outputs import detections_out, normalize_namespace, plan_outputs
 
 STAMP = SimpleNamespace(sec=1_700_000_123, nanosec=987_654_321)
 
@@ -52,6 +38,57 @@ def image_msg(arr: np.ndarray, encoding: str, pad: int = 0, big: int = 0, frame_
         step=rows.shape[1],
         data=rows.tobytes(),
     )
+
+
+# ------------------------------------------------------------------------------------------------ import
+_IMPORT_AND_SUBMIT = """
+import importlib, pkgutil, time, warnings
+import cv2, cyclonedds.core, numpy, torch, vpengine.engine, vpengine.visualize  # filters of their own are not ours
+before = list(warnings.filters)
+import vpengine.ros2
+for m in pkgutil.iter_modules(vpengine.ros2.__path__):
+    if m.name != "node":  # the rclpy node needs a ROS 2 installation
+        importlib.import_module("vpengine.ros2." + m.name)
+added = [f for f in warnings.filters if f not in before]
+assert warnings.filters == before, f"importing vpengine.ros2 changed warnings.filters: {added}"
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.ros2 import cdr
+from vpengine.ros2.core import Ros2Core
+from vpengine.ros2.messages import Header
+from vpengine.ros2.outputs import image_out
+
+warnings.simplefilter("error")  # any warning on the way in or out fails
+msg = cdr.decode_image(bytes(cdr.encode_image(image_out(frame(1), "bgr8", Header(1, 2)))))
+assert not msg.data.flags.writeable  # a view of the received bytes, as the bridge hands it in
+core = Ros2Core(tiny("thread"), seg_overlay=True)
+core.start()
+try:
+    assert core.handle_image(msg) is not None, core.rejected.counts
+    out, deadline = [], time.monotonic() + 60
+    while len(out) < len(core.topics) and time.monotonic() < deadline:
+        out += core.poll_outputs(0.2)
+    assert len(out) == len(core.topics), out
+finally:
+    core.stop()
+"""
+
+
+@pytest.mark.timeout(200)
+def test_importing_ros2_changes_no_warning_filter_and_read_only_frames_go_through_without_warnings():
+    """Importing vpengine.ros2 changes nothing global, and nothing needs it to: a frame that is a read-only view of
+    received bytes goes in and its outputs come out with every warning an error. A fresh interpreter, since PyTorch
+    warns about a read-only array once per process, and this one has already imported everything."""
+    import os
+    import subprocess
+    import sys
+
+    from tests_paths import ROOT
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests")])}
+    p = subprocess.run([sys.executable, "-c", _IMPORT_AND_SUBMIT], env=env, capture_output=True, text=True, timeout=180)
+    assert p.returncode == 0, p.stderr[-3000:]
 
 
 # ------------------------------------------------------------------------------------------------ decoding
@@ -177,10 +214,10 @@ def test_headers_are_kept_exactly_and_the_book_is_bounded():
     # a float cannot carry the nanoseconds: this is why outputs look headers up by frame id
     assert Header.from_seconds(h.seconds, "cam") != h
     assert abs(Header.from_seconds(h.seconds).ns - h.ns) < 1000
-    book = FrameBook(headers=3, frames=2)
+    book = RecentFrames[Header](frames=2, tags=3)
     for i in range(5):
         book.add(i, Header(i, i, "f"), np.full((2, 2, 3), i, np.uint8))
-    assert [book.header(i) for i in range(5)] == [
+    assert [book.tag(i) for i in range(5)] == [
         None,
         None,
         Header(2, 2, "f"),
@@ -249,6 +286,16 @@ def test_rate_commands_parse_hz_pause_and_unlimited_and_name_bad_values():
         parse_rate_command("dpth", "5", ["foundation", "depth"])
 
 
+def test_numeric_rates_stay_numbers_and_negative_or_infinite_ones_mean_no_limit():
+    models = ["foundation", "depth"]
+    assert parse_rate_command("depth", 2.5, models) == ("depth", 2.5)
+    assert parse_rate_command("depth", 0, models) == ("depth", 0.0)
+    for unlimited in (None, -1.0, -3, float("inf")):
+        assert parse_rate_command("depth", unlimited, models) == ("depth", None)
+    with pytest.raises(ValueError, match="rate nan is NaN; accepted: Hz >= 0"):
+        parse_rate_command("depth", float("nan"), models)
+
+
 def _stats(state="running", target=None, **kw):
     m = {
         "state": state,
@@ -290,6 +337,18 @@ def _poll_until(core: Ros2Core, n: int, timeout: float = 20.0) -> list:
     while len(out) < n and time.monotonic() < deadline:
         out += core.poll_outputs(0.2)
     return out
+
+
+def test_keep_frames_keeps_the_input_pictures_for_a_viewer():
+    assert not Ros2Core(tiny("thread")).book.keeps_frames  # no overlays, no viewer: headers only
+    core = Ros2Core(tiny("thread"), keep_frames=True)
+    core.start()
+    try:
+        img = frame(6)
+        fid = core.handle_image(image_msg(np.ascontiguousarray(img[..., ::-1]), "rgb8"))
+        np.testing.assert_array_equal(core.book.frame(fid), img)  # BGR, whatever the message's order
+    finally:
+        core.stop()
 
 
 def test_core_outputs_carry_the_exact_input_header_on_every_topic():
@@ -395,14 +454,14 @@ def test_core_rate_commands_reach_the_engine_and_bad_ones_are_counted():
         assert core.engine.stats()["models"]["seg"]["target_hz"] == 2.5
         core.set_rate("seg", "max")
         assert core.engine.stats()["models"]["seg"]["target_hz"] is None
-        core.set_rate_hz("depth", 0.0)
+        core.set_rate("depth", 0.0)  # a number, as the services carry it
         assert core.engine.stats()["models"]["depth"]["target_hz"] == 0.0
-        core.set_rate_hz("depth", -1.0)  # the services' "unlimited"
+        core.set_rate("depth", -1.0)  # the services' "unlimited"
         assert core.engine.stats()["models"]["depth"]["target_hz"] is None
         with pytest.raises(ValueError, match="unknown model 'nope'"):
             core.set_rate("nope", "5")
         with pytest.raises(ValueError, match="NaN"):
-            core.set_rate_hz("depth", float("nan"))
+            core.set_rate("depth", float("nan"))
         assert core.counters["rate_commands"] == 4 and core.counters["rate_commands_rejected"] == 2
     finally:
         core.stop()

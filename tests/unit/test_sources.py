@@ -191,3 +191,30 @@ def test_the_shipped_samples_are_sources():
         assert (src.width, src.height, src.fps, len(src)) == (768, 576, 10.0, 50)
         stamps = [f.timestamp for f in src]
     assert len(stamps) == 50 and stamps[:3] == pytest.approx([0.0, 0.1, 0.2])  # the video's own timeline
+
+
+def test_what_a_pipeline_reads_has_a_default_on_every_source():
+    from vpengine.io.base import Source
+    from vpengine.io.sources import SyntheticSource
+
+    class Frames(Source):
+        def __iter__(self):
+            return iter(())
+
+    plain = Frames()
+    assert (plain.live, plain.missed, list(plain.skipped), list(plain.partial), plain.header_for) == (
+        False,
+        0,
+        [],
+        [],
+        None,
+    )
+    assert plain.pace == "lockstep" and plain.describe() == "Frames"
+    synthetic = SyntheticSource(32, 24, 30.0, 3)
+    assert synthetic.pace == "realtime" and not synthetic.live  # paced like a camera, by the pipeline
+    camera = VideoSource(0, FakeCamera())
+    assert camera.live and camera.pace == "realtime"
+    camera.close()
+    stream = VideoSource("https://user:secret@example.com/v.mp4", FakeCamera(), live=False)
+    assert stream.pace == "lockstep" and "secret" not in stream.describe()
+    stream.close()

@@ -12,6 +12,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from vpengine import checks
+from vpengine.boundary import Boundary
 from vpengine.cli.serve import parse_address
 from vpengine.results import Result
 from vpengine.visualize import colorize_depth, overlay_segmentation
@@ -46,6 +48,16 @@ def model_stats(runs: int, target: float | None) -> dict:
     }
 
 
+class DoorOut(Boundary):
+    """The engine's door out (``Boundary.to_frame``, the real one) with the kinds the engine's boundary works out for
+    these heads (Note [Frame grid]) and the heads that keep the canvas grid (``native``); no door in."""
+
+    def __init__(self, native: tuple[str, ...] = ()) -> None:
+        kinds = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
+        self.kinds = dict.fromkeys(INFOS, kinds)  # type: ignore[arg-type]
+        self.native = set(native)
+
+
 class StandIn:
     """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, boundary, running.
     ``results``: head -> its newest result; ``camera_results``, with several ``cameras``: (camera, head) -> it."""
@@ -55,9 +67,7 @@ class StandIn:
         self.cameras = list(cameras)
         served = served or {}
         self.config = SimpleNamespace(model_cameras=lambda head: served.get(head, self.cameras))
-        # how each head's outputs lie in the model's grid, as the engine's boundary works it out (Note [Frame grid])
-        kinds = {"depth": "map", "depth_color": "map", "classes": "labels", "boxes": "boxes"}
-        self.boundary = SimpleNamespace(kinds=dict.fromkeys(INFOS, kinds))
+        self.boundary = DoorOut()
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)
         self.camera_results: dict[tuple[str, str], Result] = {}
@@ -83,9 +93,7 @@ class StandIn:
     def set_rate(self, model: str, hz: float | None) -> None:
         if model not in self.rates:
             raise KeyError(f"no model named {model!r}; models: {list(self.rates)}")
-        if hz is not None and hz < 0:
-            raise ValueError(f"rate for {model!r} must be None or a finite number >= 0 Hz, got {hz!r}")
-        self.rates[model] = hz
+        self.rates[model] = checks.rate(model, hz)
 
     def rate(self, model: str) -> float | None:
         return self.rates[model]
@@ -155,7 +163,7 @@ def view(engine):
     ("body", "hz"), [(b'{"hz": 5}', 5.0), (b'{"hz": 0}', 0.0), (b'{"hz": null}', None), (b'{"hz": 2.5}', 2.5)]
 )
 def test_a_rate_body_is_a_number_zero_or_null(body, hz):
-    assert parse_rate(body) == hz
+    assert parse_rate(body, "seg") == hz
 
 
 @pytest.mark.parametrize(
@@ -164,14 +172,30 @@ def test_a_rate_body_is_a_number_zero_or_null(body, hz):
         (b"", "got None"),
         (b"5", "got 5"),
         (b'{"rate": 5}', "got {'rate': 5}"),
-        (b'{"hz": "5"}', "hz='5'"),
-        (b'{"hz": true}', "hz=True"),
         (b"{nope", "not JSON"),
     ],
 )
 def test_a_bad_rate_body_says_what_is_accepted(body, why):
-    with pytest.raises(ValueError, match="a number >= 0") as e:
-        parse_rate(body)
+    with pytest.raises(ValueError, match="a number from 0 to 10000") as e:
+        parse_rate(body, "seg")
+    assert why in str(e.value)
+
+
+@pytest.mark.parametrize(
+    ("body", "why"),
+    [
+        (b'{"hz": "5"}', "got '5'"),
+        (b'{"hz": true}', "got True"),
+        (b'{"hz": NaN}', "got nan"),
+        (b'{"hz": -1}', "got -1"),
+        (b'{"hz": 20000}', "got 20000"),
+    ],
+)
+def test_a_bad_rate_gets_the_one_rate_message(body, why):
+    with pytest.raises(
+        ValueError, match=r"rate for 'seg' must be None \(no limit\) or a number of Hz from 0 to 10000"
+    ) as e:
+        parse_rate(body, "seg")
     assert why in str(e.value)
 
 
@@ -228,9 +252,9 @@ def test_put_rate_sets_it_and_answers_the_rate_now(view, engine):
 @pytest.mark.parametrize(
     ("model", "body", "reason"),
     [
-        ("depth", b'{"hz": -2}', ">= 0 Hz, got -2.0"),
+        ("depth", b'{"hz": -2}', "from 0 to 10000 (0 pauses), got -2"),
         ("nope", b'{"hz": 1}', "no model named 'nope'"),
-        ("depth", b'{"hz": "fast"}', "hz='fast'"),
+        ("depth", b'{"hz": "fast"}', "got 'fast'"),
         ("depth", b"", "got None"),
     ],
 )
@@ -309,6 +333,7 @@ def test_a_native_grid_picture_is_mapped_to_its_frame():
     r = result("seg", 7, 1, {"classes": classes}, frame_size=(fh, fw))
     r.grid, r.placement = "native", placement
     engine = StandIn()
+    engine.boundary = DoorOut(native=("seg",))
     engine.results["seg"] = r
     frame = np.full((fh, fw, 3), 100, np.uint8)
     pic = Pictures({7: frame}.get).latest(engine, "seg", width=fw)

@@ -14,17 +14,27 @@ Backends are imported lazily, so onnxruntime is only needed by models that use i
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from vpengine.backends.base import PRECISION_DTYPES, Executor, precision_dtype
+from vpengine.backends.base import Executor, precision_dtype
 from vpengine.backends.options import BackendError, backend_names, parse_options
 from vpengine.models.base import Model
+from vpengine.models.catalog import cache_dir as catalog_cache_dir
+from vpengine.specs import PRECISION_DTYPES
 
 __all__ = ["PRECISION_DTYPES", "BackendError", "Executor", "backend_names", "make_executor", "parse_options"]
+
+#: Each backend's executor class, imported when first used (optional dependencies stay optional).
+_EXECUTORS = {
+    "eager": ("vpengine.backends.eager", "EagerExecutor"),
+    "compile": ("vpengine.backends.compiled", "CompiledExecutor"),
+    "onnx": ("vpengine.backends.onnxrt", "OnnxExecutor"),
+}
 
 
 def make_executor(
@@ -41,7 +51,8 @@ def make_executor(
     """The executor that runs ``model`` (built on ``device``, in eval mode) with ``backend``.
 
     ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` a
-    cache folder (ONNX exports go to its ``onnx`` subfolder; None: the checkpoint cache, ``catalog.cache_dir()``),
+    cache folder (ONNX exports go to its ``onnx`` subfolder, compile caches to its ``compile`` subfolder: Note
+    [Compile cache key] in ``compile_cache.py``; None: the checkpoint cache, ``catalog.cache_dir()``),
     ``max_batch`` the most frames one call computes (Note [Executor contract] in ``base.py``).
     Compilation, export and CUDA graph capture (for every batch size up to ``max_batch``) happen here. The eager
     and compile backends cast ``model`` to the precision in place and keep it; the onnx backend leaves it untouched
@@ -51,23 +62,7 @@ def make_executor(
     """
     opts = parse_options(backend, options, name)
     precision_dtype(precision, name)
-    if backend == "eager":
-        from vpengine.backends.eager import EagerExecutor
-
-        return EagerExecutor(model, device, precision, name, opts, max_batch)
-    if backend == "compile":
-        from vpengine.backends.compiled import CompiledExecutor
-
-        return CompiledExecutor(model, device, precision, name, opts, max_batch)
-    from vpengine.backends.onnxrt import OnnxExecutor
-    from vpengine.models.catalog import cache_dir as vpengine_cache
-
-    return OnnxExecutor(
-        model,
-        device,
-        precision,
-        name,
-        opts,
-        (Path(cache_dir).expanduser() if cache_dir else vpengine_cache()) / "onnx",
-        max_batch,
-    )
+    module, cls = _EXECUTORS[backend]
+    executor: type[Executor] = getattr(importlib.import_module(module), cls)
+    root = Path(cache_dir).expanduser() if cache_dir else catalog_cache_dir()
+    return executor(model, device, precision, name, opts, max_batch, root)

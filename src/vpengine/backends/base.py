@@ -42,19 +42,14 @@ from __future__ import annotations
 
 import abc
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, ClassVar
 
 import torch
 
-from vpengine.backends.options import BackendError
+from vpengine.backends.options import BackendError, BackendOptions
 from vpengine.models.base import Model
-from vpengine.specs import SpecDict, format_specs
-
-PRECISION_DTYPES: dict[str, torch.dtype] = {
-    "fp32": torch.float32,
-    "fp16": torch.float16,
-    "bf16": torch.bfloat16,
-}
+from vpengine.specs import PRECISION_DTYPES, SpecDict, format_specs
 
 
 def precision_dtype(precision: str, name: str) -> torch.dtype:
@@ -118,11 +113,27 @@ def cast_model_(model: Model, dtype: torch.dtype) -> Model:
 
 
 class Executor(abc.ABC):
-    """Runs one model: ``executor(inputs) -> outputs`` with the model's named specs (Note [Executor contract])."""
+    """Runs one model: ``executor(inputs) -> outputs`` with the model's named specs (Note [Executor contract]).
+
+    One constructor for every backend (``make_executor`` calls it): it checks and keeps what they share, then
+    ``_setup`` does the backend's own work (cast, compile, export, capture). ``opts``: the backend's options (None:
+    their defaults); ``cache_dir``: the folder whose subfolders hold what a backend keeps on disk (ONNX exports,
+    compile caches)."""
 
     backend: ClassVar[str]
+    #: The class of this backend's ``backend_options``.
+    options: ClassVar[type[BackendOptions]]
 
-    def __init__(self, model: Model, device: torch.device | str, precision: str, name: str, max_batch: int = 1) -> None:
+    def __init__(
+        self,
+        model: Model,
+        device: torch.device | str,
+        precision: str,
+        name: str,
+        opts: BackendOptions | None,
+        max_batch: int,
+        cache_dir: Path,
+    ) -> None:
         self.name = name
         self.device = resolve_device(device)
         self.precision = precision
@@ -132,6 +143,13 @@ class Executor(abc.ABC):
         self.max_batch = max_batch
         self.input_spec: SpecDict = dict(model.input_spec)
         self.output_spec: SpecDict = dict(model.output_spec)
+        self.opts = opts if opts is not None else self.options.model_validate({})
+        self.cache_dir = cache_dir
+        self._setup(model)
+
+    @abc.abstractmethod
+    def _setup(self, model: Model) -> None:
+        """The backend's own set-up of ``model`` (built on the device, in eval mode), all of it before READY."""
 
     @abc.abstractmethod
     def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
@@ -147,7 +165,7 @@ class Executor(abc.ABC):
 
     def run_bound_on(self, stream: torch.cuda.Stream | None, in_index: int, out_index: int) -> None:
         """``run_bound`` queued on ``stream`` from a thread whose current stream is another one (Note [Launch
-        path] in runtime/worker.py)."""
+        path] in runtime/handoff.py)."""
         if stream is None:
             self.run_bound(in_index, out_index)
             return

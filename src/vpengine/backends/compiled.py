@@ -40,6 +40,9 @@ feeds the compiled code from the static input buffers: each batch size always se
 guards (dtype, shape, strides, whether a tensor is an inference tensor) cannot fail and recompile in the steady
 state, and inductor's alignment assumptions hold (per-key views carved out of one mailbox allocation need not be
 16-byte aligned).
+
+What inductor and Triton write to disk goes to a folder keyed on the release (Note [Compile cache key] in
+compile_cache.py), so a start never reads what another release compiled.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ from typing import Any
 import torch
 
 from vpengine.backends.base import Executor, PrecisionRunner, cast_model_
+from vpengine.backends.compile_cache import use_compile_cache
 from vpengine.backends.options import BackendError, CompileOptions
 from vpengine.models.base import Model
 
@@ -92,19 +96,13 @@ class CompiledExecutor(Executor):
     """
 
     backend = "compile"
+    options = CompileOptions
+    opts: CompileOptions
 
-    def __init__(
-        self,
-        model: Model,
-        device: torch.device | str,
-        precision: str,
-        name: str,
-        opts: CompileOptions | None = None,
-        max_batch: int = 1,
-    ) -> None:
-        super().__init__(model, device, precision, name, max_batch)
-        self.opts = opts or CompileOptions.model_validate({})
+    def _setup(self, model: Model) -> None:
         self.model = cast_model_(model, self.dtype)
+        # Before anything compiles: no entry of another release is ever read (Note [Compile cache key]).
+        self.compile_cache = use_compile_cache(self.cache_dir / "compile")
         self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
         mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
         self._compiled = torch.compile(
@@ -114,8 +112,8 @@ class CompiledExecutor(Executor):
         self._keys = list(self.input_spec)
         # One buffer per key for max_batch frames; batch size b reads its first b frames, through views made once
         # here, so each batch size always sees the same tensors (Note [CUDA graphs]).
-        full = model.example_inputs(self.device, max_batch)
-        self._static = {b: {k: full[k][:b] for k in self._keys} for b in range(1, max_batch + 1)}
+        full = model.example_inputs(self.device, self.max_batch)
+        self._static = {b: {k: full[k][:b] for k in self._keys} for b in range(1, self.max_batch + 1)}
         self._graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self._graph_out: dict[int, dict[str, torch.Tensor]] = {}
         self._side: torch.cuda.Stream | None = None
@@ -129,7 +127,7 @@ class CompiledExecutor(Executor):
         self.warmup_s = time.perf_counter() - t0
         log.info(
             "%s: compiled (%s) in %.1f s",
-            name,
+            self.name,
             ", ".join(f"{k}={v}" for k, v in self.describe().items()),
             self.warmup_s,
         )
@@ -272,13 +270,14 @@ class CompiledExecutor(Executor):
             "cudagraphs": bool(self._graphs),
             "slot_bound": bool(self._in_graphs),
             "raw_launch": self._raw is not None,
+            "compile_cache": self.compile_cache["TORCHINDUCTOR_CACHE_DIR"],
         }
 
 
 class _RawLaunch:
     """A slot-bound run's three graphs launched on a given stream with ``cudaGraphLaunch`` (CUDA Python bindings),
     so a thread need not make that stream current first: after an idle wait, switching streams around the replays
-    costs 0.1 ms on an H100 VM and three raw launches a third of that (Note [Launch path] in runtime/worker.py).
+    costs 0.1 ms on an H100 VM and three raw launches a third of that (Note [Launch path] in runtime/handoff.py).
 
     ``CUDAGraph.replay`` also advances the CUDA generator past the random numbers the graph draws; a raw launch
     does not, so ``make`` returns None for a model graph that draws any (seen by replaying it once), and when the

@@ -17,17 +17,9 @@ class EagerExecutor(Executor):
     """
 
     backend = "eager"
+    options = EagerOptions
 
-    def __init__(
-        self,
-        model: Model,
-        device: torch.device | str,
-        precision: str,
-        name: str,
-        opts: EagerOptions | None = None,
-        max_batch: int = 1,
-    ) -> None:
-        super().__init__(model, device, precision, name, max_batch)
+    def _setup(self, model: Model) -> None:
         self.model = cast_model_(model, self.dtype)
         self._run = PrecisionRunner(self.model, self.output_spec, self.dtype, self.device.type)
 

@@ -17,7 +17,6 @@ results are fp16-rounded and there is no speed-up; fp16 pays off on the CUDA and
 from __future__ import annotations
 
 import logging
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -68,27 +67,15 @@ class OnnxExecutor(Executor):
     """ONNX Runtime session over the model's cached ONNX export, with inputs and outputs bound to torch tensors."""
 
     backend = "onnx"
+    options = OnnxOptions
+    opts: OnnxOptions
 
-    def __init__(
-        self,
-        model: Model,
-        device: torch.device | str,
-        precision: str,
-        name: str,
-        opts: OnnxOptions | None = None,
-        cache_dir: str | Path | None = None,
-        max_batch: int = 1,
-    ) -> None:
-        super().__init__(model, device, precision, name, max_batch)
-        self.opts = opts or OnnxOptions.model_validate({})
+    def _setup(self, model: Model) -> None:
+        precision, name = self.precision, self.name
         check_onnx_precision(precision, name)
         ort = _import_ort(name)
         self.providers = self._providers(ort)
-        if cache_dir is None:
-            from vpengine.models.catalog import cache_dir as vpengine_cache
-
-            cache_dir = vpengine_cache() / "onnx"
-        cache = OnnxCache(cache_dir)
+        cache = OnnxCache(self.cache_dir / "onnx")
         self.artifact: OnnxArtifact = cache.get_or_export(model, precision, self.opts, name)
         try:
             self.session = self._session(ort)

@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -120,7 +120,7 @@ def isolated(
     cmd = [
         sys.executable,
         "-m",
-        "vpengine.cli.main",
+        "vpengine",  # the console script in a child process, not an import of cli/
         "bench",
         "resources",
         "--config",

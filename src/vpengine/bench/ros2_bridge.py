@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -100,9 +100,10 @@ def hog(stop: Any) -> None:
 
 
 def decode_ms(width: int, height: int, repeat: int = 15) -> dict[str, float]:
-    """Median ms to decode one frame per encoding (:func:`vpengine.ros2.core.image_to_frame`, to BGR), and of the
+    """Median ms to decode one frame per encoding (:func:`vpengine.ros2.messages.image_to_frame`, to BGR), and of the
     numpy channel swap that decoded rgb8 before (``numpy_swap_rgb8``)."""
-    from vpengine.ros2.core import Header, image_out, image_to_frame
+    from vpengine.ros2.messages import Header, image_to_frame
+    from vpengine.ros2.outputs import image_out
 
     rng = np.random.default_rng(0)
     img = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
@@ -213,8 +214,9 @@ def _wait_drained(conn: Any, topics: list[str], least_s: float = 3.0, most_s: fl
 def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) -> dict[str, Any]:
     from vpengine.ros2 import cdr
     from vpengine.ros2 import dds_types as T
-    from vpengine.ros2.core import Header, image_out
     from vpengine.ros2.dds import DdsContext, loopback_config
+    from vpengine.ros2.messages import Header
+    from vpengine.ros2.outputs import image_out
 
     load_start = os.getloadavg()[0]
     domain = args.domain_id if args.domain_id is not None else 100 + os.getpid() % 120
@@ -223,7 +225,7 @@ def measure(args: argparse.Namespace, width: int, height: int, output_qos: str) 
     cmd = [
         sys.executable,
         "-m",
-        "vpengine.cli.main",
+        "vpengine",  # the console script in a child process, not an import of cli/
         "ros2",
         "--config",
         args.config,
@@ -422,7 +424,7 @@ def _size(text: str) -> tuple[int, int]:
 
 def main(args: argparse.Namespace) -> int:
     from vpengine.bench.common import write_results
-    from vpengine.ros2.core import OUTPUT_QOS
+    from vpengine.ros2.outputs import OUTPUT_QOS
 
     profiles = [q.strip() for q in args.output_qos.split(",") if q.strip()]
     for q in profiles:
@@ -462,9 +464,3 @@ def main(args: argparse.Namespace) -> int:
         print("  decode ms per frame: " + ", ".join(f"{k} {v:.2f}" for k, v in res["decode_ms"].items()))
     print(f"-> {path}")
     return 0
-
-
-if __name__ == "__main__":  # python -m vpengine.bench.ros2_bridge
-    from vpengine.cli.main import main as cli
-
-    sys.exit(cli(["bench", "ros2-bridge", *sys.argv[1:]]))

@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,7 +10,7 @@ import platform
 import sys
 from typing import Any
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -14,12 +14,8 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from vpengine.cli import (
-    add_config_argument,
-    add_overrides_argument,
-    positive_int,
-    prepare_out_dir,
-)
+from vpengine.arguments import add_config_argument, add_overrides_argument, positive_int
+from vpengine.cli import prepare_out_dir
 from vpengine.cli.run import SOURCE_HELP, SOURCES_HELP
 from vpengine.cli.serve import add_serve_arguments, serve_options
 
@@ -69,9 +65,10 @@ def next_run_dir(base: str | Path = "runs/predict") -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    from vpengine.cli.run import engine_overrides, format_summary, open_sources, parse_sources, run_pipeline
+    from vpengine.cli.run import engine_overrides, format_summary, parse_sources, run_served
     from vpengine.config import config_for_cameras, load_config
     from vpengine.io.sinks import AnnotatedSink, per_camera
+    from vpengine.pipeline.run import Pipeline, open_sources
 
     given = [*args.sources, *args.source]
     if not given:
@@ -102,7 +99,7 @@ def main(args: argparse.Namespace) -> int:
             print(format_summary(summary))
             print(f"annotated pictures and summary.json in {out}", flush=True)
 
-        summary = run_pipeline(
+        pipe = Pipeline(
             cfg,
             sources if cameras else sources[None],
             out,
@@ -111,7 +108,6 @@ def main(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             sink_factories=[pictures],
             folder=False,
-            serve=serve,
-            ended=report,
         )
+        summary = run_served(pipe, serve, report)
     return 130 if summary["interrupted"] else 0

@@ -22,7 +22,7 @@ import threading
 import time
 from typing import Any
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 from vpengine.cli.serve import add_serve_arguments, serve_options, serving
 
 
@@ -110,6 +110,7 @@ def main(args: argparse.Namespace) -> int:
         seg_overlay=args.seg_overlay,
         overrides=overrides,
         cameras=list(topics) if isinstance(topics, dict) else None,
+        keep_frames=serve is not None,  # the view draws overlays and boxes on the input frames
     )
     opts = BridgeOptions(
         input_topic=topics,
@@ -119,10 +120,6 @@ def main(args: argparse.Namespace) -> int:
         domain_id=_domain_id(args.domain_id),
         dds_config=loopback_config() if args.loopback else None,
     )
-    if serve is not None:  # the view draws overlays and boxes on the input frames
-        from vpengine.ros2.core import FrameBook
-
-        core.book = FrameBook(frames=16 * len(core.cameras))
     bridge = Ros2Bridge(core, opts)
     view = contextlib.ExitStack()
     stop = threading.Event()

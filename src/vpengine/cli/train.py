@@ -14,7 +14,7 @@ import argparse
 import math
 from typing import Any
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 
 def _positive(kind: type, name: str) -> Any:

@@ -7,7 +7,7 @@ as a sink that records every head's outputs with the same message types and head
   png) from one topic, in log-time order; each frame's timestamp is its message's ``header.stamp``. A bag is a folder
   with ``metadata.yaml`` or a bare ``.mcap`` / ``.db3`` file. A message that cannot be used (corrupt bytes, an
   unsupported encoding, short data ...) is skipped and listed (``skipped``), and logged in one line naming the bag,
-  topic and message index (Note [Rejection log] in :mod:`vpengine.ros2.core`), so one bad frame does not end a long
+  topic and message index (Note [Rejection log] in :mod:`vpengine.ros2.diagnostics`), so one bad frame does not end a long
   recording; ``strict=True`` stops at the first one instead, with that line as the error.
 * the sink writes the input image, ``<ns>/input/compressed`` (sensor_msgs/CompressedImage, JPEG), and every
   head's outputs: ``<ns>/<head>/depth`` (32FC1), ``<ns>/<head>/classes`` (mono8), ``<ns>/<head>/detections``
@@ -43,39 +43,26 @@ import numpy as np
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import JPEG_QUALITY, Sink
 from vpengine.results import Result
-from vpengine.ros2.core import (
+from vpengine.ros2.diagnostics import Rejections
+from vpengine.ros2.messages import (
     COMPRESSED_TYPE,
     IMAGE_TYPE,
     Header,
     ImageOut,
     InputError,
-    OutputTopic,
-    Rejections,
     compressed_to_frame,
     image_to_frame,
-    normalize_namespace,
-    payload_for,
-    plan_outputs,
-    ros_name,
 )
+from vpengine.ros2.outputs import OutputTopic, normalize_namespace, payload_for, plan_outputs, ros_name
 
 log = logging.getLogger("vpengine.bag")
 
-BAG_FILE_EXTS = (".mcap", ".db3")
 STORAGES = ("mcap", "sqlite3")
 IMAGE_TYPES = (IMAGE_TYPE, COMPRESSED_TYPE)
 _HEADERS_KEPT = 4096
 #: Roles whose images are pictures to look at, written as JPEG (Note [Bag contents])
 PICTURE_ROLES = ("depth_color", "overlay")
 JPEG_FORMAT = "bgr8; jpeg compressed bgr8"  # image_transport's: BGR pixels, JPEG
-
-
-def is_bag(path: str | Path) -> bool:
-    """A rosbag2 bag: a folder with metadata.yaml, or a .mcap / .db3 file."""
-    p = Path(path)
-    if p.is_dir():
-        return (p / "metadata.yaml").is_file()
-    return p.is_file() and p.suffix.lower() in BAG_FILE_EXTS
 
 
 def _topic_list(conns: list[Any]) -> str:

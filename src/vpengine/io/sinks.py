@@ -45,14 +45,6 @@ class Sink:
         pass
 
 
-class CallbackSink(Sink):
-    def __init__(self, fn: Callable[[Result, np.ndarray | None], None]) -> None:
-        self.fn = fn
-
-    def write(self, result: Result, frame: np.ndarray | None, name: str) -> None:
-        self.fn(result, frame)
-
-
 class SinkThread:
     """Note [Sink thread]: writes results to sinks on one background thread, in the order they were put.
 

@@ -18,7 +18,7 @@ import threading
 import time
 from collections.abc import Iterator, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -87,6 +87,10 @@ class SyntheticSource(Source):
 
     def __len__(self) -> int:
         return self.frames
+
+    @property
+    def pace(self) -> Literal["lockstep", "realtime"]:
+        return "realtime"  # it stands in for a camera, paced at its fps
 
     def __iter__(self) -> Iterator[Frame]:
         for i in range(self.frames):

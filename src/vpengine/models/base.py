@@ -36,14 +36,12 @@ import torch
 from pydantic import BaseModel, ConfigDict, ValidationError
 from torch import nn
 
-from vpengine.specs import SpecDict, format_specs
+from vpengine.specs import PRECISION_DTYPES, SpecDict, dtype_name, format_specs
 
 if TYPE_CHECKING:
     from vpengine.config import EngineConfig, ModelConfig
 
 Role = Literal["foundation", "head"]
-
-_PRECISION_DTYPES = {"fp32": torch.float32, "fp16": torch.float16, "bf16": torch.bfloat16}
 
 
 class ModelBuildError(ValueError):
@@ -80,11 +78,11 @@ class BuildContext:
 
     @property
     def dtype(self) -> torch.dtype:
-        return _PRECISION_DTYPES[self.precision]
+        return PRECISION_DTYPES[self.precision]
 
     @property
     def dtype_name(self) -> str:
-        return {"fp32": "float32", "fp16": "float16", "bf16": "bfloat16"}[self.precision]
+        return dtype_name(self.dtype)
 
     @property
     def input_hw(self) -> tuple[int, int]:
@@ -244,14 +242,24 @@ def random_inputs(
 
 def check_outputs(name: str, spec: SpecDict, outputs: dict[str, torch.Tensor], batch: int | None = None) -> None:
     """Raise naming the mismatch if a model's batched outputs differ from what it declared: every output must be
-    ``[B, *shape]`` of its spec with one ``B`` for all (``batch``, when given; Note [Batched models])."""
+    ``[B, *shape]`` of its spec with one ``B`` for all (Note [Batched models]).
+
+    ``batch``: how many frames the model was given. None: read off the outputs, from the first one with a dimension
+    more than its spec; the message says where ``B`` came from, and writes ``B`` where no output has one.
+    """
     missing = [k for k in spec if k not in outputs]
+    assumed = f"a batch of {batch}: the frames the model was given"
     if batch is None:
-        sizes = [outputs[k].shape[0] for k in spec if k in outputs and outputs[k].dim() > 0]
-        batch = sizes[0] if sizes else None
+        batched = [k for k in spec if k in outputs and outputs[k].dim() == len(spec[k].shape) + 1]
+        if batched:
+            batch = outputs[batched[0]].shape[0]
+            assumed = f"a batch of {batch}: read off the leading dimension of {batched[0]!r}, as none was given"
+        else:
+            assumed = "B: none was given, and no output has a dimension in front of its declared shape to read it off"
+    b = "B" if batch is None else str(batch)
     bad = [
-        f"{k}: declared {spec[k]} per frame, so {spec[k].dtype}{[batch, *spec[k].shape]} "
-        f"for a batch of {batch}; got {outputs[k].dtype}{list(outputs[k].shape)}"
+        f"{k}: declared {spec[k]} per frame, so {spec[k].dtype}[{', '.join([b, *map(str, spec[k].shape)])}] "
+        f"for a batch of {b}; got {outputs[k].dtype}{list(outputs[k].shape)}"
         for k in spec
         if k in outputs
         and not (
@@ -261,4 +269,6 @@ def check_outputs(name: str, spec: SpecDict, outputs: dict[str, torch.Tensor], b
         )
     ]
     if missing or bad:
-        raise ModelBuildError(f"{name}: outputs differ from the declared output_spec: missing {missing}; {bad}")
+        raise ModelBuildError(
+            f"{name}: outputs differ from the declared output_spec: missing {missing}; {bad} ({assumed})"
+        )

@@ -224,10 +224,6 @@ class Catalog:
     def names(self) -> list[str]:
         return list(self._entries)
 
-    def for_recipe(self, recipe: str) -> list[Entry]:
-        """Every entry a recipe can load."""
-        return [e for e in self if recipe in e.recipes]
-
     def default_for(self, recipe: str) -> Entry | None:
         """The default checkpoint of a recipe, if the catalog names one."""
         return next((e for e in self if recipe in e.default_for), None)

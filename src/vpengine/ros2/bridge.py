@@ -28,10 +28,11 @@ a thread of its own. Rate commands may name ``head@camera``.
 Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
 "{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit).
 
-Three threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to ``Engine.submit``), one publishes
-the results (``Engine.results``; each head's newest, Note [Output QoS] in :mod:`vpengine.ros2.core`), and one applies rate commands and publishes diagnostics (Note [Control path] in
-:mod:`vpengine.ros2.core`), so neither waits behind the writes of big images. All decisions about content live in
-:class:`vpengine.ros2.core.Ros2Core`.
+Three threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to
+``Engine.submit``), one publishes the results (``Engine.results``; each head's newest, Note [Output QoS] in
+:mod:`vpengine.ros2.outputs`), and one applies rate commands and publishes diagnostics (Note [Control path] in
+:mod:`vpengine.ros2.control`), so neither waits behind the writes of big images. All decisions about content live in
+:class:`vpengine.ros2.core.Ros2Core` and its parts.
 """
 
 from __future__ import annotations
@@ -47,20 +48,12 @@ from typing import Any, Literal
 from vpengine.engine import EngineDeadError
 from vpengine.ros2 import cdr
 from vpengine.ros2 import dds_types as T
-from vpengine.ros2.core import (
-    DETECTIONS_TYPE,
-    OUTPUT_QOS,
-    ControlLoop,
-    DetectionsOut,
-    DiagnosticsOut,
-    Header,
-    ImageOut,
-    OutputTopic,
-    Ros2Core,
-    model_names_text,
-    receive_buffer_limit,
-)
+from vpengine.ros2.control import ControlLoop, model_names_text
+from vpengine.ros2.core import Ros2Core
 from vpengine.ros2.dds import DdsContext, Reader, Writer, bridge_config, dds_topic, receive_buffer_granted
+from vpengine.ros2.diagnostics import DiagnosticsOut, receive_buffer_limit
+from vpengine.ros2.messages import DETECTIONS_TYPE, DetectionsOut, Header, ImageOut
+from vpengine.ros2.outputs import OUTPUT_QOS, OutputTopic
 
 log = logging.getLogger("vpengine.ros2.bridge")
 
@@ -79,7 +72,7 @@ class BridgeOptions:
     #: (reliable, keep last 10; matches only reliable publishers).
     input_qos: Literal["sensor", "default"] = "sensor"
     #: QoS of the output topics: "latest" (reliable, keep last 1) or "default" (ROS 2's, reliable, keep last 10);
-    #: see Note [Output QoS] in vpengine.ros2.core.
+    #: see Note [Output QoS] in vpengine.ros2.outputs.
     output_qos: Literal["latest", "default"] = "latest"
     domain_id: int = 0
     #: CycloneDDS XML configuration used instead of $CYCLONEDDS_URI (e.g. ``loopback_config()``); see

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.ros2.core import Header, ImageOut
+from vpengine.ros2.messages import Header, ImageOut
 
 #: encapsulation identifier -> struct byte order (CDR_BE, CDR_LE, PLAIN_CDR2_BE, PLAIN_CDR2_LE)
 ENCAPSULATIONS = {b"\x00\x00": ">", b"\x00\x01": "<", b"\x00\x06": ">", b"\x00\x07": "<"}
@@ -30,19 +30,6 @@ CDR_LE = b"\x00\x01\x00\x00"
 
 class CdrError(ValueError):
     """Bytes that are not a well-formed message of the expected type."""
-
-
-@dataclass
-class ImageView:
-    """A decoded sensor_msgs/Image; ``data`` is a read-only numpy view of the received bytes (no copy)."""
-
-    header: Header
-    height: int
-    width: int
-    encoding: str
-    is_bigendian: int
-    step: int
-    data: np.ndarray
 
 
 @dataclass
@@ -123,7 +110,7 @@ class _Reader:
         return Header(sec, nanosec, self.string("header.frame_id"))
 
 
-def decode_image(buf: Any) -> ImageView:
+def decode_image(buf: Any) -> ImageOut:
     """sensor_msgs/Image from CDR bytes (with the encapsulation header); pixels are a view, not a copy."""
     r = _Reader(buf, "sensor_msgs/Image")
     header = r.header()
@@ -132,7 +119,7 @@ def decode_image(buf: Any) -> ImageView:
     encoding = r.string("encoding")
     big = r.u8("is_bigendian")
     step = r.u32("step")
-    return ImageView(header, height, width, encoding, big, step, r.octets("data"))
+    return ImageOut(header, height, width, encoding, big, step, r.octets("data"))
 
 
 def decode_compressed_image(buf: Any) -> CompressedImageView:

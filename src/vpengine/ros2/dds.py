@@ -8,7 +8,7 @@ ROS 2 conventions matched (rmw_cyclonedds_cpp):
 * data representation XCDR1 (encapsulation ``CDR_LE``), which is what ROS 2 writes and reads;
 * QoS: the default profile is reliable, volatile, keep last 10; the sensor-data profile best effort, volatile, keep
   last 5; "latched" (what ``ros2 topic echo --qos-durability transient_local`` receives) is reliable,
-  transient-local, keep last 1; "latest" (the bridge's outputs, Note [Output QoS] in :mod:`vpengine.ros2.core`) is
+  transient-local, keep last 1; "latest" (the bridge's outputs, Note [Output QoS] in :mod:`vpengine.ros2.outputs`) is
   reliable, volatile, keep last 1.
 """
 
@@ -30,7 +30,7 @@ QOS_NAMES = ("default", "sensor", "latched", "latest")
 
 #: The cyclonedds major release this module is tested with (its private _clayer calls, see _private_api).
 TESTED_MAJOR = 11
-#: The socket receive buffer the bridge asks for (Note [Input link] in vpengine.ros2.core); the kernel grants at
+#: The socket receive buffer the bridge asks for (Note [Input link] in vpengine.ros2.diagnostics); the kernel grants at
 #: most net.core.rmem_max of it.
 RECEIVE_BUFFER_BYTES = 64 << 20
 
@@ -132,7 +132,7 @@ def bridge_config(extra: str | None = None, user: str | None = None) -> str:
     interfaces and peers add up instead, which is why ``extra`` replaces $CYCLONEDDS_URI rather than joining it.)
     Of its own the bridge asks for a large socket receive buffer (:data:`RECEIVE_BUFFER_BYTES`, granted up to
     net.core.rmem_max): cyclonedds' default of 1 MB loses most 1080p frames sent best effort (Note [Input link] in
-    :mod:`vpengine.ros2.core`).
+    :mod:`vpengine.ros2.diagnostics`).
     """
     user = os.environ.get("CYCLONEDDS_URI") if user is None else user
     own = (

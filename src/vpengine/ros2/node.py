@@ -29,8 +29,9 @@ and the latched ``<ns>/model_names`` topic work in both cases.
 
 Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``input_topics`` (several cameras: a string
 array of NAME=TOPIC, each camera's outputs under ``<output_namespace>/<NAME>/``), ``compressed`` (false), ``input_qos``
-(sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in the core), ``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size``
-(config | first), ``overrides`` (string array of KEY=VALUE).
+(sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in :mod:`vpengine.ros2.outputs`),
+``output_namespace`` (/vpengine), ``depth_color`` / ``seg_overlay`` (false), ``input_size`` (config | first),
+``overrides`` (string array of KEY=VALUE).
 """
 
 from __future__ import annotations
@@ -44,18 +45,11 @@ import sys
 import threading
 from typing import Any
 
-from vpengine.ros2.core import (
-    DETECTIONS_TYPE,
-    OUTPUT_QOS,
-    ControlLoop,
-    DetectionsOut,
-    DiagnosticsOut,
-    Header,
-    ImageOut,
-    Ros2Core,
-    input_topics,
-    model_names_text,
-)
+from vpengine.ros2.control import ControlLoop, model_names_text
+from vpengine.ros2.core import Ros2Core, input_topics
+from vpengine.ros2.diagnostics import DiagnosticsOut
+from vpengine.ros2.messages import DETECTIONS_TYPE, DetectionsOut, Header, ImageOut
+from vpengine.ros2.outputs import OUTPUT_QOS
 
 log = logging.getLogger("vpengine.ros2.node")
 
@@ -213,9 +207,10 @@ def build_node(argv: list[str] | None = None) -> Any:
             self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", default_qos)
             self._names = self.create_publisher(String, f"{core.namespace}/model_names", latched)
             self._names.publish(String(data=model_names_text(core.model_names)))
-            # Note [Control path]: rate commands only queue here (callbacks of the executor); the core's control
-            # loop applies them and publishes /diagnostics on its own thread. Input has a callback group of its own,
-            # so a MultiThreadedExecutor never holds a command or a service call behind a frame's decode.
+            # Note [Control path] (vpengine.ros2.control): rate commands only queue here (callbacks of the
+            # executor); the core's control loop applies them and publishes /diagnostics on its own thread. Input has
+            # a callback group of its own, so a MultiThreadedExecutor never holds a command or a service call behind
+            # a frame's decode.
             self._commands: queue.SimpleQueue[tuple[str, str]] = queue.SimpleQueue()
             control_group = MutuallyExclusiveCallbackGroup()
             self.create_subscription(
@@ -266,8 +261,7 @@ def build_node(argv: list[str] | None = None) -> Any:
 
                 def on_change(req: Any, res: Any) -> Any:
                     try:
-                        hz = float(req.new_rate)
-                        core.set_rate_hz(req.model_name, hz)
+                        core.set_rate(req.model_name, float(req.new_rate))
                         res.success = True
                     except ValueError as e:
                         self.get_logger().warning(f"ChangeModelRate refused: {e}")
@@ -299,7 +293,7 @@ def build_node(argv: list[str] | None = None) -> Any:
                 for prm in params:
                     if prm.name.startswith("rate."):
                         try:
-                            core.set_rate_hz(prm.name[5:], float(prm.value))
+                            core.set_rate(prm.name[5:], float(prm.value))
                         except (ValueError, TypeError) as e:
                             return SetParametersResult(successful=False, reason=str(e))
                 return SetParametersResult(successful=True)

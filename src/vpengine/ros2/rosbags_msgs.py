@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.ros2.core import DetectionsOut, Header, ImageOut
+from vpengine.ros2.messages import DetectionsOut, Header, ImageOut
 
 #: distribution -> (rosbags store name, rosbag2 metadata version written)
 DISTROS: dict[str, tuple[str, int]] = {

@@ -70,6 +70,11 @@ def main(fd: int, parent_pid: int) -> None:
         out_ring = SlotRing.attach(spec.out_ring, fds)
         assert spec.control is not None  # the runner gives every child spec its control block
         control = ControlBlock.attach(spec.control, fds)  # opening a region consumes (closes) its descriptor
+        device = spec.engine_config().device
+        if device.startswith("cuda"):  # the context is ours: Note [Thread stack] in gpu.py
+            from vpengine.runtime.gpu import trim_thread_stack
+
+            trim_thread_stack(int(device.partition(":")[2] or 0))
         core = prepare_worker(spec, in_ring, out_ring, control, own_process=True)
     except BaseException as e:
         try:

@@ -5,7 +5,6 @@ from vpengine.transport.memory import HostRegion, LocalRegion, allocate, open_re
 from vpengine.transport.region import Region, RegionHandle
 from vpengine.transport.ring import (
     ReaderDecl,
-    RingClosedError,
     RingDesc,
     RingReader,
     RingWriter,
@@ -21,7 +20,6 @@ __all__ = [
     "ReaderDecl",
     "Region",
     "RegionHandle",
-    "RingClosedError",
     "RingDesc",
     "RingReader",
     "RingWriter",

@@ -50,10 +50,6 @@ class SlotLayout:
     def total_bytes(self) -> int:
         return self.slot_bytes * self.n_slots
 
-    @property
-    def spec_dict(self) -> SpecDict:
-        return dict(zip(self.keys, self.specs))
-
     def views(self, flat: torch.Tensor) -> list[dict[str, torch.Tensor]]:
         """Per-slot dicts of tensors viewing ``flat`` (a uint8 tensor of at least ``total_bytes``)."""
         if flat.dtype != torch.uint8 or flat.numel() < self.total_bytes:

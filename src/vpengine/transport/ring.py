@@ -46,6 +46,10 @@ tag's own sequence (``tag_seq``), so a model that reads every camera holds one s
 most one slot per camera. A reader without a tag sees every slot, as before. The writer keeps the newest slot of
 each tag for readers that have not looked yet, so a ring needs readers + tags + 1 slots (with one tag: readers + 2).
 
+The ring is this module's ``SlotRing`` (creation, attachment, supervision, stats, the one futex wait), its
+``RingReader`` (ring_reader.py) and ``RingWriter`` (ring_writer.py), over the metadata offsets and descriptions of
+ring_meta.py; import them all from here.
+
 Crash safety: each critical section writes its fields in an order where any prefix is harmless. If a process dies
 holding the mutex, the next locker gets EOWNERDEAD and carries on; the supervisor then calls
 :meth:`SlotRing.release_reader` / :meth:`SlotRing.reset_writer` for the dead process.
@@ -55,10 +59,8 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass, field
-from typing import Literal
+from collections.abc import Callable
+from typing import TypeVar
 
 import torch
 
@@ -67,81 +69,68 @@ from vpengine.transport import linux
 from vpengine.transport.layout import SlotLayout
 from vpengine.transport.memory import HostRegion, allocate, open_region
 from vpengine.transport.region import Region, RegionHandle
+from vpengine.transport.ring_meta import (
+    EMPTY,
+    H_DROPPED_NEWEST,
+    H_LAST_SEQ,
+    H_N_READERS,
+    H_N_SLOTS,
+    H_PUBLISHED,
+    H_WRITER_WAITING,
+    MODE_CODE,
+    OVERFLOW_CODE,
+    PUBLISH_WORD_OFF,
+    PUBLISHED,
+    R_ACTIVE,
+    R_CURSOR,
+    R_MISSED,
+    R_MODE,
+    R_PINNED,
+    R_READS,
+    RELEASE_WORD_OFF,
+    RF,
+    S_FRAME,
+    S_ORIGIN,
+    S_SEQ,
+    S_STATE,
+    S_TAG,
+    S_TAG_SEQ,
+    S_TCAP,
+    S_TPUB,
+    S_TSUB,
+    SF,
+    SLOTS,
+    WRITING,
+    Accept,
+    Overflow,
+    ReaderDecl,
+    ReaderMode,
+    RingDesc,
+    SlotInfo,
+    meta_bytes,
+)
+from vpengine.transport.ring_reader import RingReader
+from vpengine.transport.ring_writer import RingWriter
 
-Overflow = Literal["drop_oldest", "drop_newest", "block"]
-#: A reader's pin filter: (slot index, seq) -> whether it may take that slot now.
-Accept = Callable[[int, int], bool]
-ReaderMode = Literal["latest", "fifo"]
+__all__ = [
+    "Accept",
+    "Overflow",
+    "ReaderDecl",
+    "ReaderMode",
+    "RingDesc",
+    "RingReader",
+    "RingWriter",
+    "SlotInfo",
+    "SlotRing",
+    "fifo_queue",
+    "latest_buffer",
+]
 
-_EMPTY, _WRITING, _PUBLISHED = 0, 1, 2
-_MODE_CODE = {"latest": 1, "fifo": 2}
-_OVERFLOW_CODE = {"drop_oldest": 0, "drop_newest": 1, "block": 2}
-
-# i64 indices into the metadata region
-_PUBLISH_WORD_OFF, _RELEASE_WORD_OFF = 64, 68
-_H = 9  # header starts at byte 72
-_H_LAST_SEQ, _H_N_SLOTS, _H_N_READERS, _H_WRITER_WAITING, _H_PUBLISHED, _H_DROPPED_NEWEST = range(_H, _H + 6)
-_SLOTS = 16  # slot table starts at byte 128
-_SF = 10  # fields per slot
-_S_STATE, _S_SEQ, _S_FRAME, _S_TCAP, _S_TSUB, _S_TPUB, _S_PID, _S_ORIGIN, _S_TAG, _S_TAG_SEQ = range(10)
-_RF = 8  # fields per reader
-_R_ACTIVE, _R_MODE, _R_CURSOR, _R_READS, _R_MISSED, _R_PINNED, _R_PID = range(7)
+T = TypeVar("T")
 
 #: Longest single futex sleep. Waits are re-checked at least this often so stop flags are seen promptly even if a
 #: wake-up is missed for any reason (they are not, but a robot should not depend on that).
 _MAX_SLEEP = 0.25
-
-
-class RingClosedError(RuntimeError):
-    pass
-
-
-@dataclass(frozen=True)
-class ReaderDecl:
-    name: str
-    mode: ReaderMode = "latest"
-    #: Active readers count what they miss from the first publish on; inactive ones start counting at activate().
-    active: bool = True
-    #: Only slots published with this tag (a camera's index), Note [Tagged slots]; None: every slot.
-    tag: int | None = None
-
-
-@dataclass(frozen=True)
-class RingDesc:
-    """Everything another process needs to attach to a ring (picklable; fds travel separately)."""
-
-    name: str
-    layout: SlotLayout
-    readers: tuple[ReaderDecl, ...]
-    overflow: Overflow
-    meta: RegionHandle
-    data: RegionHandle
-    n_tags: int = 1
-
-
-@dataclass
-class SlotInfo:
-    """A pinned or writable slot: its index, its metadata and its tensors (views into the pool)."""
-
-    index: int
-    tensors: dict[str, torch.Tensor]
-    seq: int = 0
-    frame_id: int = -1
-    t_capture: float = 0.0
-    t_submit: float = 0.0
-    t_publish: float = 0.0
-    #: The input-ring sequence number of the frame this slot derives from (set by the first writer).
-    origin: int = 0
-    #: Frames published between the previous read of this reader and this one that it never saw.
-    missed: int = 0
-    #: The tag it was published with (a camera's index, Note [Tagged slots]) and its place in that tag's sequence.
-    tag: int = 0
-    tag_seq: int = 0
-    extra: dict[str, object] = field(default_factory=dict)
-
-
-def _meta_bytes(n_slots: int, n_readers: int, n_tags: int) -> int:
-    return _SLOTS * 8 + n_slots * _SF * 8 + n_readers * _RF * 8 + n_tags * 8
 
 
 class SlotRing:
@@ -160,13 +149,12 @@ class SlotRing:
         self._d = mv.cast("d")
         self._u = mv.cast("I")
         self._mutex = linux.RobustMutex(meta.address())
-        self._publish_addr = meta.address() + _PUBLISH_WORD_OFF
-        self._release_addr = meta.address() + _RELEASE_WORD_OFF
+        self._addr = meta.address()  # a futex word's address: this plus its offset
         self._reader_index = {r.name: i for i, r in enumerate(desc.readers)}
-        self._r0 = _SLOTS + self.n_slots * _SF
+        self._r0 = SLOTS + self.n_slots * SF
         self.n_tags = desc.n_tags
-        self._t0 = self._r0 + len(desc.readers) * _RF  # the tag table
-        self._policy = _OVERFLOW_CODE[desc.overflow]
+        self._t0 = self._r0 + len(desc.readers) * RF  # the tag table
+        self._policy = OVERFLOW_CODE[desc.overflow]
         self.views = desc.layout.views(data.tensor())
         self._pid = os.getpid()
 
@@ -188,8 +176,8 @@ class SlotRing:
 
         ``pinned``: the data is host memory that a GPU copies to or from (see ``allocate``).
         """
-        if overflow not in _OVERFLOW_CODE:
-            raise ValueError(f"ring {name!r}: unknown overflow policy {overflow!r}; accepted: {list(_OVERFLOW_CODE)}")
+        if overflow not in OVERFLOW_CODE:
+            raise ValueError(f"ring {name!r}: unknown overflow policy {overflow!r}; accepted: {list(OVERFLOW_CODE)}")
         names = [r.name for r in readers]
         if len(set(names)) != len(names):
             raise ValueError(f"ring {name!r}: reader names must be unique, got {names}")
@@ -203,7 +191,7 @@ class SlotRing:
                 "are never overwritten"
             )
         layout = SlotLayout.from_specs(specs, n_slots)
-        meta = HostRegion(f"{name}.meta", _meta_bytes(n_slots, len(readers), n_tags))
+        meta = HostRegion(f"{name}.meta", meta_bytes(n_slots, len(readers), n_tags))
         try:
             data = allocate(f"{name}.data", layout.total_bytes, device, shared, pinned)
         except (OSError, RuntimeError) as e:  # ENOMEM from mmap, a CUDA out-of-memory error
@@ -217,14 +205,14 @@ class SlotRing:
             raise
         linux.mutex_init(meta.address())
         q = memoryview(meta.mm).cast("q")
-        q[_H_N_SLOTS] = n_slots
-        q[_H_N_READERS] = len(readers)
-        r0 = _SLOTS + n_slots * _SF
+        q[H_N_SLOTS] = n_slots
+        q[H_N_READERS] = len(readers)
+        r0 = SLOTS + n_slots * SF
         for i, r in enumerate(readers):
-            base = r0 + i * _RF
-            q[base + _R_ACTIVE] = 1 if r.active else 0
-            q[base + _R_MODE] = _MODE_CODE[r.mode]
-            q[base + _R_PINNED] = -1
+            base = r0 + i * RF
+            q[base + R_ACTIVE] = 1 if r.active else 0
+            q[base + R_MODE] = MODE_CODE[r.mode]
+            q[base + R_PINNED] = -1
         q.release()
         handles: list[int] = []
         desc = RingDesc(
@@ -255,10 +243,6 @@ class SlotRing:
     def data_region(self) -> Region:
         return self._data
 
-    @property
-    def meta_region(self) -> HostRegion:
-        return self._meta
-
     def close(self) -> None:
         self.views = []
         for mv in (self._q, self._d, self._u):
@@ -278,14 +262,14 @@ class SlotRing:
     def slot_tag(self, i: int) -> int:
         """The tag slot ``i`` was last published with (Note [Tagged slots]); for a pin filter (``Accept``), which
         runs under the ring's lock."""
-        return self._q[self._slot(i) + _S_TAG]
+        return self._q[self._slot(i) + S_TAG]
 
     # ------------------------------------------------------------------------------------------- internals
     def _slot(self, i: int) -> int:
-        return _SLOTS + i * _SF
+        return SLOTS + i * SF
 
     def _reader(self, r: int) -> int:
-        return self._r0 + r * _RF
+        return self._r0 + r * RF
 
     def _slot_info(self, i: int, tensors: bool = True) -> SlotInfo:
         b = self._slot(i)
@@ -293,66 +277,97 @@ class SlotRing:
         return SlotInfo(
             i,
             self.views[i] if tensors else {},
-            q[b + _S_SEQ],
-            q[b + _S_FRAME],
-            d[b + _S_TCAP],
-            d[b + _S_TSUB],
-            d[b + _S_TPUB],
-            q[b + _S_ORIGIN],
-            tag=q[b + _S_TAG],
-            tag_seq=q[b + _S_TAG_SEQ],
+            q[b + S_SEQ],
+            q[b + S_FRAME],
+            d[b + S_TCAP],
+            d[b + S_TSUB],
+            d[b + S_TPUB],
+            q[b + S_ORIGIN],
+            tag=q[b + S_TAG],
+            tag_seq=q[b + S_TAG_SEQ],
         )
 
-    def _wake_publish(self) -> None:
-        linux.futex_wake(self._publish_addr)
+    def _bump(self, word: int) -> None:
+        """Move futex word ``word`` (PUBLISH_WORD_OFF, RELEASE_WORD_OFF) on, so that a sleeper that read it before
+        does not sleep; the caller holds the mutex and calls ``_wake(word)`` after letting go of it."""
+        self._u[word // 4] = (self._u[word // 4] + 1) & 0xFFFFFFFF
+
+    def _wake(self, word: int) -> None:
+        linux.futex_wake(self._addr + word)
+
+    def _wait(
+        self,
+        word: int,
+        poll: Callable[[], T | None],
+        timeout: float | None,
+        should_stop: Callable[[], bool] | None,
+    ) -> T | None:
+        """The one futex wait of a ring: sleep on ``word`` until ``poll()``, called under the mutex, returns
+        something (returned), or ``should_stop()`` says so, or ``timeout`` seconds pass (None: no limit); None
+        then. The word is read in the same critical section as ``poll`` looked, so a publish or release that
+        comes after the look has moved it and the sleep returns at once: no wake-up is lost."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            with self._mutex:
+                found = poll()
+                if found is not None:
+                    return found
+                seen = self._u[word // 4]
+            if should_stop is not None and should_stop():
+                return None
+            remaining = _MAX_SLEEP if deadline is None else deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            linux.futex_wait(self._addr + word, seen, min(remaining, _MAX_SLEEP))
 
     def wake_all(self) -> None:
         """Wake every sleeper on this ring (used at stop so waits end at once)."""
         with self._mutex:
-            self._u[_PUBLISH_WORD_OFF // 4] = (self._u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-            self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-        linux.futex_wake(self._publish_addr)
-        linux.futex_wake(self._release_addr)
+            self._bump(PUBLISH_WORD_OFF)
+            self._bump(RELEASE_WORD_OFF)
+        self._wake(PUBLISH_WORD_OFF)
+        self._wake(RELEASE_WORD_OFF)
 
     def wait_any(
         self, readers: list[RingReader], timeout: float, should_stop: Callable[[], bool] | None = None
     ) -> bool:
         """Sleep until one of ``readers`` (readers of this ring, e.g. one per camera: Note [Tagged slots]) has a slot
         to pin, or ``timeout`` passes; pins nothing. Whether one has."""
-        deadline = time.monotonic() + timeout
-        while True:
-            with self._mutex:
-                if any(r._find(False) is not None for r in readers):
-                    return True
-                word = self._u[_PUBLISH_WORD_OFF // 4]
-            if should_stop is not None and should_stop():
-                return False
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return False
-            linux.futex_wait(self._publish_addr, word, min(remaining, _MAX_SLEEP))
+
+        def ready() -> bool | None:
+            return True if any(r._find(False) is not None for r in readers) else None
+
+        return self._wait(PUBLISH_WORD_OFF, ready, timeout, should_stop) is not None
 
     def notify_readers(self) -> None:
         """Wake readers waiting to pin, without a publish: what they may take has changed (a pin filter that
         accepts more now, see ``RingReader.pin``)."""
         with self._mutex:
-            self._u[_PUBLISH_WORD_OFF // 4] = (self._u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-        self._wake_publish()
+            self._bump(PUBLISH_WORD_OFF)
+        self._wake(PUBLISH_WORD_OFF)
+
+    def _unpin(self, index: int, expect: int | None = None) -> int | None:
+        """Drop reader ``index``'s pin and wake a writer blocked for a free slot. ``expect``: the slot it must pin
+        (RuntimeError otherwise). Returns the origin of the slot it held (None: none)."""
+        q, r = self._q, self._reader(index)
+        with self._mutex:
+            pinned = q[r + R_PINNED]
+            if expect is not None and pinned != expect:
+                name = self.desc.readers[index].name
+                raise RuntimeError(f"reader {name!r} does not pin slot {expect} of ring {self.name!r}")
+            held = None if pinned < 0 else int(q[self._slot(int(pinned)) + S_ORIGIN])
+            q[r + R_PINNED] = -1
+            waiting = q[H_WRITER_WAITING]
+            if waiting:
+                self._bump(RELEASE_WORD_OFF)
+        if waiting:
+            self._wake(RELEASE_WORD_OFF)
+        return held
 
     # -------------------------------------------------------------------------------------- supervision
     def release_reader(self, name: str) -> int | None:
         """Drop the pin of a reader whose process died. Returns the origin of the slot it held (None: none)."""
-        r = self._reader(self._reader_index[name])
-        with self._mutex:
-            pinned = self._q[r + _R_PINNED]
-            held = None if pinned < 0 else int(self._q[self._slot(int(pinned)) + _S_ORIGIN])
-            self._q[r + _R_PINNED] = -1
-            waiting = self._q[_H_WRITER_WAITING]
-            if waiting:
-                self._u[_RELEASE_WORD_OFF // 4] = (self._u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-        if waiting:
-            linux.futex_wake(self._release_addr)
-        return held
+        return self._unpin(self._reader_index[name])
 
     def reset_writer(self) -> int:
         """Forget slots a dead writer left half-written. Returns how many there were."""
@@ -362,403 +377,49 @@ class SlotRing:
             last = 0
             for i in range(self.n_slots):
                 b = self._slot(i)
-                if q[b + _S_STATE] == _WRITING:
-                    q[b + _S_STATE] = _EMPTY
-                    q[b + _S_SEQ] = 0
+                if q[b + S_STATE] == WRITING:
+                    q[b + S_STATE] = EMPTY
+                    q[b + S_SEQ] = 0
                     n += 1
-                elif q[b + _S_STATE] == _PUBLISHED:
-                    last = max(last, q[b + _S_SEQ])
-            q[_H_LAST_SEQ] = max(q[_H_LAST_SEQ], last)
-            q[_H_WRITER_WAITING] = 0
+                elif q[b + S_STATE] == PUBLISHED:
+                    last = max(last, q[b + S_SEQ])
+            q[H_LAST_SEQ] = max(q[H_LAST_SEQ], last)
+            q[H_WRITER_WAITING] = 0
         return n
 
     def pins(self) -> dict[str, int]:
         """Which slot each reader pins (-1: none)."""
         with self._mutex:
-            return {n: self._q[self._reader(i) + _R_PINNED] for n, i in self._reader_index.items()}
+            return {n: self._q[self._reader(i) + R_PINNED] for n, i in self._reader_index.items()}
 
     def stats(self) -> dict[str, object]:
         """Counters: published, dropped_newest, and per reader reads / missed / pending."""
         q = self._q
         with self._mutex:
-            last = q[_H_LAST_SEQ]
+            last = q[H_LAST_SEQ]
             readers = {}
             for n, i in self._reader_index.items():
                 b = self._reader(i)
-                active = bool(q[b + _R_ACTIVE])
+                active = bool(q[b + R_ACTIVE])
                 tag = self.desc.readers[i].tag
                 newest = last if tag is None else q[self._t0 + tag]  # in the reader's own sequence
                 readers[n] = {
                     "active": active,
-                    "reads": q[b + _R_READS],
-                    "missed": q[b + _R_MISSED],
-                    "pending": (newest - q[b + _R_CURSOR]) if active else 0,
-                    "pinned": q[b + _R_PINNED] >= 0,
+                    "reads": q[b + R_READS],
+                    "missed": q[b + R_MISSED],
+                    "pending": (newest - q[b + R_CURSOR]) if active else 0,
+                    "pinned": q[b + R_PINNED] >= 0,
                 }
             return {
-                "published": q[_H_PUBLISHED],
+                "published": q[H_PUBLISHED],
                 "last_seq": last,
-                "dropped_newest": q[_H_DROPPED_NEWEST],
+                "dropped_newest": q[H_DROPPED_NEWEST],
                 "readers": readers,
             }
 
     @property
     def last_seq(self) -> int:
-        return self._q[_H_LAST_SEQ]
-
-
-class RingWriter:
-    """The single writer of a ring. ``acquire`` -> fill ``slot.tensors`` -> ``publish`` (or ``abort``)."""
-
-    def __init__(self, ring: SlotRing) -> None:
-        self.ring = ring
-
-    def _choose(self) -> int | None:
-        ring, q = self.ring, self.ring._q
-        pinned = set()
-        unread: dict[int | None, int] = {}  # tag (None: any) -> the oldest seq some FIFO reader has not read
-        for r, decl in enumerate(ring.desc.readers):
-            b = ring._reader(r)
-            if q[b + _R_PINNED] >= 0:
-                pinned.add(q[b + _R_PINNED])
-            if ring._policy != 0 and q[b + _R_ACTIVE] and q[b + _R_MODE] == _MODE_CODE["fifo"]:
-                c = q[b + _R_CURSOR]
-                unread[decl.tag] = min(unread.get(decl.tag, c), c)
-        newest: dict[int, int] = {}  # tag -> its newest published seq, kept for readers that have not looked yet
-        for i in range(ring.n_slots):
-            b = ring._slot(i)
-            if q[b + _S_STATE] == _PUBLISHED:
-                t = q[b + _S_TAG]
-                newest[t] = max(newest.get(t, 0), q[b + _S_SEQ])
-        best, best_seq = None, None
-        for i in range(ring.n_slots):
-            b = ring._slot(i)
-            state, seq = q[b + _S_STATE], q[b + _S_SEQ]
-            if state == _WRITING or i in pinned:
-                continue
-            if state == _PUBLISHED:
-                tag = q[b + _S_TAG]
-                if seq == newest[tag]:
-                    continue
-                if unread and (seq > unread.get(None, seq) or q[b + _S_TAG_SEQ] > unread.get(tag, q[b + _S_TAG_SEQ])):
-                    continue  # unread by a FIFO reader and the policy forbids overwriting it
-            if best_seq is None or seq < best_seq:
-                best, best_seq = i, seq
-        return best
-
-    def acquire(self, timeout: float | None = None, should_stop: Callable[[], bool] | None = None) -> SlotInfo | None:
-        """A slot to fill, or None: full under ``drop_newest`` (counted), or ``block`` timed out / stopped."""
-        ring, q, u = self.ring, self.ring._q, self.ring._u
-        deadline = None if timeout is None else time.monotonic() + timeout
-        while True:
-            with ring._mutex:
-                i = self._choose()
-                if i is not None:
-                    b = ring._slot(i)
-                    q[b + _S_STATE] = _WRITING
-                    q[b + _S_SEQ] = 0
-                    q[b + _S_PID] = ring._pid
-                    q[_H_WRITER_WAITING] = 0
-                    return SlotInfo(i, ring.views[i])
-                if ring._policy == _OVERFLOW_CODE["drop_newest"]:
-                    q[_H_DROPPED_NEWEST] += 1
-                    return None
-                if ring._policy == _OVERFLOW_CODE["drop_oldest"]:  # pragma: no cover - excluded by create()
-                    raise RuntimeError(f"ring {ring.name!r}: no free slot; n_slots must be >= readers + 2")
-                q[_H_WRITER_WAITING] = 1
-                word = u[_RELEASE_WORD_OFF // 4]
-            if should_stop is not None and should_stop():
-                return None
-            remaining = _MAX_SLEEP if deadline is None else deadline - time.monotonic()
-            if remaining <= 0:
-                return None
-            linux.futex_wait(ring._release_addr, word, min(remaining, _MAX_SLEEP))
-
-    def publish(
-        self,
-        slot: SlotInfo,
-        frame_id: int,
-        t_capture: float,
-        t_submit: float,
-        origin: int | None = None,
-        tag: int = 0,
-    ) -> int:
-        """Make a filled slot visible to readers and wake them. The slot's content must be complete, or its device
-        work queued before an event its readers wait on (Note [Event hand-off] in runtime/handoff.py).
-
-        ``origin`` carries the frame's identity down the pipeline; None means this ring is the input ring and
-        the new slot's own seq is the origin. ``tag``: the frame's camera (Note [Tagged slots]).
-        """
-        return self._publish(slot, frame_id, t_capture, t_submit, origin, None, tag)[0]
-
-    def publish_pinned(
-        self, slot: SlotInfo, frame_id: int, t_capture: float, t_submit: float, reader: RingReader, tag: int = 0
-    ) -> SlotInfo:
-        """``publish`` an input-ring slot already pinned for ``reader`` (which must pin nothing), the read counted,
-        in the same critical section, before any other reader can see it: how a reader whose work on the slot was
-        queued before it was published keeps it (Note [Inline launch] in runtime/handoff.py). Returns the pin."""
-        pinned = self._publish(slot, frame_id, t_capture, t_submit, None, reader, tag)[1]
-        assert pinned is not None
-        return pinned
-
-    def _publish(
-        self,
-        slot: SlotInfo,
-        frame_id: int,
-        t_capture: float,
-        t_submit: float,
-        origin: int | None,
-        pin_for: RingReader | None,
-        tag: int = 0,
-    ) -> tuple[int, SlotInfo | None]:
-        ring, q, d, u = self.ring, self.ring._q, self.ring._d, self.ring._u
-        b = ring._slot(slot.index)
-        now = time.monotonic()
-        pinned = None
-        if not 0 <= tag < ring.n_tags:
-            raise ValueError(f"ring {ring.name!r} has {ring.n_tags} tags; got tag {tag}")
-        with ring._mutex:
-            if pin_for is not None and q[pin_for._b + _R_PINNED] >= 0:
-                raise RuntimeError(f"reader {pin_for.name!r} of ring {ring.name!r} already pins a slot")
-            seq = q[_H_LAST_SEQ] + 1
-            tag_seq = q[ring._t0 + tag] + 1
-            q[b + _S_TAG] = tag
-            q[b + _S_TAG_SEQ] = tag_seq
-            q[b + _S_SEQ] = seq
-            q[b + _S_FRAME] = frame_id
-            q[b + _S_ORIGIN] = seq if origin is None else origin
-            d[b + _S_TCAP] = t_capture
-            d[b + _S_TSUB] = t_submit
-            d[b + _S_TPUB] = now
-            q[b + _S_STATE] = _PUBLISHED  # last: a reader never sees a published slot with stale metadata
-            q[_H_LAST_SEQ] = seq
-            q[ring._t0 + tag] = tag_seq
-            q[_H_PUBLISHED] += 1
-            u[_PUBLISH_WORD_OFF // 4] = (u[_PUBLISH_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-            if pin_for is not None:
-                pinned = pin_for._pin_locked(slot.index)
-        ring._wake_publish()
-        slot.seq, slot.frame_id, slot.t_capture, slot.t_submit, slot.t_publish = (
-            seq,
-            frame_id,
-            t_capture,
-            t_submit,
-            now,
-        )
-        slot.origin = seq if origin is None else origin
-        slot.tag, slot.tag_seq = tag, tag_seq
-        return seq, pinned
-
-    def abort(self, slot: SlotInfo) -> None:
-        """Give back a slot that will not be published (the work that should fill it failed)."""
-        ring, q = self.ring, self.ring._q
-        b = ring._slot(slot.index)
-        with ring._mutex:
-            q[b + _S_STATE] = _EMPTY
-            q[b + _S_SEQ] = 0
-
-
-class RingReader:
-    """One named reader of a ring. Holds at most one pin at a time."""
-
-    def __init__(self, ring: SlotRing, index: int) -> None:
-        self.ring = ring
-        self.index = index
-        self.name = ring.desc.readers[index].name
-        #: The tag this reader sees (Note [Tagged slots]); None: every slot. Its cursor counts in that tag's sequence.
-        self.tag = ring.desc.readers[index].tag
-        self._b = ring._reader(index)
-        self._mode = ring._q[self._b + _R_MODE]
-
-    # ------------------------------------------------------------------------------------------ activation
-    def activate(self, from_now: bool = True) -> None:
-        """Start counting: ``from_now`` skips everything published so far (it is neither read nor missed)."""
-        ring, q = self.ring, self.ring._q
-        with ring._mutex:
-            if not q[self._b + _R_ACTIVE]:
-                if from_now:
-                    q[self._b + _R_CURSOR] = q[_H_LAST_SEQ] if self.tag is None else q[ring._t0 + self.tag]
-                q[self._b + _R_ACTIVE] = 1
-
-    def deactivate(self) -> None:
-        with self.ring._mutex:
-            self.ring._q[self._b + _R_ACTIVE] = 0
-
-    @property
-    def active(self) -> bool:
-        return bool(self.ring._q[self._b + _R_ACTIVE])
-
-    @property
-    def cursor(self) -> int:
-        """Sequence number of the last slot this reader read (0: none); a tagged reader's, in its tag's sequence."""
-        return self.ring._q[self._b + _R_CURSOR]
-
-    # -------------------------------------------------------------------------------------------- reading
-    def _find(self, peek: bool, accept: Accept | None = None) -> int | None:
-        """The slot to pin next; ``accept(index, seq)``: only a slot it accepts. A peek then takes the newest such
-        slot; a read takes its usual slot only once accepted (never one out of order)."""
-        ring, q = self.ring, self.ring._q
-        cursor = q[self._b + _R_CURSOR]
-        fifo = self._mode == _MODE_CODE["fifo"] and not peek
-        tag = self.tag
-        best, best_seq = None, None
-        for i in range(ring.n_slots):
-            b = ring._slot(i)
-            if q[b + _S_STATE] != _PUBLISHED or (tag is not None and q[b + _S_TAG] != tag):
-                continue
-            seq = q[b + _S_SEQ]
-            if not peek and (seq if tag is None else q[b + _S_TAG_SEQ]) <= cursor:
-                continue
-            if peek and accept is not None and not accept(i, seq):
-                continue
-            if best_seq is None or (seq < best_seq if fifo else seq > best_seq):
-                best, best_seq = i, seq
-        if accept is not None and not peek and best is not None and best_seq is not None and not accept(best, best_seq):
-            return None
-        return best
-
-    def pin_origin(self, origin: int, tag: int | None = None) -> tuple[SlotInfo | None, int]:
-        """Pin (peek, no accounting) the published slot derived from input ``origin``, if still there.
-
-        Returns ``(slot or None, newest origin published so far)``; a newest origin past ``origin`` with no slot
-        means the frame was skipped or already overwritten. ``tag``: the newest among that camera's slots only
-        (Note [Tagged slots]): the cameras' frames are published each in its own order, not in one, so another
-        camera's newer frame says nothing about this one.
-        """
-        ring, q = self.ring, self.ring._q
-        b = self._b
-        with ring._mutex:
-            if q[b + _R_PINNED] >= 0:
-                raise RuntimeError(f"reader {self.name!r} of ring {ring.name!r} already pins a slot")
-            newest = 0
-            found = None
-            for i in range(ring.n_slots):
-                sb = ring._slot(i)
-                if q[sb + _S_STATE] != _PUBLISHED:
-                    continue
-                o = q[sb + _S_ORIGIN]
-                if tag is None or q[sb + _S_TAG] == tag:
-                    newest = max(newest, o)
-                if o == origin:
-                    found = i
-            if found is None:
-                return None, newest
-            q[b + _R_PINNED] = found
-            return ring._slot_info(found), newest
-
-    def pin_slot(self, slot: SlotInfo) -> SlotInfo | None:
-        """Pin the slot that ``slot`` (pinned by another reader) describes, without accounting; None if it no longer
-        holds that output (not published, or a different sequence number).
-
-        While the other reader still pins it the slot cannot change, so this reader takes it over and keeps it
-        after the other releases: how ``Engine`` lends a result without copying it (Note [Borrowed results]).
-        """
-        ring, q = self.ring, self.ring._q
-        b = self._b
-        with ring._mutex:
-            if q[b + _R_PINNED] >= 0:
-                raise RuntimeError(f"reader {self.name!r} of ring {ring.name!r} already pins a slot")
-            sb = ring._slot(slot.index)
-            if q[sb + _S_STATE] != _PUBLISHED or q[sb + _S_SEQ] != slot.seq:
-                return None
-            q[b + _R_PINNED] = slot.index
-            q[b + _R_PID] = ring._pid
-            return ring._slot_info(slot.index)
-
-    def available(self) -> bool:
-        with self.ring._mutex:
-            return self._find(False) is not None
-
-    def pin(
-        self,
-        timeout: float = 0.0,
-        should_stop: Callable[[], bool] | None = None,
-        peek: bool = False,
-        accept: Accept | None = None,
-    ) -> SlotInfo | None:
-        """Pin the next slot for this reader (newest unseen, or next in order for FIFO readers).
-
-        Waits up to ``timeout`` seconds for one (0: do not wait); returns None on timeout or when ``should_stop``
-        says so. ``peek`` pins the newest published slot even if already seen, without counting anything.
-        ``accept(index, seq)``: only a slot it accepts (e.g. one whose device work is done, when its writer
-        publishes queued work; whoever makes it accept more calls ``SlotRing.notify_readers``). The returned tensors are views into the pool: use them, then
-        :meth:`release`.
-        """
-        ring, q, u = self.ring, self.ring._q, self.ring._u
-        b = self._b
-        deadline = time.monotonic() + timeout
-        while True:
-            with ring._mutex:
-                if q[b + _R_PINNED] >= 0:
-                    raise RuntimeError(
-                        f"reader {self.name!r} of ring {ring.name!r} already pins slot {q[b + _R_PINNED]}; "
-                        "release it before pinning another"
-                    )
-                i = self._find(peek, accept)
-                if i is not None:
-                    return self._pin_locked(i, peek)
-                word = u[_PUBLISH_WORD_OFF // 4]
-            if should_stop is not None and should_stop():
-                return None
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return None
-            linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
-
-    def _pin_locked(self, i: int, peek: bool = False) -> SlotInfo:
-        """Pin published slot ``i`` and count the read (not a peek); the caller holds the ring's mutex."""
-        ring, q, b = self.ring, self.ring._q, self._b
-        q[b + _R_PINNED] = i
-        q[b + _R_PID] = ring._pid
-        info = ring._slot_info(i)
-        if not peek:
-            cursor = q[b + _R_CURSOR]
-            mine = info.seq if self.tag is None else info.tag_seq  # Note [Tagged slots]
-            if q[b + _R_ACTIVE]:
-                info.missed = mine - cursor - 1
-                q[b + _R_MISSED] += info.missed
-                q[b + _R_READS] += 1
-            q[b + _R_CURSOR] = mine
-        return info
-
-    def release(self, slot: SlotInfo | None = None) -> None:
-        """Unpin. The work that read the slot's tensors must be complete (see Note [Slot lifetime])."""
-        ring, q, u = self.ring, self.ring._q, self.ring._u
-        with ring._mutex:
-            if slot is not None and q[self._b + _R_PINNED] != slot.index:
-                raise RuntimeError(f"reader {self.name!r} does not pin slot {slot.index} of ring {ring.name!r}")
-            q[self._b + _R_PINNED] = -1
-            waiting = q[_H_WRITER_WAITING]
-            if waiting:
-                u[_RELEASE_WORD_OFF // 4] = (u[_RELEASE_WORD_OFF // 4] + 1) & 0xFFFFFFFF
-        if waiting:
-            linux.futex_wake(ring._release_addr)
-
-    def wait(self, timeout: float, should_stop: Callable[[], bool] | None = None) -> bool:
-        """Sleep until something is there to pin (without pinning it) or the timeout passes."""
-        ring, u = self.ring, self.ring._u
-        deadline = time.monotonic() + timeout
-        while True:
-            with ring._mutex:
-                if self._find(False) is not None:
-                    return True
-                word = u[_PUBLISH_WORD_OFF // 4]
-            if should_stop is not None and should_stop():
-                return False
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                return False
-            linux.futex_wait(ring._publish_addr, word, min(remaining, _MAX_SLEEP))
-
-    @contextmanager
-    def read(self, timeout: float = 0.0, peek: bool = False) -> Iterator[SlotInfo | None]:
-        """``with reader.read(timeout) as slot:`` pins, yields (None on timeout) and always releases."""
-        slot = self.pin(timeout, peek=peek)
-        try:
-            yield slot
-        finally:
-            if slot is not None:
-                self.release(slot)
+        return self._q[H_LAST_SEQ]
 
 
 def latest_buffer(name: str, specs: SpecDict, readers: list[str], n_slots: int | None = None, **kw: object) -> SlotRing:

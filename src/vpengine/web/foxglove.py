@@ -19,12 +19,17 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Any
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from vpengine.visualize import head_kind
-from vpengine.web.pictures import FrameLookup, Pictures, in_frame_grid
+from vpengine.web.pictures import FrameLookup, Pictures
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
+    from vpengine.web.pictures import EngineRef
 from vpengine.web.server import is_loopback
 
 log = logging.getLogger("vpengine.web")
@@ -89,7 +94,7 @@ class FoxgloveView:
 
     def __init__(
         self,
-        engine: Any,
+        engine: EngineRef,
         host: str = "127.0.0.1",
         port: int = 8765,
         frames: FrameLookup | None = None,
@@ -111,7 +116,7 @@ class FoxgloveView:
             )
         if not hz > 0:
             raise ValueError(f"hz must be > 0, got {hz!r}")
-        self._get_engine = engine if callable(engine) else (lambda: engine)
+        self._get_engine: Callable[[], Engine | None] = engine if callable(engine) else (lambda: engine)
         self.pictures = pictures or Pictures(frames, frame_color)
         self.period, self.width, self.ns = 1.0 / hz, width, namespace.rstrip("/")
         self._context = foxglove.Context()
@@ -131,7 +136,7 @@ class FoxgloveView:
     def url(self) -> str:
         return f"ws://127.0.0.1:{self.port}"
 
-    def _heads(self, engine: Any) -> dict[tuple[str | None, str], tuple[Any, Any | None]]:
+    def _heads(self, engine: Engine) -> dict[tuple[str | None, str], tuple[Any, Any | None]]:
         """The channels of every head and camera it serves (made once the engine is there: the ROS 2 core's may
         start late)."""
         if not self._channels:
@@ -186,7 +191,7 @@ class FoxgloveView:
                 if result is not None and result.seq == pic.seq:  # the boxes of the picture's own result
                     scale = pic.width / result.frame_size[1]  # the picture's frame grid (Note [Pictures and frames])
                     labels = engine.head_info(head).get("labels")
-                    outputs = in_frame_grid(result, dict(result.outputs), engine.boundary.kinds[head])
+                    outputs = engine.boundary.to_frame(head, dict(result.outputs), result.placement)
                     boxes.log(image_annotations(outputs, labels, scale, pic.capture_time), log_time=t_ns)
                     self.sent += 1
 

@@ -16,10 +16,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterator
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric, SummaryMetricFamily
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
 
 _COUNTERS = {
     "runs": "Runs of the model.",
@@ -38,7 +41,7 @@ def _finite(v: Any) -> float | None:
 class EngineCollector:
     """A prometheus-client collector over ``engine()`` (an Engine, or None while there is none)."""
 
-    def __init__(self, engine: Callable[[], Any]) -> None:
+    def __init__(self, engine: Callable[[], Engine | None]) -> None:
         self._engine = engine
 
     def collect(self) -> Iterator[Metric]:
@@ -99,7 +102,7 @@ class EngineCollector:
         yield g
 
 
-def registry(engine: Callable[[], Any]) -> CollectorRegistry:
+def registry(engine: Callable[[], Engine | None]) -> CollectorRegistry:
     """A registry of its own (not prometheus-client's global one) holding an :class:`EngineCollector`."""
     reg = CollectorRegistry(auto_describe=False)
     reg.register(EngineCollector(engine))

@@ -3,18 +3,19 @@
 Note [Pictures and frames]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~
 Segmentation overlays and detection boxes are drawn on the input frame, which the engine does not keep. Whoever
-feeds the engine (``vpengine run``'s loop, the ROS 2 core) keeps recent frames by frame id and lends a lookup:
-``frames(frame_id) -> image or None``. A picture is drawn on the frame *of the result's own frame id* or on
-nothing (a dark canvas of the frame's size): never on the newest frame, which would pair a result with a frame it
-was not computed from. ``Picture.on_frame`` says which it was.
+feeds the engine (a pipeline, the ROS 2 core) keeps recent frames by frame id in one store,
+:class:`vpengine.recent_frames.RecentFrames`, and lends its lookup: ``frames.frame(frame_id) -> image or None``.
+A picture is drawn on the frame *of the result's own frame id* or on nothing (a dark canvas of the frame's size):
+never on the newest frame, which would pair a result with a frame it was not computed from. ``Picture.on_frame`` says which it was.
 
 The picture is drawn in the result's frame's own grid (``Result.frame_size``, Note [Frame grid] in boundary.py),
 never in the config's input size: a frame of another size than the input gets its overlays at its own size, and a
-head that keeps the native grid (``Result.grid == "native"``) has its outputs mapped to the frame by
-``Result.placement`` first. A kept frame of another size than the result's is not its frame.
+head that keeps the native grid (``Result.grid == "native"``) has its outputs mapped to the frame first, through
+the boundary's door out (``Boundary.to_frame``), as the engine maps every other head's. A kept frame of another
+size than the result's is not its frame.
 
 Cost: nothing runs until a picture is requested. A request takes the head's newest result borrowed (no copy of
-its outputs, Note [Borrowed results] in ``engine.py``), draws at the requested width (shrinking first, so a 1080p
+its outputs, Note [Borrowed results] in ``results.py``), draws at the requested width (shrinking first, so a 1080p
 overlay costs what a 640-pixel one does) and encodes. One lock serialises the drawing, so any number of viewers use
 at most one core; a picture younger than ``1 / max_hz`` is served again as it is, so they draw each head at most
 ``max_hz`` times a second whatever they ask for.
@@ -26,12 +27,19 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from vpengine import visualize
 from vpengine.visualize import head_kind
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
+
+    #: The engine a view shows: an Engine, or a callable returning it or None (one that starts later, as the ROS 2
+    #: core's may)
+    EngineRef = Engine | Callable[[], Engine | None]
 
 #: frame id -> the input frame it names (HxWx3 uint8), or None once it is forgotten
 FrameLookup = Callable[[int], "np.ndarray | None"]
@@ -116,16 +124,6 @@ def render(
     return None
 
 
-def in_frame_grid(result: Any, outputs: dict[str, Any], kinds: dict[str, Any]) -> dict[str, Any]:
-    """``outputs`` (host arrays) of ``result`` in its frame's grid: those of a head that keeps the native grid are
-    mapped by the result's placement, each as the engine maps it (``kinds``: the head's entry of
-    ``Engine.boundary.kinds``; Note [Pictures and frames])."""
-    placement = result.placement
-    if result.grid != "native" or placement is None or placement.identity:
-        return outputs
-    return {k: placement.to_frame(kinds[k], v) if k in kinds else v for k, v in outputs.items()}
-
-
 class Pictures:
     """JPEGs of heads' newest results for a running engine (Note [Pictures and frames])."""
 
@@ -143,7 +141,7 @@ class Pictures:
         self._infos: dict[str, dict[str, Any]] = {}
         self.made = 0  # pictures drawn and encoded (not served from the cache)
 
-    def _info(self, engine: Any, head: str) -> dict[str, Any]:
+    def _info(self, engine: Engine, head: str) -> dict[str, Any]:
         info = self._infos.get(head)
         if info is None:
             info = self._infos[head] = engine.head_info(head)
@@ -160,7 +158,9 @@ class Pictures:
             return None
         return frame[..., ::-1] if self.frame_color == "rgb" else frame
 
-    def latest(self, engine: Any, head: str, width: int = DEFAULT_WIDTH, camera: str | None = None) -> Picture | None:
+    def latest(
+        self, engine: Engine, head: str, width: int = DEFAULT_WIDTH, camera: str | None = None
+    ) -> Picture | None:
         """The newest picture of ``head`` at most ``width`` pixels wide (KeyError for an unknown head), or None while
         it has no result (or no picture: a ``generic`` head). ``camera``: of that camera's frames (ValueError for one
         the head does not serve); None: the newest of any camera's. A picture younger than ``1 / max_hz`` comes
@@ -184,9 +184,7 @@ class Pictures:
             frame = self._frame(result.frame_id)
             if frame is not None and frame.shape[:2] != size:
                 frame = None  # not the frame these outputs were computed from
-            outputs = in_frame_grid(
-                result, {k: _host(v) for k, v in result.outputs.items()}, engine.boundary.kinds[head]
-            )
+            outputs = engine.boundary.to_frame(head, {k: _host(v) for k, v in result.outputs.items()}, result.placement)
             image = render({**info, "frame_size": size}, outputs, frame, width)
             if image is None:
                 return None

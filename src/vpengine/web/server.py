@@ -40,10 +40,15 @@ from collections.abc import Callable
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import parse_qs, unquote, urlsplit
 
+from vpengine import checks
 from vpengine.web.pictures import DEFAULT_WIDTH, FrameLookup, Pictures
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
+    from vpengine.web.pictures import EngineRef
 
 log = logging.getLogger("vpengine.web")
 
@@ -77,19 +82,16 @@ def _json_safe(v: Any) -> Any:
     return str(v)
 
 
-def parse_rate(body: bytes) -> float | None:
-    """The ``hz`` of a ``PUT /api/rate`` body; ValueError saying what is accepted."""
-    want = 'a JSON object {"hz": RATE} with RATE a number >= 0 (0 pauses) or null (unlimited)'
+def parse_rate(body: bytes, model: str) -> float | None:
+    """The ``hz`` of a ``PUT /api/rate/<model>`` body; ValueError saying what is accepted."""
+    want = f'a JSON object {{"hz": RATE}} with RATE a number from 0 to {checks.MAX_RATE_HZ:g} (0 pauses) or null (no limit)'
     try:
         doc = json.loads(body or b"null")
     except (ValueError, UnicodeDecodeError):
         raise ValueError(f"expected {want}; the body is not JSON") from None
     if not isinstance(doc, dict) or "hz" not in doc:
         raise ValueError(f"expected {want}; got {doc!r}"[:300])
-    hz = doc["hz"]
-    if hz is not None and (isinstance(hz, bool) or not isinstance(hz, (int, float))):
-        raise ValueError(f"expected {want}; got hz={hz!r}"[:300])
-    return None if hz is None else float(hz)
+    return checks.rate(model, doc["hz"])
 
 
 class WebServer:
@@ -103,7 +105,7 @@ class WebServer:
 
     def __init__(
         self,
-        engine: Any,
+        engine: EngineRef,
         host: str = "127.0.0.1",
         port: int = 0,
         token: str | None = None,
@@ -117,7 +119,7 @@ class WebServer:
         token = token or None
         if not is_loopback(host) and token is None:
             raise ValueError(f"serving on {host!r} reaches beyond this machine: give a token, or bind to 127.0.0.1")
-        self._get_engine: Callable[[], Any] = engine if callable(engine) else (lambda: engine)
+        self._get_engine: Callable[[], Engine | None] = engine if callable(engine) else (lambda: engine)
         self.token = token
         self.pictures = Pictures(frames, frame_color)
         self._page: bytes | None = None
@@ -143,7 +145,7 @@ class WebServer:
         return f"http://{f'[{host}]' if ':' in host else host}:{self.port}/"
 
     @property
-    def engine(self) -> Any:
+    def engine(self) -> Engine | None:
         return self._get_engine()
 
     def page(self) -> bytes:
@@ -163,7 +165,7 @@ class WebServer:
             self._metrics = registry(self._running_engine)
         return generate_latest(self._metrics), CONTENT_TYPE_LATEST
 
-    def _running_engine(self) -> Any:
+    def _running_engine(self) -> Engine | None:
         eng = self._get_engine()
         return eng if eng is not None and eng.running else None
 
@@ -191,7 +193,7 @@ class WebServer:
 
 
 def serve(
-    engine: Any,
+    engine: EngineRef,
     port: int = 8080,
     host: str = "127.0.0.1",
     token: str | None = None,
@@ -310,7 +312,7 @@ class _Handler(BaseHTTPRequestHandler):
                 "a token is required: Authorization: Bearer <token>, or ?token=<token> in the address",
             )
 
-    def _engine(self) -> Any:
+    def _engine(self) -> Engine:
         eng = self.view.engine
         if eng is None or not eng.running:
             state = "not started yet" if eng is None else "not running"
@@ -335,7 +337,7 @@ class _Handler(BaseHTTPRequestHandler):
     def _put_rate(self, model: str, body: bytes) -> None:
         eng = self._engine()
         try:
-            hz = parse_rate(body)
+            hz = parse_rate(body, model)
             eng.set_rate(model, hz)
         except (ValueError, KeyError) as e:
             raise _HttpError(HTTPStatus.BAD_REQUEST, str(e.args[0]) if e.args else str(e)) from None

@@ -19,7 +19,7 @@ import contextlib
 import time
 from typing import Any
 
-from vpengine.cli import add_overrides_argument
+from vpengine.arguments import add_overrides_argument
 
 EXPERIMENTS = ("E1", "E2", "E3", "E4", "E5", "floor")
 

@@ -1,5 +1,5 @@
-"""How ``vpengine run`` feeds its sources to the engine: lockstep or realtime pacing, one feed per camera, and
-what Ctrl-C does to a run (Notes [Several sources] and [Ctrl-C]).
+"""How a pipeline feeds its sources to the engine: lockstep or realtime pacing, one feed per camera, and what
+Ctrl-C does to a run (Notes [Several sources] and [Ctrl-C]).
 """
 
 from __future__ import annotations
@@ -12,7 +12,13 @@ import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+from vpengine.io.base import Frame, Source
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
+    from vpengine.results import Result
 
 log = logging.getLogger("vpengine.run")
 
@@ -22,11 +28,25 @@ class Feed:
     """One camera's source in the frame loop (Note [Several sources])."""
 
     camera: str | None  # None: the engine's one camera, unnamed
-    source: Any
+    source: Source
     period: float  # its pace and the spacing of its stamps when its frames have none
     self_paced: bool  # a live camera without --fps: it delivers at its own rate (Note [Live capture])
-    frames: Iterator[Any]
+    frames: Iterator[Frame]
     submitted: int = 0
+
+
+@dataclass
+class FrameLoop:
+    """What both pacings take: the feeds, when to stop, and the pipeline's three steps (``submit`` a feed's frame
+    and return its frame id, ``handle`` results, report ``progressed`` frames)."""
+
+    feeds: list[Feed]
+    max_frames: int | None
+    stop: threading.Event
+    submit: Callable[[Feed, Frame, float | None], int]
+    engine: Engine
+    handle: Callable[[Iterable[Result]], None]
+    progressed: Callable[[int], None]
 
 
 # Note [Several sources]: with several cameras (``--source NAME=SPEC`` repeated) each source feeds its own camera,
@@ -36,22 +56,14 @@ class Feed:
 # drops out while the others go on. Realtime feeds each source from a thread of its own at its own rate (a live
 # camera at its own pace, Note [Live capture]), as separate cameras would deliver; the loop collects the results.
 # One source is the same loop with one feed.
-def lockstep(
-    feeds: list[Feed],
-    max_frames: int | None,
-    stop: threading.Event,
-    submit: Callable[[Feed, Any, float | None], int],
-    engine: Any,
-    handle: Callable[[Iterable[Any]], None],
-    progressed: Callable[[int], None],
-) -> None:
-    active = list(feeds)
+def lockstep(loop: FrameLoop) -> None:
+    active = list(loop.feeds)
     done = 0
-    while active and not stop.is_set():
+    while active and not loop.stop.is_set():
         fids = []
         for feed in list(active):
             frame = None
-            if max_frames is None or feed.submitted < max_frames:
+            if loop.max_frames is None or feed.submitted < loop.max_frames:
                 frame = next(feed.frames, None)
             if frame is None:
                 active.remove(feed)
@@ -59,26 +71,19 @@ def lockstep(
             stamp = frame.timestamp
             if stamp is None:  # a file without stamps: its own timeline at its pace
                 stamp = feed.submitted * feed.period
-            fids.append(submit(feed, frame, stamp))
+            fids.append(loop.submit(feed, frame, stamp))
         for fid in fids:
             try:
-                handle(engine.wait(fid, timeout=60.0).values())
+                loop.handle(loop.engine.wait(fid, timeout=60.0).values())
             except TimeoutError as e:
                 log.warning("%s", e)
         done += len(fids)
-        progressed(done)
+        loop.progressed(done)
 
 
-def realtime(
-    feeds: list[Feed],
-    max_frames: int | None,
-    stop: threading.Event,
-    submit: Callable[[Feed, Any, float | None], int],
-    engine: Any,
-    handle: Callable[[Iterable[Any]], None],
-    progressed: Callable[[int], None],
-) -> None:
+def realtime(loop: FrameLoop) -> None:
     errors: list[BaseException] = []
+    stop, max_frames = loop.stop, loop.max_frames
 
     def feed_loop(feed: Feed) -> None:
         next_t = time.monotonic()
@@ -91,29 +96,29 @@ def realtime(
                     if wait > 0 and stop.wait(wait):
                         return
                     next_t = max(next_t + feed.period, time.monotonic() - feed.period)
-                submit(feed, frame, frame.timestamp)
+                loop.submit(feed, frame, frame.timestamp)
         except BaseException as e:
             errors.append(e)
             stop.set()  # one failed source ends the run, as it did alone
 
     threads = [
         threading.Thread(target=feed_loop, args=(f,), name=f"vpengine-feed-{f.camera or 'camera'}", daemon=True)
-        for f in feeds
+        for f in loop.feeds
     ]
     for t in threads:
         t.start()
     try:
         while any(t.is_alive() for t in threads):
-            handle(engine.results(timeout=0.05))
-            progressed(sum(f.submitted for f in feeds))
+            loop.handle(loop.engine.results(timeout=0.05))
+            loop.progressed(sum(f.submitted for f in loop.feeds))
     except BaseException:
         stop.set()  # a second Ctrl-C, a failed writer: the feeds end at their next frame
         raise
     finally:
         for t in threads:
             t.join(timeout=2.0)
-    handle(engine.results(0))
-    progressed(sum(f.submitted for f in feeds))
+    loop.handle(loop.engine.results(0))
+    loop.progressed(sum(f.submitted for f in loop.feeds))
     if errors:
         raise errors[0]
 

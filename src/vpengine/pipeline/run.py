@@ -1,0 +1,258 @@
+"""A pipeline: frames from sources into an engine, its results out to sinks, and a summary of the run.
+
+Pacing decides what happens when models are slower than the source:
+
+* ``lockstep`` (default for files): the next frame goes in once every head has answered the previous one, with an
+  output or, when its rate limit holds the frame back, with none (Note [Answered frames]), so nothing is skipped
+  by accident and the run is as fast as the heads that run on each frame allow. Rate limits run on the source's own
+  timeline: a video's frames by their position, a folder's at ``fps`` (default 30), a bag's by their stamps;
+* ``realtime`` (default for cameras and the synthetic scene, ``Source.pace``): frames go in at the source's rate
+  like a live camera; models take the newest frame and every frame they skip is counted in the summary.
+
+Several cameras: a source for each, by camera name; every source feeds its camera on its own timeline (Note
+[Several sources] in ``vpengine.pipeline.pacing``), outputs go to ``DIR/<camera>/<head>/``, and the summary counts
+per camera as well as per model.
+
+A camera is read on its own thread and the loop takes its newest frame; frames it replaced are counted too (Note
+[Live capture] in ``vpengine.io.sources``). Outputs are written on a writer thread (Note [Sink thread] in
+``vpengine.io.sinks``). Ctrl-C ends the run after the frame in hand and still makes and writes the summary (Note
+[Ctrl-C] in ``vpengine.pipeline.pacing``).
+
+::
+
+    with Pipeline(config, source, out_dir) as pipe:   # the engine started, the sinks made
+        ...                                           # e.g. a live view of pipe.engine drawing on pipe.frames
+        summary = pipe.run()                          # frames in until the source ends; sinks closed
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import logging
+import threading
+import time
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from vpengine.config import EngineConfig, config_for_cameras
+from vpengine.engine import Engine
+from vpengine.io.base import Frame, Source
+from vpengine.io.sinks import AnnotatedSink, FolderSink, Sink, SinkThread, per_camera
+from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, realtime
+from vpengine.pipeline.summary import Tally, summarize, write_summary
+from vpengine.recent_frames import RecentFrames
+from vpengine.results import Result
+
+log = logging.getLogger("vpengine.run")
+
+#: Makes an extra sink from the heads' ``head_info`` and the heads each camera has (camera -> head names).
+SinkFactory = Callable[[dict[str, dict[str, Any]], dict[str, list[str]]], Sink]
+#: Input frames kept per source for the sinks and pictures that draw on them (Note [Pictures and frames]).
+FRAMES_KEPT = 64
+
+
+class Pipeline:
+    """``config`` over ``source``: a context manager that starts the engine and makes the sinks, and :meth:`run`.
+
+    ``source``: one source, or camera name -> source for several cameras (Note [Several sources]); the engine's
+    cameras are then those names (``config_for_cameras``). ``out_dir`` gets every head's outputs (unless ``folder``
+    is False; ``out_dir/<camera>/`` each with several cameras) and the summary; ``video`` an annotated mp4 (Note
+    [Annotated frames]; one per camera, :func:`video_paths`). ``sink_factories`` make extra sinks (e.g. a rosbag2
+    BagSink); each gets every result with its input frame and name, like the folder sink. Every sink is made,
+    written and closed on one writer thread, not the caller's (Note [Sink thread] in ``vpengine.io.sinks``).
+    ``max_frames`` counts per source. ``frames`` keeps the recent input frames by frame id, for a live view."""
+
+    def __init__(
+        self,
+        config: EngineConfig | str | Path,
+        source: Source | Mapping[str | None, Source],
+        out_dir: str | Path | None = None,
+        pace: str | None = None,
+        fps: float | None = None,
+        max_frames: int | None = None,
+        save_every: int = 1,
+        viz: bool = False,
+        progress: bool = True,
+        sink_factories: Sequence[SinkFactory] = (),
+        depth_format: str = "png16",
+        video: str | Path | None = None,
+        folder: bool = True,
+    ) -> None:
+        self.sources: dict[str | None, Source] = dict(source) if isinstance(source, Mapping) else {None: source}
+        names = [c for c in self.sources if c is not None] or None
+        colors = {s.color for s in self.sources.values()}
+        if len(colors) != 1:
+            raise ValueError(f"the sources deliver frames in different channel orders ({sorted(colors)})")
+        # frames of any size go in as they are (Note [Frame grid] in boundary.py): the pipeline resizes nothing itself
+        self.config = config_for_cameras(config, names, [f"input.color={colors.pop()}"])
+        self.pace = pace or ("realtime" if any(s.pace == "realtime" for s in self.sources.values()) else "lockstep")
+        if self.pace not in ("realtime", "lockstep"):
+            raise ValueError(f"pace must be 'realtime' or 'lockstep', got {self.pace!r}")
+        self.out_dir, self.fps, self.max_frames, self.progress = out_dir, fps, max_frames, progress
+        self._sinks = (save_every, viz, list(sink_factories), depth_format, video, folder)
+        self.frames: RecentFrames[str] = RecentFrames(FRAMES_KEPT * len(self.sources))
+        # held around submit-and-add and by the lookup of a result's frame: a result may come back before submit
+        # returns, and must find its frame
+        self._submitting = threading.Lock()
+        self.tally = Tally()
+        self.feeds: list[Feed] = []
+
+    # ---------------------------------------------------------------------------------------- start, stop
+    def __enter__(self) -> Pipeline:
+        self.engine = Engine(self.config)
+        t0 = time.monotonic()
+        self.engine.start()
+        log.info("engine started in %.1f s", time.monotonic() - t0)
+        try:
+            self.heads = list(self.engine.plan.heads)
+            # camera -> the heads that serve it (a head may serve some cameras only)
+            self.served = {c: [h for h in self.heads if c in self.config.model_cameras(h)] for c in self.engine.cameras}
+            self.writer = self._make_writer()
+        except BaseException:
+            self.engine.stop()
+            raise
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        try:
+            self.writer.close()  # done already after run(); writes what is queued; raises a sink's error
+        finally:
+            self.engine.stop()
+
+    def _make_writer(self) -> SinkThread:
+        save_every, viz, sink_factories, depth_format, video, folder = self._sinks
+        info = {h: self.engine.head_info(h) for h in self.heads}
+        factories: list[Callable[[], Sink]] = []
+        if self.out_dir and folder:
+            out = Path(self.out_dir)
+
+            def folders(camera: str | None, infos: dict[str, dict[str, Any]]) -> Sink:
+                return FolderSink(out / (camera or ""), infos, viz, save_every, depth_format)
+
+            factories.append(functools.partial(per_camera, self.served, info, folders))
+        if video:
+            paths = video_paths(video, list(self.served) if len(self.served) > 1 else None)
+
+            def videos(camera: str | None, infos: dict[str, dict[str, Any]]) -> Sink:
+                s = self.sources[camera] if camera is not None else next(iter(self.sources.values()))
+                return AnnotatedSink(infos, video=paths[camera], fps=self.fps or s.fps or 30.0)
+
+            factories.append(functools.partial(per_camera, self.served, info, videos))
+        factories += [functools.partial(make, info, self.served) for make in sink_factories]
+        self._writes = bool(factories)
+        # Note [Sink thread]: lockstep waits for the writer (nothing lost), a live source never does (counted)
+        pending = 4 * max(len(self.heads), 1) * len(self.served)
+        return SinkThread(factories, max_pending=pending, block=self.pace == "lockstep")
+
+    # ---------------------------------------------------------------------------------------------- run
+    def run(self) -> dict[str, Any]:
+        """Feed every frame (up to ``max_frames`` a source) or until Ctrl-C, write the outputs, and return the
+        summary (also written to ``out_dir/summary.json``); the summary says ``interrupted`` after a Ctrl-C
+        (Note [Ctrl-C])."""
+        from tqdm import tqdm
+
+        self.feeds = [
+            Feed(camera, s, 1.0 / (self.fps or s.fps or 30.0), self.fps is None and s.live, iter(s))
+            for camera, s in self.sources.items()
+        ]
+        lengths = [min(len(s) or self.max_frames or 0, self.max_frames or len(s)) for s in self.sources.values()]
+        total = sum(lengths) if all(lengths) else None  # None: a source of unknown length
+        self._bar = tqdm(total=total, unit="frame", disable=not self.progress, mininterval=0.5, dynamic_ncols=True)
+        t_start = time.monotonic()
+        try:
+            with ctrl_c() as stop:
+                self._feed(stop)
+                interrupted = stop.is_set()
+            wall = time.monotonic() - t_start
+            stats = self.engine.stats()
+        finally:
+            self._end_feeds()
+        summary = summarize(self, interrupted, wall, stats)
+        if self.out_dir is not None:
+            write_summary(self.out_dir, summary)
+        return summary
+
+    def _feed(self, stop: threading.Event) -> None:
+        loop = FrameLoop(self.feeds, self.max_frames, stop, self._submit, self.engine, self._handle, self._progressed)
+        if self.pace == "lockstep":
+            lockstep(loop)
+            return
+        self.engine.results(0)  # start the result stream before the first frame
+        realtime(loop)
+        deadline = time.monotonic() + 2.0  # let in-flight frames finish
+        while time.monotonic() < deadline and not stop.is_set():
+            res = self.engine.results(timeout=0.2)
+            self._handle(res)
+            if not res:
+                break
+
+    def _end_feeds(self) -> None:
+        for f in self.feeds:
+            close = getattr(f.frames, "close", None)  # a generator's clean-up (a camera's reader thread)
+            if close is not None:
+                with contextlib.suppress(ValueError):  # still running in a feed that did not end in time
+                    close()
+        self._bar.close()
+        self.writer.close()  # writes what is queued; raises a sink's error
+
+    # ------------------------------------------------------------------------------------ the loop's steps
+    def _submit(self, feed: Feed, frame: Frame, stamp: float | None) -> int:
+        with self._submitting:
+            fid = self.engine.submit(frame.image, timestamp=stamp, camera=feed.camera)
+            self.frames.add(fid, frame.name or f"{fid:06d}", frame.image)
+        feed.submitted += 1
+        return fid
+
+    def _handle(self, results: Iterable[Result]) -> None:
+        for r in results:
+            key = self.tally.add(r)
+            with self._submitting:
+                frame, name = self.frames.frame(r.frame_id), self.frames.tag(r.frame_id)
+            if self._writes and not self.writer.put(r, frame, name or str(r.frame_id)):
+                self.tally.unwritten[key] += 1
+
+    def _progressed(self, done: int) -> None:
+        bar = self._bar
+        if done > bar.n:
+            before, after = bar.n // 10, done // 10
+            bar.update(done - bar.n)
+            if after > before:
+                st = self.engine.stats()["models"]
+                bar.set_postfix_str(" ".join(f"{n}={m['achieved_hz']:.1f}Hz" for n, m in st.items()), refresh=False)
+
+
+def run_pipeline(
+    config: EngineConfig | str | Path,
+    source: Source | Mapping[str | None, Source],
+    out_dir: str | Path | None = None,
+    **options: Any,
+) -> dict[str, Any]:
+    """Run ``config`` over ``source`` (:class:`Pipeline`'s arguments); returns the summary."""
+    with Pipeline(config, source, out_dir, **options) as pipe:
+        return pipe.run()
+
+
+def video_paths(video: str | Path, cameras: Sequence[str] | None) -> dict[str | None, Path]:
+    """Where ``--video PATH`` writes: PATH itself for one camera (key None), ``<stem>_<camera><suffix>`` beside it
+    for each of several cameras."""
+    p = Path(video)
+    if not cameras:
+        return {None: p}
+    return {c: p.with_name(f"{p.stem}_{c}{p.suffix}") for c in cameras}
+
+
+@contextlib.contextmanager
+def open_sources(
+    wanted: Mapping[str | None, tuple[str, str | None]], fps: float | None = None, strict: bool = False
+) -> Iterator[dict[str | None, Source]]:
+    """Every source wanted (camera name -> (source spec, bag topic)), open for the block (closed after it, also when
+    one fails to open)."""
+    from vpengine.io.sources import open_source
+
+    with contextlib.ExitStack() as stack:
+        yield {
+            camera: stack.enter_context(open_source(spec, topic=topic, fps=fps, strict=strict))
+            for camera, (spec, topic) in wanted.items()
+        }

@@ -42,13 +42,16 @@ import torch
 from vpengine import checks
 from vpengine.boundary import Boundary, Placement, buffer_for
 from vpengine.config import EngineConfig, load_config
+from vpengine.engine_stats import memory_report, model_stats
+from vpengine.intake import FrameSlot
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.models.weights import check_checkpoints
 from vpengine.results import Outbox, Result
-from vpengine.runtime.control import ControlBlock, camera_entry, control_names, reader_name
+from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.gpu import CudaSetup, prepare_cuda, worker_env
 from vpengine.runtime.handoff import Handoffs
+from vpengine.runtime.lanes import Lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
 from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
 from vpengine.runtime.worker import WorkerSpec
@@ -56,7 +59,7 @@ from vpengine.transport.ring import SlotInfo, SlotRing
 
 log = logging.getLogger("vpengine")
 
-__all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"]  # Result: from results.py
+__all__ = ["Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"]  # FrameSlot, Result: re-exported
 
 _ORIGINS_KEPT = 8192
 
@@ -119,113 +122,6 @@ class _Resources:
             self.control = None
 
 
-class FrameSlot:
-    """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
-
-    def __init__(
-        self,
-        engine: Engine,
-        frame_id: int | None,
-        timestamp: float | None,
-        size: tuple[int, int] | None,
-        camera: int,
-    ) -> None:
-        self._engine = engine
-        self._camera = camera
-        # capture time in seconds; may be set inside the block (default: when it ends)
-        self.timestamp = timestamp
-        self._frame_id_arg = frame_id
-        self._size = size
-        self.frame_id: int | None = None  # set when the block ends and the frame is submitted
-        self._array: np.ndarray | None = None
-        self._slot: SlotInfo | None = None
-        self._cancelled = False
-
-    @property
-    def array(self) -> np.ndarray | None:
-        """The writable frame: ``(height, width, 3)`` of the input dtype (None outside the block)."""
-        return self._array
-
-    @array.setter
-    def array(self, value: np.ndarray) -> None:
-        """``ok, slot.array = cap.read(image=slot.array)``: what a writer hands back must be the lent array itself.
-        A writer that allocated a new array instead (OpenCV does when the sizes differ) wrote nothing into the
-        slot: refused, naming both sizes, rather than submitting whatever the slot held before."""
-        arr = self._array
-        if arr is None:
-            raise RuntimeError("a FrameSlot's array exists only inside its with-block")
-        if not isinstance(value, np.ndarray) or value.__array_interface__["data"][0] != arr.ctypes.data:
-            got = (
-                f"{value.shape[1]}x{value.shape[0]}"
-                if isinstance(value, np.ndarray) and value.ndim >= 2
-                else (type(value).__name__)
-            )
-            raise ValueError(
-                f"the frame was written into a new {got} array, not into the {arr.shape[1]}x{arr.shape[0]} slot "
-                f"(a writer allocates one when the sizes differ): open the slot with frame_slot(size=(height, width)) "
-                "of your frames"
-            )
-        if value.shape != arr.shape or value.dtype != arr.dtype:
-            raise ValueError(
-                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: open the slot "
-                "with frame_slot(size=(height, width)) of your frames"
-            )
-
-    def cancel(self) -> None:
-        """Submit nothing when the block ends (e.g. the camera returned no frame)."""
-        self._cancelled = True
-
-    def __enter__(self) -> FrameSlot:
-        eng = self._engine
-        if self._slot is not None or self.frame_id is not None or self._cancelled:
-            raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
-        fence = eng._res.fence
-        fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
-        eng._submit_lock.acquire()
-        try:
-            eng._require_running()
-            slot = eng._acquire_input()
-        except BaseException:
-            eng._submit_lock.release()
-            fence.leave()
-            raise
-        eng._filling = threading.get_ident()
-        self._slot = slot
-        # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
-        # (Note [Frame grid] in boundary.py)
-        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._size)
-        return self
-
-    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
-        eng, slot, arr = self._engine, self._slot, self._array
-        assert slot is not None and arr is not None
-        self._array, self._slot = None, None  # the slot is the engine's again: no writes after the block
-        try:
-            if exc_type is not None or self._cancelled or eng._state != "running":
-                eng._input_writer.abort(slot)
-                return
-            t_submit = time.monotonic()
-            try:
-                stamp = checks.timestamp(self.timestamp)  # may have been set inside the block
-            except ValueError:
-                eng._input_writer.abort(slot)
-                raise
-            t_capture = time.time() if stamp is None else stamp
-            if self._size is None:
-                placement = eng.boundary.placement(arr.shape[:2])
-            else:
-                try:
-                    placement = eng.boundary.write(eng.boundary.check(arr), eng._frame_views[slot.index])
-                except BaseException:
-                    eng._input_writer.abort(slot)
-                    raise
-            self.frame_id = eng._publish_input(slot, self._frame_id_arg, t_capture, t_submit, placement, self._camera)
-        finally:
-            eng._filling = None
-            eng._submit_lock.release()
-            eng._res.fence.leave()
-
-
 class Engine:
     """One foundation model shared by many heads. See the module docstring for a tour."""
 
@@ -279,11 +175,10 @@ class Engine:
                 res.rings[m["name"]] = SlotRing.create(**m)
             if cfg.logging.file:
                 res.log_file = log_to_file(cfg.logging.file, cfg.logging.level, "engine")
-            served = {m: cfg.model_cameras(m) for m in cfg.model_names()}
-            res.control = ControlBlock.create(control_names(served, self.cameras))
-            for m, cams in served.items():
-                for c in cams:  # Note [Cameras]: a rate per camera
-                    res.control.set_rate(camera_entry(m, c, self.cameras), cfg.model(m).rate_hz)
+            res.control = ControlBlock.create(self.lanes.control_names())
+            for lanes in self.lanes.by_model.values():
+                for lane in lanes:  # Note [Cameras]: a rate per camera
+                    res.control.set_rate(lane.entry, lane.rate_hz)
             specs = self._worker_specs()
             if shared:
                 from vpengine.runtime.process import ProcessRunner
@@ -312,12 +207,11 @@ class Engine:
             self._handoffs,
             self.boundary,
             self._placements,
-            self.cameras,
-            {m: cfg.model_cameras(m) for m in cfg.model_names()},
+            self.lanes,
         )
         self._t_start = time.monotonic()
         self._state = "running"
-        self.memory_report = self._memory_report()
+        self.memory_report = memory_report(res.rings, res.control, device)
         log.info(
             "engine %r running: %s mode on %s, foundation %s + heads %s; mailboxes %.1f MB host, %.1f MB device",
             cfg.name,
@@ -340,8 +234,8 @@ class Engine:
                 config=dump,
                 upstream=plan.frame_spec,
                 upstream_meta={},
+                lanes=plan.lanes.of("foundation"),
                 in_ring=rings["input"].desc,
-                in_reader="foundation",
                 out_ring=rings["features"].desc,
                 notify_output=False,
             )
@@ -354,45 +248,13 @@ class Engine:
                     config=dump,
                     upstream=plan.features,
                     upstream_meta=plan.feature_meta,
+                    lanes=plan.lanes.of(name),
                     in_ring=rings["features"].desc,
-                    in_reader=name,
                     out_ring=rings[f"out.{name}"].desc,
                     notify_output=True,
                 )
             )
         return specs
-
-    def _memory_report(self) -> dict[str, Any]:
-        rings = self._res.rings
-        per = {
-            n: {
-                "bytes": r.layout.total_bytes,
-                "slots": r.n_slots,
-                "slot_bytes": r.layout.slot_bytes,
-                "location": str(r.data_region.device),
-            }
-            for n, r in rings.items()
-        }
-        host = sum(v["bytes"] for v in per.values() if v["location"] == "cpu")
-        dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
-        ctl = self._res.control
-        workers = {n: ctl.get(n, "device_mem_bytes") for n in ctl.names} if ctl else {}
-        report: dict[str, Any] = {
-            "mailboxes": per,
-            "mailbox_host_bytes": host,
-            "mailbox_device_bytes": dev,
-            "workers_torch_reserved_bytes": workers,
-        }
-        device = torch.device(self.config.device)
-        if device.type == "cuda" and ctl is not None:
-            from vpengine.runtime.gpu import process_memory
-
-            by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
-            if by_pid:
-                pids = {n: ctl.get(n, "pid") for n in ctl.names}
-                report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
-                report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
-        return report
 
     def stop(self) -> None:
         """Stop every worker and free every buffer. Always returns (within stop_timeout_s + a few seconds)."""
@@ -452,12 +314,9 @@ class Engine:
         self._refuse_inside_frame_slot()
         with self._submit_lock:
             slot = self._acquire_input()
-            try:  # an error gives the slot back: a leaked slot is a frame the ring never gets again
-                placement = self.boundary.write(arr, self._frame_views[slot.index])
-                return self._publish_input(slot, frame_id, t_capture, t_submit, placement, cam)
-            except BaseException:
-                self._input_writer.abort(slot)
-                raise
+            return self._enter_frame(
+                slot, lambda view: self.boundary.write(arr, view), frame_id, t_capture, t_submit, cam
+            )
 
     @_fenced
     def frame_slot(
@@ -506,19 +365,18 @@ class Engine:
 
     def _camera(self, camera: str | None) -> int:
         """The index (slot tag) of ``camera``; None: the only camera. ValueError naming the cameras otherwise."""
-        names = self.cameras
-        if camera is None:
-            if len(names) > 1:
-                raise ValueError(f"this engine has cameras {names}: say which one with camera=")
-            return 0
-        if camera not in names:
-            raise ValueError(f"no camera named {camera!r}; cameras: {names}")
-        return names.index(camera)
+        return self.lanes.tag(camera)
 
     @property
     def cameras(self) -> list[str]:
         """The cameras, in priority order (``cameras`` in the config; one named ``camera`` without)."""
-        return self.config.camera_names()
+        return list(self.lanes.cameras)
+
+    @property
+    def lanes(self) -> Lanes:
+        """Every (model, camera) pair: its camera's name and tag, its reader, its control-block entry (Note [Lanes]
+        in runtime/lanes.py). ``engine.lanes.of("depth")``: the lanes of head ``depth``, in priority order."""
+        return self.plan.lanes
 
     def _staging(self, size: tuple[int, int]) -> np.ndarray:
         """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size (``buffer_for``)."""
@@ -533,6 +391,28 @@ class Engine:
         slot = self._input_writer.acquire()
         assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
         return slot
+
+    def _enter_frame(
+        self,
+        slot: SlotInfo,
+        fill: Callable[[np.ndarray], Placement],
+        frame_id: int | None,
+        timestamp: float | None,
+        t_submit: float,
+        camera: int,
+    ) -> int:
+        """Check, write and publish a frame into input ``slot`` (``submit``, and a ``frame_slot`` block's end):
+        ``fill`` writes it into the slot's frame array (or finds it written there) and says where it lies;
+        ``timestamp`` is its capture time (None: now). Its frame id. Anything that raises gives the slot back
+        unpublished: a leaked slot is a frame the ring never gets again. The caller holds ``_submit_lock``."""
+        try:
+            stamp = checks.timestamp(timestamp)
+            t_capture = time.time() if stamp is None else stamp
+            placement = fill(self._frame_views[slot.index])
+            return self._publish_input(slot, frame_id, t_capture, t_submit, placement, camera)
+        except BaseException:
+            self._input_writer.abort(slot)
+            raise
 
     def _publish_input(
         self,
@@ -569,10 +449,8 @@ class Engine:
         self._require_running()
         tag = None
         if camera is not None:
-            tag = self._camera(camera)
-            served = self.config.model_cameras(self._outbox.head(head))
-            if camera not in served:
-                raise ValueError(f"{head!r} serves cameras {served}, not {camera!r}")
+            self._camera(camera)
+            tag = self.lanes.select(self._outbox.head(head), camera)[0].tag
         return self._outbox.latest(head, copy, tag)
 
     @_fenced
@@ -647,10 +525,7 @@ class Engine:
 
     def _entries(self, model: str, camera: str | None) -> list[str]:
         """The control-block entries holding ``model``'s rate for ``camera`` (None: all its cameras)."""
-        served = self.config.model_cameras(model)
-        if camera is not None and camera not in served:
-            raise ValueError(f"{model!r} serves cameras {served}, not {camera!r}")
-        return [camera_entry(model, c, self.cameras) for c in ([camera] if camera else served)]
+        return [lane.entry for lane in self.lanes.select(model, camera)]
 
     def _model_control(self, model: str) -> ControlBlock:
         """The running engine's control block, once ``model`` is known to be one of its models."""
@@ -674,22 +549,7 @@ class Engine:
         ctl = self._res.control
         rings = self._res.rings
         assert ctl is not None
-        cams = self.cameras
-        models, per_camera = {}, {}
-        for name in self.config.model_names():
-            served = self.config.model_cameras(name)
-            entries = [camera_entry(name, c, cams) for c in served]
-            snap = ctl.snapshot(name, cameras=entries if len(cams) > 1 else None)
-            readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
-            mine = [readers[reader_name(name, c, cams)] for c in served]  # type: ignore[index]
-            snap["frames_seen"] = sum(r["reads"] + r["missed"] for r in mine)
-            snap["pending"] = sum(r["pending"] for r in mine)
-            models[name] = snap
-            if len(cams) > 1:  # Note [Cameras]: each camera's rate, counters and latencies
-                for c, entry, r in zip(served, entries, mine):
-                    one = ctl.snapshot(entry)
-                    one["frames_seen"], one["pending"] = r["reads"] + r["missed"], r["pending"]
-                    per_camera.setdefault(c, {})[name] = one
+        models, per_camera = model_stats(self.lanes, ctl, rings)
         results = self._outbox.stats()
         return {
             "engine": {

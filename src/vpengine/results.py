@@ -34,8 +34,9 @@ import torch
 from vpengine.boundary import Boundary, Placement, drop_empty_boxes
 from vpengine.config import DEFAULT_CAMERA
 from vpengine.models.base import Model
-from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock, camera_entry
+from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock
 from vpengine.runtime.handoff import Handoffs
+from vpengine.runtime.lanes import Lanes
 from vpengine.runtime.supervisor import EngineDeadError
 from vpengine.transport.ring import Accept, RingReader, SlotInfo, SlotRing
 
@@ -161,7 +162,6 @@ class Result:
     seq: int = 0
     #: When the output was there to read (``time.monotonic()``).
     t_publish: float = 0.0
-    extra: dict[str, Any] = field(default_factory=dict)
     #: True: the host arrays are read-only views of the head's output slot, kept for as long as they are referenced
     #: (Note [Borrowed results]); False: they are copies.
     borrowed: bool = False
@@ -207,16 +207,14 @@ class Outbox:
         handoffs: Handoffs,
         boundary: Boundary,
         placements: Mapping[int, Placement],
-        cameras: list[str],
-        camera_served: Mapping[str, list[str]],
+        lanes: Lanes,
     ) -> None:
         self.heads = heads
         self.control = control
         self.handoffs = handoffs
         self.boundary = boundary
         self.placements = placements
-        self.cameras = cameras
-        self.camera_served = camera_served  # model -> the cameras it serves
+        self.lanes = lanes  # Note [Lanes] in runtime/lanes.py
         self._results_readers = {h: rings[f"out.{h}"].reader("results") for h in heads}
         self._peek_readers = {h: rings[f"out.{h}"].reader("peek") for h in heads}
         self.leases = _Leases({h: [rings[f"out.{h}"].reader(f"lease{i}") for i in range(LEASES)] for h in heads})
@@ -292,12 +290,13 @@ class Outbox:
         alive: Callable[[], bool],
     ) -> dict[str, Result]:
         ctl = self.control
-        cam = self.cameras[camera]
         pending = [self.head(h) for h in heads] if heads else list(self.heads)
-        pending = [h for h in pending if cam in self.camera_served[h]]  # a head that does not serve it: no output
+        # a head that does not serve the frame's camera gives no output for it
+        entries = {h: lane.entry for h in ["foundation", *pending] if (lane := self.lanes.find(h, camera)) is not None}
+        pending = [h for h in pending if h in entries]
 
         def entry(model: str) -> str:
-            return camera_entry(model, cam, self.cameras)
+            return entries[model]
 
         done: dict[str, Result] = {}
         deadline = time.monotonic() + timeout
@@ -430,7 +429,7 @@ class Outbox:
             grid="native" if head in self.boundary.native else "frame",
             placement=p,
             info=self.heads[head].meta,
-            camera=self.cameras[slot.tag],
+            camera=self.lanes.cameras[slot.tag],
         )
 
     def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:

@@ -15,6 +15,8 @@ from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyVi
 
 class FaultOptions(Options):
     raise_at_run: int | None = None  # raise on this run (1-based) of this process
+    raise_every: int | None = None  # raise on every Nth run (a model that fails on some frames)
+    cuda_error: bool = False  # raise_at_run raises a CUDA error (Note [Frame errors]: its worker is restarted)
     once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
     hang_at_run: int | None = None  # sleep forever (or hang_s) on this run and every later one
     hang_s: float | None = None  # how long a hang lasts; None: for ever
@@ -61,7 +63,11 @@ class FaultyHead(TinyDepthHead):
         if f.raise_at_run is not None and run == f.raise_at_run and first_time:
             if f.once_marker is not None:
                 Path(f.once_marker).touch()
-            raise RuntimeError(f"injected failure at run {run} (pid {os.getpid()})")
+            raise RuntimeError(
+                f"{'CUDA error: ' if f.cuda_error else ''}injected failure at run {run} (pid {os.getpid()})"
+            )
+        if f.raise_every and run % f.raise_every == 0:
+            raise ValueError(f"injected failure on every {f.raise_every}th run")
         if f.exit_at_run is not None and run == f.exit_at_run and first_time:
             if f.once_marker is not None:
                 Path(f.once_marker).touch()
@@ -81,6 +87,7 @@ class FaultyHead(TinyDepthHead):
 
 class FaultyViTOptions(TinyViTOptions):
     raise_at_run: int | None = None  # raise on this run (1-based) of this worker
+    cuda_error: bool = False  # raise a CUDA error (Note [Frame errors]: its worker is restarted)
     once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
 
 
@@ -101,5 +108,5 @@ class FaultyViT(TinyViT):
         if run == f.raise_at_run and (f.once_marker is None or not Path(f.once_marker).exists()):
             if f.once_marker is not None:
                 Path(f.once_marker).touch()
-            raise RuntimeError(f"injected foundation failure at run {run}")
+            raise RuntimeError(f"{'CUDA error: ' if f.cuda_error else ''}injected foundation failure at run {run}")
         return super().forward(inputs)

@@ -10,5 +10,5 @@ from unittest import mock
 
 @contextlib.contextmanager
 def inline_launch(on: bool = True) -> Iterator[None]:
-    with mock.patch("vpengine.runtime.worker.inline_wanted", lambda cuda, bound: on):
+    with mock.patch("vpengine.runtime.prepare.inline_wanted", lambda cuda, bound: on):
         yield

@@ -18,10 +18,10 @@ import threading
 import time
 import weakref
 
-import psutil
 import pytest
 
 from helpers.frames import frame
+from helpers.waiting import alive, wait_for
 from tests_paths import ROOT, tiny
 from vpengine.engine import Engine
 from vpengine.runtime import supervisor
@@ -39,26 +39,6 @@ def heads(*entries: str) -> str:
             f"{{name: {name}, model: {FAULTY}, options: {opts}}}" if opts else f"{{name: {name}, model: tiny_depth}}"
         )
     return "heads=[" + ", ".join(out) + "]"
-
-
-def wait_for(cond, timeout=20.0, what="condition", show=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}" + (f": {show()}" if show else ""))
-
-
-def alive(pids) -> list[int]:
-    out = []
-    for p in pids:
-        try:
-            if psutil.Process(p).status() != psutil.STATUS_ZOMBIE:
-                out.append(p)
-        except psutil.NoSuchProcess:
-            pass
-    return out
 
 
 def run_script(code: str, *args: str, timeout: float = 90) -> subprocess.CompletedProcess:
@@ -266,12 +246,12 @@ def test_stop_gives_hung_workers_one_grace_period_together():
 
 # ------------------------------------------------------------------------------------- 7: restart budget
 def test_a_head_that_fails_now_and_then_is_restarted_every_time(monkeypatch, restart_backoff):
-    """max_restarts counts restarts within the supervisor's RESTART_WINDOW_S: a head that raises on every 10th frame of each life
+    """max_restarts counts restarts within the supervisor's RESTART_WINDOW_S: a head that hits a CUDA error on every 10th frame of each life
     (every ~0.5 s here) is restarted again and again, never marked failed; one in a crash loop still is
     (test_faults.py::test_head_failing_past_max_restarts_is_marked_failed_and_the_rest_goes_on)."""
     cfg = tiny(
         "thread",
-        heads("depth", 'seg:{"raise_at_run": 10}'),
+        heads("depth", 'seg:{"raise_at_run": 10, "cuda_error": true}'),
         "runtime.max_restarts=1",
     )
     monkeypatch.setattr(supervisor, "RESTART_WINDOW_S", 0.3)
@@ -320,7 +300,7 @@ def test_thread_mode_reports_a_hung_head_stops_waiting_for_it_and_restarts_it_wh
     ids=["process-os._exit(0)", "thread-raise"],
 )
 def test_a_frame_in_flight_when_a_worker_dies_is_counted_and_exit_0_is_a_crash(tmp_path, mode, fault, restart_backoff):
-    opts = json.dumps({fault: 3, "once_marker": str(tmp_path / "once"), "sleep_ms": 20})
+    opts = json.dumps({fault: 3, "cuda_error": True, "once_marker": str(tmp_path / "once"), "sleep_ms": 20})
     restart_backoff(0.1)
     with Engine(tiny(mode, heads("depth", f"seg:{opts}"))) as e:
         pump_until(e, lambda: e.stats()["models"]["seg"]["restarts"] == 1, "seg died and was restarted")

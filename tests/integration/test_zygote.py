@@ -5,6 +5,7 @@ engine."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
 import logging
 import os
@@ -14,13 +15,14 @@ import subprocess
 import sys
 import textwrap
 import threading
-import time
 from pathlib import Path
 
 import psutil
 import pytest
 
+from helpers import waiting
 from helpers.frames import frame
+from helpers.waiting import alive
 from tests_paths import ROOT, tiny
 from vpengine.engine import Engine
 
@@ -28,24 +30,7 @@ pytestmark = pytest.mark.timeout(180)
 HEADS = ("depth", "seg", "det")
 
 
-def wait_for(cond, timeout=30.0, what="condition", show=None):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if cond():
-            return
-        time.sleep(0.05)
-    raise AssertionError(f"timed out waiting for {what}" + (f": {show()}" if show else ""))
-
-
-def alive(pids) -> list[int]:
-    out = []
-    for p in pids:
-        try:
-            if psutil.Process(p).status() != psutil.STATUS_ZOMBIE:
-                out.append(p)
-        except psutil.NoSuchProcess:
-            pass
-    return out
+wait_for = functools.partial(waiting.wait_for, timeout=30.0)
 
 
 def zygotes(parent: psutil.Process | None = None) -> list[psutil.Process]:
@@ -92,12 +77,14 @@ def test_the_workers_of_an_engine_are_forks_of_one_zygote_that_imported_torch():
 
 @pytest.mark.parametrize(
     "fault,expected",
-    [("sigsegv", "killed by signal 11"), ("raise", "exit code 1: RuntimeError: injected failure at run 2")],
+    [("sigsegv", "killed by signal 11"), ("raise", "exit code 1: RuntimeError: CUDA error: injected failure at run 2")],
 )
 def test_a_crashed_worker_restarts_from_the_zygote_and_its_exit_reaches_stats_and_log(
     tmp_path, caplog, restart_backoff, fault, expected
 ):
-    opts = json.dumps({"raise_at_run": 2 if fault == "raise" else None, "once_marker": str(tmp_path / "once")})
+    opts = json.dumps(
+        {"raise_at_run": 2 if fault == "raise" else None, "cuda_error": True, "once_marker": str(tmp_path / "once")}
+    )
     cfg = tiny("process", "heads.seg.model=helpers.faulty:FaultyHead", f"heads.seg.options={opts}")
     restart_backoff(0.1)
     caplog.set_level(logging.WARNING, logger="vpengine")

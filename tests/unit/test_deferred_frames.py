@@ -9,8 +9,9 @@ import time
 import pytest
 
 from tests_paths import tiny
-from vpengine.runtime.control import ControlBlock, camera_entry, control_names
+from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.lanes import make_lanes
 from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import ReaderDecl, SlotRing
@@ -25,15 +26,16 @@ def worker():
     readers = [ReaderDecl(f"foundation@{c}", tag=i) for i, c in enumerate(CAMERAS)]
     in_ring = SlotRing.create("input", X, 5, readers, n_tags=2)
     out_ring = SlotRing.create("features", F, 5, [ReaderDecl("peek")], n_tags=2)
-    control = ControlBlock.create(control_names({"foundation": CAMERAS}, CAMERAS))
+    lanes = make_lanes(cfg)
+    control = ControlBlock.create(lanes.control_names())
     spec = WorkerSpec(
         name="foundation",
         role="foundation",
         config=cfg.model_dump(mode="json"),
         upstream={},
         upstream_meta={},
+        lanes=lanes.of("foundation"),
         in_ring=in_ring.desc,
-        in_reader="foundation",
         out_ring=out_ring.desc,
         notify_output=False,
     )
@@ -65,7 +67,7 @@ def worker():
         return found
 
     def entry(camera: str, key: str) -> int:
-        return control.get(camera_entry("foundation", camera, CAMERAS), key)
+        return control.get(lanes.select("foundation", camera)[0].entry, key)
 
     yield core, submit, overloaded, outputs, entry
     core.run(lambda: True)  # leaves at once, letting go of what it holds
@@ -78,10 +80,10 @@ def test_a_deferred_frame_is_not_answered_and_runs_in_the_next_batch(worker):
     core, submit, overloaded, outputs, entry = worker
     front, rear = submit("front", 1.0), submit("rear", 2.0)
     overloaded()
-    core._take_batch()
+    core._take()
     assert outputs() == {front: 2.0} and entry("rear", "deferred") == 1
     assert entry("rear", "decided") < rear  # not answered: a caller waiting for it keeps waiting
-    core._take_batch()  # nothing new came: the next batch is the deferred frame
+    core._take()  # nothing new came: the next batch is the deferred frame
     assert outputs() == {front: 2.0, rear: 4.0}
     assert entry("rear", "decided") == entry("rear", "last_run") == rear
     assert entry("rear", "runs") == 1 and entry("rear", "skipped") == 0
@@ -92,9 +94,9 @@ def test_a_newer_frame_of_its_camera_replaces_a_deferred_one_which_is_answered_s
     submit("front", 1.0)
     old = submit("rear", 2.0)
     overloaded()
-    core._take_batch()
+    core._take()
     new = submit("rear", 3.0)  # newest wins
-    core._take_batch()
+    core._take()
     assert old not in outputs() and outputs()[new] == 6.0
     assert entry("rear", "skipped") == 1 and entry("rear", "runs") == 1
     assert entry("rear", "decided") == entry("rear", "last_run") == new
@@ -105,8 +107,8 @@ def test_a_deferred_frame_of_a_camera_paused_since_is_answered_and_let_go(worker
     submit("front", 1.0)
     rear = submit("rear", 2.0)
     overloaded()
-    core._take_batch()
-    core.control.set_rate(camera_entry("foundation", "rear", CAMERAS), 0.0)
+    core._take()
+    core.control.set_rate(core.lanes[1].entry, 0.0)  # rear's
     core.poll_s = 0.01
-    core._take_batch()
+    core._take()
     assert rear not in outputs() and entry("rear", "decided") == rear and entry("rear", "skipped") == 1

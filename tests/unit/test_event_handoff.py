@@ -10,8 +10,10 @@ from collections.abc import Iterator
 
 import torch
 
+from vpengine.config import load_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.handoff import SlotEvents, WorkerHandoff
+from vpengine.runtime.lanes import make_lanes
 from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import SlotRing, latest_buffer
@@ -68,14 +70,15 @@ class Dev:
 
 
 def spec(name: str, role: str, in_ring: SlotRing, out_ring: SlotRing, upstream, notify: bool = False) -> WorkerSpec:  # type: ignore[no-untyped-def]
+    config = {} if role == "foundation" else {"heads": [{"name": name, "model": "tiny_depth"}]}
     return WorkerSpec(
         name=name,
         role=role,  # type: ignore[arg-type]
-        config={} if role == "foundation" else {"heads": [{"name": name, "model": "tiny_depth"}]},
+        config=config,
         upstream=upstream,
         upstream_meta={},
+        lanes=make_lanes(load_config(config)).of(name),
         in_ring=in_ring.desc,
-        in_reader=name,
         out_ring=out_ring.desc,
         notify_output=notify,
     )
@@ -125,12 +128,12 @@ def pipeline(handoff: bool, work_s: float = 0.0, results: bool = False):  # type
 
 
 def step(core: WorkerCore) -> None:
-    slot = core.reader.pin(timeout=1.0)
+    slot = core.lanes[0].reader.pin(timeout=1.0)
     assert slot is not None
     try:
-        core._step(slot)
+        core._run([slot])
     finally:
-        core.reader.release(slot)
+        core.lanes[0].reader.release(slot)
 
 
 def submit(rings, i: int) -> None:  # type: ignore[no-untyped-def]

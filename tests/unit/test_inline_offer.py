@@ -9,9 +9,11 @@ from types import SimpleNamespace
 
 import torch
 
+from vpengine.config import load_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import InlineLaunch, WorkerHandoff
+from vpengine.runtime.lanes import make_lanes
 from vpengine.runtime.worker import WorkerCore, WorkerSpec
 from vpengine.specs import TensorSpec
 from vpengine.transport.ring import latest_buffer
@@ -140,8 +142,8 @@ def foundation_core(poll_s: float, inline: bool = True) -> tuple[WorkerCore, Con
         config={},
         upstream={},
         upstream_meta={},
+        lanes=make_lanes(load_config({})).of("foundation"),
         in_ring=in_ring.desc,
-        in_reader="foundation",
         out_ring=out_ring.desc,
         notify_output=False,
     )
@@ -169,12 +171,12 @@ def test_a_worker_whose_rate_changed_after_its_gate_opened_takes_no_frame():
     core, control = foundation_core(poll_s=5.0)
     control.set_rate("foundation", 0.0)
     t0 = time.monotonic()
-    core._take_inline()
+    core._take_offered()
     assert time.monotonic() - t0 < 3.0  # back to its gate at once, not armed for poll_s (5 s)
     assert control.snapshot("foundation")["runs"] == 0 and core._inline.launches == 0  # type: ignore[union-attr]
     # the same call under the rate the gate saw finds the frame still there, and runs it
     control.set_rate("foundation", None)
-    core._take_inline()
+    core._take_offered()
     assert control.snapshot("foundation")["runs"] == 1
     out = core.writer.ring.reader("depth").pin(timeout=0)
     assert out is not None and out.frame_id == 7 and torch.equal(out.tensors["f"], torch.full((4,), 2.0))
@@ -185,15 +187,15 @@ def test_a_pause_set_while_a_worker_waited_for_a_frame_holds_the_frame_back_and_
     stops the frame that then comes."""
     core, control = foundation_core(poll_s=5.0, inline=False)
     control.set_rate("foundation", 0.0)
-    core._take(None)
+    core._take_ring(core.lanes)  # its gate opened unlimited
     st = control.snapshot("foundation")
     assert st["runs"] == 0 and st["skipped"] == 1
 
 
 def test_a_rate_raised_while_a_worker_waited_for_a_frame_runs_it():
     core, control = foundation_core(poll_s=5.0, inline=False)
-    core.gate.update(10.0)  # its gate opened at 10 Hz
+    core.lanes[0].gate.update(10.0)  # its gate opened at 10 Hz
     control.set_rate("foundation", None)
-    core._take(10.0)
+    core._take_ring(core.lanes)
     st = control.snapshot("foundation")
     assert st["runs"] == 1 and st["skipped"] == 0

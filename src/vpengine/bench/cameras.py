@@ -88,8 +88,8 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                 for r in eng.results(timeout=t - now):
                     frames.setdefault(r.frame_id, {})[r.head] = r.latency
             stamp = time.time()
-            for c in cams:  # synchronised cameras: every frame of a tick at once, one capture stamp
-                frames.setdefault(eng.submit(imgs[(k + cams.index(c)) % len(imgs)], timestamp=stamp, camera=c), {})
+            for i, c in enumerate(cams):  # synchronised cameras: every frame of a tick at once, one capture stamp
+                frames.setdefault(eng.submit(imgs[(k + i) % len(imgs)], timestamp=stamp, camera=c), {})
                 submitted += 1
             k += 1
         deadline = time.monotonic() + 5

@@ -108,7 +108,7 @@ class Pipeline:
         try:
             self.heads = list(self.engine.plan.heads)
             # camera -> the heads that serve it (a head may serve some cameras only)
-            self.served = {c: [h for h in self.heads if c in self.config.model_cameras(h)] for c in self.engine.cameras}
+            self.served = {c: [h for h in self.heads if c in self.engine.lanes.served(h)] for c in self.engine.cameras}
             self.writer = self._make_writer()
         except BaseException:
             self.engine.stop()

@@ -39,9 +39,10 @@ def main(fd: int, parent_pid: int) -> None:
     logging.basicConfig(level=log_level, format=f"%(asctime)s %(levelname)s [{spec.name}] %(name)s: %(message)s")
 
     from vpengine.runtime.control import ControlBlock
+    from vpengine.runtime.prepare import prepare_worker
     from vpengine.runtime.sockets import Failed, Ready, Stop, recv_fds
     from vpengine.runtime.supervisor import log_to_file
-    from vpengine.runtime.worker import describe_exception, prepare_worker
+    from vpengine.runtime.worker import describe_exception
     from vpengine.transport.ring import SlotRing
 
     stop = threading.Event()

@@ -68,26 +68,6 @@ ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
 ENTRY_BYTES = ENTRY_WORDS * 8
 
 
-def reader_name(model: str, camera: str, cameras: list[str]) -> str:
-    """The name of ``model``'s reader of its input ring for ``camera``: the model's own with one camera."""
-    return model if len(cameras) == 1 else f"{model}@{camera}"
-
-
-def camera_entry(model: str, camera: str, cameras: list[str] | tuple[str, ...]) -> str:
-    """The control-block entry holding ``model``'s rate, counters and latencies for ``camera`` (Note [Cameras] in
-    worker.py): the model's own entry on a one-camera engine, ``model@camera`` with several."""
-    return model if len(cameras) == 1 else f"{model}@{camera}"
-
-
-def control_names(models: dict[str, list[str]], cameras: list[str]) -> list[str]:
-    """Every entry of a control block: each model's (process state, heartbeat, errors), then, with several cameras,
-    one per model and camera it serves. ``models``: model -> its cameras."""
-    names = list(models)
-    if len(cameras) > 1:
-        names += [camera_entry(m, c, cameras) for m, cams in models.items() for c in cams]
-    return names
-
-
 STATES = ["starting", "loading", "ready", "running", "paused", "restarting", "failed", "stopped", "hung"]
 STARTING, LOADING, READY, RUNNING, PAUSED, RESTARTING, FAILED, STOPPED, HUNG = range(len(STATES))
 #: States of a model that serves no frames now: waiting for its output is pointless (``Engine.wait``). "hung": a

@@ -44,8 +44,8 @@ nobody else can see it), then publishes it already pinned for the foundation's r
 the pinned slots to the worker, which finishes the run as usual. Invariants: arming, disarming, taking a frame from
 the ring and the launch all happen under the offer's lock, so each frame is taken exactly once; the worker alone
 decides when it is ready; a rate-limited worker never arms (its gate needs each frame's stamp first); a launch that
-raises is raised in the worker; ``Engine.set_rate`` stores the rate, then takes the lock, so no frame submitted
-after it returns runs under the old rate.
+raises is handed to the worker, which fails that frame (Note [Frame errors] in worker.py); ``Engine.set_rate``
+stores the rate, then takes the lock, so no frame submitted after it returns runs under the old rate.
 
 Note [Launch path]
 ~~~~~~~~~~~~~~~~~~
@@ -207,7 +207,7 @@ class InlineLaunch:
             error: BaseException | None = None
             try:  # queued before the frame is published: nobody else can see the slot yet, let alone reuse it
                 launch(slot)
-            except Exception as e:  # raised in the worker, under its restart rules; never in submit
+            except Exception as e:  # the worker's to handle (Note [Frame errors] in worker.py); never raised in submit
                 error = e
             pinned = writer.publish_pinned(slot, frame_id, t_capture, t_submit, reader, tag)
             self._done = (pinned, t_start, error)

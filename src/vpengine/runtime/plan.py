@@ -13,7 +13,7 @@ import torch
 from vpengine.config import EngineConfig
 from vpengine.models.base import Model, ModelBuildError
 from vpengine.models.build import build_model
-from vpengine.runtime.control import reader_name
+from vpengine.runtime.lanes import Lanes, make_lanes
 from vpengine.runtime.supervisor import EngineStartError
 from vpengine.specs import SpecDict, TensorSpec, format_specs, specs_nbytes
 from vpengine.transport.layout import SlotLayout
@@ -29,6 +29,7 @@ class Plan:
     frame_spec: SpecDict
     foundation: Model
     heads: dict[str, Model]
+    lanes: Lanes  # Note [Lanes]
     warnings: list[str] = field(default_factory=list)
 
     @property
@@ -83,7 +84,7 @@ def make_plan(cfg: EngineConfig) -> Plan:
         heads[h.name] = model
     if refused:
         raise ModelBuildError("\n".join(refused))
-    return Plan(cfg, frame_spec, fm, heads, warnings)
+    return Plan(cfg, frame_spec, fm, heads, make_lanes(cfg), warnings)
 
 
 _FEATURE_RE = re.compile(r"^(?:patch|cls)\.(\d+)$")
@@ -129,17 +130,16 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
     small as its readers allow (readers + tags + 1: Note [Slot lifetime], Note [Tagged slots] in
     transport/ring.py), plus the margin a fifo reader needs to catch up, plus the leases of each head's output.
     With several cameras, every slot is tagged with its frame's camera and each model reads with one reader per
-    camera it serves (``reader_name``); results are read untagged, every camera's in one stream."""
-    cfg = plan.cfg
+    camera it serves (its lanes, Note [Lanes]); results are read untagged, every camera's in one stream."""
+    cfg, lanes = plan.cfg, plan.lanes
     device = torch.device(cfg.device)
     gpu = device.type == "cuda"  # host rings a GPU copies from or to are page-locked
-    cameras = cfg.camera_names()
-    tags = len(cameras)
+    tags = len(lanes.cameras)
 
     def readers(model: str, mode: str) -> list[ReaderDecl]:
         return [
-            ReaderDecl(reader_name(model, c, cameras), mode, tag=None if tags == 1 else cameras.index(c))  # type: ignore[arg-type]
-            for c in cfg.model_cameras(model)
+            ReaderDecl(lane.reader, mode, tag=lane.reader_tag)  # type: ignore[arg-type]
+            for lane in lanes.of(model)
         ]
 
     fifo_fm = FIFO_MARGIN if cfg.foundation_model.input_mode == "fifo" else 0
@@ -173,7 +173,7 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
                 name=f"out.{h.name}",
                 specs=plan.heads[h.name].output_spec,
                 # kept for results(): output.slots a camera, plus the leases (and room for each camera's newest)
-                n_slots=h.output.slots * len(cfg.model_cameras(h.name)) + LEASES + tags - 1,
+                n_slots=h.output.slots * len(lanes.of(h.name)) + LEASES + tags - 1,
                 readers=[ReaderDecl("results", "fifo", active=False), ReaderDecl("peek"), *leases],
                 device=device if h.output.location == "device" else "cpu",
                 shared=shared,

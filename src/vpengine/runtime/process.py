@@ -72,7 +72,6 @@ import contextlib
 import logging
 import os
 import queue
-import socket
 import subprocess
 import threading
 import time
@@ -84,9 +83,18 @@ from pathlib import Path
 from typing import Any
 
 from vpengine.runtime.control import POLL_S, STOPPED
-from vpengine.runtime.sockets import Failed, Init, Ready, Stop, hold_parent_end, peer_uid, release_parent_end, send_fds
+from vpengine.runtime.sockets import (
+    Failed,
+    Init,
+    Ready,
+    Stop,
+    peer_uid,
+    release_parent_end,
+    send_fds,
+    start_with_socket,
+)
 from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tests have always found it
-from vpengine.runtime.supervisor import EngineStartError, Runner
+from vpengine.runtime.supervisor import Runner
 from vpengine.runtime.zygote import worker_path
 from vpengine.runtime.zygote_handle import WorkerProc, Zygote, describe_exit
 
@@ -202,7 +210,6 @@ class ProcessRunner(Runner):
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)  # a full pipe already wakes the monitor: never block a writer on it
         self._wake_lock = threading.Lock()  # the zygote's reader wakes us until stop closes the pipe
-        self._monitor: threading.Thread | None = None
         self._spawner = _Spawner()
         self._zygote: Zygote | None = None  # the one new workers are forked from
         self._retired: list[Zygote] = []  # older ones, still the parents of workers they forked
@@ -244,18 +251,10 @@ class ProcessRunner(Runner):
         child_spec = replace(
             spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
         )
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        hold_parent_end(ours.fileno())
-        try:
-            env = {**os.environ, **self._env_for(name)}
-            proc = self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs.fileno())
-        except BaseException:
-            release_parent_end(ours.fileno())
-            ours.close()
-            raise
-        finally:
-            theirs.close()
-        conn = Connection(ours.detach())
+        env = {**os.environ, **self._env_for(name)}
+        proc, conn = start_with_socket(
+            lambda theirs: self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs)
+        )
         _pid, uid = peer_uid(conn.fileno())
         if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
             proc.kill()
@@ -278,11 +277,7 @@ class ProcessRunner(Runner):
         while waiting:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                self.stop()
-                raise EngineStartError(
-                    f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
-                    "(runtime.ready_timeout_s)"
-                )
+                self._not_ready(waiting)
             objs: list[Any] = [self._wake_r, *(self._children[n].conn for n in waiting if not self._children[n].eof)]
             if self._wake_r in wait(objs, timeout=remaining):
                 os.read(self._wake_r, 4096)
@@ -297,11 +292,7 @@ class ProcessRunner(Runner):
                 elif not ch.alive():
                     errors.append(f"{name} exited with code {ch.proc.returncode} before it was ready")
                     waiting.discard(name)
-        if errors:
-            self.stop()
-            raise EngineStartError("worker start-up failed:\n" + "\n".join(errors))
-        self._monitor = threading.Thread(target=self._watch, name="vpengine-monitor", daemon=True)
-        self._monitor.start()
+        self._started(errors)
 
     # ----------------------------------------------------------------------------------------- monitor
     def _watch(self) -> None:

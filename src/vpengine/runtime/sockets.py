@@ -10,9 +10,10 @@ import contextlib
 import os
 import socket
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 if TYPE_CHECKING:
     from vpengine.runtime.worker import WorkerSpec
@@ -92,6 +93,26 @@ def hold_parent_end(fd: int) -> None:
 def release_parent_end(fd: int) -> None:
     """``fd`` is about to be closed: forks no longer need it replaced."""
     _PARENT_ENDS.discard(fd)
+
+
+_T = TypeVar("_T")
+
+
+def start_with_socket(start: Callable[[int], _T]) -> tuple[_T, Connection]:
+    """Call ``start`` with the child's end (a descriptor) of a new UNIX socket pair, to hand to the process it
+    starts; return what it returns and the engine's end, held for forks (Note [Child lifecycle]). The child's end is
+    closed here either way, the engine's too if ``start`` raises."""
+    ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
+    hold_parent_end(ours.fileno())
+    try:
+        started = start(theirs.fileno())
+    except BaseException:
+        release_parent_end(ours.fileno())
+        ours.close()
+        raise
+    finally:
+        theirs.close()
+    return started, Connection(ours.detach())
 
 
 def _drop_parent_ends() -> None:

@@ -17,9 +17,10 @@ import time
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NoReturn
 
 from vpengine.config import EngineConfig
-from vpengine.runtime.control import FAILED, RESTARTING, ControlBlock, camera_entry, reader_name
+from vpengine.runtime.control import FAILED, RESTARTING, ControlBlock
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotRing
 
@@ -73,6 +74,7 @@ class Runner(ABC):
         self._stopping = False
         self._restarted_at: dict[str, collections.deque[float]] = {s.name: collections.deque() for s in specs}
         self._pending: dict[str, _Restart] = {}
+        self._monitor: threading.Thread | None = None  # runs _watch once every worker is ready
 
     # --------------------------------------------------------------------------------------- interface
     @abstractmethod
@@ -86,6 +88,27 @@ class Runner(ABC):
     @abstractmethod
     def _launch(self, name: str) -> None:
         """(Re)start one worker without waiting for READY."""
+
+    @abstractmethod
+    def _watch(self) -> None:
+        """The monitor's loop, until stop: notice deaths and hangs, run due restarts."""
+
+    def _started(self, errors: list[str]) -> None:
+        """The end of ``start``, every worker heard from: ``errors`` (their start-up failures) stop them all and
+        raise; else the monitor starts watching them."""
+        if errors:
+            self.stop()
+            raise EngineStartError("worker start-up failed:\n" + "\n".join(errors))
+        self._monitor = threading.Thread(target=self._watch, name="vpengine-monitor", daemon=True)
+        self._monitor.start()
+
+    def _not_ready(self, waiting: set[str]) -> NoReturn:
+        """``start`` waited past ``runtime.ready_timeout_s`` for ``waiting``: stop every worker and raise."""
+        self.stop()
+        raise EngineStartError(
+            f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
+            "(runtime.ready_timeout_s)"
+        )
 
     @property
     def stopping(self) -> bool:
@@ -107,20 +130,12 @@ class Runner(ABC):
         spec = self.specs[name]
         in_ring = self.rings[spec.in_ring.name]
         out_ring = self.rings[spec.out_ring.name]
-        for reader, entry in self._lanes(name):
-            origin = in_ring.release_reader(reader)
-            if origin is not None and origin > self.control.get(entry, "decided"):
-                self.control.decide(entry, origin, ran=False)
+        for lane in spec.lanes:
+            origin = in_ring.release_reader(lane.reader)
+            if origin is not None and origin > self.control.get(lane.entry, "decided"):
+                self.control.decide(lane.entry, origin, ran=False)
         out_ring.reset_writer()
         self._count_lost_frames(name)
-
-    def _lanes(self, name: str) -> list[tuple[str, str]]:
-        """``name``'s reader of its input ring and control-block entry for each camera it serves (Note [Cameras]
-        in worker.py; with one camera, the model's own reader and entry)."""
-        spec, cameras = self.specs[name], self.cfg.camera_names()
-        if len(cameras) == 1:
-            return [(spec.in_reader, name)]
-        return [(reader_name(name, c, cameras), camera_entry(name, c, cameras)) for c in self.cfg.model_cameras(name)]
 
     def _count_lost_frames(self, name: str) -> None:
         """Count as dropped the frames a dead worker took from its input but never ran, skipped or dropped (the
@@ -129,12 +144,12 @@ class Runner(ABC):
         started yet, so they still have one writer at a time."""
         readers = self.rings[self.specs[name].in_ring.name].stats()["readers"]
         ctl = self.control
-        for reader_name_, entry in self._lanes(name):
-            reader = readers[reader_name_]  # type: ignore[index]
+        for lane in self.specs[name].lanes:
+            reader = readers[lane.reader]  # type: ignore[index]
             seen = reader["reads"] + reader["missed"]
-            lost = seen - ctl.get(entry, "runs") - ctl.get(entry, "skipped") - ctl.get(entry, "dropped")
+            lost = seen - ctl.get(lane.entry, "runs") - ctl.get(lane.entry, "skipped") - ctl.get(lane.entry, "dropped")
             if lost > 0:
-                ctl.add(entry, "dropped", lost)
+                ctl.add(lane.entry, "dropped", lost)
 
     def _on_exit(self, name: str, crashed: bool, reason: str) -> None:
         """Called by the runner's monitor when a worker is gone."""

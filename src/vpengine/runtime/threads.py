@@ -22,8 +22,9 @@ import time
 
 from vpengine.runtime.control import HUNG, POLL_S, STOPPED
 from vpengine.runtime.handoff import Handoffs
-from vpengine.runtime.supervisor import EngineStartError, Runner
-from vpengine.runtime.worker import describe_exception, prepare_worker
+from vpengine.runtime.prepare import prepare_worker
+from vpengine.runtime.supervisor import Runner
+from vpengine.runtime.worker import describe_exception
 
 log = logging.getLogger("vpengine.threads")
 
@@ -39,7 +40,6 @@ class ThreadRunner(Runner):
         self._events: queue.Queue[tuple[str, str, str]] = queue.Queue()  # (name, "ready"|"error"|"exit", text)
         self._generation: dict[str, int] = dict.fromkeys(self.specs, 0)
         self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
-        self._monitor: threading.Thread | None = None
 
     def _should_stop(self, name: str, gen: int) -> bool:
         return self._stopping or self.control.stopping or self._generation[name] != gen
@@ -92,18 +92,11 @@ class ThreadRunner(Runner):
             try:
                 name, kind, text = self._events.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
-                self.stop()
-                raise EngineStartError(
-                    f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s"
-                ) from None
+                self._not_ready(waiting)
             waiting.discard(name)
             if kind != "ready":
                 errors.append(text or f"{name} exited during start-up")
-        if errors:
-            self.stop()
-            raise EngineStartError("worker start-up failed:\n" + "\n".join(errors))
-        self._monitor = threading.Thread(target=self._watch, name="vpengine-monitor", daemon=True)
-        self._monitor.start()
+        self._started(errors)
 
     def _watch(self) -> None:
         while not self._stopping:

@@ -14,10 +14,9 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable
-from multiprocessing.connection import Connection
 from typing import Any
 
-from vpengine.runtime.sockets import hold_parent_end, recv_fds, release_parent_end, send_fds
+from vpengine.runtime.sockets import recv_fds, release_parent_end, send_fds, start_with_socket
 from vpengine.runtime.zygote import LOAD_TIME_ENV, Exited, Fork, Forked, Kill, ZygoteError, zygote_command
 
 log = logging.getLogger("vpengine.zygote")
@@ -147,24 +146,15 @@ class Zygote:
         self._lost = threading.Event()
         self._killed = False  # declared lost: killed here, its workers' exit status unknown
         self._closed = False
-        ours, theirs = socket.socketpair(socket.AF_UNIX, socket.SOCK_STREAM)
-        hold_parent_end(ours.fileno())
-        self._fd = ours.fileno()
         # what the zygote's libraries read as they load (it inherits this environment)
         self.load_env = {k: os.environ.get(k) for k in LOAD_TIME_ENV}
-        try:
-            self.proc: subprocess.Popen[bytes] = spawn(
-                lambda: subprocess.Popen(
-                    zygote_command(theirs.fileno()), pass_fds=[theirs.fileno()], start_new_session=True
-                )
+        self.proc: subprocess.Popen[bytes]
+        self.proc, self._conn = start_with_socket(
+            lambda theirs: spawn(
+                lambda: subprocess.Popen(zygote_command(theirs), pass_fds=[theirs], start_new_session=True)
             )
-        except BaseException:
-            release_parent_end(ours.fileno())
-            ours.close()
-            raise
-        finally:
-            theirs.close()
-        self._conn = Connection(ours.detach())
+        )
+        self._fd = self._conn.fileno()
         try:
             first = self._first_message(timeout)
         except BaseException:

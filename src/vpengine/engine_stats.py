@@ -1,0 +1,69 @@
+"""What ``Engine.stats()`` and ``Engine.memory_report`` say about the models and the mailboxes, read from the control
+block and the rings (shared memory; no logs parsed)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import torch
+
+from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.lanes import Lanes
+from vpengine.transport.ring import SlotRing
+
+
+def model_stats(
+    lanes: Lanes, ctl: ControlBlock, rings: Mapping[str, SlotRing]
+) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """Each model's counters, rates and latencies over its lanes, and with several cameras each camera's, per model
+    (Note [Cameras] in runtime/worker.py)."""
+    models: dict[str, Any] = {}
+    per_camera: dict[str, dict[str, Any]] = {}
+    for name, mine in lanes.by_model.items():
+        several = not mine[0].only
+        snap = ctl.snapshot(name, cameras=[lane.entry for lane in mine] if several else None)
+        readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
+        reads = [readers[lane.reader] for lane in mine]  # type: ignore[index]
+        snap["frames_seen"] = sum(r["reads"] + r["missed"] for r in reads)
+        snap["pending"] = sum(r["pending"] for r in reads)
+        models[name] = snap
+        if several:
+            for lane, r in zip(mine, reads):
+                one = ctl.snapshot(lane.entry)
+                one["frames_seen"], one["pending"] = r["reads"] + r["missed"], r["pending"]
+                per_camera.setdefault(lane.camera, {})[name] = one
+    return models, per_camera
+
+
+def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, device: torch.device) -> dict[str, Any]:
+    """The mailboxes' sizes and where they live, each worker's reserved device memory, and on CUDA what the driver
+    says each process holds (contexts included)."""
+    per: dict[str, dict[str, Any]] = {
+        n: {
+            "bytes": r.layout.total_bytes,
+            "slots": r.n_slots,
+            "slot_bytes": r.layout.slot_bytes,
+            "location": str(r.data_region.device),
+        }
+        for n, r in rings.items()
+    }
+    host = sum(v["bytes"] for v in per.values() if v["location"] == "cpu")
+    dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
+    workers = {n: ctl.get(n, "device_mem_bytes") for n in ctl.names} if ctl else {}
+    report: dict[str, Any] = {
+        "mailboxes": per,
+        "mailbox_host_bytes": host,
+        "mailbox_device_bytes": dev,
+        "workers_torch_reserved_bytes": workers,
+    }
+    if device.type == "cuda" and ctl is not None:
+        from vpengine.runtime.gpu import process_memory
+
+        by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
+        if by_pid:
+            pids = {n: ctl.get(n, "pid") for n in ctl.names}
+            report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
+            report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
+    return report

@@ -1,0 +1,116 @@
+"""Frames into the engine without a copy: ``Engine.frame_slot`` lends an input slot (Note [Frame slots] in
+engine.py)."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from vpengine.boundary import Placement
+from vpengine.transport.ring import SlotInfo
+
+if TYPE_CHECKING:
+    from vpengine.engine import Engine
+
+
+class FrameSlot:
+    """An input slot lent by ``Engine.frame_slot``: write the frame into ``array``, then leave the with-block."""
+
+    def __init__(
+        self,
+        engine: Engine,
+        frame_id: int | None,
+        timestamp: float | None,
+        size: tuple[int, int] | None,
+        camera: int,
+    ) -> None:
+        self._engine = engine
+        self._camera = camera
+        # capture time in seconds; may be set inside the block (default: when it ends)
+        self.timestamp = timestamp
+        self._frame_id_arg = frame_id
+        self._size = size
+        self.frame_id: int | None = None  # set when the block ends and the frame is submitted
+        self._array: np.ndarray | None = None
+        self._slot: SlotInfo | None = None
+        self._cancelled = False
+
+    @property
+    def array(self) -> np.ndarray | None:
+        """The writable frame: ``(height, width, 3)`` of the input dtype (None outside the block)."""
+        return self._array
+
+    @array.setter
+    def array(self, value: np.ndarray) -> None:
+        """``ok, slot.array = cap.read(image=slot.array)``: what a writer hands back must be the lent array itself.
+        A writer that allocated a new array instead (OpenCV does when the sizes differ) wrote nothing into the
+        slot: refused, naming both sizes, rather than submitting whatever the slot held before."""
+        arr = self._array
+        if arr is None:
+            raise RuntimeError("a FrameSlot's array exists only inside its with-block")
+        if not isinstance(value, np.ndarray) or value.__array_interface__["data"][0] != arr.ctypes.data:
+            got = (
+                f"{value.shape[1]}x{value.shape[0]}"
+                if isinstance(value, np.ndarray) and value.ndim >= 2
+                else (type(value).__name__)
+            )
+            raise ValueError(
+                f"the frame was written into a new {got} array, not into the {arr.shape[1]}x{arr.shape[0]} slot "
+                f"(a writer allocates one when the sizes differ): open the slot with frame_slot(size=(height, width)) "
+                "of your frames"
+            )
+        if value.shape != arr.shape or value.dtype != arr.dtype:
+            raise ValueError(
+                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: open the slot "
+                "with frame_slot(size=(height, width)) of your frames"
+            )
+
+    def cancel(self) -> None:
+        """Submit nothing when the block ends (e.g. the camera returned no frame)."""
+        self._cancelled = True
+
+    def __enter__(self) -> FrameSlot:
+        eng = self._engine
+        if self._slot is not None or self.frame_id is not None or self._cancelled:
+            raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
+        fence = eng._res.fence
+        fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
+        eng._submit_lock.acquire()
+        try:
+            eng._require_running()
+            slot = eng._acquire_input()
+        except BaseException:
+            eng._submit_lock.release()
+            fence.leave()
+            raise
+        eng._filling = threading.get_ident()
+        self._slot = slot
+        # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
+        # (Note [Frame grid] in boundary.py)
+        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._size)
+        return self
+
+    def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
+        eng, slot, arr = self._engine, self._slot, self._array
+        assert slot is not None and arr is not None
+        self._array, self._slot = None, None  # the slot is the engine's again: no writes after the block
+        try:
+            if exc_type is not None or self._cancelled or eng._state != "running":
+                eng._input_writer.abort(slot)
+                return
+            if self._size is None:  # written in place: the frame fills the canvas
+                fill: Callable[[np.ndarray], Placement] = lambda _: eng.boundary.placement(arr.shape[:2])  # noqa: E731
+            else:  # fitted into the slot from the buffer lent (Note [Frame grid] in boundary.py)
+                fill = lambda view: eng.boundary.write(eng.boundary.check(arr), view)  # noqa: E731
+            # the timestamp may have been set inside the block
+            self.frame_id = eng._enter_frame(
+                slot, fill, self._frame_id_arg, self.timestamp, time.monotonic(), self._camera
+            )
+        finally:
+            eng._filling = None
+            eng._submit_lock.release()
+            eng._res.fence.leave()

@@ -1,0 +1,97 @@
+"""Building a worker: its model on its device, warmed up before READY, and its loop (``worker.py``) around it.
+
+Runs in the worker's thread (thread mode) or child process (process mode), so the model is built where it runs.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import torch
+
+from vpengine.models.base import check_outputs
+from vpengine.models.build import build_lock, build_model, model_config
+from vpengine.runtime.control import ControlBlock
+from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
+from vpengine.runtime.worker import WorkerCore, WorkerSpec, input_keys
+from vpengine.transport.ring import SlotRing
+
+_register_lock = threading.Lock()
+
+
+def _register_host_rings(*rings: SlotRing) -> None:
+    """Page-lock host mailboxes this process copies to or from, so the copies run asynchronously on our stream.
+
+    Registration is per process (it pins this process's mapping), so every worker does it for its own rings.
+    """
+    from vpengine.transport.memory import HostRegion
+
+    with _register_lock:
+        for ring in rings:
+            region = ring.data_region
+            if isinstance(region, HostRegion) and not region.cuda_registered:
+                region.register_with_cuda()
+
+
+def prepare_worker(
+    spec: WorkerSpec,
+    in_ring: SlotRing,
+    out_ring: SlotRing,
+    control: ControlBlock,
+    own_process: bool,
+    handoff: WorkerHandoff | None = None,
+) -> WorkerCore:
+    """Build the model on its device, warm it up (allocations happen here, before READY), return its loop."""
+    from vpengine.backends import make_executor
+    from vpengine.runtime.control import LOADING, READY
+
+    cfg = spec.engine_config()
+    mcfg = model_config(cfg, spec.name)
+    device = torch.device(cfg.device)
+    if own_process:
+        # A GPU worker needs no CPU thread pool: left at its default (one thread per core, in every worker), the
+        # OpenMP threads spin after any small CPU op and burn cores for nothing.
+        torch.set_num_threads(mcfg.cpu_threads)
+    control.set_state(spec.name, LOADING)
+    control.set(spec.name, "pid", os.getpid())
+    dev = DeviceContext(device)
+    if dev.cuda:
+        _register_host_rings(in_ring, out_ring)
+        from vpengine.transport.cuda_vmm import mps_enabled
+
+        try:
+            control.set(spec.name, "mps_active", int(mps_enabled(device.index or 0)))
+        except Exception:  # the bindings are optional in thread mode; MPS status is informational
+            control.set(spec.name, "mps_active", 0)
+    with dev.active():
+        model = build_model(cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False)
+        # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
+        # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
+        with build_lock:
+            executor = make_executor(
+                model,
+                mcfg.backend,
+                device,
+                spec.name,
+                options=mcfg.backend_options,
+                precision=mcfg.precision or cfg.precision,
+                max_batch=len(spec.lanes),  # Note [Cameras]: a frame of each camera at once
+            )
+            # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,
+            # so the steady state allocates nothing (Invariant: constant memory).
+            with torch.inference_mode():
+                check_outputs(spec.name, model.output_spec, executor(model.example_inputs(device)))
+                keys = input_keys(spec, in_ring)
+                bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
+        dev.complete()
+    control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
+    control.set(spec.name, "started_at", time.monotonic())
+    if handoff is not None and not inline_wanted(dev.cuda, bound):
+        handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]
+    core = WorkerCore(spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff)
+    control.heartbeat(spec.name)
+    control.set_state(spec.name, READY)
+    return core

@@ -68,6 +68,7 @@ from vpengine.models.build import build_lock, build_model, model_config
 from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc, camera_entry
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
+from vpengine.runtime.priority import stream_level
 from vpengine.runtime.rate import RateGate
 from vpengine.specs import SpecDict
 from vpengine.transport.ring import RingDesc, RingReader, SlotInfo, SlotRing
@@ -306,7 +307,7 @@ class WorkerCore:
         slot = self._held.pop(tag)
         lane = self._by_tag[tag]
         try:
-            self.control.add(lane.entry, "skipped")
+            self.control.skip(lane.entry, "overload")
             self.control.decide(lane.entry, slot.origin, ran=False)
         finally:
             lane.reader.release(slot)
@@ -410,11 +411,11 @@ class WorkerCore:
         now_rate = self.control.rate(lane.entry)
         if now_rate != rate:
             lane.gate.update(now_rate)
+        if slot.missed:  # Note [Give way] in governor.py: skipped, by reason
+            self.control.skip(lane.entry, "overload", slot.missed)
         if lane.gate.admit(slot.t_capture, slot.t_submit, slot.missed):
-            if slot.missed:
-                self.control.add(lane.entry, "skipped", slot.missed)
             return True
-        self.control.add(lane.entry, "skipped", 1 + slot.missed)
+        self.control.skip(lane.entry, self.control.held_reason(lane.entry))
         self.control.decide(lane.entry, slot.origin, ran=False)
         return False
 
@@ -553,7 +554,7 @@ class WorkerCore:
             # launched while unlimited: the gate only keeps its clock; frames missed meanwhile are counted
             self.gate.admit(slot.t_capture, slot.t_submit, slot.missed)
             if slot.missed:
-                self.control.add(self.name, "skipped", slot.missed)
+                self.control.skip(self.name, "overload", slot.missed)
             self._finish(slot, out, t_start)
             ran = True
         finally:
@@ -617,7 +618,7 @@ def prepare_worker(
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
-    dev = DeviceContext(device)
+    dev = DeviceContext(device, priority=stream_level(cfg, spec.name))  # Note [Give way] in governor.py
     if dev.cuda:
         _register_host_rings(in_ring, out_ring)
         from vpengine.transport.cuda_vmm import mps_enabled

@@ -20,14 +20,14 @@ TARGET = 15.0  # the high head's rate: 60% of the device, whose runs take HOLD_M
 HOLD_MS = 40
 
 
-def shared_device(lock, hi_priority=0):
+def shared_device(lock, hi_priority=0, mode="thread"):
     """hi: 15 Hz; lo1, lo2: unlimited, each alone would take the device 120% of the time at 30 Hz of input."""
     opts = f"options: {{lock: {lock}, hold_ms: {HOLD_MS}}}"
     heads = ", ".join(
         f"{{name: {n}, model: 'helpers.models:SharedDeviceHead', {opts}{extra}}}"
         for n, extra in (("hi", f", rate_hz: {TARGET}, priority: {hi_priority}"), ("lo1", ""), ("lo2", ""))
     )
-    return tiny("thread", f"heads=[{heads}]")
+    return tiny(mode, f"heads=[{heads}]")
 
 
 class Feeder:
@@ -65,8 +65,9 @@ def rate_over(engine, seconds):
     }
 
 
-def test_the_high_priority_head_holds_its_rate_while_the_others_give_way(tmp_path):
-    with Engine(shared_device(tmp_path / "device.lock", hi_priority=10)) as e:
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_the_high_priority_head_holds_its_rate_while_the_others_give_way(tmp_path, mode):
+    with Engine(shared_device(tmp_path / "device.lock", hi_priority=10, mode=mode)) as e:
         feeder = Feeder(e)
         try:
             time.sleep(3.0)  # the governor adapts within about a second; a loaded machine gets more

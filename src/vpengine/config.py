@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -22,7 +22,7 @@ Precision = Literal["fp32", "fp16", "bf16"]
 #: The one camera of an engine that configures none.
 DEFAULT_CAMERA = "camera"
 MAX_CAMERAS = 16
-MIN_PRIORITY, MAX_PRIORITY = -100, 100  #: of heads[].priority and cameras[].priority; higher: more important
+Priority = Annotated[int, Field(ge=checks.MIN_PRIORITY, le=checks.MAX_PRIORITY)]  # higher: more important
 _GIVE_WAY = (
     "Higher: more important. When the device cannot serve every rate, lower lanes are throttled (runs skipped, counted) "
     "so higher ones keep rate and deadline; equals never throttle each other (Note [Give way] in runtime/governor.py)."
@@ -165,7 +165,7 @@ class CameraConfig(_Strict):
         description="Its frames' height, the size frame_slot(camera=...) lends (frames of any size are accepted).",
     )
     width: int | None = Field(None, ge=1, le=65536, description="Its frames' width (see height).")
-    priority: int = Field(0, ge=MIN_PRIORITY, le=MAX_PRIORITY, description=_GIVE_WAY + " Ranks after the head's.")
+    priority: Priority = Field(0, description=_GIVE_WAY + " Ranks after the head's.")
 
     @field_validator("name")
     @classmethod
@@ -182,7 +182,7 @@ class HeadConfig(ModelConfig):
     cameras: list[str] | None = Field(
         None, description="The cameras this head serves, by name; null: every camera. Its rate is per camera."
     )
-    priority: int = Field(0, ge=MIN_PRIORITY, le=MAX_PRIORITY, description=_GIVE_WAY + " Ranks before the camera's.")
+    priority: Priority = Field(0, description=_GIVE_WAY + " Ranks before the camera's.")
     postprocess: dict[str, Any] = Field(default_factory=dict, description="Postprocessing options of the recipe.")
     accept_backbone_mismatch: bool = Field(
         False,

@@ -6,6 +6,7 @@
         fid = engine.submit(frame)                      # -> frame id; bad frames raise ValueError
         out = engine.wait(fid, timeout=1.0)             # {head: Result} for that frame
         engine.set_rate("depth", 5)                     # Hz, at run time; 0 pauses
+        engine.set_priority("depth", 10)                # under overload the other heads give way first
         print(engine.stats()["models"]["depth"])        # counters, achieved Hz, latencies
 
 Every result names its head, frame id, capture time and latency. Nothing is lost silently: frames a model never saw
@@ -654,7 +655,7 @@ class Engine:
 
     @_fenced
     def set_priority(self, head: str | None, priority: int, camera: str | None = None) -> None:
-        """Change a head's priority at run time (higher: more important; from config.MIN_PRIORITY to MAX_PRIORITY):
+        """Change a head's priority at run time (higher: more important; from checks.MIN_PRIORITY to MAX_PRIORITY):
         when the device cannot serve every rate, lower lanes give way (Note [Give way] in runtime/governor.py), from
         the governor's next decision, which this call brings forward. ``camera``: that camera's lane of the head only
         (None: all of them); ``head=None`` with a ``camera``: the camera's priority. KeyError for an unknown head,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from helpers.frames import frame
@@ -118,6 +119,7 @@ def test_bad_priorities_are_refused_and_change_nothing(tmp_path):
         for args, error, text in (
             (("depth", 101), ValueError, "from -100 to 100"),
             (("depth", 2.5), ValueError, "2.5"),
+            (("depth", True), ValueError, "True"),
             (("nope", 1), KeyError, "heads: \\['depth', 'seg', 'det'\\]"),
             (("foundation", 1), KeyError, "follows its heads"),
             (("depth", 1, "rear"), ValueError, "serves cameras \\['camera'\\], not 'rear'"),
@@ -126,3 +128,5 @@ def test_bad_priorities_are_refused_and_change_nothing(tmp_path):
                 e.set_priority(*args)
         models = e.stats()["models"]
         assert [models[h]["priority"] for h in ("depth", "seg", "det")] == [3, 0, 0]
+        e.set_priority("seg", np.int64(-4))  # numpy integers are integers
+        assert e.stats()["models"]["seg"]["priority"] == -4

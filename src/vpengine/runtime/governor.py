@@ -44,9 +44,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vpengine import checks
 from vpengine.config import EngineConfig
 from vpengine.runtime.control import ControlBlock
-from vpengine.runtime.priority import check_priority, lane_map
+from vpengine.runtime.priority import lane_map
 
 log = logging.getLogger("vpengine.governor")
 
@@ -304,7 +305,7 @@ class Governor:
     # ------------------------------------------------------------------------------------------- priorities
     def set_priority(self, head: str | None, priority: object, camera: str | None = None) -> None:
         """``Engine.set_priority``: validate everything first (nothing changes on an error), then write and wake."""
-        value = check_priority(priority)
+        value = checks.priority(priority)
         cameras = list(self.lanes.foundation)
         if head is None:
             if camera is None or camera not in self.lanes.foundation:

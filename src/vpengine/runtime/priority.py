@@ -18,7 +18,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from vpengine.config import MAX_PRIORITY, MIN_PRIORITY, EngineConfig
+from vpengine.config import EngineConfig
 from vpengine.runtime.control import camera_entry
 
 
@@ -46,15 +46,6 @@ def lane_map(cfg: EngineConfig) -> LaneMap:
         HeadLane(h.name, c, camera_entry(h.name, c, cams)) for h in cfg.heads for c in cfg.model_cameras(h.name)
     )
     return LaneMap(heads, {c: camera_entry("foundation", c, cams) for c in cams})
-
-
-def check_priority(value: object) -> int:
-    """A priority given at run time: an integer (not a bool) from MIN_PRIORITY to MAX_PRIORITY."""
-    if isinstance(value, bool) or not isinstance(value, int) or not MIN_PRIORITY <= value <= MAX_PRIORITY:
-        raise ValueError(
-            f"priority must be an integer from {MIN_PRIORITY} to {MAX_PRIORITY} (higher: more important), got {value!r}"
-        )
-    return int(value)
 
 
 def _model_priority(cfg: EngineConfig, model: str) -> int:

@@ -58,6 +58,39 @@ def test_overload_caps_the_lowest_priority_first_and_never_the_highest():
     assert lo_floor <= mid_capped
 
 
+def test_a_lane_far_short_of_its_claim_gets_lower_lanes_to_the_floor_within_about_a_second():
+    p = Policy()
+    _, history = run(p, lanes_under_load, 0.0, 3.0)  # hi at half its claim
+    assert next(t for t, caps in history if caps["lo"] == FLOOR_HZ) <= 1.5
+
+
+def test_under_a_load_that_stays_failed_probes_are_undone_and_grow_rare_and_a_load_that_falls_is_given_back():
+    """The device affords lo at most 3 Hz beside hi: each probe above that makes hi miss and is undone, and the
+    wait before the next one doubles (without that a probe would fail every second). Then the load falls (hi holds
+    whatever lo does): lo's cap comes off within seconds."""
+    p = Policy()
+
+    def plant(caps):
+        lo = caps.get("lo")
+        fits = lo is not None and lo <= 3.0
+        return [view("hi", (1, 0), 30.0 if fits else 15.0), view("lo", (0, 0), 30.0 if lo is None else lo)]
+
+    t, history = run(p, plant, 0.0, 30.0)
+    over = [(caps["lo"] is None or caps["lo"] > 3.0) for _, caps in history]
+    settled = over.index(False)
+    probes_too_far = sum(1 for a, b in zip(over[settled:], over[settled + 1 :]) if b and not a)
+    assert 1 <= probes_too_far <= 10, probes_too_far
+    assert sum(over[settled:]) < 0.2 * len(over[settled:])
+    caps_lo = [caps["lo"] for _, caps in history][settled:]
+    for i in range(1, len(caps_lo) - 1):
+        if over[settled + i] and not over[settled + i - 1]:  # a probe too far: undone, back where it was
+            after = next((c for c in caps_lo[i + 1 :] if c != caps_lo[i]), None)
+            assert after in (None, caps_lo[i - 1]), (caps_lo[i - 1], caps_lo[i], after)
+    _, history = run(p, lambda caps: [view("hi", (1, 0), 30.0), view("lo", (0, 0), caps.get("lo") or 30.0)], t, 10.0)
+    freed = next(u for u, caps in history if caps["lo"] is None)
+    assert freed - t <= 8.0 and history[-1][1]["lo"] is None
+
+
 def test_caps_come_off_when_the_high_lane_holds_again_highest_first():
     p = Policy()
     t, _ = run(p, lanes_under_load, 0.0, 10.0)

@@ -14,16 +14,20 @@ the cap holds back are skipped, counted with reason ``priority``, never queued).
 priority put on the device drops until the lane that missed holds again.
 
 The caps form a water level over the distinct priority keys, lowest first (``Policy``): the ``k`` lowest groups of
-lanes run at the floor (``FLOOR_HZ``: throttled lanes still show signs of life), group ``k`` at a fraction ``f`` of
-its claim, every group above it uncapped. A miss halves ``f`` (from the group's achieved fraction if that is lower:
-multiplicative decrease) and, once the group is at the floor, moves on to the next group, but never to the group of
-the lane that missed or above it: lanes of equal priority never throttle each other, and the most important lanes are
-never capped. When every uncapped lane has held its claim with margin (rate within ``TOLERANCE / 2``, p99 latency
-within ``LATENCY_MARGIN`` of its deadline) for ``HOLD_S``, ``f`` rises (doubling; by ``STEP`` only within ``CALM_S`` of
-the last decrease, so a load that stays does not make it oscillate) and the caps come off group by group. Each change
-is judged on evidence gathered after it (``SETTLE_S`` at least), so one cut's effect is seen before the next. A
-change of priorities moves the caps with the ranks at once (a lane raised above the level is uncapped at the next
-tick; ``set_priority`` wakes the governor for it): the load stays what it was, only who carries it changes.
+lanes run at the floor (``FLOOR_HZ``: throttled lanes still show signs of life), group ``k`` at a share ``f`` of
+its claim, every group above it uncapped. A miss cuts ``f`` (multiplicative decrease, from the group's achieved
+share if that is lower, by ``DECREASE`` or deeper the further the lane that missed fell short) and, once the group is
+at the floor, moves on to the next group, but never to the group of the lane that missed or above it: lanes of equal
+priority never throttle each other, and the most important lanes are never capped. Each change is judged on
+evidence gathered after it (``SETTLE_S`` at least), so one cut's effect is seen before the next; from full rate to
+the floor takes a few cuts, about a second. When every uncapped lane has held its claim with margin (rate within
+``TOLERANCE / 2``, p99 latency within ``LATENCY_MARGIN`` of its deadline) for ``HOLD_S``, the governor probes: ``f``
+doubles (at least ``STEP``) and the caps come off group by group, so a load that fell is given back within seconds.
+A miss within ``PROBE_S`` of a probe undoes it (back to where it was, not a cut) and doubles the wait before the
+next probe (up to ``MAX_HOLD_S``; a probe that holds resets it): under a load that stays, the caps do not oscillate,
+they are tried now and then. A change of priorities moves the caps with the ranks at once (a lane raised above the
+level is uncapped at the next tick; ``set_priority`` wakes the governor for it): the load stays what it was, only
+who carries it changes.
 
 The foundation model serves every camera: its lane of a camera is capped only when every head lane of that camera
 is, at the highest of their caps, so it never runs below what its most important consumer needs. Nothing is capped
@@ -54,8 +58,9 @@ log = logging.getLogger("vpengine.governor")
 TICK_S = 0.1  # how often the governor looks
 WINDOW_S = 1.0  # the longest stretch of the past a decision rests on
 SETTLE_S = 0.3  # evidence after a change before the next cut
-HOLD_S = 0.6  # evidence of margin after a change before caps are raised
-CALM_S = 3.0  # after a cut, raise by STEP only
+HOLD_S = 0.6  # evidence of margin after a change before caps are raised (a probe)
+MAX_HOLD_S = 4.0  # the longest wait before a probe, after probes that failed
+PROBE_S = 1.0  # a miss this soon after a probe is the probe's
 TOLERANCE = 0.1  # achieved below (1 - TOLERANCE) x its claim: a miss
 LATENCY_MARGIN = 0.8  # p99 latency within this share of the deadline: held with margin
 DECREASE = 0.5
@@ -100,7 +105,8 @@ class Policy:
         self.k = 0  # groups below k run at the floor, group k at f of its claim, those above uncapped
         self.f = 1.0
         self.changed_at = -math.inf
-        self.decreased_at = -math.inf
+        self.hold_s = HOLD_S  # the wait before the next probe
+        self._probe: tuple[float, int, float] | None = None  # the last probe: when, and the (k, f) before it
         self._ranks: tuple[tuple[str, Key], ...] = ()
 
     @property
@@ -115,7 +121,7 @@ class Policy:
         """Every lane's cap (None: none) after looking at ``lanes`` at time ``now``."""
         ranks = tuple((v.entry, v.key) for v in lanes)
         if ranks != self._ranks:  # priorities changed: the caps move with the ranks; judge them afresh
-            self._ranks, self.changed_at = ranks, now
+            self._ranks, self.changed_at, self._probe = ranks, now, None
         groups = sorted({v.key for v in lanes})
         rank = {key: i for i, key in enumerate(groups)}
         if len(groups) < 2:
@@ -134,16 +140,27 @@ class Policy:
         return 0.0 if group < self.k else self.f if group == self.k else 1.0
 
     def _adjust(self, lanes: Sequence[LaneView], rank: dict[Key, int], now: float) -> None:
-        verdicts = [(rank[v.key], v.verdict()) for v in lanes if self._share(rank[v.key]) >= 1]
-        missing = [g for g, verdict in verdicts if verdict == "miss"]
+        verdicts = [(v, v.verdict()) for v in lanes if self._share(rank[v.key]) >= 1]  # the uncapped lanes'
+        missed = [v for v, verdict in verdicts if verdict == "miss"]
         since = now - self.changed_at
-        if missing and since >= SETTLE_S:
-            self._decrease(lanes, rank, max(missing), now)
-        elif not missing and self.throttling and since >= HOLD_S and all(v != "held" for _, v in verdicts):
+        if missed and since >= SETTLE_S:
+            probe, self._probe = self._probe, None
+            if probe is not None and now - probe[0] <= PROBE_S:  # the probe was too much: undo it, wait longer
+                self.k, self.f = probe[1], probe[2]
+                self.hold_s = min(2 * self.hold_s, MAX_HOLD_S)
+                self.changed_at = now
+                return
+            short = min(v.achieved_hz / v.claim_hz for v in missed) / (1 - TOLERANCE)  # 1: a latency miss
+            cut = DECREASE * max(0.25, min(1.0, short))
+            self._decrease(lanes, rank, max(rank[v.key] for v in missed), cut, now)
+        elif not missed and self.throttling and since >= self.hold_s and all(v != "held" for _, v in verdicts):
+            if self._probe is not None:
+                self.hold_s = HOLD_S  # the last probe held
+            self._probe = (now, self.k, self.f)
             self._increase(now)
 
-    def _decrease(self, lanes: Sequence[LaneView], rank: dict[Key, int], missing: int, now: float) -> None:
-        """Cut the lowest group that can still give, if it is below group ``missing``."""
+    def _decrease(self, lanes: Sequence[LaneView], rank: dict[Key, int], missing: int, cut: float, now: float) -> None:
+        """Cut the lowest group that can still give, if it is below group ``missing``, to ``cut`` of its share."""
         k, f = self.k, self.f
         while True:
             if f <= 0:  # at the floor: the next group gives way
@@ -156,13 +173,12 @@ class Policy:
                 break
             f = 0.0
         achieved = max(min(1.0, v.achieved_hz / v.claim_hz) for v in group)
-        f = DECREASE * min(f, achieved)
+        f = cut * min(f, achieved)
         self.k, self.f = k, (0.0 if f * top <= self.floor_hz else f)
-        self.changed_at = self.decreased_at = now
+        self.changed_at = now
 
     def _increase(self, now: float) -> None:
-        calm = now - self.decreased_at >= CALM_S
-        self.f = max(2 * self.f, self.f + STEP) if calm else self.f + STEP
+        self.f = max(2 * self.f, self.f + STEP)
         if self.f >= 1:
             self.k, self.f = (self.k - 1, 0.0) if self.k > 0 else (0, 1.0)
         self.changed_at = now

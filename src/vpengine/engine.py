@@ -661,8 +661,10 @@ class Engine:
         (None: all of them); ``head=None`` with a ``camera``: the camera's priority. KeyError for an unknown head,
         ValueError for a bad priority or camera; on an error nothing changes."""
         self._require_running()
-        assert self._res.governor is not None
-        self._res.governor.set_priority(head, priority, camera)
+        governor = self._res.governor  # None once stop() has begun; the fence keeps the control block mapped
+        if governor is None:
+            raise EngineDeadError("engine is stopped")
+        governor.set_priority(head, priority, camera)
 
     def _entries(self, model: str, camera: str | None) -> list[str]:
         """The control-block entries holding ``model``'s rate for ``camera`` (None: all its cameras)."""

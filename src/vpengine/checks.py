@@ -57,6 +57,24 @@ def timeout(value: Any, what: str = "timeout") -> float:
     return max(t, 0.0)
 
 
+#: The bounds of a priority (heads[].priority, cameras[].priority, ``Engine.set_priority``); higher is more important.
+MIN_PRIORITY, MAX_PRIORITY = -100, 100
+
+
+def priority(value: Any) -> int:
+    """A priority (``Engine.set_priority``): an integer (Python or numpy, not a bool) from MIN_PRIORITY to
+    MAX_PRIORITY; higher is more important."""
+    try:
+        p = None if isinstance(value, bool) else operator.index(value)
+    except TypeError:
+        p = None
+    if p is None or not MIN_PRIORITY <= p <= MAX_PRIORITY:
+        raise ValueError(
+            f"priority must be an integer from {MIN_PRIORITY} to {MAX_PRIORITY} (higher: more important), got {value!r}"
+        )
+    return p
+
+
 #: The highest rate limit accepted anywhere (config, ``Engine.set_rate``, ROS 2, the live view): far above any
 #: camera, low enough that a typo (an extra zero or three) is caught rather than run.
 MAX_RATE_HZ = 10_000.0

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import re
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
@@ -22,6 +22,11 @@ Precision = Literal["fp32", "fp16", "bf16"]
 #: The one camera of an engine that configures none.
 DEFAULT_CAMERA = "camera"
 MAX_CAMERAS = 16
+Priority = Annotated[int, Field(ge=checks.MIN_PRIORITY, le=checks.MAX_PRIORITY)]  # higher: more important
+_GIVE_WAY = (
+    "Higher: more important. When the device cannot serve every rate, lower lanes are throttled (runs skipped, counted) "
+    "so higher ones keep rate and deadline; equals never throttle each other (Note [Give way] in runtime/governor.py)."
+)
 Backend = Literal["eager", "compile", "onnx"]
 _NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 _DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
@@ -95,8 +100,10 @@ class ModelConfig(_Strict):
         description="PyTorch intra-op threads in this model's worker process (CPU). In thread mode the models share "
         "one process and so one pool, sized by the foundation model's value; the heads' values are not used.",
     )
-    mps_priority: Literal["normal", "below_normal"] = Field(
-        "normal", description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY)."
+    mps_priority: Literal["normal", "below_normal"] | None = Field(
+        None,
+        description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY); null: below_normal "
+        "for a head less important than the engine's most important head, else normal.",
     )
 
     input_mode: Literal["latest", "fifo"] = Field(
@@ -158,6 +165,7 @@ class CameraConfig(_Strict):
         description="Its frames' height, the size frame_slot(camera=...) lends (frames of any size are accepted).",
     )
     width: int | None = Field(None, ge=1, le=65536, description="Its frames' width (see height).")
+    priority: Priority = Field(0, description=_GIVE_WAY + " Ranks after the head's.")
 
     @field_validator("name")
     @classmethod
@@ -174,6 +182,7 @@ class HeadConfig(ModelConfig):
     cameras: list[str] | None = Field(
         None, description="The cameras this head serves, by name; null: every camera. Its rate is per camera."
     )
+    priority: Priority = Field(0, description=_GIVE_WAY + " Ranks before the camera's.")
     postprocess: dict[str, Any] = Field(default_factory=dict, description="Postprocessing options of the recipe.")
     accept_backbone_mismatch: bool = Field(
         False,

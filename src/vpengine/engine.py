@@ -6,6 +6,7 @@
         fid = engine.submit(frame)                      # -> frame id; bad frames raise ValueError
         out = engine.wait(fid, timeout=1.0)             # {head: Result} for that frame
         engine.set_rate("depth", 5)                     # Hz, at run time; 0 pauses
+        engine.set_priority("depth", 10)                # under overload the other heads give way first
         print(engine.stats()["models"]["depth"])        # counters, achieved Hz, latencies
 
 Every result names its head, frame id, capture time and latency. Nothing is lost silently: frames a model never saw
@@ -49,6 +50,7 @@ from vpengine.models.weights import check_checkpoints
 from vpengine.results import Outbox, Result
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.fence import MappingFence
+from vpengine.runtime.governor import Governor
 from vpengine.runtime.gpu import CudaSetup, prepare_cuda, worker_env
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.lanes import Lanes
@@ -85,6 +87,7 @@ class _Resources:
 
     def __init__(self) -> None:
         self.runner: Runner | None = None
+        self.governor: Governor | None = None  # Note [Give way] in runtime/governor.py
         self.rings: dict[str, SlotRing] = {}
         self.control: ControlBlock | None = None
         self.dirs: list[str] = []  # private temporary directories (e.g. the no-MPS pipe directory)
@@ -94,6 +97,9 @@ class _Resources:
 
     def close(self) -> list[str]:
         forced: list[str] = []
+        if self.governor is not None:  # first: it reads the control block
+            self.governor.stop()
+            self.governor = None
         if os.getpid() != self.owner:
             # A process forked from the engine's (Note [Child lifecycle]), its finalizer run at its exit: the
             # workers, the control block and the directories are the engine's; only drop the references.
@@ -179,6 +185,7 @@ class Engine:
             for lanes in self.lanes.by_model.values():
                 for lane in lanes:  # Note [Cameras]: a rate per camera
                     res.control.set_rate(lane.entry, lane.rate_hz)
+            res.governor = Governor(res.control, cfg, self.lanes)
             specs = self._worker_specs()
             if shared:
                 from vpengine.runtime.process import ProcessRunner
@@ -193,6 +200,7 @@ class Engine:
                 self._handoffs = make_handoffs(res.rings, heads, device.type == "cuda")
                 res.runner = ThreadRunner(specs, res.rings, res.control, cfg, handoffs=self._handoffs)
             res.runner.start()
+            res.governor.start()
         except BaseException:
             self._state = "stopped"
             res.close()
@@ -521,7 +529,20 @@ class Engine:
         read of shared memory), unlike ``stats()``; for a loop that checks it every frame. With several cameras,
         ``camera`` names whose (None: the first the model serves)."""
         ctl = self._model_control(model)
-        return ctl.rate(self._entries(model, camera)[0])
+        return ctl.target(self._entries(model, camera)[0])
+
+    @_fenced
+    def set_priority(self, head: str | None, priority: int, camera: str | None = None) -> None:
+        """Change a head's priority at run time (higher: more important; from checks.MIN_PRIORITY to MAX_PRIORITY):
+        when the device cannot serve every rate, lower lanes give way (Note [Give way] in runtime/governor.py), from
+        the governor's next decision, which this call brings forward. ``camera``: that camera's lane of the head only
+        (None: all of them); ``head=None`` with a ``camera``: the camera's priority. KeyError for an unknown head,
+        ValueError for a bad priority or camera; on an error nothing changes."""
+        self._require_running()
+        governor = self._res.governor  # None once stop() has begun; the fence keeps the control block mapped
+        if governor is None:
+            raise EngineDeadError("engine is stopped")
+        governor.set_priority(head, priority, camera)
 
     def _entries(self, model: str, camera: str | None) -> list[str]:
         """The control-block entries holding ``model``'s rate for ``camera`` (None: all its cameras)."""

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import fcntl
+import os
 import threading
+import time
 from typing import Any, ClassVar
 
 import torch
@@ -23,6 +26,33 @@ class SmallHead(Model):
         super().__init__()
         self.input_spec = {"x": TensorSpec((4, 8), "float32")}
         self.output_spec = {"y": TensorSpec((4, 8), "float32")}
+
+
+class SharedDeviceHead(TinyDepthHead):
+    """tiny_depth whose every run holds, for ``hold_ms``, an exclusive lock on the file ``lock`` (its options) that
+    every such head shares, in any thread or process: a make-believe device that a few heads over-subscribe the way
+    heads share one GPU, sleeping rather than spending the test machine's cores."""
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext) -> Model:
+        m = cls(ctx, TinyHeadOptions())
+        m.lock_path, m.hold_s = str(ctx.cfg.options["lock"]), float(ctx.cfg.options["hold_ms"]) / 1e3
+        m.fd = -1  # opened on the first run, in the worker's own process
+        return m
+
+    def forward(self, inputs):  # type: ignore[no-untyped-def]
+        if self.fd < 0:
+            self.fd = os.open(self.lock_path, os.O_RDWR | os.O_CREAT, 0o600)
+        fcntl.flock(self.fd, fcntl.LOCK_EX)
+        try:
+            time.sleep(self.hold_s)
+        finally:
+            fcntl.flock(self.fd, fcntl.LOCK_UN)
+        return super().forward(inputs)
+
+    def __del__(self) -> None:
+        if getattr(self, "fd", -1) >= 0:
+            os.close(self.fd)
 
 
 class NeedsMissingFeature(Model):

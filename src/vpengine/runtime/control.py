@@ -61,7 +61,20 @@ _FIELDS = [
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
     ("started_at", "d"),
     ("device_mem_bytes", "d"),
+    # Note [Give way] in governor.py: the lane's priority (its head's; the foundation's: its most important
+    # consumer's) and its camera's (parent-written), the governor's throttle cap (NaN: none), the skipped frames by
+    # reason (they sum to ``skipped``) and the outputs later than the lane's deadline (1 / target rate)
+    ("priority", "q"),
+    ("camera_priority", "q"),
+    ("cap_hz", "d"),
+    ("skipped_rate", "q"),
+    ("skipped_priority", "q"),
+    ("skipped_overload", "q"),
+    ("deadline_misses", "q"),
 ]
+#: Why a frame a model was offered did not run (``ControlBlock.skip``): its own rate limit held it back, the
+#: governor's cap for a more important lane did, or it never saw it (busy: a newer frame replaced it).
+SKIP_REASONS = ("rate", "priority", "overload")
 _F = {name: (1 + i, kind) for i, (name, kind) in enumerate(_FIELDS)}  # word index inside an entry (word 0: futex)
 _LAT0 = 1 + len(_FIELDS)
 ENTRY_WORDS = _LAT0 + 3 * LAT_N + ERR_BYTES // 8
@@ -98,6 +111,7 @@ class ControlBlock:
         cb = cls(names, region)
         for i in range(len(names)):
             cb._set(i, "target_hz", math.nan)
+            cb._set(i, "cap_hz", math.nan)
         return cb
 
     def export(self, fds: list[int]) -> ControlDesc:
@@ -179,8 +193,39 @@ class ControlBlock:
         self._bump(_HEADER + self.index[name] * ENTRY_BYTES)
 
     def rate(self, name: str) -> float | None:
+        """The rate ``name``'s worker obeys: its target, or the governor's cap where that is lower (Note [Give way]
+        in governor.py); None: unlimited, 0: paused."""
+        i = self.index[name]
+        target, cap = self._get(i, "target_hz"), self._get(i, "cap_hz")
+        if math.isnan(cap) or cap >= target:  # NaN target (unlimited): never >=
+            return None if math.isnan(target) else target
+        return cap
+
+    def target(self, name: str) -> float | None:
+        """The rate limit ``set_rate`` or the config set (None: unlimited, 0: paused), whatever the cap."""
         v = self._get(self.index[name], "target_hz")
         return None if math.isnan(v) else v
+
+    def set_cap(self, name: str, hz: float | None) -> None:
+        """The governor's throttle cap on ``name`` (None: none). Its worker reads it at its next frame, so no wake."""
+        self._set(self.index[name], "cap_hz", math.nan if hz is None else hz)
+
+    def cap(self, name: str) -> float | None:
+        v = self._get(self.index[name], "cap_hz")
+        return None if math.isnan(v) else v
+
+    def skip(self, name: str, reason: str, n: int = 1) -> None:
+        """Count ``n`` frames ``name`` did not run, for ``reason`` (one of SKIP_REASONS) and in ``skipped``."""
+        i = self.index[name]
+        self._add(i, f"skipped_{reason}", n)
+        self._add(i, "skipped", n)
+
+    def held_reason(self, name: str) -> str:
+        """Why ``name``'s rate gate holds frames back now: ``priority`` while the governor's cap is below its
+        target, else ``rate`` (the gate runs at the lower of the two and cannot tell them apart)."""
+        i = self.index[name]
+        cap = self._get(i, "cap_hz")
+        return "priority" if not math.isnan(cap) and not cap >= self._get(i, "target_hz") else "rate"
 
     @property
     def stopping(self) -> bool:
@@ -211,9 +256,17 @@ class ControlBlock:
         self._d[b + k] = compute_s
         self._d[b + LAT_N + k] = e2e_s
 
+    def _late(self, i: int, e2e_s: float) -> bool:
+        """Whether an output ``e2e_s`` after its frame's submit missed entry ``i``'s deadline: one period of its
+        target rate (none without one)."""
+        target = self._get(i, "target_hz")
+        return target > 0 and e2e_s * target > 1.0  # NaN (unlimited): False
+
     def record_run(self, name: str, t_start: float, compute_s: float, e2e_s: float, frame_id: int) -> None:
         i = self.index[name]
         n = self._get(i, "lat_count")
+        if self._late(i, e2e_s):
+            self._add(i, "deadline_misses")
         self._put_times(i, n, compute_s, e2e_s)
         self._d[self._lat_base(i) + 2 * LAT_N + n % LAT_N] = t_start
         self._set(i, "last_frame_id", frame_id)
@@ -235,6 +288,8 @@ class ControlBlock:
         i = self.index[name]
         n = self._get(i, "lat_count")
         if n:
+            if self._late(i, e2e_s) and not self._late(i, self._d[self._lat_base(i) + LAT_N + (n - 1) % LAT_N]):
+                self._add(i, "deadline_misses")  # late only now that the device work is done
             self._put_times(i, n - 1, compute_s, e2e_s)
 
     def set_error(self, name: str, text: str) -> None:
@@ -271,8 +326,11 @@ class ControlBlock:
             p = np.percentile(a, [50, 90, 99]) * 1e3
             return {"p50": float(p[0]), "p90": float(p[1]), "p99": float(p[2]), "mean": float(a.mean() * 1e3)}
 
-        targets = {self._get(self.index[p], "target_hz") for p in (cameras or [name])}
-        target = targets.pop() if len(targets) == 1 else math.nan  # several: stats()["cameras"] has each
+        def one(field: str) -> float:  # several cameras' differing values: NaN (stats()["cameras"] has each)
+            values = {self._get(self.index[p], field) for p in (cameras or [name])}
+            return values.pop() if len(values) == 1 else math.nan
+
+        target, cap = one("target_hz"), one("cap_hz")
 
         def total(field: str) -> int:
             return int(sum(self._get(self.index[p], field) for p in parts))
@@ -284,6 +342,11 @@ class ControlBlock:
             "achieved_hz": achieved,
             "runs": total("runs"),
             "skipped": total("skipped"),
+            "skipped_by": {r: total(f"skipped_{r}") for r in SKIP_REASONS},
+            "deadline_misses": total("deadline_misses"),
+            "priority": max(self._get(self.index[p], "priority") for p in (cameras or [name])),
+            "cap_hz": None if math.isnan(cap) else cap,
+            "camera_priority": None if math.isnan(cam_priority := one("camera_priority")) else int(cam_priority),
             "dropped": total("dropped"),
             "late": total("late"),
             "deferred": total("deferred"),
@@ -310,6 +373,14 @@ class ControlBlock:
             np.array(self._d[b + LAT_N : b + LAT_N + n]),
             np.array(self._d[b + 2 * LAT_N : b + 2 * LAT_N + n]),
         )
+
+    def recent_runs(self, name: str, since: float) -> tuple[np.ndarray, np.ndarray]:
+        """Start times (sorted) and end-to-end latencies of ``name``'s recorded runs that started at or after
+        ``since`` (of the last LAT_N)."""
+        _, e2e, starts = self._samples(name)
+        order = np.argsort(starts)
+        keep = order[starts[order] >= since]
+        return starts[keep], e2e[keep]
 
     def recent_latencies(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         i = self.index[name]

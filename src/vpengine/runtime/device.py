@@ -20,14 +20,17 @@ import torch
 
 
 class DeviceContext:
-    def __init__(self, device: torch.device | str) -> None:
+    def __init__(self, device: torch.device | str, priority: int = 0) -> None:
+        """``priority``: steps above the default CUDA stream priority (more urgent; clamped to what the device
+        has; runtime/priority.py ``stream_level``)."""
         self.device = torch.device(device)
         self.cuda = self.device.type == "cuda"
         if self.cuda:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
                 self.device = torch.device("cuda", torch.cuda.current_device())
             torch.cuda.set_device(self.device)
-            self.stream: torch.cuda.Stream | None = torch.cuda.Stream(self.device)
+            # CUDA: lower numbers are more urgent
+            self.stream: torch.cuda.Stream | None = torch.cuda.Stream(self.device, priority=-priority)
             self.event: torch.cuda.Event | None = torch.cuda.Event(blocking=True)
         else:
             self.stream = None

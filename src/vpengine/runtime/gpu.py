@@ -153,8 +153,9 @@ def worker_env(cfg: EngineConfig, setup: CudaSetup | None, name: str) -> dict[st
     use = setup.mps_dir if setup.mps_dir and mps.status(setup.mps_dir)["reachable"] else None
     env = {"CUDA_MPS_PIPE_DIRECTORY": use or setup.nomps_dir}
     if use:
-        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
-        env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mcfg.mps_priority == "below_normal" else "0"
+        from vpengine.runtime.priority import mps_below_normal
+
+        env["CUDA_MPS_CLIENT_PRIORITY"] = "1" if mps_below_normal(cfg, name) else "0"
     elif setup.mps_dir:
         log.warning("MPS daemon at %s no longer answers: %s starts without MPS", setup.mps_dir, name)
     return env

@@ -16,6 +16,7 @@ from vpengine.models.build import build_lock, build_model, model_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
+from vpengine.runtime.priority import stream_level
 from vpengine.runtime.worker import WorkerCore, WorkerSpec, input_keys
 from vpengine.transport.ring import SlotRing
 
@@ -57,7 +58,7 @@ def prepare_worker(
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
-    dev = DeviceContext(device)
+    dev = DeviceContext(device, priority=stream_level(cfg, spec.name))  # Note [Give way] in governor.py
     if dev.cuda:
         _register_host_rings(in_ring, out_ring)
         from vpengine.transport.cuda_vmm import mps_enabled

@@ -295,7 +295,7 @@ class WorkerCore:
         slot = self._held.pop(tag)
         lane = self._by_tag[tag]
         try:
-            self.control.add(lane.entry, "skipped")
+            self.control.skip(lane.entry, "overload")
             self.control.decide(lane.entry, slot.origin, ran=False)
         finally:
             lane.reader.release(slot)
@@ -336,11 +336,11 @@ class WorkerCore:
         now_rate = self.control.rate(lane.entry)
         if now_rate != rate:
             lane.gate.update(now_rate)
+        if slot.missed:  # Note [Give way] in governor.py: skipped, by reason
+            self.control.skip(lane.entry, "overload", slot.missed)
         if lane.gate.admit(slot.t_capture, slot.t_submit, slot.missed):
-            if slot.missed:
-                self.control.add(lane.entry, "skipped", slot.missed)
             return True
-        self.control.add(lane.entry, "skipped", 1 + slot.missed)
+        self.control.skip(lane.entry, self.control.held_reason(lane.entry))
         self.control.decide(lane.entry, slot.origin, ran=False)
         return False
 
@@ -538,7 +538,7 @@ class WorkerCore:
             # launched while unlimited: the gate only keeps its clock; frames missed meanwhile are counted
             lane.gate.admit(slot.t_capture, slot.t_submit, slot.missed)
             if slot.missed:
-                ctl.add(lane.entry, "skipped", slot.missed)
+                ctl.skip(lane.entry, "overload", slot.missed)
             self._publish([(slot, out)], t_start)
         finally:
             lane.reader.release(slot)

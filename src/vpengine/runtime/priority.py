@@ -1,0 +1,73 @@
+"""Priorities: which lanes give way when the device cannot serve them all (Note [Give way] in governor.py).
+
+A lane is one (model, camera) pair with its own control-block entry (Note [Cameras] in worker.py). Its priority is a
+key ``(head priority, camera priority)``, compared head first; higher is more important. Both come from the config
+(``heads[].priority``, ``cameras[].priority``) and live in the control block from start, where ``Engine.set_priority``
+changes them, so the governor and every worker, in any process, read the current ones. The foundation model serves
+every head: its lane of a camera ranks with the most important head lane of that camera, and is throttled only as
+far as that lane allows (``Governor``).
+
+The device learns of them too, at a worker's (re)start: a model's CUDA stream gets a higher stream priority the more
+important the model (thread mode, where the models share one context), and in process mode a head less important
+than the engine's most important one is an MPS client of below-normal priority, unless its ``mps_priority`` says
+otherwise. Those follow the config, not later ``set_priority`` calls (neither can change under a running context).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+from vpengine.config import EngineConfig
+from vpengine.runtime.lanes import Lanes
+
+
+@dataclass(frozen=True)
+class HeadLane:
+    head: str
+    camera: str
+    entry: str
+
+
+@dataclass(frozen=True)
+class LaneMap:
+    """The lanes priorities apply to: every head's, and the foundation model's entry for each camera."""
+
+    heads: tuple[HeadLane, ...]
+    foundation: Mapping[str, str]  # camera -> the foundation's entry for it
+
+    def select(self, head: str | None, camera: str | None) -> list[HeadLane]:
+        return [x for x in self.heads if head in (None, x.head) and camera in (None, x.camera)]
+
+
+def lane_map(lanes: Lanes) -> LaneMap:
+    heads = tuple(
+        HeadLane(lane.model, lane.camera, lane.entry)
+        for model, of_model in lanes.by_model.items()
+        if model != "foundation"
+        for lane in of_model
+    )
+    return LaneMap(heads, {lane.camera: lane.entry for lane in lanes.of("foundation")})
+
+
+def _model_priority(cfg: EngineConfig, model: str) -> int:
+    """A model's configured priority; the foundation model's is its most important head's."""
+    if model != "foundation":
+        return cfg.head(model).priority
+    return max((h.priority for h in cfg.heads), default=0)
+
+
+def stream_level(cfg: EngineConfig, model: str) -> int:
+    """How many steps above the default CUDA stream priority ``model``'s stream runs: the number of distinct head
+    priorities below its own, so equal priorities (the default) leave every stream at the default."""
+    mine = _model_priority(cfg, model)
+    return len({h.priority for h in cfg.heads if h.priority < mine})
+
+
+def mps_below_normal(cfg: EngineConfig, model: str) -> bool:
+    """The MPS client priority of ``model``'s process: its ``mps_priority``, else below normal for a head less
+    important than the engine's most important head (MPS has only the two levels)."""
+    chosen = cfg.model(model).mps_priority
+    if chosen is not None:
+        return chosen == "below_normal"
+    return _model_priority(cfg, model) < _model_priority(cfg, "foundation")

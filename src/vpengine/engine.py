@@ -525,18 +525,15 @@ class Engine:
 
     @_fenced
     def rate(self, model: str, camera: str | None = None) -> float | None:
-        """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. Cheap (one
-        read of shared memory), unlike ``stats()``; for a loop that checks it every frame. With several cameras,
-        ``camera`` names whose (None: the first the model serves)."""
-        ctl = self._model_control(model)
-        return ctl.target(self._entries(model, camera)[0])
+        """A model's rate limit now, as ``set_rate`` or the config set it: None unlimited, 0 paused. One read of
+        shared memory. ``camera``: whose, with several (None: the first the model serves)."""
+        return self._model_control(model).target(self._entries(model, camera)[0])
 
     @_fenced
     def set_priority(self, head: str | None, priority: int, camera: str | None = None) -> None:
-        """Change a head's priority at run time (higher: more important; from checks.MIN_PRIORITY to MAX_PRIORITY):
-        when the device cannot serve every rate, lower lanes give way (Note [Give way] in runtime/governor.py), from
-        the governor's next decision, which this call brings forward. ``camera``: that camera's lane of the head only
-        (None: all of them); ``head=None`` with a ``camera``: the camera's priority. KeyError for an unknown head,
+        """Change a head's priority now (higher: more important, checks.MIN_PRIORITY to MAX_PRIORITY): lower lanes
+        give way when the device cannot serve every rate (Note [Give way] in runtime/governor.py). ``camera``: that
+        camera's lane only; ``head=None`` with a ``camera``: the camera's priority. KeyError for an unknown head,
         ValueError for a bad priority or camera; on an error nothing changes."""
         self._require_running()
         governor = self._res.governor  # None once stop() has begun; the fence keeps the control block mapped

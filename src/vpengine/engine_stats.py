@@ -33,6 +33,7 @@ def model_stats(
             for lane, r in zip(mine, reads):
                 one = ctl.snapshot(lane.entry)
                 one["frames_seen"], one["pending"] = r["reads"] + r["missed"], r["pending"]
+                one["entry"] = lane.entry  # its name in rate commands and summaries
                 per_camera.setdefault(lane.camera, {})[name] = one
     return models, per_camera
 

@@ -66,7 +66,7 @@ class StandIn:
         self.running = True
         self.cameras = list(cameras)
         served = served or {}
-        self.config = SimpleNamespace(model_cameras=lambda head: served.get(head, self.cameras))
+        self.lanes = SimpleNamespace(served=lambda head: served.get(head, list(self.cameras)))
         self.boundary = DoorOut()
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)

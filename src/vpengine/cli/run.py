@@ -131,7 +131,7 @@ def format_summary(s: dict[str, Any]) -> str:
     cameras = s.get("cameras") or {}
     each = ", ".join(f"{c} {x['frames_submitted']}" for c, x in cameras.items())
     each = f" ({each})" if each else ""
-    w = max([14] + [len(f"{n}@{c}") for c, x in cameras.items() for n in x["models"]])
+    w = max([14] + [len(m["entry"]) for x in cameras.values() for m in x["models"].values()])
     lines = [
         f"{stopped}{s['frames_submitted']} frames{each} in {s['wall_s']:.1f} s ({s['input_hz']:.1f} Hz in, "
         f"{s['pace']}, {s['mode']} mode on {s['device']}{missed})",
@@ -151,8 +151,8 @@ def format_summary(s: dict[str, Any]) -> str:
         )
 
     lines += [row(name, m) for name, m in s["models"].items()]
-    for camera, x in cameras.items():  # each camera's share, named model@camera as rate commands name it
-        lines += [row(f"{name}@{camera}", m) for name, m in x["models"].items()]
+    for x in cameras.values():  # each camera's share, named by its lane's entry, as rate commands name it
+        lines += [row(m["entry"], m) for m in x["models"].values()]
     lines.append("(latency: submit -> result for heads; model time for the foundation model)")
     if s.get("inputs_skipped"):
         lines.append(f"images skipped as unreadable: {len(s['inputs_skipped'])} (listed in summary.json)")

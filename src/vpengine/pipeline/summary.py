@@ -95,9 +95,7 @@ def summarize(pipe: Pipeline, interrupted: bool, wall: float, stats: dict[str, A
         "models": models,
         "warnings": pipe.engine.plan.warnings,
     }
-    if (
-        len(served) > 1
-    ):  # each camera's frames and models, from stats()["cameras"] (Note [Cameras] in runtime/worker.py)
+    if len(served) > 1:  # each camera's frames and models, from stats()["cameras"] (Note [Cameras] in worker.py)
         by_camera = {f.camera: f for f in pipe.feeds}
         summary["cameras"] = {
             c: {
@@ -113,6 +111,7 @@ def summarize(pipe: Pipeline, interrupted: bool, wall: float, stats: dict[str, A
                             if name in heads
                             else None,
                         ),
+                        "entry": m["entry"],
                         "late": m.get("late", 0),
                         "deferred": m.get("deferred", 0),
                     }

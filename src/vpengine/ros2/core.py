@@ -119,9 +119,9 @@ class Ros2Core:
         self.model_names: list[str] = self.config.model_names()
         self.head_infos: dict[str, dict[str, Any]] = {h.name: planner.head_info(h.name) for h in self.config.heads}
         #: the engine's cameras, in priority order; with several, each has its own input topic and namespace
-        self.cameras: list[str] = self.config.camera_names()
+        self.cameras: list[str] = planner.cameras
         self.several = len(self.cameras) > 1
-        served = {c: [h for h in self.head_infos if c in self.config.model_cameras(h)] for c in self.cameras}
+        served = {c: [h for h in self.head_infos if c in planner.lanes.served(h)] for c in self.cameras}
         self.topics, self.unmapped = plan_outputs(
             self.head_infos, self.namespace, depth_color, seg_overlay, served if self.several else None
         )

@@ -145,7 +145,7 @@ class FoxgloveView:
                 kind = head_kind(engine.head_info(head))
                 if kind == "generic":
                     continue
-                for camera in engine.config.model_cameras(head) if several else [None]:
+                for camera in engine.lanes.served(head) if several else [None]:
                     base = f"{self.ns}/{camera}/{head}" if camera else f"{self.ns}/{head}"
                     image = self._image_channel(f"{base}/image", context=self._context)
                     boxes = (

@@ -358,7 +358,7 @@ class _Handler(BaseHTTPRequestHandler):
                 )
         try:
             eng.head_info(head)  # KeyError for an unknown head
-            served = eng.config.model_cameras(head)
+            served = eng.lanes.served(head)
         except KeyError as e:
             raise _HttpError(HTTPStatus.NOT_FOUND, str(e.args[0])) from None
         # Note [Pictures and frames]: one picture per camera and head, never the newest of any camera's

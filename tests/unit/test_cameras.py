@@ -148,3 +148,32 @@ def test_a_batch_that_fails_answers_every_camera_and_the_head_goes_on(tmp_path, 
             assert all("seg" in e.wait(f, timeout=30) for f in ids)
         st = e.stats()["cameras"]
         assert st["front"]["seg"]["runs"] + st["rear"]["seg"]["runs"] >= 40 + 24 - len(missing)
+
+
+def test_the_feature_mailbox_has_room_for_a_whole_batch_while_every_reader_pins_another_frame():
+    """The foundation acquires one feature slot per camera of its batch before it publishes any (Note [Tagged
+    slots]): with every head's reader pinning a slot of its own and each camera's newest kept, all of them must still
+    be free. A mailbox sized for one slot in writing crashed the foundation with two cameras and slow heads."""
+    from vpengine.runtime.plan import make_plan, mailboxes
+    from vpengine.transport import SlotRing
+
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]")
+    box = next(m for m in mailboxes(make_plan(cfg), shared=False) if m["name"] == "features")
+    ring = SlotRing.create(**box)
+    try:
+        writer, tags = ring.writer(), len(cfg.camera_names())
+        readers = [ring.reader(r.name) for r in box["readers"]]
+        pinned = []
+        for round_ in range(len(readers) // tags + 1):  # each round: a frame per camera, one new reader per camera
+            for tag in range(tags):
+                slot = writer.acquire(timeout=0)
+                assert slot is not None
+                writer.publish(slot, round_ * tags + tag, 0.0, 0.0, tag=tag)
+            for reader in readers[round_ * tags : (round_ + 1) * tags]:
+                pinned.append((reader, reader.pin(timeout=0)))
+        assert all(slot is not None for _, slot in pinned)
+        assert len({slot.index for _, slot in pinned}) == len(readers)  # every reader holds a frame of its own
+        batch = [writer.acquire(timeout=0) for _ in range(tags)]  # the next batch, all taken before any publish
+        assert all(slot is not None for slot in batch)
+    finally:
+        ring.close()

@@ -159,7 +159,8 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
         dict(
             name="features",
             specs=plan.features,
-            n_slots=max(3, len(feature_readers) + tags + 1 + fifo_heads * tags),
+            # the foundation fills a slot per camera of its batch before it publishes them (Note [Tagged slots])
+            n_slots=max(3, len(feature_readers) + 2 * tags + fifo_heads * tags),
             readers=feature_readers,
             device=device,
             shared=shared,

@@ -44,7 +44,8 @@ each slot published with its camera's index as its *tag*. A reader declared with
 as if the ring held that camera's frames alone: its cursor, the frames it missed and what is pending count in the
 tag's own sequence (``tag_seq``), so a model that reads every camera holds one such reader per camera and pins at
 most one slot per camera. A reader without a tag sees every slot, as before. The writer keeps the newest slot of
-each tag for readers that have not looked yet, so a ring needs readers + tags + 1 slots (with one tag: readers + 2).
+each tag for readers that have not looked yet, so a ring needs readers + tags + 1 slots (with one tag: readers + 2),
+and tags - 1 more where the writer fills a slot per tag before it publishes them (a batch of every camera's frames).
 
 The ring is this module's ``SlotRing`` (creation, attachment, supervision, stats, the one futex wait), its
 ``RingReader`` (ring_reader.py) and ``RingWriter`` (ring_writer.py), over the metadata offsets and descriptions of

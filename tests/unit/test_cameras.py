@@ -154,7 +154,7 @@ def test_the_feature_mailbox_has_room_for_a_whole_batch_while_every_reader_pins_
     """The foundation acquires one feature slot per camera of its batch before it publishes any (Note [Tagged
     slots]): with every head's reader pinning a slot of its own and each camera's newest kept, all of them must still
     be free. A mailbox sized for one slot in writing crashed the foundation with two cameras and slow heads."""
-    from vpengine.runtime.plan import make_plan, mailboxes
+    from vpengine.runtime.plan import mailboxes, make_plan
     from vpengine.transport import SlotRing
 
     cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]")

@@ -47,7 +47,9 @@ def _mask_kernel(boxes, classes, mask, T, W, threshold, WORD: tl.constexpr):
     inter = w * h
     ra = (rx2 - rx1) * (ry2 - ry1)
     ca = (cx2 - cx1) * (cy2 - cy1)
-    iou = inter / (ra[:, None] + ca[None, :] - inter)
+    # rounded as the CPU divides: Triton's own fp32 `/` is an approximate division, a last bit off, which flips an
+    # IoU that lies on the threshold (seen on an H200)
+    iou = tl.math.div_rn(inter, ra[:, None] + ca[None, :] - inter)
     rc = tl.load(classes + rows, mask=rm, other=-1)
     cc = tl.load(classes + cols, mask=cm, other=-2)
     # padding rows and columns: 0/0 is NaN, never above the threshold, and masked besides
@@ -96,7 +98,8 @@ def launch(boxes: torch.Tensor, valid: torch.Tensor, classes: torch.Tensor, thre
     keep = torch.empty((n, t), dtype=torch.int8, device=boxes.device)
     if n == 0 or t == 0:
         return keep.bool()
-    _mask_kernel[(w, w, n)](boxes, classes, mask, t, w, threshold, WORD=WORD)
+    # no fused multiply-adds: torchvision rounds every product of its IoU on its own
+    _mask_kernel[(w, w, n)](boxes, classes, mask, t, w, threshold, WORD=WORD, enable_fp_fusion=False)
     wpad = triton.next_power_of_2(w)
     _walk_kernel[(n,)](mask, valid.view(torch.int8), keep, t, w, WORD=WORD, WPAD=wpad, num_warps=1 if wpad <= 64 else 4)
     return keep.view(torch.bool)

@@ -235,8 +235,9 @@ def output_kinds(meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int
 
 
 class Boundary:
-    """Frames in (checked, fitted into the input canvas); outputs go back through ``Placement.to_frame`` with the
-    kinds in ``kinds``. One per engine (one per camera, later); ``write`` runs under the engine's submit lock."""
+    """Frames in (checked, fitted into the input canvas); outputs go back through :meth:`to_frame` (each frame's
+    ``Placement`` with the kinds in ``kinds``). One per engine, whatever the cameras (each frame carries its own
+    placement); ``write`` runs under the engine's submit lock."""
 
     def __init__(
         self,

@@ -64,7 +64,7 @@ def test_a_ros2_rate_above_the_cap_gets_the_one_message_and_is_counted():
         with pytest.raises(ValueError, match="rate for 'seg' " + ONE_MESSAGE + "10001.0"):
             core.set_rate("seg", "10001")
         with pytest.raises(ValueError, match="rate for 'depth' " + ONE_MESSAGE + "20000.0"):
-            core.set_rate_hz("depth", 20000.0)
+            core.set_rate("depth", 20000.0)  # a number, as services and parameters carry it
         assert core.counters["rate_commands_rejected"] == 2 and core.counters["rate_commands"] == 0
         assert core.engine.rate("seg") is None and core.engine.rate("depth") is None  # tiny: unlimited, unchanged
     finally:

@@ -16,7 +16,7 @@ from helpers.frames import frame
 from tests_paths import tiny
 from vpengine import checks
 from vpengine.recent_frames import RecentFrames
-from vpengine.ros2.control import ControlLoop, parse_priority, parse_rate, parse_rate_command, priority_target
+from vpengine.ros2.control import ControlLoop, parse_priority, parse_rate, parse_rate_command
 from vpengine.ros2.core import Ros2Core
 from vpengine.ros2.diagnostics import ERROR, OK, WARN, Rejections, model_status, receive_buffer_advice
 from vpengine.ros2.messages import Header, InputError, compressed_to_frame, image_to_frame
@@ -306,9 +306,9 @@ def test_priority_commands_take_integers_in_range_and_name_bad_values():
     for bad in ("1.5", "ten", "", str(checks.MAX_PRIORITY + 1), str(checks.MIN_PRIORITY - 1), 2.0, True):
         with pytest.raises(ValueError, match=f"{accepted}.*got {bad!r}"):
             parse_priority(bad)
-    assert priority_target("depth") == ("depth", None)
-    assert priority_target(" depth@front ") == ("depth", "front")
-    assert priority_target("@front") == (None, "front")
+    assert checks.priority_target("depth") == ("depth", None)
+    assert checks.priority_target(" depth@front ") == ("depth", "front")
+    assert checks.priority_target("@front") == (None, "front")
 
 
 def _stats(state="running", target=None, **kw):

@@ -34,9 +34,9 @@ checks.MIN_PRIORITY to MAX_PRIORITY, higher more important; Note [Give way] in r
 
 Three threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to
 ``Engine.submit``), one publishes the results (``Engine.results``; each head's newest, Note [Output QoS] in
-:mod:`vpengine.ros2.outputs`), and one applies rate and priority commands and publishes diagnostics (Note [Control path] in
-:mod:`vpengine.ros2.control`), so neither waits behind the writes of big images. All decisions about content live in
-:class:`vpengine.ros2.core.Ros2Core` and its parts.
+:mod:`vpengine.ros2.outputs`), and one applies rate and priority commands and publishes diagnostics
+(Note [Control path] in :mod:`vpengine.ros2.control`), so neither waits behind the writes of big images. All
+decisions about content live in :class:`vpengine.ros2.core.Ros2Core` and its parts.
 """
 
 from __future__ import annotations

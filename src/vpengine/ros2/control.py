@@ -88,14 +88,6 @@ def parse_priority(value: str | int) -> int:
     return checks.priority(value)
 
 
-def priority_target(key: str) -> tuple[str | None, str | None]:
-    """A priority command's key -> (head, camera) as ``Engine.set_priority`` takes them: ``head`` (all its cameras),
-    ``head@camera`` (that camera's lane only) or ``@camera`` (the camera's own priority: head None). The engine
-    checks the names."""
-    head, at, camera = str(key).strip().partition("@")
-    return head or None, camera if at else None
-
-
 def model_names_text(names: Iterable[str]) -> str:
     """The model-names topic's text: a JSON list, e.g. ``["foundation", "depth", "seg", "det"]``."""
     return json.dumps(list(names))

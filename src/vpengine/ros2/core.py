@@ -27,8 +27,9 @@ from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from vpengine.checks import priority_target
 from vpengine.recent_frames import RecentFrames
-from vpengine.ros2.control import model_at, parse_priority, parse_rate_command, priority_target
+from vpengine.ros2.control import model_at, parse_priority, parse_rate_command
 from vpengine.ros2.diagnostics import (
     OK,
     SILENT_AFTER_S,
@@ -395,9 +396,10 @@ class Ros2Core:
 
     def set_priority(self, key: str, value: str | int) -> tuple[str, int]:
         """Apply a priority command: ``key`` a head, ``head@camera`` for one camera's lane or ``@camera`` for the
-        camera's own priority (:func:`priority_target`); ``value`` an integer from checks.MIN_PRIORITY to
-        MAX_PRIORITY, as text (the set_priority topic) or a number (parameters), see :func:`parse_priority`. Raises
-        ValueError naming what is wrong, and then nothing changes (``Engine.set_priority``); counted."""
+        camera's own priority (:func:`vpengine.checks.priority_target`); ``value`` an integer from
+        checks.MIN_PRIORITY to MAX_PRIORITY, as text (the set_priority topic) or a number (parameters), see
+        :func:`parse_priority`. Raises ValueError naming what is wrong, and then nothing changes
+        (``Engine.set_priority``); counted."""
         key = str(key).strip()
         with self._command("priority"):
             priority = parse_priority(value)

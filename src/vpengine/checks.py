@@ -1,4 +1,4 @@
-"""Checks of the public API's scalar arguments: frame ids, timestamps, timeouts and rates.
+"""Checks of the public API's scalar arguments: frame ids, timestamps, timeouts, rates and priorities.
 
 Each returns the value as the engine stores it or raises ValueError naming the value and what is accepted, before
 the engine takes anything (a slot, a lock) that the error would leave behind. Python and numpy numbers are taken
@@ -73,6 +73,14 @@ def priority(value: Any) -> int:
             f"priority must be an integer from {MIN_PRIORITY} to {MAX_PRIORITY} (higher: more important), got {value!r}"
         )
     return p
+
+
+def priority_target(key: str) -> tuple[str | None, str | None]:
+    """Whose priority a door's key names (the ROS 2 set_priority topic, the live view's ``/api/priority/<key>``), as
+    ``Engine.set_priority`` takes it -> (head, camera): ``head`` (all its cameras), ``head@camera`` (that camera's
+    lane only) or ``@camera`` (the camera's own priority: head None). The engine checks the names."""
+    head, at, camera = str(key).strip().partition("@")
+    return head or None, camera if at else None
 
 
 #: The highest rate limit accepted anywhere (config, ``Engine.set_rate``, ROS 2, the live view): far above any

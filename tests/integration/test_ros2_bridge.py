@@ -502,6 +502,69 @@ def test_compressed_input_in_process_bridge_with_the_sensor_data_profile():
     assert core.counters["received"] == core.counters["submitted"] == 1
 
 
+def test_priority_commands_over_dds_reach_the_engine_on_the_control_thread():
+    """The bridge object in this process, so the engine's own stats() shows what a set_priority sample did; rate
+    commands keep working beside them (one control thread waits for both topics)."""
+    from tests_paths import tiny
+    from vpengine.ros2 import dds_types as T
+    from vpengine.ros2.bridge import BridgeOptions, Ros2Bridge
+    from vpengine.ros2.core import Ros2Core
+    from vpengine.ros2.dds import DdsContext, loopback_config
+
+    domain = (DOMAIN + 2) % 220 + 1
+    core = Ros2Core(tiny("thread"), namespace="/vp3")
+    opts = BridgeOptions("/cam3/image", input_qos="default", domain_id=domain, dds_config=loopback_config())
+    with Ros2Bridge(core, opts):
+        assert core.engine is not None
+        (camera,) = core.cameras
+        ctx = DdsContext(domain)
+        try:
+            priorities = ctx.writer("/vp3/set_priority", T.KeyValue_, "default")
+            rates = ctx.writer("/vp3/set_rate", T.KeyValue_, "default")
+            diag = ctx.reader("/diagnostics", T.DiagnosticArray_)
+            for w in (priorities, rates):
+                wait_matched(w)
+
+            def seg(timeout: float, until) -> dict[str, Any]:
+                deadline = time.monotonic() + timeout
+                while True:
+                    m = core.engine.stats()["models"]["seg"]
+                    if until(m) or time.monotonic() > deadline:
+                        return m
+                    time.sleep(0.005)
+
+            sent = time.monotonic()
+            priorities.write(T.KeyValue_("seg", "12"))
+            assert seg(10, lambda m: m["priority"] == 12)["priority"] == 12
+            took = time.monotonic() - sent
+            priorities.write(T.KeyValue_(f"@{camera}", "-2"))
+            assert seg(10, lambda m: m["camera_priority"] == -2)["camera_priority"] == -2
+            rates.write(T.KeyValue_("seg", "3"))
+            assert seg(10, lambda m: m["target_hz"] == 3.0)["target_hz"] == 3.0
+            for bad in ("101", "high"):
+                priorities.write(T.KeyValue_("seg", bad))
+            priorities.write(T.KeyValue_("nope", "5"))
+            deadline = time.monotonic() + 10
+            while core.counters["priority_commands_rejected"] < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert core.counters["priority_commands_rejected"] == 3
+            assert core.counters["priority_commands"] == 2 and core.counters["rate_commands"] == 1
+            m = core.engine.stats()["models"]["seg"]
+            assert (m["priority"], m["camera_priority"], m["target_hz"]) == (12, -2, 3.0)  # bad ones changed nothing
+            found: dict[str, str] = {}
+            deadline = time.monotonic() + 5
+            while "priority" not in found and time.monotonic() < deadline:
+                diag.wait(0.5)
+                for d in diag.take(32):
+                    for st in d.status:
+                        if st.name == "vp3: seg":
+                            found = {kv.key: kv.value for kv in st.values}
+            assert found["priority"] == "12" and found["camera_priority"] == "-2", found
+        finally:
+            ctx.close()
+    assert took < 2.0, took  # applied at once (Note [Control path]), not on the diagnostics period
+
+
 # ------------------------------------------------------------------------------------------- 1080p, big samples
 HD = ("--set", "input.height=1080", "--set", "input.width=1920")
 HD_INPUT = "/hd/image_raw"

@@ -197,6 +197,38 @@ def test_the_page_shows_every_model_and_head_live_and_its_controls_change_the_en
     assert engine.rate("depth") is None
 
 
+def test_the_page_sets_a_heads_priority_and_shows_it_beside_cap_and_misses(browser, live):
+    from selenium.webdriver.common.by import By
+
+    engine, view = live
+    browser.get(view.url)
+    eventually(lambda: cell(browser, "depth", "priority") == "0", 30, "depth's priority on the page")
+    assert cell(browser, "depth", "cap") == "–" and cell(browser, "depth", "misses").isdigit()
+    assert not browser.find_elements(By.CSS_SELECTOR, 'tr[data-model="foundation"] input.priority')  # follows heads
+
+    def type_priority(head: str, value: str) -> None:
+        box = browser.find_element(By.CSS_SELECTOR, f'tr[data-model="{head}"] input.priority')
+        box.clear()
+        box.send_keys(value)
+        click(browser, head, "set-priority")
+
+    def priority(head: str) -> int:
+        return engine.stats()["models"][head]["priority"]
+
+    type_priority("depth", "12")
+    eventually(lambda: priority("depth") == 12, 1.0, "the engine's depth priority at 12")
+    eventually(lambda: cell(browser, "depth", "priority") == "12", 1.5, "12 shown")
+    assert priority("seg") == 0 and cell(browser, "seg", "priority") == "0"  # only depth changed
+
+    type_priority("seg", "200")  # out of range: the engine keeps it, the page says why
+    status = eventually(
+        lambda: (t := browser.find_element(By.ID, "status").text).startswith("seg") and t, 2, "the error shown"
+    )
+    assert "from -100 to 100 (higher: more important), got 200" in status
+    assert browser.find_element(By.ID, "status").get_attribute("class") == "error"
+    assert priority("seg") == 0
+
+
 def test_with_a_token_the_page_works_from_its_address_and_says_so_without_it(browser, live):
     from selenium.webdriver.common.by import By
 

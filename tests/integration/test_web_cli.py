@@ -60,7 +60,7 @@ def eventually(check, timeout: float, what: str):
     return got
 
 
-def test_run_serves_the_view_while_it_runs_and_rates_set_there_reach_the_engine():
+def test_run_serves_the_view_while_it_runs_and_rates_and_priorities_set_there_reach_the_engine():
     proc = start(
         "run", "-c", "configs/tiny.yaml", "-s", "synthetic:160x120@30:360", "--no-progress",
         "--set", "mode=thread", "--serve", "0",
@@ -76,6 +76,15 @@ def test_run_serves_the_view_while_it_runs_and_rates_set_there_reach_the_engine(
         assert headers["X-On-Frame"] == "1"  # drawn on its own input frame, which the run loop keeps
         assert get(url + "api/rate/seg", "PUT", b'{"hz": 4}')[0] == 200
         assert 'vpengine_target_hz{model="seg"} 4.0' in get(url + "metrics")[2].decode()
+        status, _, reply = get(url + "api/priority/depth", "PUT", b'{"priority": 9}')
+        assert status == 200 and json.loads(reply) == {"head": "depth", "camera": None, "priority": 9}
+        models = json.loads(get(url + "api/stats")[2])["models"]
+        assert (models["depth"]["priority"], models["seg"]["priority"]) == (9, 0)
+        status, _, reply = get(url + "api/priority/foundation", "PUT", b'{"priority": 9}')
+        assert status == 404 and "follows its heads'" in json.loads(reply)["error"]  # the engine's own reason
+        status, _, reply = get(url + "api/priority/seg", "PUT", b'{"priority": 101}')
+        assert status == 400 and "from -100 to 100" in json.loads(reply)["error"]
+        assert json.loads(get(url + "api/stats")[2])["models"]["seg"]["priority"] == 0
         summary = summary_lines(proc)
         assert ended_line(proc) == url  # the run is over; its view stays (Note [Serving on])
         proc.send_signal(signal.SIGTERM)  # as a service manager ends it

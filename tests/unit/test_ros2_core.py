@@ -1,4 +1,5 @@
-"""The transport-agnostic ROS 2 core: decoding, topics, header book, detections, rate commands, diagnostics.
+"""The transport-agnostic ROS 2 core: decoding, topics, header book, detections, rate and priority commands,
+diagnostics.
 
 No DDS and no processes here; the engine tests use the real engine in thread mode with the tiny models.
 """
@@ -13,8 +14,9 @@ import pytest
 
 from helpers.frames import frame
 from tests_paths import tiny
+from vpengine import checks
 from vpengine.recent_frames import RecentFrames
-from vpengine.ros2.control import ControlLoop, parse_rate, parse_rate_command
+from vpengine.ros2.control import ControlLoop, parse_priority, parse_rate, parse_rate_command
 from vpengine.ros2.core import Ros2Core
 from vpengine.ros2.diagnostics import ERROR, OK, WARN, Rejections, model_status, receive_buffer_advice
 from vpengine.ros2.messages import Header, InputError, compressed_to_frame, image_to_frame
@@ -296,6 +298,19 @@ def test_numeric_rates_stay_numbers_and_negative_or_infinite_ones_mean_no_limit(
         parse_rate_command("depth", float("nan"), models)
 
 
+def test_priority_commands_take_integers_in_range_and_name_bad_values():
+    assert parse_priority("10") == 10 and parse_priority(" -5 ") == -5 and parse_priority(7) == 7
+    assert parse_priority(str(checks.MAX_PRIORITY)) == checks.MAX_PRIORITY
+    assert parse_priority(str(checks.MIN_PRIORITY)) == checks.MIN_PRIORITY
+    accepted = f"from {checks.MIN_PRIORITY} to {checks.MAX_PRIORITY}"
+    for bad in ("1.5", "ten", "", str(checks.MAX_PRIORITY + 1), str(checks.MIN_PRIORITY - 1), 2.0, True):
+        with pytest.raises(ValueError, match=f"{accepted}.*got {bad!r}"):
+            parse_priority(bad)
+    assert checks.priority_target("depth") == ("depth", None)
+    assert checks.priority_target(" depth@front ") == ("depth", "front")
+    assert checks.priority_target("@front") == (None, "front")
+
+
 def _stats(state="running", target=None, **kw):
     m = {
         "state": state,
@@ -328,6 +343,19 @@ def test_model_health_levels_and_values():
     assert failed.level == ERROR and "boom" in failed.message
     hung = model_status("d", _stats(state="hung", last_error="d: hung for 61 s"), "vp", "hw")
     assert hung.level == ERROR and hung.message == "hung: d: hung for 61 s"
+
+
+def test_a_model_giving_way_shows_its_priority_cap_and_skips():
+    skips = {"rate": 1, "priority": 4, "overload": 0}
+    m = _stats(target=10.0, priority=-3, camera_priority=2, cap_hz=2.5, deadline_misses=6, skipped_by=skips)
+    s = model_status("seg", m, "vp", "hw")
+    v = dict(s.values)
+    assert v["priority"] == "-3" and v["camera_priority"] == "2" and v["cap_hz"] == "2.50"
+    assert v["deadline_misses"] == "6" and [v[f"skipped_by.{r}"] for r in skips] == ["1", "4", "0"]
+    assert s.level == OK and "capped at 2.5 Hz" in s.message
+    free = model_status("seg", _stats(target=10.0, priority=5, cap_hz=None), "vp", "hw")
+    assert dict(free.values)["priority"] == "5" and "cap_hz" not in dict(free.values)
+    assert "capped" not in free.message
 
 
 # ---------------------------------------------------------------------------------------------- the core
@@ -463,6 +491,45 @@ def test_core_rate_commands_reach_the_engine_and_bad_ones_are_counted():
         with pytest.raises(ValueError, match="NaN"):
             core.set_rate("depth", float("nan"))
         assert core.counters["rate_commands"] == 4 and core.counters["rate_commands_rejected"] == 2
+    finally:
+        core.stop()
+
+
+def test_core_priority_commands_reach_the_engine_and_bad_ones_change_nothing():
+    core = Ros2Core(tiny("thread"))
+    with pytest.raises(ValueError, match="not started"):
+        core.set_priority("depth", "5")
+    core.start()
+    try:
+        (camera,) = core.cameras
+
+        def priorities() -> dict:
+            models = core.engine.stats()["models"]
+            return {h: (models[h]["priority"], models[h]["camera_priority"]) for h in ("depth", "seg", "det")}
+
+        assert core.set_priority(" depth ", "7") == ("depth", 7)
+        assert core.set_priority(f"seg@{camera}", -4) == (f"seg@{camera}", -4)  # a number, as parameters carry it
+        assert core.set_priority(f"@{camera}", "3") == (f"@{camera}", 3)
+        assert priorities() == {"depth": (7, 3), "seg": (-4, 3), "det": (0, 3)}
+        before = priorities()
+        for key, value, match in (
+            ("depth", "high", "from -100 to 100.*got 'high'"),
+            ("depth", "101", "got '101'"),
+            ("depth", "2.5", "got '2.5'"),
+            ("nope", "5", "no head named 'nope'"),
+            ("foundation", "5", "follows its heads'"),
+            ("depth@nocam", "5", "not 'nocam'"),
+            ("@nocam", "5", "camera must be one of"),
+        ):
+            with pytest.raises(ValueError, match=match):
+                core.set_priority(key, value)
+            assert priorities() == before, key
+        assert core.counters["priority_commands"] == 3 and core.counters["priority_commands_rejected"] == 8
+        assert core.counters["rate_commands"] == 0  # counted apart from rate commands
+        interface = next(s for s in core.diagnostics().status if s.name.endswith(": interface"))
+        assert ("priority_commands", "3") in interface.values
+        depth = next(s for s in core.diagnostics().status if s.name.endswith(": depth"))
+        assert ("priority", "7") in depth.values
     finally:
         core.stop()
 
@@ -631,12 +698,19 @@ def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_ar
 class _FakeCore:
     def __init__(self) -> None:
         self.rates: list[tuple[str, str, float]] = []
+        self.priorities: list[tuple[str, str, float]] = []
 
     def set_rate(self, key: str, value: str):
         if key != "depth":
             raise ValueError(f"unknown model {key!r}")
         self.rates.append((key, value, time.monotonic()))
         return key, float(value)
+
+    def set_priority(self, key: str, value: str):
+        if key != "depth":
+            raise ValueError(f"no head named {key!r}")
+        self.priorities.append((key, value, time.monotonic()))
+        return key, int(value)
 
     def diagnostics(self):
         return time.monotonic()
@@ -670,9 +744,13 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
         gaps = np.diff(published)
         assert (np.abs(gaps - 0.2) < 0.1).all(), gaps
         sent = time.monotonic()
-        commands.put(("depth", "5"))
+        commands.put(("rate", "depth", "5"))
         with caplog.at_level("WARNING", logger="vpengine.ros2"):
-            commands.put(("nope", "5"))
+            commands.put(("rate", "nope", "5"))
+            time.sleep(0.15)
+            priority_sent = time.monotonic()
+            commands.put(("priority", "depth", "9"))
+            commands.put(("priority", "nope", "9"))
             time.sleep(0.15)
     finally:
         stop.set()
@@ -684,6 +762,10 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
     assert any(
         "rate command {key: 'nope', value: '5'} ignored: unknown model" in r.getMessage() for r in caplog.records
     )
+    ((_, value, applied),) = core.priorities  # on the same thread, at once, and shown at once
+    assert value == "9" and applied - priority_sent < 0.05
+    assert any(t >= applied and t - applied < 0.05 for t in published)
+    assert any("priority command {key: 'nope', value: '9'} ignored: no head" in r.getMessage() for r in caplog.records)
     assert len(refreshed) == len(published)
     with pytest.raises(ValueError, match="period must be > 0 s, got 0"):
         ControlLoop(core, published.append, wait_commands, period_s=0)  # type: ignore[arg-type]

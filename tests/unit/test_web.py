@@ -19,7 +19,7 @@ from vpengine.results import Result
 from vpengine.visualize import colorize_depth, overlay_segmentation
 from vpengine.web import WebServer
 from vpengine.web.pictures import Pictures, render
-from vpengine.web.server import is_loopback, parse_rate
+from vpengine.web.server import is_loopback, parse_priority, parse_rate
 
 H, W = 60, 80
 INFOS = {
@@ -59,7 +59,8 @@ class DoorOut(Boundary):
 
 
 class StandIn:
-    """What the view uses of an Engine: stats, set_rate/rate, latest, head_info, cameras, config, boundary, running.
+    """What the view uses of an Engine: stats, set_rate/rate, set_priority, latest, head_info, cameras, config,
+    boundary, running.
     ``results``: head -> its newest result; ``camera_results``, with several ``cameras``: (camera, head) -> it."""
 
     def __init__(self, cameras: tuple[str, ...] = ("camera",), served: dict[str, list[str]] | None = None) -> None:
@@ -70,6 +71,8 @@ class StandIn:
         self.boundary = DoorOut()
         self.rates: dict[str, float | None] = {"foundation": None, "depth": None, "seg": 5.0, "det": 0.0}
         self.results: dict[str, Result | None] = dict.fromkeys(INFOS)
+        #: (head or None for the camera's own, camera or None for all) -> priority, as set_priority was called
+        self.priorities: dict[tuple[str | None, str | None], int] = {}
         self.camera_results: dict[tuple[str, str], Result] = {}
         self.latest_calls = 0
         self.lock = threading.Lock()
@@ -97,6 +100,14 @@ class StandIn:
 
     def rate(self, model: str) -> float | None:
         return self.rates[model]
+
+    def set_priority(self, head: str | None, priority: int, camera: str | None = None) -> None:
+        value = checks.priority(priority)  # Engine.set_priority's errors: KeyError for a head, else ValueError
+        if head is not None and head not in INFOS:
+            raise KeyError(f"no head named {head!r}; heads: {list(INFOS)}")
+        if camera not in (None, *self.cameras) or (head is None and camera is None):
+            raise ValueError(f"camera must be one of {self.cameras}, got {camera!r}")
+        self.priorities[(head, camera)] = value
 
     def head_info(self, head: str) -> dict:
         if head not in INFOS:
@@ -199,6 +210,22 @@ def test_a_bad_rate_gets_the_one_rate_message(body, why):
     assert why in str(e.value)
 
 
+def test_a_priority_body_is_an_integer_in_range_and_a_bad_one_says_what_is_accepted():
+    assert parse_priority(b'{"priority": 10}') == 10 and parse_priority(b'{"priority": -100}') == -100
+    for body, why in (
+        (b"", "got None"),
+        (b"7", "got 7"),
+        (b"{nope", "not JSON"),
+        (b'{"prio": 7}', "got {'prio': 7}"),
+    ):
+        with pytest.raises(ValueError, match=r'\{"priority": P\} with P an integer from -100 to 100') as e:
+            parse_priority(body)
+        assert why in str(e.value)
+    for body, why in ((b'{"priority": 101}', "101"), (b'{"priority": 1.5}', "1.5"), (b'{"priority": "7"}', "'7'")):
+        with pytest.raises(ValueError, match=f"priority must be an integer from -100 to 100.*got {why}"):
+            parse_priority(body)
+
+
 @pytest.mark.parametrize(
     ("text", "address"),
     [
@@ -237,7 +264,7 @@ def test_the_page_is_one_self_contained_document(view):
     status, headers, body = request(view.url)
     assert status == 200 and headers["Content-Type"].startswith("text/html")
     page = body.decode()
-    assert "/api/stats" in page and "/api/rate/" in page and "/api/latest/" in page
+    assert "/api/stats" in page and "/api/rate/" in page and "/api/priority/" in page and "/api/latest/" in page
     assert "__STATS_MS__" not in page and "const STATS_MS = 500, PICTURE_MS = 250" in page
     assert "http://" not in page and "https://" not in page  # nothing from the internet (no CDN)
 
@@ -264,8 +291,37 @@ def test_a_bad_rate_or_model_is_a_400_with_the_reason(view, engine, model, body,
     assert engine.rates["depth"] is None  # unchanged
 
 
+def test_put_priority_sets_a_heads_a_lanes_or_a_cameras_and_answers_it(view, engine):
+    for key, body, want in (
+        ("depth", b'{"priority": 10}', ("depth", None, 10)),
+        ("seg@camera", b'{"priority": -3}', ("seg", "camera", -3)),
+        ("%40camera", b'{"priority": 4}', (None, "camera", 4)),  # @camera, quoted as the page's encodeURIComponent
+    ):
+        status, _, reply = request(view.url + f"api/priority/{key}", "PUT", body)
+        assert status == 200 and json.loads(reply) == dict(zip(("head", "camera", "priority"), want))
+        assert engine.priorities[want[:2]] == want[2]
+
+
+@pytest.mark.parametrize(
+    ("key", "body", "status", "reason"),
+    [
+        ("depth", b'{"priority": 101}', 400, "from -100 to 100 (higher: more important), got 101"),
+        ("depth", b'{"priority": 2.5}', 400, "got 2.5"),
+        ("depth", b'{"priority": "high"}', 400, "got 'high'"),
+        ("depth", b"", 400, "got None"),
+        ("depth@nocam", b'{"priority": 1}', 400, "got 'nocam'"),
+        ("nope", b'{"priority": 1}', 404, "no head named 'nope'"),
+    ],
+)
+def test_a_bad_priority_is_a_400_and_an_unknown_head_a_404_with_the_reason(view, engine, key, body, status, reason):
+    got, _, reply = request(view.url + f"api/priority/{key}", "PUT", body)
+    assert got == status and reason in json.loads(reply)["error"]
+    assert engine.priorities == {}  # unchanged
+
+
 def test_wrong_methods_unknown_paths_and_large_bodies_are_refused(view):
     assert request(view.url + "api/rate/depth")[0] == 405
+    assert request(view.url + "api/priority/depth")[0] == 405
     assert request(view.url + "api/stats", "PUT", b"{}")[0] == 405
     assert request(view.url + "nothing/here")[0] == 404
     assert request(view.url + "api/rate/depth", "PUT", b"x" * 10000)[0] == 413
@@ -408,6 +464,7 @@ def test_engine_not_running_is_503(engine):
     engine.running = False
     with WebServer(engine, "127.0.0.1", 0) as v:
         assert request(v.url + "api/rate/depth", "PUT", b'{"hz": 1}')[0] == 503
+        assert request(v.url + "api/priority/depth", "PUT", b'{"priority": 1}')[0] == 503
 
 
 # ------------------------------------------------------------------------------------------------- access

@@ -17,22 +17,26 @@ input topic (``--input-topic``)     sensor_msgs/Image                  sensor da
 ``<ns>/<head>/overlay``             sensor_msgs/Image bgr8             latest (``--seg-overlay``)
 ``<ns>/<head>/detections``          vision_msgs/Detection2DArray       latest
 ``<ns>/set_rate``                   diagnostic_msgs/KeyValue (in)      default
+``<ns>/set_priority``               diagnostic_msgs/KeyValue (in)      default
 ``<ns>/model_names``                std_msgs/String (JSON list)        latched (transient local, keep last 1)
 ``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, 1 Hz
 ==================================  =================================  =========================================
 
 Several cameras (``--input-topic NAME=TOPIC`` for each; ``BridgeOptions.input_topic`` camera -> topic): each
 camera's outputs are under ``<ns>/<camera>/<head>/...`` with that camera's input headers, and each input topic has
-a thread of its own. Rate commands may name ``head@camera``.
+a thread of its own. Rate and priority commands may name ``head@camera``.
 
 Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
-"{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit).
+"{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit). Change a priority (an integer from
+checks.MIN_PRIORITY to MAX_PRIORITY, higher more important; Note [Give way] in runtime/governor.py) the same way on
+``/vpengine/set_priority``: ``{key: depth, value: '10'}``; the key ``depth@front`` is that head's lane of camera
+``front`` only, ``@front`` the camera's own priority.
 
 Three threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to
 ``Engine.submit``), one publishes the results (``Engine.results``; each head's newest, Note [Output QoS] in
-:mod:`vpengine.ros2.outputs`), and one applies rate commands and publishes diagnostics (Note [Control path] in
-:mod:`vpengine.ros2.control`), so neither waits behind the writes of big images. All decisions about content live in
-:class:`vpengine.ros2.core.Ros2Core` and its parts.
+:mod:`vpengine.ros2.outputs`), and one applies rate and priority commands and publishes diagnostics
+(Note [Control path] in :mod:`vpengine.ros2.control`), so neither waits behind the writes of big images. All
+decisions about content live in :class:`vpengine.ros2.core.Ros2Core` and its parts.
 """
 
 from __future__ import annotations
@@ -192,6 +196,8 @@ class Ros2Bridge:
         self._names = ctx.writer(f"{self.ns}/model_names", T.String_, "latched")
         self._names.write(T.String_(model_names_text(self.core.model_names)))
         self._rates: Reader = ctx.reader(f"{self.ns}/set_rate", T.KeyValue_, "default")
+        self._priorities: Reader = ctx.reader(f"{self.ns}/set_priority", T.KeyValue_, "default")
+        self._rates.also_wake_for(self._priorities)  # the control thread waits for both
         in_type = T.CompressedImage_ if o.compressed else T.Image_
         #: camera (None: the one camera) -> its input reader
         self._inputs: dict[str | None, Reader] = {
@@ -203,7 +209,7 @@ class Ros2Bridge:
         control = ControlLoop(
             self.core,
             self._publish_diagnostics,
-            self._wait_rate_commands,
+            self._wait_commands,
             period_s=o.diagnostics_period_s,
             before_diagnostics=lambda: self.core.note_publishers(sum(r.matched() for r in self._inputs.values())),
         )
@@ -299,10 +305,14 @@ class Ros2Bridge:
             for topic, payload in items:
                 self._publish(topic, payload)
 
-    def _wait_rate_commands(self, timeout: float) -> list[tuple[str, str]]:
+    def _wait_commands(self, timeout: float) -> list[tuple[str, str, str]]:
         if not self._rates.wait(timeout):
             return []
-        return [(kv.key, kv.value) for kv in self._rates.take(16)]
+        return [
+            (kind, kv.key, kv.value)
+            for kind, reader in (("rate", self._rates), ("priority", self._priorities))
+            for kv in reader.take(16)
+        ]
 
     def _publish_diagnostics(self, d: DiagnosticsOut) -> None:
         self._diag.write(diagnostics_to_dds(d))

@@ -1,5 +1,6 @@
-"""Steering from ROS 2: rate commands (parsed from text, or numbers from services), the model-names text, and the
-control thread that applies rate commands and publishes /diagnostics (Note [Control path]). No middleware here.
+"""Steering from ROS 2: rate and priority commands (parsed from text, or numbers from services and parameters), the
+model-names text, and the control thread that applies them and publishes /diagnostics (Note [Control path]). No
+middleware here.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ import time
 from collections.abc import Callable, Iterable, Sequence
 from typing import Protocol
 
+from vpengine import checks
 from vpengine.ros2.diagnostics import DiagnosticsOut
 
 log = logging.getLogger("vpengine.ros2")
@@ -74,6 +76,18 @@ def model_at(key: str, models: Sequence[str], cameras: Sequence[str] = ()) -> tu
     return model, camera if at else None
 
 
+# --------------------------------------------------------------------------------------- priority commands
+def parse_priority(value: str | int) -> int:
+    """A priority from a command: an integer from checks.MIN_PRIORITY to MAX_PRIORITY, as text (the set_priority
+    topic: ``"10"``, ``"-5"``) or a number (parameters). Raises ValueError naming the bad value and the range."""
+    if isinstance(value, str):
+        try:
+            return checks.priority(int(value.strip()))
+        except ValueError:
+            pass  # not an integer, or out of range: one message for both, naming the text as given
+    return checks.priority(value)
+
+
 def model_names_text(names: Iterable[str]) -> str:
     """The model-names topic's text: a JSON list, e.g. ``["foundation", "depth", "seg", "det"]``."""
     return json.dumps(list(names))
@@ -84,29 +98,32 @@ class Steered(Protocol):
 
     def set_rate(self, key: str, value: str) -> tuple[str, float | None]: ...
 
+    def set_priority(self, key: str, value: str) -> tuple[str, int]: ...
+
     def diagnostics(self) -> DiagnosticsOut: ...
 
 
 # ------------------------------------------------------------------------------------------- control path
 class ControlLoop:
-    """Note [Control path]: rate commands and /diagnostics have a thread of their own, shared by every transport.
+    """Note [Control path]: commands and /diagnostics have a thread of their own, shared by every transport.
 
     On the output thread they waited behind the writes of 8 MB images (a reliable write can block until a slow
     reader acknowledges): at 1080p /diagnostics went silent for 3-17 s, longer than diagnostic_aggregator's stale
     timeout, and rate commands, wanted most when the machine is overloaded, waited as long. This loop waits only for
-    rate commands (``wait_commands(timeout)`` returns the (model, rate) pairs that arrived, waiting at most
-    ``timeout`` s), applies each at once and publishes diagnostics right after it (the change is seen, and the
-    diagnostics' stamp says when it was applied), and otherwise publishes diagnostics every ``period_s`` on a fixed
-    schedule. It touches the engine only through ``set_rate`` and ``stats`` (shared-memory writes and reads), so it
-    never waits for a frame or a result. ``before_diagnostics`` lets the transport refresh what only it knows (the
-    input link: matched publishers, receive buffer) first.
+    commands (``wait_commands(timeout)`` returns the (kind, key, value) triples that arrived, kind ``rate`` from
+    the set_rate topic or ``priority`` from set_priority, waiting at most ``timeout`` s), applies each at once and
+    publishes diagnostics right after it (the change is seen, and the diagnostics' stamp says when it was applied),
+    and otherwise publishes diagnostics every ``period_s`` on a fixed schedule. It touches the engine only through
+    ``set_rate``, ``set_priority`` and ``stats`` (shared-memory writes and reads), so it never waits for a frame or
+    a result. ``before_diagnostics`` lets the transport refresh what only it knows (the input link: matched
+    publishers, receive buffer) first.
     """
 
     def __init__(
         self,
         core: Steered,
         publish: Callable[[DiagnosticsOut], None],
-        wait_commands: Callable[[float], Iterable[tuple[str, str]]],
+        wait_commands: Callable[[float], Iterable[tuple[str, str, str]]],
         *,
         period_s: float = 1.0,
         before_diagnostics: Callable[[], None] | None = None,
@@ -127,12 +144,13 @@ class ControlLoop:
         next_at = time.monotonic()
         while not stop.is_set():
             applied = False
-            for key, value in self.wait_commands(max(0.0, min(next_at - time.monotonic(), 0.2))):
+            for kind, key, value in self.wait_commands(max(0.0, min(next_at - time.monotonic(), 0.2))):
+                apply = {"rate": self.core.set_rate, "priority": self.core.set_priority}[kind]
                 try:
-                    self.core.set_rate(key, value)
+                    apply(key, value)
                     applied = True
                 except ValueError as e:
-                    log.warning("rate command {key: %r, value: %r} ignored: %s", key, value, e)
+                    log.warning("%s command {key: %r, value: %r} ignored: %s", kind, key, value, e)
             now = time.monotonic()
             if applied or now >= next_at:
                 self.diagnostics_now()

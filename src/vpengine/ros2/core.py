@@ -3,7 +3,7 @@
 The DDS bridge (:mod:`vpengine.ros2.bridge`), the rclpy node (:mod:`vpengine.ros2.node`) and the rosbag2 source and
 sink (:mod:`vpengine.io.bag`) build on this and on its parts: :mod:`~vpengine.ros2.messages` (message types,
 decoding), :mod:`~vpengine.ros2.outputs` (each head's topics and messages), :mod:`~vpengine.ros2.frames` (the book of
-recent frames), :mod:`~vpengine.ros2.control` (rate commands, the control thread) and
+recent frames), :mod:`~vpengine.ros2.control` (rate and priority commands, the control thread) and
 :mod:`~vpengine.ros2.diagnostics`. None of them imports a middleware.
 
 Note [Output headers]: every output of a head carries the ``header`` (stamp *and* frame_id) of the input message it
@@ -18,16 +18,18 @@ header fall back to the float capture time, which is still the input's time; tha
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
 
+from vpengine.checks import priority_target
 from vpengine.recent_frames import RecentFrames
-from vpengine.ros2.control import model_at, parse_rate_command
+from vpengine.ros2.control import model_at, parse_priority, parse_rate_command
 from vpengine.ros2.diagnostics import (
     OK,
     SILENT_AFTER_S,
@@ -78,9 +80,9 @@ class Ros2Core:
     """The engine behind a ROS 2 interface, with no middleware: messages in, neutral outputs out.
 
     A transport (DDS bridge, rclpy node) feeds input messages to :meth:`handle_image` / :meth:`handle_compressed`
-    from its receive thread, publishes what :meth:`poll_outputs` returns from another thread, forwards rate
-    commands to :meth:`set_rate`, and publishes :meth:`diagnostics` about once a second. Uses the public Engine API
-    only (submit, results, set_rate, stats, head_info).
+    from its receive thread, publishes what :meth:`poll_outputs` returns from another thread, forwards rate and
+    priority commands to :meth:`set_rate` and :meth:`set_priority`, and publishes :meth:`diagnostics` about once a
+    second. Uses the public Engine API only (submit, results, set_rate, set_priority, stats, head_info).
 
     Frames of any size go to the engine as they come, and every output is published at the camera's size, in its
     pixels, under its header (Note [Frame grid] in boundary.py). ``input_size="config"`` starts the engine at once
@@ -90,7 +92,7 @@ class Ros2Core:
     Several cameras (``cameras``: their names, one input topic each; or a config with ``cameras``): every message
     is handed in with its camera (``handle_image(msg, camera)``, from one thread per topic if need be), and each
     camera's outputs go out under its own namespace, ``<ns>/<camera>/<head>/...``, with that camera's input header.
-    Rate commands may name ``head@camera``; /diagnostics has a status per camera.
+    Rate and priority commands may name ``head@camera``; /diagnostics has a status per camera.
 
     ``keep_frames`` keeps recent input frames in :attr:`book` for a viewer that draws on them (the web view), as
     ``seg_overlay`` does for its overlays.
@@ -365,22 +367,46 @@ class Ros2Core:
         self.published[topic.topic] += 1
 
     # ------------------------------------------------------------------------------------------- control
+    @contextlib.contextmanager
+    def _command(self, kind: str) -> Iterator[None]:
+        """Counts a ``kind`` command (rate, priority) as applied, ``<kind>_commands``, or as rejected,
+        ``<kind>_commands_rejected``: then a ValueError naming what is wrong (a KeyError's text without quotes)."""
+        try:
+            yield
+        except (ValueError, KeyError) as e:
+            self.counters[f"{kind}_commands_rejected"] += 1
+            raise ValueError(str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)) from None
+        self.counters[f"{kind}_commands"] += 1
+
+    def _started(self) -> Engine:
+        if self.engine is None:
+            raise ValueError("the engine has not started yet (it starts on the first input message)")
+        return self.engine
+
     def set_rate(self, key: str, value: str | float | None) -> tuple[str, float | None]:
         """Apply a rate command: ``key`` a model name, or ``model@camera`` for one camera's rate; ``value`` the rate
         as text (the set_rate topic) or as a number (services, parameters), see :func:`parse_rate_command`. Raises
         ValueError naming what is wrong; counted."""
-        try:
+        with self._command("rate"):
             key, hz = parse_rate_command(key, value, self.model_names, self.cameras)
             model, camera = model_at(key, self.model_names, self.cameras)
-            if self.engine is None:
-                raise ValueError("the engine has not started yet (it starts on the first input message)")
-            self.engine.set_rate(model, hz, camera=camera)
-        except (ValueError, KeyError) as e:
-            self.counters["rate_commands_rejected"] += 1
-            raise ValueError(str(e.args[0]) if isinstance(e, KeyError) and e.args else str(e)) from None
-        self.counters["rate_commands"] += 1
+            self._started().set_rate(model, hz, camera=camera)
         log.info("rate of %s set to %s", key, "unlimited" if hz is None else f"{hz:g} Hz")
         return key, hz
+
+    def set_priority(self, key: str, value: str | int) -> tuple[str, int]:
+        """Apply a priority command: ``key`` a head, ``head@camera`` for one camera's lane or ``@camera`` for the
+        camera's own priority (:func:`vpengine.checks.priority_target`); ``value`` an integer from
+        checks.MIN_PRIORITY to MAX_PRIORITY, as text (the set_priority topic) or a number (parameters), see
+        :func:`parse_priority`. Raises ValueError naming what is wrong, and then nothing changes
+        (``Engine.set_priority``); counted."""
+        key = str(key).strip()
+        with self._command("priority"):
+            priority = parse_priority(value)
+            head, camera = priority_target(key)
+            self._started().set_priority(head, priority, camera=camera)
+        log.info("priority of %s set to %d", key, priority)
+        return key, priority
 
     def diagnostics(self, now: float | None = None) -> DiagnosticsOut:
         """One status per model (see :func:`model_status`), one for the interface itself and, with several cameras,
@@ -410,6 +436,8 @@ class Ros2Core:
                 "overlays_skipped",
                 "rate_commands",
                 "rate_commands_rejected",
+                "priority_commands",
+                "priority_commands_rejected",
             )
         ]
         values += [(f"rejected.{r}", str(n)) for r, n in sorted(self.rejected.counts.items())]

@@ -222,6 +222,10 @@ class Reader:
         """Block until a sample is there or ``timeout`` seconds pass; True if there is data."""
         return self._waitset.wait(duration(seconds=timeout)) > 0
 
+    def also_wake_for(self, other: Reader) -> None:
+        """Let :meth:`wait` return when ``other`` has data too: one thread waits on several readers."""
+        self._waitset.attach(other._cond)
+
     def take_raw(self, n: int = 16) -> list[bytes]:
         """Up to ``n`` samples as CDR bytes (encapsulation header included); invalid samples (disposals) skipped."""
         return [data for data, _ in self.take_raw_stamped(n)]

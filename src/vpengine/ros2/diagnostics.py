@@ -69,7 +69,7 @@ def model_status(name: str, m: Mapping[str, Any], prefix: str, hardware_id: str)
     elif state in ("starting", "loading"):
         level, msg = WARN, f"{state}"
     else:
-        level, msg = OK, f"{state}, {achieved:.1f} Hz (target {tgt})"
+        level, msg = OK, f"{state}, {achieved:.1f} Hz (target {tgt}{_capped(m)})"
     values = [
         ("state", state),
         ("target_hz", "unlimited" if target is None else _fmt(float(target))),
@@ -81,8 +81,26 @@ def model_status(name: str, m: Mapping[str, Any], prefix: str, hardware_id: str)
         ("restarts", _fmt(m.get("restarts", 0))),
         ("latency_p50_ms", _fmt(lat.get("p50"))),
         ("latency_p99_ms", _fmt(lat.get("p99"))),
+        *_giving_way(m),
     ]
     return Status(level, f"{prefix}: {name}", msg, hardware_id, values)
+
+
+def _capped(m: Mapping[str, Any]) -> str:
+    """Note [Give way] (runtime/governor.py): a model throttled for more important ones says so in its message."""
+    cap = m.get("cap_hz")
+    return "" if cap is None else f", capped at {cap:g} Hz for higher priorities"
+
+
+def _giving_way(m: Mapping[str, Any], model: str | None = None) -> list[tuple[str, str]]:
+    """A model's priority (and its camera's), its throttle cap while it has one, deadline misses and skips by reason
+    (Note [Give way]), as far as ``m`` (``Engine.stats()`` of the model) has them; keys prefixed ``<model>.`` when
+    given."""
+    pre = "" if model is None else f"{model}."
+    keys = ("priority", "camera_priority", "cap_hz", "deadline_misses")
+    values = [(f"{pre}{k}", _fmt(m[k])) for k in keys if m.get(k) is not None]
+    values += [(f"{pre}skipped_by.{r}", _fmt(n)) for r, n in (m.get("skipped_by") or {}).items()]
+    return values
 
 
 def camera_status(
@@ -97,6 +115,7 @@ def camera_status(
             (f"{model}.target_hz", "unlimited" if target is None else _fmt(float(target))),
             (f"{model}.achieved_hz", _fmt(float(m.get("achieved_hz") or 0.0))),
             *((f"{model}.{k}", _fmt(m.get(k, 0))) for k in ("runs", "skipped", "late", "deferred")),
+            *_giving_way(m, model),
         ]
     message = f"{counts['submitted']} frames in of {counts['received']} received"
     return Status(OK, f"{prefix}: camera {camera}", message, hardware_id, values)

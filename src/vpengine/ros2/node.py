@@ -23,9 +23,11 @@ package providing it is installed (``vpengine_interfaces``, or the paper's own `
     string[] model_names
 
 Without such a package it falls back to standard interfaces: ``~/get_model_names`` (std_srvs/srv/Trigger; the
-names as a JSON list in ``message``) and one ROS parameter per model, ``rate.<model>`` (double, Hz; negative = no
-limit), set with ``ros2 param set /vpengine rate.depth 5``. The ``<ns>/set_rate`` topic (diagnostic_msgs/KeyValue)
-and the latched ``<ns>/model_names`` topic work in both cases.
+names as a JSON list in ``message``), one ROS parameter per model, ``rate.<model>`` (double, Hz; negative = no
+limit), set with ``ros2 param set /vpengine rate.depth 5``, and one per head, ``priority.<head>`` (integer,
+checks.MIN_PRIORITY to MAX_PRIORITY, higher more important), set with ``ros2 param set /vpengine priority.depth 10``.
+The ``<ns>/set_rate`` and ``<ns>/set_priority`` topics (diagnostic_msgs/KeyValue) and the latched
+``<ns>/model_names`` topic work in both cases.
 
 Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``input_topics`` (several cameras: a string
 array of NAME=TOPIC, each camera's outputs under ``<output_namespace>/<NAME>/``), ``compressed`` (false), ``input_qos``
@@ -45,6 +47,7 @@ import sys
 import threading
 from typing import Any
 
+from vpengine import checks
 from vpengine.ros2.control import ControlLoop, model_names_text
 from vpengine.ros2.core import Ros2Core, input_topics
 from vpengine.ros2.diagnostics import DiagnosticsOut
@@ -207,19 +210,20 @@ def build_node(argv: list[str] | None = None) -> Any:
             self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", default_qos)
             self._names = self.create_publisher(String, f"{core.namespace}/model_names", latched)
             self._names.publish(String(data=model_names_text(core.model_names)))
-            # Note [Control path] (vpengine.ros2.control): rate commands only queue here (callbacks of the
+            # Note [Control path] (vpengine.ros2.control): commands only queue here (callbacks of the
             # executor); the core's control loop applies them and publishes /diagnostics on its own thread. Input has
             # a callback group of its own, so a MultiThreadedExecutor never holds a command or a service call behind
             # a frame's decode.
-            self._commands: queue.SimpleQueue[tuple[str, str]] = queue.SimpleQueue()
+            self._commands: queue.SimpleQueue[tuple[str, str, str]] = queue.SimpleQueue()
             control_group = MutuallyExclusiveCallbackGroup()
-            self.create_subscription(
-                KeyValue,
-                f"{core.namespace}/set_rate",
-                lambda m: self._commands.put((m.key, m.value)),
-                default_qos,
-                callback_group=control_group,
-            )
+            for kind in ("rate", "priority"):
+                self.create_subscription(
+                    KeyValue,
+                    f"{core.namespace}/set_{kind}",
+                    lambda m, k=kind: self._commands.put((k, m.key, m.value)),
+                    default_qos,
+                    callback_group=control_group,
+                )
             in_qos = qos_profile_sensor_data if input_qos == "sensor" else default_qos
             self._input_topics: list[str] = []
             inputs: dict[str | None, str] = {None: topics} if isinstance(topics, str) else dict(topics)
@@ -289,18 +293,31 @@ def build_node(argv: list[str] | None = None) -> Any:
                     ParameterDescriptor(description=f"rate limit of {m} in Hz; 0 pauses; negative: no limit"),
                 )
 
+            for h in core.config.heads:
+                self.declare_parameter(
+                    f"priority.{h.name}",
+                    h.priority,
+                    ParameterDescriptor(
+                        description=f"priority of {h.name}, {checks.MIN_PRIORITY} to {checks.MAX_PRIORITY}; "
+                        "higher: more important"
+                    ),
+                )
+
             def on_params(params: list[Any]) -> Any:
                 for prm in params:
-                    if prm.name.startswith("rate."):
-                        try:
-                            core.set_rate(prm.name[5:], float(prm.value))
-                        except (ValueError, TypeError) as e:
-                            return SetParametersResult(successful=False, reason=str(e))
+                    kind, _, key = prm.name.partition(".")
+                    try:
+                        if kind == "rate":
+                            core.set_rate(key, float(prm.value))
+                        elif kind == "priority":
+                            core.set_priority(key, prm.value)
+                    except (ValueError, TypeError) as e:
+                        return SetParametersResult(successful=False, reason=str(e))
                 return SetParametersResult(successful=True)
 
             self.add_on_set_parameters_callback(on_params)
 
-        def _wait_commands(self, timeout: float) -> list[tuple[str, str]]:
+        def _wait_commands(self, timeout: float) -> list[tuple[str, str, str]]:
             try:
                 got = [self._commands.get(timeout=timeout)]
             except queue.Empty:

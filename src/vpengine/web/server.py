@@ -5,15 +5,18 @@
     GET  /                       the page (no build step, nothing from the internet)
     GET  /api/stats              Engine.stats() as JSON (NaN as null)
     PUT  /api/rate/<model>       {"hz": 5} | {"hz": null} (unlimited) | {"hz": 0} (pause); 400 with the reason
+    PUT  /api/priority/<key>     {"priority": 10} (an integer, checks.MIN_PRIORITY..MAX_PRIORITY, higher more
+                                 important); key: a head, head@camera (that lane only) or @camera (the camera's
+                                 own); 400 with the reason, 404 for an unknown head
     GET  /api/latest/<head>.jpg  the head's newest result as a picture (?width=N, default 640; ?camera=NAME, default
                                  the first camera the head serves; 400 naming the cameras for an unknown one); 204
                                  before its first
     GET  /metrics                Prometheus text format (``vpengine_*``)
 
-The stack is the standard library's threading HTTP server: five routes and a thread per connection need no
+The stack is the standard library's threading HTTP server: six routes and a thread per connection need no
 framework, and the engine's process gains no event loop. ``prometheus-client`` (the ``web`` extra) formats the
-metrics. Requests do nothing to the engine beyond reading its control block, borrowing one result per picture and
-``set_rate``; pictures are bounded (Note [Pictures and frames] in ``pictures.py``).
+metrics. Requests do nothing to the engine beyond reading its control block, borrowing one result per picture,
+``set_rate`` and ``set_priority``; pictures are bounded (Note [Pictures and frames] in ``pictures.py``).
 
 Note [Who may talk to the view]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
@@ -82,16 +85,28 @@ def _json_safe(v: Any) -> Any:
     return str(v)
 
 
-def parse_rate(body: bytes, model: str) -> float | None:
-    """The ``hz`` of a ``PUT /api/rate/<model>`` body; ValueError saying what is accepted."""
-    want = f'a JSON object {{"hz": RATE}} with RATE a number from 0 to {checks.MAX_RATE_HZ:g} (0 pauses) or null (no limit)'
+def _field(body: bytes, key: str, want: str) -> Any:
+    """``key`` of a JSON object body; ValueError saying what is accepted (``want``)."""
     try:
         doc = json.loads(body or b"null")
     except (ValueError, UnicodeDecodeError):
         raise ValueError(f"expected {want}; the body is not JSON") from None
-    if not isinstance(doc, dict) or "hz" not in doc:
+    if not isinstance(doc, dict) or key not in doc:
         raise ValueError(f"expected {want}; got {doc!r}"[:300])
-    return checks.rate(model, doc["hz"])
+    return doc[key]
+
+
+def parse_rate(body: bytes, model: str) -> float | None:
+    """The ``hz`` of a ``PUT /api/rate/<model>`` body; ValueError saying what is accepted."""
+    want = f'a JSON object {{"hz": RATE}} with RATE a number from 0 to {checks.MAX_RATE_HZ:g} (0 pauses) or null (no limit)'
+    return checks.rate(model, _field(body, "hz", want))
+
+
+def parse_priority(body: bytes) -> int:
+    """The ``priority`` of a ``PUT /api/priority/<key>`` body; ValueError saying what is accepted."""
+    lo, hi = checks.MIN_PRIORITY, checks.MAX_PRIORITY
+    want = f'a JSON object {{"priority": P}} with P an integer from {lo} to {hi} (higher: more important)'
+    return checks.priority(_field(body, "priority", want))
 
 
 class WebServer:
@@ -259,6 +274,9 @@ class _Handler(BaseHTTPRequestHandler):
             elif path.startswith("/api/rate/"):
                 self._only(method, "PUT")
                 self._put_rate(unquote(path[len("/api/rate/") :]), body)
+            elif path.startswith("/api/priority/"):
+                self._only(method, "PUT")
+                self._put_priority(unquote(path[len("/api/priority/") :]), body)
             elif path.startswith("/api/latest/") and path.endswith(".jpg"):
                 self._only(method, "GET")
                 self._picture(unquote(path[len("/api/latest/") : -len(".jpg")]), query)
@@ -343,6 +361,19 @@ class _Handler(BaseHTTPRequestHandler):
             raise _HttpError(HTTPStatus.BAD_REQUEST, str(e.args[0]) if e.args else str(e)) from None
         log.info("live view: %s rate set to %s", model, "unlimited" if hz is None else f"{hz:g} Hz")
         self._send_json(HTTPStatus.OK, {"model": model, "hz": eng.rate(model)})
+
+    def _put_priority(self, key: str, body: bytes) -> None:
+        eng = self._engine()
+        head, camera = checks.priority_target(key)
+        try:
+            priority = parse_priority(body)
+            eng.set_priority(head, priority, camera=camera)
+        except KeyError as e:  # an unknown head
+            raise _HttpError(HTTPStatus.NOT_FOUND, str(e.args[0]) if e.args else str(e)) from None
+        except ValueError as e:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, str(e)) from None
+        log.info("live view: priority of %s set to %d", key, priority)
+        self._send_json(HTTPStatus.OK, {"head": head, "camera": camera, "priority": priority})
 
     def _picture(self, head: str, query: dict[str, list[str]]) -> None:
         eng = self._engine()

@@ -25,3 +25,17 @@ def test_lockstep_over_a_10fps_video_runs_a_5hz_head_on_every_second_frame(mode)
     assert m["seg"]["results_received"] == 20 and m["depth"]["results_received"] == 40
     # waiting out seg's period on every frame takes 40 x 0.2 s = 8 s or more; a run on the frames' stamps, far less
     assert s["wall_s"] < 6.0
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_lockstep_keeps_several_frames_in_flight_and_still_runs_every_frame_through_every_head(mode):
+    # Note [Frames in flight]: the models read fifo, so no head skips a frame that queued behind it, even one the
+    # config has read only the newest
+    with VideoSource(MEDIA / "vtest.avi") as src:
+        s = run_pipeline(tiny(mode, "heads.seg.input_mode=latest"), src, max_frames=30, progress=False)
+    assert s["in_flight"] == 3  # FIFO_MARGIN 4 and output.slots 4, less the round being submitted
+    for name in ("foundation", "depth", "seg", "det"):
+        m = s["models"][name]
+        assert m["runs"] == 30 and m["skipped"] == 0 and m["dropped"] == 0, (name, m)
+    for name in ("depth", "seg", "det"):
+        assert s["models"][name]["results_received"] == 30

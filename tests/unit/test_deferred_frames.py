@@ -21,9 +21,10 @@ X, F = {"x": TensorSpec((4,), "float32")}, {"f": TensorSpec((4,), "float32")}
 
 
 @pytest.fixture()
-def worker():
-    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]")
-    readers = [ReaderDecl(f"foundation@{c}", tag=i) for i, c in enumerate(CAMERAS)]
+def worker(request):
+    mode = getattr(request, "param", "latest")  # the foundation's input_mode
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", f"foundation_model.input_mode={mode}")
+    readers = [ReaderDecl(f"foundation@{c}", mode, tag=i) for i, c in enumerate(CAMERAS)]
     in_ring = SlotRing.create("input", X, 5, readers, n_tags=2)
     out_ring = SlotRing.create("features", F, 5, [ReaderDecl("peek")], n_tags=2)
     lanes = make_lanes(cfg)
@@ -100,6 +101,20 @@ def test_a_newer_frame_of_its_camera_replaces_a_deferred_one_which_is_answered_s
     assert old not in outputs() and outputs()[new] == 6.0
     assert entry("rear", "skipped") == 1 and entry("rear", "runs") == 1
     assert entry("rear", "decided") == entry("rear", "last_run") == new
+
+
+@pytest.mark.parametrize("worker", ["fifo"], indirect=True)
+def test_a_model_that_reads_every_frame_runs_a_deferred_frame_before_the_newer_one_of_its_camera(worker):
+    core, submit, overloaded, outputs, entry = worker
+    submit("front", 1.0)
+    old = submit("rear", 2.0)
+    overloaded()
+    core._take()
+    new = submit("rear", 3.0)  # fifo: every frame, in order (Note [Frames in flight] in pipeline/pacing.py)
+    core._take()
+    assert outputs()[old] == 4.0 and new not in outputs()
+    core._take()
+    assert outputs()[new] == 6.0 and entry("rear", "skipped") == 0 and entry("rear", "runs") == 2
 
 
 def test_a_deferred_frame_of_a_camera_paused_since_is_answered_and_let_go(worker):

@@ -128,13 +128,14 @@ def run_served(pipe: Pipeline, serve: ServeOptions | None, report: Callable[[dic
 def format_summary(s: dict[str, Any]) -> str:
     missed = f"; camera frames a newer one replaced: {s['source_missed']}" if s.get("source_missed") else ""
     stopped = "interrupted after " if s.get("interrupted") else ""
+    flight = f", {s['in_flight']} frames a camera in flight" if s.get("in_flight", 1) > 1 else ""
     cameras = s.get("cameras") or {}
     each = ", ".join(f"{c} {x['frames_submitted']}" for c, x in cameras.items())
     each = f" ({each})" if each else ""
     w = max([14] + [len(m["entry"]) for x in cameras.values() for m in x["models"].values()])
     lines = [
         f"{stopped}{s['frames_submitted']} frames{each} in {s['wall_s']:.1f} s ({s['input_hz']:.1f} Hz in, "
-        f"{s['pace']}, {s['mode']} mode on {s['device']}{missed})",
+        f"{s['pace']}{flight}, {s['mode']} mode on {s['device']}{missed})",
         f"{'model':{w}s} {'target':>7s} {'achieved':>9s} {'runs':>6s} {'skipped':>8s} {'dropped':>8s} "
         f"{'errors':>6s} {'p50 ms':>8s} {'p99 ms':>8s}",
     ]

@@ -4,6 +4,7 @@ Ctrl-C does to a run (Notes [Several sources] and [Ctrl-C]).
 
 from __future__ import annotations
 
+import collections
 import logging
 import signal
 import sys
@@ -14,7 +15,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+from vpengine.config import EngineConfig, load_config
 from vpengine.io.base import Frame, Source
+from vpengine.runtime.plan import FIFO_MARGIN
 
 if TYPE_CHECKING:
     from vpengine.engine import Engine
@@ -47,6 +50,7 @@ class FrameLoop:
     engine: Engine
     handle: Callable[[Iterable[Result]], None]
     progressed: Callable[[int], None]
+    in_flight: int = 1  # lockstep: rounds submitted and not yet answered, at most (Note [Frames in flight])
 
 
 # Note [Several sources]: with several cameras (``--source NAME=SPEC`` repeated) each source feeds its own camera,
@@ -58,7 +62,19 @@ class FrameLoop:
 # One source is the same loop with one feed.
 def lockstep(loop: FrameLoop) -> None:
     active = list(loop.feeds)
+    rounds: collections.deque[list[int]] = collections.deque()  # submitted, not yet answered, oldest first
     done = 0
+
+    def settle(fids: list[int]) -> None:
+        nonlocal done
+        for fid in fids:
+            try:
+                loop.handle(loop.engine.wait(fid, timeout=60.0).values())
+            except TimeoutError as e:
+                log.warning("%s", e)
+        done += len(fids)
+        loop.progressed(done)
+
     while active and not loop.stop.is_set():
         fids = []
         for feed in list(active):
@@ -72,13 +88,27 @@ def lockstep(loop: FrameLoop) -> None:
             if stamp is None:  # a file without stamps: its own timeline at its pace
                 stamp = feed.submitted * feed.period
             fids.append(loop.submit(feed, frame, stamp))
-        for fid in fids:
-            try:
-                loop.handle(loop.engine.wait(fid, timeout=60.0).values())
-            except TimeoutError as e:
-                log.warning("%s", e)
-        done += len(fids)
-        loop.progressed(done)
+        if fids:
+            rounds.append(fids)
+        while len(rounds) >= loop.in_flight:
+            settle(rounds.popleft())
+    while rounds:  # the frames in hand are answered, after the last frame or a Ctrl-C alike
+        settle(rounds.popleft())
+
+
+# Note [Frames in flight]: lockstep promises every frame through every head, in order, each output paired with its
+# frame. One frame at a time keeps that promise, but a run then goes at the sum of the models' latencies rather than
+# the pace of the slowest. With several frames in flight a model that reads only the newest frame (input_mode: latest)
+# would skip those that queued behind it, so a lockstep run has every model take every frame in order (input_mode:
+# fifo) whatever the config says: in lockstep the pipeline, not a camera, decides what queues, so a model sees the
+# same frames either way. How many rounds (a frame of each camera): what the mailboxes hold without overwriting a
+# frame nobody has taken (a fifo reader's margin, FIFO_MARGIN, and each head's kept results, output.slots), less one
+# for the round being submitted.
+def pipelined(cfg: EngineConfig) -> tuple[EngineConfig, int]:
+    """The config a lockstep run uses and how many rounds of frames it keeps in flight (Note [Frames in flight])."""
+    overrides = ["foundation_model.input_mode=fifo"] + [f"heads.{h.name}.input_mode=fifo" for h in cfg.heads]
+    room = min([FIFO_MARGIN, *(h.output.slots for h in cfg.heads)]) - 1
+    return load_config(cfg.model_dump(mode="json"), overrides), max(1, room)
 
 
 def realtime(loop: FrameLoop) -> None:

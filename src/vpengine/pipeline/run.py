@@ -40,7 +40,7 @@ from vpengine.config import EngineConfig, config_for_cameras
 from vpengine.engine import Engine
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import AnnotatedSink, FolderSink, Sink, SinkThread, per_camera
-from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, realtime
+from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, pipelined, realtime
 from vpengine.pipeline.summary import Tally, summarize, write_summary
 from vpengine.recent_frames import RecentFrames
 from vpengine.results import Result
@@ -90,6 +90,9 @@ class Pipeline:
         self.pace = pace or ("realtime" if any(s.pace == "realtime" for s in self.sources.values()) else "lockstep")
         if self.pace not in ("realtime", "lockstep"):
             raise ValueError(f"pace must be 'realtime' or 'lockstep', got {self.pace!r}")
+        self.in_flight = 1  # rounds of frames submitted and not yet answered, at most (Note [Frames in flight])
+        if self.pace == "lockstep":
+            self.config, self.in_flight = pipelined(self.config)
         self.out_dir, self.fps, self.max_frames, self.progress = out_dir, fps, max_frames, progress
         self._sinks = (save_every, viz, list(sink_factories), depth_format, video, folder)
         self.frames: RecentFrames[str] = RecentFrames(FRAMES_KEPT * len(self.sources))
@@ -175,7 +178,9 @@ class Pipeline:
         return summary
 
     def _feed(self, stop: threading.Event) -> None:
-        loop = FrameLoop(self.feeds, self.max_frames, stop, self._submit, self.engine, self._handle, self._progressed)
+        loop = FrameLoop(
+            self.feeds, self.max_frames, stop, self._submit, self.engine, self._handle, self._progressed, self.in_flight
+        )
         if self.pace == "lockstep":
             lockstep(loop)
             return

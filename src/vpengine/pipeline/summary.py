@@ -83,6 +83,7 @@ def summarize(pipe: Pipeline, interrupted: bool, wall: float, stats: dict[str, A
         "config": pipe.config.name,
         "source": ", ".join(s.describe() if c is None else f"{c}={s.describe()}" for c, s in sources.items()),
         "pace": pipe.pace,
+        "in_flight": pipe.in_flight,  # lockstep: rounds of frames at once (Note [Frames in flight])
         "frames_submitted": submitted,
         "source_missed": sum(s.missed for s in sources.values()),
         "inputs_skipped": [x for s in sources.values() for x in s.skipped],

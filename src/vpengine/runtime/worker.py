@@ -38,8 +38,8 @@ for every batch size up to its lanes), and each frame's outputs are copied into 
 camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the camera
 last in the configured order leaves its frame for the next batch, counted ``deferred`` (never twice in a row, so no
 camera starves): the first cameras keep their rate and latency. The deferred frame stays pinned and unanswered, and runs
-in the next batch unless a newer frame of its camera is there by then (newest wins: the deferred one is then skipped and
-answered). A deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it
+in the next batch unless a newer frame of its camera is there by then and the model reads the newest (the deferred one
+is then skipped and answered; a fifo model runs it first). A deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it
 must never cost a frame on its own: a caller that waits for every frame (lockstep pacing) gets every output, only a
 batch later.
 With one lane there is no window to wait and no frame to defer: each frame is a batch of one, which the foundation
@@ -164,7 +164,11 @@ class WorkerCore:
         # Note [Cameras]: one lane per camera this model serves (Note [Lanes] in lanes.py), in priority order
         self.lanes = [_Lane(lane, in_ring.reader(lane.reader), RateGate()) for lane in spec.lanes]
         self._by_tag = {lane.tag: lane for lane in self.lanes}
-        self.window = spec.engine_config().runtime.batch_window_ms * 1e-3
+        cfg = spec.engine_config()
+        self.window = cfg.runtime.batch_window_ms * 1e-3
+        # Note [Cameras]: a deferred frame gives way to a newer one of its camera only where newest wins; a fifo
+        # model runs every frame
+        self._newest_wins = cfg.model(spec.name).input_mode == "latest"
         self.writer = out_ring.writer()
         self.control = control
         self.dev = device
@@ -225,7 +229,7 @@ class WorkerCore:
             lane.gate.update(ctl.rate(lane.entry))
             if not lane.gate.paused:
                 active.append(lane)
-            if lane.tag in self._held and (lane.gate.paused or lane.reader.available()):
+            if lane.tag in self._held and (lane.gate.paused or (self._newest_wins and lane.reader.available())):
                 self._drop_held(lane.tag)  # paused since, or a newer frame of its camera came: newest wins
         if not active:
             self._drop_spare()  # not armed while paused: takes no frames from submit

@@ -36,9 +36,16 @@ class Recorder:
         return {"head": fid}
 
 
+def frames_then(n: int, error: Exception | None = None):  # type: ignore[no-untyped-def]
+    for i in range(n):
+        yield SimpleNamespace(timestamp=float(i))
+    if error is not None:
+        raise error
+
+
 def run(n: int, in_flight: int, stop_after: int | None = None) -> Recorder:
     rec = Recorder(stop_after)
-    frames = (SimpleNamespace(timestamp=float(i)) for i in range(n))
+    frames = frames_then(n)
     feed = Feed(None, SimpleNamespace(), 0.1, False, frames)  # type: ignore[arg-type]
     loop = FrameLoop(
         [feed],
@@ -65,6 +72,18 @@ def test_submitting_runs_ahead_of_the_answers_by_the_frames_in_flight_and_every_
 def test_after_ctrl_c_no_new_frame_goes_in_and_the_frames_in_flight_are_answered():
     rec = run(10, 3, stop_after=2)
     assert rec.submitted == [0, 1] and rec.handled == [0, 1]
+
+
+def test_a_source_that_fails_raises_once_the_frames_before_it_are_answered():
+    # --strict on a corrupt bag message: what came before is written, as with one frame in flight
+    rec = Recorder()
+    feed = Feed(None, SimpleNamespace(), 0.1, False, frames_then(2, ValueError("corrupt")))  # type: ignore[arg-type]
+    loop = FrameLoop(
+        [feed], None, rec.stop, rec.submit, SimpleNamespace(wait=rec.wait), rec.handled.extend, lambda _: None, 3
+    )  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="corrupt"):
+        lockstep(loop)
+    assert rec.handled == [0, 1]
 
 
 def test_a_lockstep_run_has_every_model_read_every_frame_in_order():

@@ -75,23 +75,28 @@ def lockstep(loop: FrameLoop) -> None:
         done += len(fids)
         loop.progressed(done)
 
-    while active and not loop.stop.is_set():
-        fids = []
-        for feed in list(active):
-            frame = None
-            if loop.max_frames is None or feed.submitted < loop.max_frames:
-                frame = next(feed.frames, None)
-            if frame is None:
-                active.remove(feed)
-                continue
-            stamp = frame.timestamp
-            if stamp is None:  # a file without stamps: its own timeline at its pace
-                stamp = feed.submitted * feed.period
-            fids.append(loop.submit(feed, frame, stamp))
-        if fids:
-            rounds.append(fids)
-        while len(rounds) >= loop.in_flight:
+    try:
+        while active and not loop.stop.is_set():
+            fids = []
+            for feed in list(active):
+                frame = None
+                if loop.max_frames is None or feed.submitted < loop.max_frames:
+                    frame = next(feed.frames, None)
+                if frame is None:
+                    active.remove(feed)
+                    continue
+                stamp = frame.timestamp
+                if stamp is None:  # a file without stamps: its own timeline at its pace
+                    stamp = feed.submitted * feed.period
+                fids.append(loop.submit(feed, frame, stamp))
+            if fids:
+                rounds.append(fids)
+            while len(rounds) >= loop.in_flight:
+                settle(rounds.popleft())
+    except Exception:
+        while rounds:  # a source that failed (--strict): the frames before it are answered and written first
             settle(rounds.popleft())
+        raise
     while rounds:  # the frames in hand are answered, after the last frame or a Ctrl-C alike
         settle(rounds.popleft())
 

@@ -7,12 +7,14 @@
 # BEFORE: a folder holding the older tree's src/ (and configs/), or a commit of this repository, checked out with
 # git worktree under /tmp. Where the machine has no .git, make the folder where the repository is and carry it along
 # (git ignores .before/): mkdir .before && git archive COMMIT src configs | tar -x -C .before
-# AFTER: the newer tree (default: this one). EXPERIMENT: E1, floor, E5 (default: all three; E1 is the engine against
-# independent models at HEADS=8 heads, the floor of FLOOR_HEADS=depth,seg, E5 a stream of E5_FRAMES=3000 frames).
+# AFTER: the newer tree (default: this one). EXPERIMENT: E1, floor, E5, cameras (default: the first three; E1 is the
+# engine against independent models at HEADS=8 heads, the floor of FLOOR_HEADS=depth,seg, E5 a stream of
+# E5_FRAMES=3000 frames, cameras `vpengine bench cameras` with CAMERAS=4 cameras: their 30 Hz stream and one engine
+# batched against one a camera).
 # Also FRAMES (100 lockstep frames), RESULTS (borrow: the caller borrows results, so the numbers are the engine's
 # rather than its copies), MODE (the config's, process), ROUNDS (1: before, after; 2: before, after, before, after),
 # T (each run's time limit, 290 s), CONFIG (configs/bench.yaml; configs/tiny.yaml runs tiny models on the CPU).
-# Writes paper_<device>_{before,after}_<experiment>[_<round>].json, summary.md and summary.png into $OUT, by default
+# Writes paper_<device>_{before,after}_<experiment>[_<round>].json (cameras_{before,after}[_<round>].json), summary.md and summary.png into $OUT, by default
 # benchmarks/results/<GPU kind>/before_after/; "change" in summary.md is each after-run's number against the
 # before-run's (+: slower).
 given=${OUT:-}
@@ -42,10 +44,18 @@ before=$(tree "$BEFORE") || exit 1
 after=$(tree "${AFTER:-.}") || exit 1
 echo "before: $BEFORE ($before), after: ${AFTER:-this tree} ($after), on $OUT"
 
-# run SIDE TREE EXPERIMENT TAG: one `vpengine bench paper` of that tree, in the dialect of its CLI
+# run SIDE TREE EXPERIMENT TAG: one `vpengine bench paper` (or `bench cameras`) of that tree, in the dialect of its CLI
 run() {
   local side=$1 tree=$2 exp=$3 tag=$4
   local path="$SITE$tree/src"
+  if [ "$exp" = cameras ]; then
+    echo "-- $side $exp"
+    PYTHONPATH=$path TORCHINDUCTOR_CACHE_DIR=/tmp/inductor-$side TRITON_CACHE_DIR=/tmp/triton-$side \
+      timeout "${T:-290}" "$PYTHON" -m vpengine.cli.main bench cameras --config "$tree/$CONFIG" \
+      --stream-cameras "${CAMERAS:-4}" --cameras "${CAMERAS:-4}" --name "cameras_${tag/_cameras/}" --out "$OUT" 2>&1 \
+      | grep "stream:\|throughput,\|Error\|error"
+    return
+  fi
   local args=(--experiments "$exp" --heads "${HEADS:-8}" --frames "${FRAMES:-100}" --e5-frames "${E5_FRAMES:-3000}"
     --floor-heads "${FLOOR_HEADS:-depth,seg}" --results "${RESULTS:-borrow}" --tag "$tag" --out "$OUT")
   if PYTHONPATH=$path "$PYTHON" -m vpengine.cli.main bench paper --help | grep -q -- "--set KEY=VALUE"; then

@@ -4,9 +4,11 @@
 set -u
 PYTHON=${PYTHON:-python3}
 SITE=
-if compgen -G ".whl/*.whl" >/dev/null && ! "$PYTHON" -c "import pydantic" 2>/dev/null; then
-  "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-    || { echo "wheel install failed"; exit 1; }
+# (asked without PYTHONPATH: a script sourcing this again, under one that did, must still put /tmp/site on the path)
+if compgen -G ".whl/*.whl" >/dev/null && ! env -u PYTHONPATH "$PYTHON" -c "import pydantic" 2>/dev/null; then
+  [ -d /tmp/site/pydantic ] \
+    || "$PYTHON" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+      .whl/*.whl || { echo "wheel install failed"; exit 1; }
   SITE=/tmp/site:
 fi
 export PYTHONPATH="$SITE$PWD/src:$PWD/tests"

@@ -208,11 +208,13 @@ def _camera_rows(c: dict[str, Any]) -> list[str]:
     if s:
         lat = s["latency_all_heads_ms"]
         skipped = ", ".join(f"{m} {n['skipped']}" for m, n in s["counted"].items() if n["skipped"])
+        memory = s["device_memory_bytes"]
+        memory_text = "not measured" if memory is None else f"{memory / 2**30:.2f} GiB"
         rows.append(
             f"| {s['cameras']} cameras at {s['fps_per_camera']:g} Hz each, {heads} (thread mode) | submit -> every "
             f"head: p50 {lat['p50']:.1f} ms, p99 {lat['p99']:.1f} ms; {s['frames_all_heads']} of "
             f"{s['frames_submitted']} frames through every head (skipped, counted: {skipped or 'none'}); device "
-            f"memory {s['device_memory_bytes'] / 2**30:.2f} GiB | target: p99 <= 33 ms, <= 2.5 GiB | {c['file']} |"
+            f"memory {memory_text} | target: p99 <= 33 ms, <= 2.5 GiB | {c['file']} |"
         )
     if c.get("throughput"):
         points = ", ".join(
@@ -258,7 +260,8 @@ def _floor_row(f: dict[str, Any]) -> str:
 
 def headline(key: str, run: dict[str, Any]) -> dict[str, float]:
     """The numbers (ms) a before/after comparison looks at: the engine's mean frame at the largest head count (E1,
-    E2), a frame's three results at p50 and p99 (E5), the engine's mean frame in each mode (floor)."""
+    E2), a frame's three results at p50 and p99 (E5), the engine's mean frame in each mode (floor), the stream's
+    every-head latency and a batched round's time at each camera count (cameras)."""
     if key in ("E1", "E2"):
         last = run["rows"][-1]
         return {f"engine, {last['heads']} heads, mean": last["engine"]["mean"]}
@@ -271,6 +274,14 @@ def headline(key: str, run: dict[str, Any]) -> dict[str, float]:
             for m in ("thread", "process")
             for slot in (False, True)
         }
+    if key == "cameras":
+        out = {}
+        if run.get("stream"):
+            lat = run["stream"]["latency_all_heads_ms"]
+            out |= {"stream, every head, p50": lat["p50"], "stream, every head, p99": lat["p99"]}
+        for t in run.get("throughput", []):
+            out[f"batched, {t['cameras']} cameras, a round"] = 1000 * t["cameras"] / t["batched_fps"]
+        return out
     return {}
 
 
@@ -281,7 +292,7 @@ def comparison(r: dict[str, Any], baseline: str) -> str:
         "| experiment | measure | baseline (ms) | run (ms) | change | run's file |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
-    for key in ("E1", "E2", "E5", "floor"):
+    for key in ("E1", "E2", "E5", "floor", "cameras"):
         runs = r.get(f"{key}_all", [])
         base = [x for x in runs if baseline in x["file"]]
         if not base:

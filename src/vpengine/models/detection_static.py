@@ -46,6 +46,8 @@ from torchvision.ops import roi_align
 from vpengine.models.nms import greedy_nms
 
 if TYPE_CHECKING:
+    from torchvision.models.detection._utils import BoxCoder
+
     from vpengine.models.detection import FasterRCNNHead
 
 #: torchvision's fixed minimum box sides: RegionProposalNetwork.min_size and RoIHeads.postprocess_detections'.
@@ -72,6 +74,28 @@ def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return x.gather(1, idx.view(*idx.shape, *([1] * (x.dim() - 2))).expand(*idx.shape, *x.shape[2:]))
 
 
+def _decode(coder: BoxCoder, rel_codes: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
+    """torchvision's ``BoxCoder.decode`` of ``rel_codes: [N, 4 * C]`` against ``boxes: [N, 4]``, the same arithmetic
+    in the same order, without its host-to-device copy of the constant 0.5 (a copy from pageable memory, which waits
+    for the stream on CUDA)."""
+    boxes = boxes.to(rel_codes.dtype)
+    widths = boxes[:, 2] - boxes[:, 0]
+    heights = boxes[:, 3] - boxes[:, 1]
+    ctr_x = boxes[:, 0] + 0.5 * widths
+    ctr_y = boxes[:, 1] + 0.5 * heights
+    wx, wy, ww, wh = coder.weights
+    dx = rel_codes[:, 0::4] / wx
+    dy = rel_codes[:, 1::4] / wy
+    dw = torch.clamp(rel_codes[:, 2::4] / ww, max=coder.bbox_xform_clip)
+    dh = torch.clamp(rel_codes[:, 3::4] / wh, max=coder.bbox_xform_clip)
+    pred_ctr_x = dx * widths[:, None] + ctr_x[:, None]
+    pred_ctr_y = dy * heights[:, None] + ctr_y[:, None]
+    half_w = 0.5 * (torch.exp(dw) * widths[:, None])
+    half_h = 0.5 * (torch.exp(dh) * heights[:, None])
+    corners = (pred_ctr_x - half_w, pred_ctr_y - half_h, pred_ctr_x + half_w, pred_ctr_y + half_h)
+    return torch.stack(corners, dim=2).flatten(1)
+
+
 def proposals(head: FasterRCNNHead, maps: OrderedDict[str, torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
     """Step 1: ``boxes float32[B, P, 4]`` (preprocessed-image pixels, best first) and ``valid bool[B, P]``."""
     rpn = head.rpn
@@ -81,7 +105,7 @@ def proposals(head: FasterRCNNHead, maps: OrderedDict[str, torch.Tensor]) -> tup
     anchors = rpn.anchor_generator(head._images(b, feats[0].device), feats)
     per_level = [o.shape[1] * o.shape[2] * o.shape[3] for o in objectness]
     obj, deltas = concat_box_prediction_layers(objectness, deltas)
-    decoded = rpn.box_coder.decode(deltas.detach(), anchors).view(b, -1, 4)
+    decoded = _decode(rpn.box_coder, deltas.detach().reshape(-1, 4), torch.cat(anchors)).view(b, -1, 4)
     obj = obj.view(b, -1)
     top = [min(rpn.pre_nms_top_n(), k) for k in per_level]
     width = max(top)
@@ -149,7 +173,7 @@ def detections(
     b, p = valid.shape
     pooled, flat = pooled_features(head, maps, boxes, valid)
     logits, deltas = rh.box_predictor(rh.box_head(pooled))
-    pred = box_ops.clip_boxes_to_image(rh.box_coder.decode(deltas, [flat]), head.image_hw)
+    pred = box_ops.clip_boxes_to_image(_decode(rh.box_coder, deltas, flat), head.image_hw)
     scores = F.softmax(logits, -1)
     k = scores.shape[-1] - 1  # column 0 is the background
     pred = pred.view(b, p, k + 1, 4)[:, :, 1:].reshape(b, p * k, 4)

@@ -13,7 +13,9 @@
 # batched against one a camera).
 # Also FRAMES (100 lockstep frames), RESULTS (borrow: the caller borrows results, so the numbers are the engine's
 # rather than its copies), MODE (the config's, process), ROUNDS (1: before, after; 2: before, after, before, after),
-# T (each run's time limit, 290 s), CONFIG (configs/bench.yaml; configs/tiny.yaml runs tiny models on the CPU).
+# T (each run's time limit, 290 s), CONFIG (configs/bench.yaml; configs/tiny.yaml runs tiny models on the CPU),
+# SETS (space-separated KEY=VALUE overrides given to both trees, e.g. SETS=heads.det.backend=eager to run the same
+# backends where the trees' configs differ).
 # Writes paper_<device>_{before,after}_<experiment>[_<round>].json (cameras_{before,after}[_<round>].json), summary.md and summary.png into $OUT, by default
 # benchmarks/results/<GPU kind>/before_after/; "change" in summary.md is each after-run's number against the
 # before-run's (+: slower).
@@ -48,18 +50,21 @@ echo "before: $BEFORE ($before), after: ${AFTER:-this tree} ($after), on $OUT"
 run() {
   local side=$1 tree=$2 exp=$3 tag=$4
   local path="$SITE$tree/src"
+  local sets=()
+  for kv in ${SETS:-}; do sets+=(--set "$kv"); done
   if [ "$exp" = cameras ]; then
     echo "-- $side $exp"
     PYTHONPATH=$path TORCHINDUCTOR_CACHE_DIR=/tmp/inductor-$side TRITON_CACHE_DIR=/tmp/triton-$side \
       timeout "${T:-290}" "$PYTHON" -m vpengine.cli.main bench cameras --config "$tree/$CONFIG" \
-      --stream-cameras "${CAMERAS:-4}" --cameras "${CAMERAS:-4}" --name "cameras_${tag/_cameras/}" --out "$OUT" 2>&1 \
+      --stream-cameras "${CAMERAS:-4}" --cameras "${CAMERAS:-4}" --name "cameras_${tag/_cameras/}" --out "$OUT" \
+      "${sets[@]}" 2>&1 \
       | grep "stream:\|throughput,\|Error\|error"
     return
   fi
   local args=(--experiments "$exp" --heads "${HEADS:-8}" --frames "${FRAMES:-100}" --e5-frames "${E5_FRAMES:-3000}"
     --floor-heads "${FLOOR_HEADS:-depth,seg}" --results "${RESULTS:-borrow}" --tag "$tag" --out "$OUT")
   if PYTHONPATH=$path "$PYTHON" -m vpengine.cli.main bench paper --help | grep -q -- "--set KEY=VALUE"; then
-    args+=(--config "$tree/$CONFIG")  # this release's CLI: the engine is the config's
+    args+=(--config "$tree/$CONFIG" "${sets[@]}")  # this release's CLI: the engine is the config's
     [ -z "${MODE:-}" ] || args+=(--set "mode=$MODE")
   else  # the CLI before it: the same models by flags
     case $CONFIG in

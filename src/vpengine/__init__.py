@@ -23,7 +23,7 @@ __all__ = [
 
 def __getattr__(name: str) -> Any:  # lazy: `import vpengine` stays light for worker start-up and the CLI
     if name in ("Engine", "EngineDeadError", "EngineStartError", "FrameSlot", "Result"):
-        from vpengine import engine
+        from vpengine.engine import core as engine
 
         return getattr(engine, name)
     if name in ("EngineConfig", "load_config"):

@@ -51,7 +51,7 @@ class InputConfig(_Strict):
         le=16384,
         description="Height in pixels the models run at (their mailboxes and graphs are this size). Frames of any "
         "other size are scaled into it with their aspect ratio kept, and their outputs come back at their own size "
-        "(Note [Frame grid] in boundary.py); set it to your camera's to spare that resizing.",
+        "(Note [Frame grid] in engine/boundary.py); set it to your camera's to spare that resizing.",
     )
     width: int = Field(640, ge=14, le=16384, description="Width in pixels the models run at (see height).")
     max_frame_side: int = Field(

@@ -142,7 +142,7 @@ def draw_detections(
 ) -> np.ndarray:
     """Boxes (x1, y1, x2, y2 in pixels) with 'name score' captions on their class colour, on a copy of a BGR image.
     Each class has its own colour (:func:`default_palette` without its grey). A box of zero width or height (or not
-    finite) is not drawn, nor its caption: a caption with no box names nothing (Note [Empty boxes] in boundary.py)."""
+    finite) is not drawn, nor its caption: a caption with no box names nothing (Note [Empty boxes] in engine/boundary.py)."""
     import cv2
 
     out = image.copy()

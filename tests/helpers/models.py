@@ -89,7 +89,7 @@ class ThreadNotingViT(TinyViT):
 
 class EdgeBoxesDet(TinyDetHead):
     """tiny_det that finds, on every frame, one box of zero width on the left edge and one real box: a head's own
-    empty box (Note [Empty boxes] in boundary.py), not one made by mapping to a smaller frame."""
+    empty box (Note [Empty boxes] in engine/boundary.py), not one made by mapping to a smaller frame."""
 
     def forward(self, inputs):  # type: ignore[no-untyped-def]
         out = super().forward(inputs)

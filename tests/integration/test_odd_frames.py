@@ -1,4 +1,4 @@
-"""Frames of any shape, down to 1x1, through every door and every writer (Note [Frame grid] in boundary.py): the
+"""Frames of any shape, down to 1x1, through every door and every writer (Note [Frame grid] in engine/boundary.py): the
 Python API (predict, submit + wait), ``vpengine run --out --viz --video`` and ``vpengine predict``. Each output has
 the frame's own shape, and no detection has an empty box (Note [Empty boxes])."""
 

@@ -1,4 +1,4 @@
-"""The boundary's geometry (Note [Frame grid] in boundary.py): fitting a frame into the input canvas and mapping
+"""The boundary's geometry (Note [Frame grid] in engine/boundary.py): fitting a frame into the input canvas and mapping
 outputs back into the frame's pixel grid, for numpy arrays and tensors alike."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from tests_paths import tiny
-from vpengine.boundary import SIZES_KEPT, Boundary, Placement, buffer_for, output_kinds
+from vpengine.engine.boundary import SIZES_KEPT, Boundary, Placement, buffer_for, output_kinds
 from vpengine.specs import TensorSpec
 
 
@@ -130,7 +130,7 @@ def fixed_capacity(boxes: list[list[float]], count: int, m: int = 6) -> dict[str
 
 def test_boxes_mapped_into_the_band_are_dropped_with_their_rows_and_the_count_follows():
     """Note [Empty boxes]: a 300x1 frame fills one canvas row; boxes clipped to its edge have zero height."""
-    from vpengine.boundary import drop_empty_boxes
+    from vpengine.engine.boundary import drop_empty_boxes
 
     p = Placement.fit((1, 300), (120, 160))  # region x 0..160, y 59..60
     canvas = [[0, 0, 16, 16], [16, 48, 32, 64], [0, 100, 160, 120], [40, 58, 80, 61], [5, 5, 5, 5]]
@@ -161,7 +161,7 @@ def test_boxes_mapped_into_the_band_are_dropped_with_their_rows_and_the_count_fo
 
 
 def test_outputs_without_empty_boxes_or_without_boxes_pass_as_they_are():
-    from vpengine.boundary import drop_empty_boxes
+    from vpengine.engine.boundary import drop_empty_boxes
 
     out = fixed_capacity([[0, 0, 10, 10], [5, 5, 6, 7]], count=2)
     assert drop_empty_boxes(out, {"boxes": "boxes"}) is out

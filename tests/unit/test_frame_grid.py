@@ -1,5 +1,5 @@
 """Frames of any size through the Engine API (thread mode): outputs in the submitted frame's pixel grid, the same
-frame treated the same whatever its door (Note [Frame grid] in boundary.py)."""
+frame treated the same whatever its door (Note [Frame grid] in engine/boundary.py)."""
 
 from __future__ import annotations
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from vpengine.results import _RECYCLED_PER_OUTPUT, _HostOutputs
+from vpengine.engine.results import _RECYCLED_PER_OUTPUT, _HostOutputs
 
 
 def frame(i: int) -> np.ndarray:

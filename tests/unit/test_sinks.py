@@ -9,8 +9,8 @@ import time
 import numpy as np
 import pytest
 
+from vpengine.engine.results import Result
 from vpengine.io.sinks import Sink, SinkThread
-from vpengine.results import Result
 
 
 def result(head: str, i: int) -> Result:

@@ -13,9 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
+from vpengine.engine.results import Result
 from vpengine.io import video
 from vpengine.io.sinks import AnnotatedSink
-from vpengine.results import Result
 
 HEADS = {"depth": {"kind": "depth"}}
 

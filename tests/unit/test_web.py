@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 
 from vpengine import checks
-from vpengine.boundary import Boundary
 from vpengine.cli.serve import parse_address
-from vpengine.results import Result
+from vpengine.engine.boundary import Boundary
+from vpengine.engine.results import Result
 from vpengine.visualize import colorize_depth, overlay_segmentation
 from vpengine.web import WebServer
 from vpengine.web.pictures import Pictures, render
@@ -380,7 +380,7 @@ def test_a_picture_is_drawn_at_the_results_frame_size_not_the_inputs():
 
 
 def test_a_native_grid_picture_is_mapped_to_its_frame():
-    from vpengine.boundary import Placement
+    from vpengine.engine.boundary import Placement
 
     fh, fw = 30, 80  # letterboxed into the 60 x 80 canvas: rows 15..45
     placement = Placement.fit((fh, fw), (H, W))

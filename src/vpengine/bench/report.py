@@ -275,7 +275,7 @@ def headline(key: str, run: dict[str, Any]) -> dict[str, float]:
             for slot in (False, True)
         }
     if key == "cameras":
-        out = {}
+        out: dict[str, float] = {}
         if run.get("stream"):
             lat = run["stream"]["latency_all_heads_ms"]
             out |= {"stream, every head, p50": lat["p50"], "stream, every head, p99": lat["p99"]}

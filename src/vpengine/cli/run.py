@@ -24,9 +24,9 @@ from vpengine.cli import prepare_out_dir, prepare_out_file
 from vpengine.cli.serve import ServeOptions, add_serve_arguments, keep_serving, serve_options, serving
 
 if TYPE_CHECKING:  # the pipeline imports the engine (and torch): only once a command runs, not for --help
+    from vpengine.engine.results import Result
     from vpengine.io.base import Source
     from vpengine.pipeline.run import Pipeline
-    from vpengine.results import Result
     from vpengine.ros2.messages import Header
 
 SOURCE_HELP = (

@@ -40,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
+from vpengine.engine.results import Result
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import JPEG_QUALITY, Sink
-from vpengine.results import Result
 from vpengine.ros2.diagnostics import Rejections
 from vpengine.ros2.messages import (
     COMPRESSED_TYPE,
@@ -83,7 +83,7 @@ class BagSource(Source):
 
     ``topic`` may be omitted when the bag has exactly one image topic. Frames are in ``color`` order (the engine's
     ``input.color``), each at its own size (``height``/``width`` are the first frame's): the engine's boundary
-    scales every frame, so outputs come back at each frame's size (Note [Frame grid] in boundary.py). The exact
+    scales every frame, so outputs come back at each frame's size (Note [Frame grid] in engine/boundary.py). The exact
     input header of each frame is kept by its frame name (the message index) for the bag sink (:meth:`header_for`).
     Bad messages are skipped and counted in ``bad`` (or, ``strict``, raised as :class:`BadMessage`), see the module
     docstring.

@@ -13,7 +13,7 @@ import numpy as np
 from vpengine.redact import redact
 
 if TYPE_CHECKING:
-    from vpengine.results import Result
+    from vpengine.engine.results import Result
     from vpengine.ros2.messages import Header
 
 

@@ -29,8 +29,8 @@ from typing import Any
 import numpy as np
 
 from vpengine import visualize
+from vpengine.engine.results import Result
 from vpengine.io.video import VideoWriter, even_size
-from vpengine.results import Result
 
 DEPTH_FORMATS = ("png16", "npy")
 #: Pictures are JPEGs of this quality: a third of quality 95's size (OpenCV's default), no difference to the eye.

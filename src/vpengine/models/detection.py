@@ -365,7 +365,7 @@ class FasterRCNNHead(Model):
         }
         self.meta = {
             "kind": "detection",
-            "output_grid": {"boxes": "boxes"},  # Note [Frame grid] in boundary.py
+            "output_grid": {"boxes": "boxes"},  # Note [Frame grid] in engine/boundary.py
             "labels": self.class_names,
             "max_detections": m,
             "layer": opts.layer,

@@ -223,7 +223,7 @@ class DPTDepthHead(Model):
         self.output_spec = {"depth": TensorSpec(self.out_hw, "float32")}
         self.meta = {
             "kind": "depth",
-            "output_grid": {"depth": "map"},  # Note [Frame grid] in boundary.py
+            "output_grid": {"depth": "map"},  # Note [Frame grid] in engine/boundary.py
             "depth_type": "relative_inverse",  # disparity-like: larger is nearer, up to scale and shift
             "trained_on": size.trained_on if size and not custom else None,
         }

@@ -151,7 +151,7 @@ class LinearSegHead(Model):
                 log.warning("%s: PyTorch's upsampling and argmax run instead of the fused kernel: %s", where, why_not)
         self.meta = {
             "kind": "segmentation",
-            "output_grid": {"classes": "labels"},  # Note [Frame grid] in boundary.py
+            "output_grid": {"classes": "labels"},  # Note [Frame grid] in engine/boundary.py
             "labels": labels,
             "palette": palette,
             "dataset": opts.dataset,

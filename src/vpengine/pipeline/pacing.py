@@ -21,7 +21,7 @@ from vpengine.runtime.plan import FIFO_MARGIN
 
 if TYPE_CHECKING:
     from vpengine.engine import Engine
-    from vpengine.results import Result
+    from vpengine.engine.results import Result
 
 log = logging.getLogger("vpengine.run")
 

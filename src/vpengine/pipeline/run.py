@@ -38,12 +38,12 @@ from typing import Any
 
 from vpengine.config import EngineConfig, config_for_cameras
 from vpengine.engine import Engine
+from vpengine.engine.results import Result
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import AnnotatedSink, FolderSink, Sink, SinkThread, per_camera
 from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, pipelined, realtime
 from vpengine.pipeline.summary import Tally, summarize, write_summary
 from vpengine.recent_frames import RecentFrames
-from vpengine.results import Result
 
 log = logging.getLogger("vpengine.run")
 
@@ -85,7 +85,7 @@ class Pipeline:
         colors = {s.color for s in self.sources.values()}
         if len(colors) != 1:
             raise ValueError(f"the sources deliver frames in different channel orders ({sorted(colors)})")
-        # frames of any size go in as they are (Note [Frame grid] in boundary.py): the pipeline resizes nothing itself
+        # frames of any size go in as they are (Note [Frame grid] in engine/boundary.py): the pipeline resizes nothing itself
         self.config = config_for_cameras(config, names, [f"input.color={colors.pop()}"])
         self.pace = pace or ("realtime" if any(s.pace == "realtime" for s in self.sources.values()) else "lockstep")
         if self.pace not in ("realtime", "lockstep"):

@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 if TYPE_CHECKING:
+    from vpengine.engine.results import Result
     from vpengine.pipeline.run import Pipeline
-    from vpengine.results import Result
 
 
 @dataclass

@@ -85,7 +85,7 @@ class Ros2Core:
     second. Uses the public Engine API only (submit, results, set_rate, set_priority, stats, head_info).
 
     Frames of any size go to the engine as they come, and every output is published at the camera's size, in its
-    pixels, under its header (Note [Frame grid] in boundary.py). ``input_size="config"`` starts the engine at once
+    pixels, under its header (Note [Frame grid] in engine/boundary.py). ``input_size="config"`` starts the engine at once
     with the config's ``input.height/width``; ``"first"`` starts it when the first message arrives, with the models
     at that message's size, so a camera's frames need no resizing (messages arriving during start-up are not seen).
 

@@ -46,5 +46,5 @@ class Region(ABC):
 
     def keep_mapped(self) -> object:
         """An object that keeps this process's mapping of the region valid for as long as it lives, even past
-        ``close()``: what arrays handed to a caller hold (Note [Borrowed results] in results.py)."""
+        ``close()``: what arrays handed to a caller hold (Note [Borrowed results] in engine/results.py)."""
         raise TypeError(f"region {self.name!r} ({self.kind}) cannot outlive close()")

@@ -8,14 +8,14 @@ feeds the engine (a pipeline, the ROS 2 core) keeps recent frames by frame id in
 A picture is drawn on the frame *of the result's own frame id* or on nothing (a dark canvas of the frame's size):
 never on the newest frame, which would pair a result with a frame it was not computed from. ``Picture.on_frame`` says which it was.
 
-The picture is drawn in the result's frame's own grid (``Result.frame_size``, Note [Frame grid] in boundary.py),
+The picture is drawn in the result's frame's own grid (``Result.frame_size``, Note [Frame grid] in engine/boundary.py),
 never in the config's input size: a frame of another size than the input gets its overlays at its own size, and a
 head that keeps the native grid (``Result.grid == "native"``) has its outputs mapped to the frame first, through
 the boundary's door out (``Boundary.to_frame``), as the engine maps every other head's. A kept frame of another
 size than the result's is not its frame.
 
 Cost: nothing runs until a picture is requested. A request takes the head's newest result borrowed (no copy of
-its outputs, Note [Borrowed results] in ``results.py``), draws at the requested width (shrinking first, so a 1080p
+its outputs, Note [Borrowed results] in ``engine/results.py``), draws at the requested width (shrinking first, so a 1080p
 overlay costs what a 640-pixel one does) and encodes. One lock serialises the drawing, so any number of viewers use
 at most one core; a picture younger than ``1 / max_hz`` is served again as it is, so they draw each head at most
 ``max_hz`` times a second whatever they ask for.

@@ -41,13 +41,13 @@ import numpy as np
 import torch
 
 from vpengine import checks
-from vpengine.boundary import Boundary, Placement, buffer_for
 from vpengine.config import EngineConfig, load_config
-from vpengine.engine_stats import memory_report, model_stats
-from vpengine.intake import FrameSlot
+from vpengine.engine.boundary import Boundary, Placement, buffer_for
+from vpengine.engine.intake import FrameSlot
+from vpengine.engine.results import Outbox, Result
+from vpengine.engine.stats import memory_report, model_stats
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.models.weights import check_checkpoints
-from vpengine.results import Outbox, Result
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.fence import MappingFence
 from vpengine.runtime.governor import Governor

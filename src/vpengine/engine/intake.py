@@ -1,5 +1,5 @@
 """Frames into the engine without a copy: ``Engine.frame_slot`` lends an input slot (Note [Frame slots] in
-engine.py)."""
+core.py)."""
 
 from __future__ import annotations
 
@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from vpengine.boundary import Placement
+from vpengine.engine.boundary import Placement
 from vpengine.transport.ring import SlotInfo
 
 if TYPE_CHECKING:

@@ -31,8 +31,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from vpengine.boundary import Boundary, Placement, drop_empty_boxes
 from vpengine.config import DEFAULT_CAMERA
+from vpengine.engine.boundary import Boundary, Placement, drop_empty_boxes
 from vpengine.models.base import Model
 from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock
 from vpengine.runtime.handoff import Handoffs

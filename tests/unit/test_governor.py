@@ -4,6 +4,8 @@ control-block side of priorities (caps, skip reasons, deadline misses) on a real
 from __future__ import annotations
 
 import math
+import threading
+import time
 
 import pytest
 
@@ -293,3 +295,36 @@ def test_stream_and_mps_priority_follow_the_config_and_stay_default_when_equal()
     levels = {m: stream_level(cfg, m) for m in cfg.model_names()}
     assert levels == {"foundation": 2, "depth": 2, "seg": 1, "det": 0}
     assert [mps_below_normal(cfg, m) for m in cfg.model_names()] == [False, False, True, False]  # det: its own say
+
+
+def test_the_governor_thread_sleeps_while_priorities_are_equal_and_set_priority_wakes_it():
+    cfg = tiny("thread")
+    lanes = make_lanes(cfg)
+    control = ControlBlock.create(lanes.control_names())
+    gov = Governor(control, cfg, lanes, tick_s=0.01)
+    steps = []
+    woke = threading.Event()
+
+    def step(now=None):
+        steps.append(now)
+        woke.set()
+        return {}
+
+    gov.step = step
+    gov.start()
+    try:
+        time.sleep(0.3)  # 30 ticks' worth: the equal priorities of the default need no decision
+        assert steps == []
+        gov.set_priority("depth", 5)
+        assert woke.wait(10.0), "set_priority did not wake the governor"
+        n = len(steps)
+        time.sleep(0.3)
+        assert len(steps) > n  # priorities differ now: it ticks
+        gov.set_priority("depth", 0)
+        time.sleep(0.1)  # the tick under way ends
+        n = len(steps)
+        time.sleep(0.3)
+        assert len(steps) == n  # equal again: asleep
+    finally:
+        gov.stop()
+        control.close()

@@ -6,12 +6,13 @@ Every lane (a (model, camera) pair, Note [Cameras] in worker.py) has a priority 
 camera's, higher more important (runtime/priority.py). A lane *claims* the rate it wants now: its target rate, or the
 rate its camera's frames come at if that is lower or it has none; its deadline is one period of its target (an output
 later than that after its frame's submit is counted in ``deadline_misses``). When the device is over-subscribed every
-worker slows down alike; the governor, a thread in the engine's process that wakes every ``TICK_S``, watches each
-lane's achieved rate and end-to-end latency in the control block and, when a lane misses its claim (achieved below it
-by more than ``TOLERANCE``, or its p99 latency past its deadline), lowers a *throttle cap* on the least important
-lanes, which their workers obey like a rate limit (``ControlBlock.rate`` is the lower of target and cap; the frames
-the cap holds back are skipped, counted with reason ``priority``, never queued). So the load that lanes of lower
-priority put on the device drops until the lane that missed holds again.
+worker slows down alike; the governor, a thread in the engine's process that wakes every ``TICK_S`` while priorities
+differ (with all equal it sleeps until ``set_priority`` wakes it), watches each lane's achieved rate and end-to-end
+latency in the control block and, when a lane misses its claim (achieved below it by more than ``TOLERANCE``, or its
+p99 latency past its deadline), lowers a *throttle cap* on the least important lanes, which their workers obey like a
+rate limit (``ControlBlock.rate`` is the lower of target and cap; the frames the cap holds back are skipped, counted
+with reason ``priority``, never queued). So the load that lanes of lower priority put on the device drops until the
+lane that missed holds again.
 
 The caps form a water level over the distinct priority keys, lowest first (``Policy``): the ``k`` lowest groups of
 lanes run at the floor (``FLOOR_HZ``: throttled lanes still show signs of life), group ``k`` at a share ``f`` of
@@ -53,8 +54,7 @@ import numpy as np
 from vpengine import checks
 from vpengine.config import EngineConfig
 from vpengine.runtime.control import ControlBlock
-from vpengine.runtime.lanes import Lanes
-from vpengine.runtime.priority import lane_map
+from vpengine.runtime.lanes import Lane, Lanes
 
 log = logging.getLogger("vpengine.governor")
 
@@ -211,18 +211,23 @@ class Governor:
         tick_s: float = TICK_S,
     ) -> None:
         self.control = control
-        self.lanes = lane_map(lanes)
+        self.lanes = lanes
+        # the lanes priorities apply to: every head's, and the foundation model's entry for each camera
+        self._heads: tuple[Lane, ...] = tuple(
+            lane for model, of_model in lanes.by_model.items() if model != "foundation" for lane in of_model
+        )
+        self._foundation = {lane.camera: lane.entry for lane in lanes.of("foundation")}
         self.policy = Policy()
         self._clock = clock
         self._tick = tick_s
-        self._offered: dict[str, deque[tuple[float, int]]] = {c: deque() for c in self.lanes.foundation}
+        self._offered: dict[str, deque[tuple[float, int]]] = {c: deque() for c in self._foundation}
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stopping = False
         self._thread: threading.Thread | None = None
         self._failed = False
-        for lane in self.lanes.heads:
-            control.set(lane.entry, "priority", cfg.head(lane.head).priority)
+        for lane in self._heads:
+            control.set(lane.entry, "priority", cfg.head(lane.model).priority)
         for cam in cfg.cameras:
             for entry in self._camera_entries(cam.name):
                 control.set(entry, "camera_priority", cam.priority)
@@ -245,11 +250,20 @@ class Governor:
         self._wake.set()
 
     def _run(self) -> None:
+        idle = False
         while True:
-            self._wake.wait(self._tick)
+            # Nothing is capped while every lane has the same priority (Note [Give way]): then the governor sleeps
+            # until set_priority wakes it, and starts its measurements afresh.
+            self._wake.wait(None if idle else self._tick)
             self._wake.clear()
             if self._stopping:
                 return
+            was_idle, idle = idle, not self.ranked()
+            if idle:
+                continue
+            if was_idle:
+                for hist in self._offered.values():
+                    hist.clear()
             try:
                 self.step()
             except Exception:  # a bug here must not take the engine down; said once, then quietly retried
@@ -258,6 +272,14 @@ class Governor:
                 self._failed = True
 
     # ---------------------------------------------------------------------------------------------- steps
+    def ranked(self) -> bool:
+        """Whether the lanes' priorities differ, so that some may give way to others; else none is capped."""
+        keys = {(self.control.get(e, "priority"), self.control.get(e, "camera_priority")) for e in self._entries()}
+        return len(keys) > 1 or self.policy.throttling
+
+    def _entries(self) -> list[str]:
+        return [lane.entry for lane in self._heads]
+
     def step(self, now: float | None = None) -> dict[str, float | None]:
         """One decision: measure, decide, write the caps; returns the head lanes' caps."""
         now = self._clock() if now is None else now
@@ -271,14 +293,14 @@ class Governor:
         span = now - since
         inputs = self._input_rates(now)
         views = []
-        for lane in self.lanes.heads:
+        for lane in self._heads:
             target = ctl.target(lane.entry)
             upstream = inputs[lane.camera]
-            f_target = ctl.target(self.lanes.foundation[lane.camera])
+            f_target = ctl.target(self._foundation[lane.camera])
             if f_target is not None:
                 upstream = min(upstream, f_target)
             claim = upstream if target is None else min(target, upstream)
-            if ctl.state(lane.head) not in ("running", "ready", "paused"):
+            if ctl.state(lane.model) not in ("running", "ready", "paused"):
                 claim = 0.0  # loading, restarting, failed, hung: it can hold nothing now
             starts, e2e = ctl.recent_runs(lane.entry, since)
             views.append(
@@ -298,7 +320,7 @@ class Governor:
         """Each camera's frame rate over the last WINDOW_S: every frame submitted is one the foundation model ran,
         skipped or dropped."""
         rates = {}
-        for cam, entry in self.lanes.foundation.items():
+        for cam, entry in self._foundation.items():
             offered = sum(self.control.get(entry, f) for f in ("runs", "skipped", "dropped"))
             hist = self._offered[cam]
             hist.append((now, offered))
@@ -309,10 +331,10 @@ class Governor:
         return rates
 
     def _apply(self, caps: dict[str, float | None]) -> None:
-        for lane in self.lanes.heads:
+        for lane in self._heads:
             self._write(lane.entry, caps[lane.entry])
-        for cam, entry in self.lanes.foundation.items():
-            mine = [caps[lane.entry] for lane in self.lanes.heads if lane.camera == cam]
+        for cam, entry in self._foundation.items():
+            mine = [caps[lane.entry] for lane in self._heads if lane.camera == cam]
             self._write(entry, None if not mine or None in mine else max(c for c in mine if c is not None))
 
     def _write(self, entry: str, hz: float | None) -> None:
@@ -326,34 +348,33 @@ class Governor:
     def set_priority(self, head: str | None, priority: object, camera: str | None = None) -> None:
         """``Engine.set_priority``: validate everything first (nothing changes on an error), then write and wake."""
         value = checks.priority(priority)
-        cameras = list(self.lanes.foundation)
         if head is None:
-            if camera is None or camera not in self.lanes.foundation:
+            if camera not in self.lanes.cameras:
                 raise ValueError(
-                    f"set_priority(None, ...) sets a camera's priority: camera must be one of {cameras}, got {camera!r}"
+                    f"set_priority(None, ...) sets a camera's priority: camera must be one of "
+                    f"{list(self.lanes.cameras)}, got {camera!r}"
                 )
             entries, field = self._camera_entries(camera), "camera_priority"
+        elif head == "foundation":
+            raise KeyError(f"the foundation model's priority follows its heads'; heads: {self._head_names()}")
+        elif head not in self._head_names():
+            raise KeyError(f"no head named {head!r}; heads: {self._head_names()}")
         else:
-            heads = list(dict.fromkeys(lane.head for lane in self.lanes.heads))
-            if head not in heads:
-                extra = " (the foundation model's follows its heads')" if head == "foundation" else ""
-                raise KeyError(f"no head named {head!r}{extra}; heads: {heads}")
-            chosen = self.lanes.select(head, camera)
-            if not chosen:
-                served = [lane.camera for lane in self.lanes.select(head, None)]
-                raise ValueError(f"{head!r} serves cameras {served}, not {camera!r}")
-            entries, field = [lane.entry for lane in chosen], "priority"
+            entries, field = [lane.entry for lane in self.lanes.select(head, camera)], "priority"
         with self._lock:
             for entry in entries:
                 self.control.set(entry, field, value)
             self._refresh_foundation()
         self.wake()
 
+    def _head_names(self) -> list[str]:
+        return [m for m in self.lanes.by_model if m != "foundation"]
+
     def _camera_entries(self, camera: str) -> list[str]:
-        return [lane.entry for lane in self.lanes.select(None, camera)] + [self.lanes.foundation[camera]]
+        return [lane.entry for lane in self._heads if lane.camera == camera] + [self._foundation[camera]]
 
     def _refresh_foundation(self) -> None:
         """The foundation model's lane of a camera shows the priority of its most important head lane there."""
-        for cam, entry in self.lanes.foundation.items():
-            mine = [self.control.get(lane.entry, "priority") for lane in self.lanes.select(None, cam)]
+        for cam, entry in self._foundation.items():
+            mine = [self.control.get(lane.entry, "priority") for lane in self._heads if lane.camera == cam]
             self.control.set(entry, "priority", max(mine, default=0))

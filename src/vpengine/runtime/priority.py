@@ -15,39 +15,7 @@ otherwise. Those follow the config, not later ``set_priority`` calls (neither ca
 
 from __future__ import annotations
 
-from collections.abc import Mapping
-from dataclasses import dataclass
-
 from vpengine.config import EngineConfig
-from vpengine.runtime.lanes import Lanes
-
-
-@dataclass(frozen=True)
-class HeadLane:
-    head: str
-    camera: str
-    entry: str
-
-
-@dataclass(frozen=True)
-class LaneMap:
-    """The lanes priorities apply to: every head's, and the foundation model's entry for each camera."""
-
-    heads: tuple[HeadLane, ...]
-    foundation: Mapping[str, str]  # camera -> the foundation's entry for it
-
-    def select(self, head: str | None, camera: str | None) -> list[HeadLane]:
-        return [x for x in self.heads if head in (None, x.head) and camera in (None, x.camera)]
-
-
-def lane_map(lanes: Lanes) -> LaneMap:
-    heads = tuple(
-        HeadLane(lane.model, lane.camera, lane.entry)
-        for model, of_model in lanes.by_model.items()
-        if model != "foundation"
-        for lane in of_model
-    )
-    return LaneMap(heads, {lane.camera: lane.entry for lane in lanes.of("foundation")})
 
 
 def _model_priority(cfg: EngineConfig, model: str) -> int:

@@ -28,7 +28,7 @@ _GIVE_WAY = (
     "so higher ones keep rate and deadline; equals never throttle each other (Note [Give way] in runtime/governor.py)."
 )
 Backend = Literal["eager", "compile", "onnx"]
-_NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
+NAME_RE = re.compile(r"^[A-Za-z][A-Za-z0-9_\-]{0,63}$")
 _DEVICE_RE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
 
@@ -170,7 +170,7 @@ class CameraConfig(_Strict):
     @field_validator("name")
     @classmethod
     def _name(cls, v: str) -> str:
-        if not _NAME_RE.match(v):
+        if not NAME_RE.match(v):
             raise ValueError(f"camera name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)")
         return v
 
@@ -195,7 +195,7 @@ class HeadConfig(ModelConfig):
     @field_validator("name")
     @classmethod
     def _name(cls, v: str) -> str:
-        if not _NAME_RE.match(v):
+        if not NAME_RE.match(v):
             raise ValueError(f"head name {v!r} must start with a letter and use letters, digits, '_' or '-' (<= 64)")
         return v
 
@@ -203,6 +203,14 @@ class HeadConfig(ModelConfig):
 class RuntimeConfig(_Strict):
     """Supervision and timing."""
 
+    spare_heads: int = Field(
+        1,
+        ge=0,
+        le=16,
+        description="Heads Engine.add_head may add while the engine runs, at once: each has its place in the "
+        "control block and the features mailbox from start, one more features slot per camera (Note [Heads at run "
+        "time]).",
+    )
     ready_timeout_s: float = Field(300.0, gt=0, le=86400, description="How long a worker may take to load and warm up.")
     stop_timeout_s: float = Field(3.0, gt=0, le=600, description="Grace time at stop before workers are terminated.")
     max_restarts: int = Field(
@@ -554,45 +562,3 @@ def load_config(
 
 def dump_config(cfg: EngineConfig) -> str:
     return yaml.safe_dump(cfg.model_dump(mode="json"), sort_keys=False)
-
-
-def split_camera(text: str) -> tuple[str | None, str]:
-    """``NAME=VALUE`` -> (NAME, VALUE) when NAME is a camera name (letters, digits, '_' and '-', starting with a
-    letter); any other text -> (None, text): the one-camera spelling of a source or topic (``camera:0``,
-    ``/camera/image_raw``, a path)."""
-    name, sep, value = text.partition("=")
-    if sep and _NAME_RE.match(name.strip()):
-        return name.strip(), value.strip()
-    return None, text
-
-
-def config_for_cameras(
-    source: str | Path | dict[str, Any] | EngineConfig | None,
-    names: list[str] | None,
-    overrides: list[str] | None = None,
-    what: str = "sources",
-) -> EngineConfig:
-    """The config of an engine fed by inputs named ``names`` (``--source NAME=SPEC``, ``--input-topic NAME=TOPIC``),
-    or by one unnamed input (None). A config without ``cameras`` gets one per name, in the order given (their
-    priority order); a config with cameras must name the same ones. ``overrides`` apply after the cameras are set,
-    so they may name them (``heads.seg.cameras=[rear]``). ValueError naming both lists when they differ."""
-    overrides = list(overrides or [])
-    if names:
-        dup = sorted({n for n in names if names.count(n) > 1})
-        if dup:
-            raise ValueError(f"the {what} must have different names; repeated: {dup}")
-        base = load_config(source)  # without the overrides, which may name the cameras themselves
-        if not base.cameras and not any(o.partition("=")[0].strip() == "cameras" for o in overrides):
-            overrides.insert(0, "cameras=" + json.dumps([{"name": n} for n in names]))
-    cfg = load_config(source, overrides)
-    configured = cfg.camera_names()
-    if names and sorted(names) != sorted(configured):
-        raise ValueError(
-            f"the {what} are named {list(names)} but the config's cameras are {configured}: name one of the {what} "
-            f"after each camera (or leave cameras out of the config)"
-        )
-    if not names and len(configured) > 1:
-        raise ValueError(
-            f"the config has cameras {configured}: give one of the {what} for each, named NAME=... after its camera"
-        )
-    return cfg

@@ -24,8 +24,19 @@ def test_one_camera_is_one_lane_per_model_under_the_models_own_names():
         (lane,) = lanes.of(model)
         assert (lane.model, lane.tag, lane.reader, lane.entry) == (model, 0, model, model)
         assert lane.only and lane.reader_tag is None  # its readers take every slot
-    assert lanes.control_names() == cfg.model_names()
+    assert lanes.control_names() == [*cfg.model_names(), "+0"]  # and the one spare seat's (runtime.spare_heads)
     assert lanes.tag(None) == 0
+
+
+def test_a_spare_seat_has_a_lane_on_every_camera_and_a_head_taking_it_renames_what_it_serves():
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", "runtime.spare_heads=2")
+    lanes = make_lanes(cfg)
+    assert lanes.seats == ("+0", "+1")
+    assert [x.entry for x in lanes.seat_lanes("+1")] == ["+1@front", "+1@rear"]
+    assert {"+0", "+0@front", "+0@rear", "+1", "+1@front", "+1@rear"} <= set(lanes.control_names())
+    added = tiny("thread", "cameras=[{name: front}, {name: rear}]", "heads.2.cameras=[rear]")
+    renames = make_lanes(added, ("+1",)).seat_renames("+0", "det")
+    assert renames == {"+0": "det", "+0@rear": "det@rear"}  # its front lane stays the seat's, unused
 
 
 def test_several_cameras_give_a_lane_per_served_camera_in_priority_order():

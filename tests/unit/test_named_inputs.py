@@ -14,7 +14,7 @@ import pytest
 from helpers.frames import frame
 from tests_paths import TINY, tiny
 from vpengine.cli.run import parse_sources
-from vpengine.config import config_for_cameras, split_camera
+from vpengine.named_inputs import config_for_cameras, split_camera
 from vpengine.pipeline.run import video_paths
 from vpengine.ros2.control import model_at, parse_rate_command
 from vpengine.ros2.core import Ros2Core, input_topics

@@ -66,8 +66,9 @@ def next_run_dir(base: str | Path = "runs/predict") -> Path:
 
 def main(args: argparse.Namespace) -> int:
     from vpengine.cli.run import engine_overrides, format_summary, parse_sources, run_served
-    from vpengine.config import config_for_cameras, load_config
+    from vpengine.config import load_config
     from vpengine.io.sinks import AnnotatedSink, per_camera
+    from vpengine.named_inputs import config_for_cameras
     from vpengine.pipeline.run import Pipeline, open_sources
 
     given = [*args.sources, *args.source]

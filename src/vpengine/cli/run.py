@@ -185,7 +185,7 @@ def parse_sources(sources: Sequence[str], topics: Sequence[str]) -> dict[str | N
     unnamed source of a one-camera run (of several unnamed ones, the last, as an option given twice).
     ``NAME=SPEC`` names a source's camera (a path that exists is never read as a name); ``--topic NAME=TOPIC`` gives camera NAME's bag topic, and with one unnamed bag source, several of
     them make one camera of each topic. ValueError naming what does not fit."""
-    from vpengine.config import split_camera
+    from vpengine.named_inputs import split_camera
 
     named = [(None, s) if Path(s).exists() else split_camera(s) for s in sources]
     if not any(n for n, _ in named):
@@ -225,7 +225,7 @@ def _unique(names: list[Any], flag: str) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from vpengine.config import config_for_cameras
+    from vpengine.named_inputs import config_for_cameras
     from vpengine.pipeline.run import Pipeline, open_sources, video_paths
 
     wanted = parse_sources(args.source or ["synthetic"], args.topic or [])

@@ -260,6 +260,15 @@ class Boundary:
         self._placements: dict[tuple[int, int], Placement] = {}
         self._scratch: dict[tuple[int, int], np.ndarray] = {}
 
+    def add_head(self, name: str, meta: dict[str, Any], spec: SpecDict, native: bool) -> None:
+        """A head added at run time: how its outputs map to a frame's grid (``native``: output.grid native)."""
+        self.kinds = {**self.kinds, name: output_kinds(meta, spec, self.canvas_hw)}
+        self.native = self.native | {name} if native else self.native - {name}
+
+    def remove_head(self, name: str) -> None:
+        self.kinds = {h: k for h, k in self.kinds.items() if h != name}
+        self.native = self.native - {name}
+
     def describe_expected(self) -> str:
         h, w = self.canvas_hw
         return (

@@ -41,11 +41,13 @@ import numpy as np
 import torch
 
 from vpengine import checks
-from vpengine.config import EngineConfig, load_config
+from vpengine.config import EngineConfig, HeadConfig, load_config
+from vpengine.engine import heads
 from vpengine.engine.boundary import Boundary, Placement, buffer_for
+from vpengine.engine.heads import head_spec
 from vpengine.engine.intake import FrameSlot
 from vpengine.engine.results import Outbox, Result
-from vpengine.engine.stats import memory_report, model_stats
+from vpengine.engine.stats import engine_stats, memory_report
 from vpengine.models.preprocess import IMAGENET_MEAN
 from vpengine.models.weights import check_checkpoints
 from vpengine.runtime.control import ControlBlock
@@ -161,6 +163,7 @@ class Engine:
         self.memory_report: dict[str, Any] = {}
         self._cuda: CudaSetup | None = None  # set at start on CUDA
         self._handoffs = Handoffs()  # thread mode: replaced at start (runtime/handoff.py)
+        self._seats: dict[str, str] = {}  # head added at run time -> its seat (Note [Heads at run time])
 
     # ------------------------------------------------------------------------------------------ lifecycle
     def start(self) -> Engine:
@@ -248,21 +251,7 @@ class Engine:
                 notify_output=False,
             )
         ]
-        for name in plan.heads:
-            specs.append(
-                WorkerSpec(
-                    name=name,
-                    role="head",
-                    config=dump,
-                    upstream=plan.features,
-                    upstream_meta=plan.feature_meta,
-                    lanes=plan.lanes.of(name),
-                    in_ring=rings["features"].desc,
-                    out_ring=rings[f"out.{name}"].desc,
-                    notify_output=True,
-                )
-            )
-        return specs
+        return specs + [head_spec(plan, rings, name, dump) for name in plan.heads]
 
     def stop(self) -> None:
         """Stop every worker and free every buffer. Always returns (within stop_timeout_s + a few seconds)."""
@@ -541,6 +530,22 @@ class Engine:
             raise EngineDeadError("engine is stopped")
         governor.set_priority(head, priority, camera)
 
+    @_fenced
+    def add_head(self, head: HeadConfig | dict[str, Any] | str) -> str:
+        """Build, warm up and attach a head while the backbone and the other heads keep serving; returns its name.
+        ``head``: its config, as under ``heads:`` in a config file (a dict, YAML text or a HeadConfig), validated
+        like the file. It takes one of ``runtime.spare_heads`` seats (Note [Heads at run time] in runtime/lanes.py).
+        ConfigError for a bad config or a name taken, EngineStartError if it fails to build or warm up; on any error
+        the engine is as it was."""
+        return heads.add_head(self, head)
+
+    @_fenced
+    def remove_head(self, name: str) -> None:
+        """Stop and detach head ``name``, and free its worker, model and output mailbox; its seat is free for another
+        (a head of the config leaves no seat). KeyError for an unknown head, ValueError for the foundation model or
+        the last head; on an error nothing changes."""
+        heads.remove_head(self, name)
+
     def _entries(self, model: str, camera: str | None) -> list[str]:
         """The control-block entries holding ``model``'s rate for ``camera`` (None: all its cameras)."""
         return [lane.entry for lane in self.lanes.select(model, camera)]
@@ -559,38 +564,9 @@ class Engine:
         if self._state != "running" or not self._res.fence.enter():
             return {"engine": {"state": self._state}}
         try:  # Note [Unmapping at stop]
-            return self._stats()
+            return engine_stats(self)
         finally:
             self._res.fence.leave()
-
-    def _stats(self) -> dict[str, Any]:
-        ctl = self._res.control
-        rings = self._res.rings
-        assert ctl is not None
-        models, per_camera = model_stats(self.lanes, ctl, rings)
-        results = self._outbox.stats()
-        return {
-            "engine": {
-                "state": self._state,
-                "mode": self.config.mode,
-                "device": self.config.device,
-                "uptime_s": time.monotonic() - self._t_start,
-                "submitted": self._submitted,
-                "rejected": self._rejected,
-                # Note [Inline launch]: frames whose foundation work the submitting thread queued
-                "launched_by_submit": self._handoffs.inline.launches if self._handoffs.inline else 0,
-                "mps": {
-                    "setting": self.config.mps,
-                    "daemon": self._cuda.mps_dir if self._cuda else None,
-                    "workers_on_mps": [n for n, m in models.items() if m["mps"]],
-                },
-            },
-            "models": models,
-            "cameras": per_camera,
-            "results": results,
-            "mailboxes": {n: r.stats() for n, r in rings.items()},
-            "memory": self.memory_report,
-        }
 
     def head_info(self, head: str) -> dict[str, Any]:
         """Output specs and metadata (labels, capacity, backbone it was trained on) of a head."""

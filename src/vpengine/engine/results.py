@@ -61,6 +61,9 @@ class _HostOutputs:
     def __init__(self) -> None:
         self._pools: dict[tuple[str, str], list[np.ndarray]] = {}
 
+    def forget(self, head: str) -> None:
+        self._pools = {k: v for k, v in self._pools.items() if k[0] != head}
+
     def copy(self, head: str, key: str, src: np.ndarray) -> np.ndarray:
         pool = self._pools.setdefault((head, key), [])
         for arr, refs in zip(pool, _refcounts(pool)):
@@ -111,6 +114,7 @@ class _Leases:
     def __init__(self, readers: dict[str, list[RingReader]]) -> None:
         self.free = {h: list(rs) for h, rs in readers.items()}
         self.total = {h: len(rs) for h, rs in readers.items()}
+        self.rings = {h: rs[0].ring for h, rs in readers.items()}  # each head's output mailbox now
         self.returned: collections.deque[tuple[str, RingReader]] = collections.deque()
         # (head, slot index) -> key -> array interface: a slot's tensors never move, and borrowing runs right after
         # the caller wakes, where every call costs several times what it does in a loop (Note [Launch path])
@@ -120,8 +124,19 @@ class _Leases:
         """Release the slots whose results nobody refers to any more (caller holds the engine's read lock)."""
         while self.returned:
             head, reader = self.returned.popleft()
+            if reader.ring is not self.rings.get(head):
+                continue  # its head was removed meanwhile (and maybe added anew): that mailbox is gone
             reader.release()
             self.free[head].append(reader)
+
+    def add(self, head: str, readers: list[RingReader]) -> None:
+        self.free[head], self.total[head], self.rings[head] = list(readers), len(readers), readers[0].ring
+
+    def remove(self, head: str) -> None:
+        self.free.pop(head, None)
+        self.total.pop(head, None)
+        self.rings.pop(head, None)
+        self._interfaces = {k: v for k, v in self._interfaces.items() if k[0] != head}
 
     def borrow(self, head: str, slot: SlotInfo) -> dict[str, np.ndarray] | None:
         """Read-only arrays over ``slot`` (pinned by the caller's reader), or None if no lease is free."""
@@ -225,6 +240,28 @@ class Outbox:
         self._host_outputs = _HostOutputs()
         self._numpy_heads: dict[str, bool] = {}  # head -> its outputs are handed out as numpy arrays
 
+    def add_head(self, name: str, model: Model, ring: SlotRing, lanes: Lanes) -> None:
+        """Serve the results of a head added at run time (Note [Heads at run time] in runtime/lanes.py)."""
+        with self._lock:
+            results = ring.reader("results")
+            if self._streaming:
+                results.activate(from_now=True)
+            self._results_readers = {**self._results_readers, name: results}
+            self._peek_readers = {**self._peek_readers, name: ring.reader("peek")}
+            self.leases.add(name, [ring.reader(f"lease{i}") for i in range(LEASES)])
+            self.heads, self.lanes = {**self.heads, name: model}, lanes
+
+    def remove_head(self, name: str, lanes: Lanes) -> None:
+        """Stop serving a head removed at run time; its mailbox is unmapped once no call holds it."""
+        with self._lock:
+            self.heads = {h: m for h, m in self.heads.items() if h != name}
+            self._results_readers = {h: r for h, r in self._results_readers.items() if h != name}
+            self._peek_readers = {h: r for h, r in self._peek_readers.items() if h != name}
+            self.leases.remove(name)
+            self._numpy_heads.pop(name, None)
+            self._host_outputs.forget(name)
+            self.lanes = lanes
+
     def head(self, head: str) -> str:
         if head not in self.heads:
             raise KeyError(f"no head named {head!r}; heads: {list(self.heads)}")
@@ -266,6 +303,8 @@ class Outbox:
                     pinned: list[tuple[str, SlotInfo]] = []
                     try:
                         for h in more:
+                            if h not in self._results_readers:
+                                continue  # removed meanwhile
                             slot = self._results_readers[h].pin(accept=self._done_filter(h))
                             if slot is not None:
                                 pinned.append((h, slot))
@@ -311,8 +350,11 @@ class Outbox:
                 found: list[tuple[str, SlotInfo]] = []
                 try:
                     for h in list(pending):
+                        reader = self._peek_readers.get(h)
+                        if reader is None:  # removed meanwhile: it answers nothing more
+                            pending.remove(h)
+                            continue
                         answered = held_back or ctl.get(entry(h), "decided") >= origin
-                        reader = self._peek_readers[h]
                         slot, newest = reader.pin_origin(origin, tag=camera)  # Note [Tagged slots]
                         events = self.handoffs.results.get(h)
                         if slot is not None and events is not None and events.done_after(slot, deadline):
@@ -333,7 +375,9 @@ class Outbox:
                     done.update(self._copy_out(found, copy))
                 finally:
                     for h, slot in found:
-                        self._peek_readers[h].release(slot)
+                        slot_reader = self._peek_readers.get(h)
+                        if slot_reader is not None:
+                            slot_reader.release(slot)
             remaining = deadline - time.monotonic()
             if not pending:
                 return done

@@ -4,12 +4,16 @@ block and the rings (shared memory; no logs parsed)."""
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
 from vpengine.runtime.control import ControlBlock
+
+if TYPE_CHECKING:
+    from vpengine.engine.core import Engine
 from vpengine.runtime.lanes import Lanes
 from vpengine.transport.ring import SlotRing
 
@@ -68,3 +72,33 @@ def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, devic
             report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
             report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
     return report
+
+
+def engine_stats(engine: Engine) -> dict[str, Any]:
+    """``Engine.stats()`` of a running engine (the caller is inside its fence)."""
+    res = engine._res
+    ctl, rings, cfg, inline = res.control, res.rings, engine.config, engine._handoffs.inline
+    assert ctl is not None
+    models, per_camera = model_stats(engine.lanes, ctl, rings)
+    return {
+        "engine": {
+            "state": engine._state,
+            "mode": cfg.mode,
+            "device": cfg.device,
+            "uptime_s": time.monotonic() - engine._t_start,
+            "submitted": engine._submitted,
+            "rejected": engine._rejected,
+            # Note [Inline launch]: frames whose foundation work the submitting thread queued
+            "launched_by_submit": inline.launches if inline else 0,
+            "mps": {
+                "setting": cfg.mps,
+                "daemon": engine._cuda.mps_dir if engine._cuda else None,
+                "workers_on_mps": [n for n, m in models.items() if m["mps"]],
+            },
+        },
+        "models": models,
+        "cameras": per_camera,
+        "results": engine._outbox.stats(),
+        "mailboxes": {n: r.stats() for n, r in rings.items()},
+        "memory": engine.memory_report,
+    }

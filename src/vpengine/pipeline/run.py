@@ -36,11 +36,12 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from vpengine.config import EngineConfig, config_for_cameras
+from vpengine.config import EngineConfig
 from vpengine.engine import Engine
 from vpengine.engine.results import Result
 from vpengine.io.base import Frame, Source
 from vpengine.io.sinks import AnnotatedSink, FolderSink, Sink, SinkThread, per_camera
+from vpengine.named_inputs import config_for_cameras
 from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, pipelined, realtime
 from vpengine.pipeline.summary import Tally, summarize, write_summary
 from vpengine.recent_frames import RecentFrames

@@ -57,7 +57,7 @@ def input_topics(given: Sequence[str]) -> str | dict[str, str]:
     """Input topics as given (``--input-topic``, the node's ``input_topics``) -> the one camera's topic, or camera
     name -> topic (``NAME=TOPIC`` each, several cameras). ValueError for a mix, a camera named twice or several
     unnamed topics."""
-    from vpengine.config import split_camera
+    from vpengine.named_inputs import split_camera
 
     named = [split_camera(str(t)) for t in given]
     if not named:
@@ -110,7 +110,7 @@ class Ros2Core:
         cameras: Sequence[str] | None = None,
         keep_frames: bool = False,
     ) -> None:
-        from vpengine.config import config_for_cameras
+        from vpengine.named_inputs import config_for_cameras
 
         if input_size not in ("config", "first"):
             raise ValueError(f"input_size must be 'config' or 'first', got {input_size!r}")

@@ -126,6 +126,24 @@ class ControlBlock:
             mv.release()
         self._region.close()
 
+    def rename(self, old: str, new: str) -> None:
+        """Give entry ``old`` the name ``new`` in this process (a seat taken or given back, Note [Heads at run
+        time] in runtime/lanes.py); a process that attaches after it sees the new name."""
+        if new in self.index:
+            raise ValueError(f"the control block has an entry {new!r} already")
+        i = self.index.pop(old)
+        self.names = tuple(new if n == old else n for n in self.names)
+        self.index[new] = i
+
+    def clear(self, name: str) -> None:
+        """Zero entry ``name`` as at create (no rate limit, no cap): a seat given back starts afresh. Only while
+        no worker writes it."""
+        i = self.index[name]
+        start = (_HEADER // 8) + i * ENTRY_WORDS
+        self._q[start : start + ENTRY_WORDS] = memoryview(bytes(ENTRY_BYTES)).cast("q")
+        self._set(i, "target_hz", math.nan)
+        self._set(i, "cap_hz", math.nan)
+
     # ------------------------------------------------------------------------------------------ raw fields
     def _w(self, i: int, name: str) -> tuple[int, str]:
         word, kind = _F[name]

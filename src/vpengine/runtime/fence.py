@@ -10,7 +10,8 @@ within ``runtime.stop_timeout_s``; a Python thread cannot be killed). So every A
 (``with fence:``), a thread that may still touch the mappings is held (``hold_until_gone``), and ``close(unmap)``
 lets no new call in (they raise ``EngineDeadError``) and unmaps when the last user has left: at once if none is
 inside, else in the thread of whoever leaves last. ``stop()`` itself never waits for them; a thread that never
-returns keeps the mappings (its process's memory, no /dev/shm entry) until the process ends.
+returns keeps the mappings (its process's memory, no /dev/shm entry) until the process ends. A mailbox retired while
+the engine runs (a head removed) is unmapped the same way, by ``defer``: once no call that may hold it is inside.
 """
 
 from __future__ import annotations
@@ -29,6 +30,7 @@ class MappingFence:
         self._users = 0
         self._closing = False
         self._unmap: Callable[[], None] | None = None
+        self._deferred: list[Callable[[], None]] = []  # to run once no user is inside
 
     @property
     def closing(self) -> bool:
@@ -44,11 +46,21 @@ class MappingFence:
 
     def leave(self) -> None:
         """End a use; the last one out after ``close`` unmaps."""
+        self.__exit__()
+
+    def defer(self, unmap: Callable[[], None]) -> None:
+        """Run ``unmap`` once no use is inside (now, or when the last one ends): a mailbox retired while running."""
         with self._lock:
-            self._users -= 1
-            unmap = self._take_unmap()
-        if unmap is not None:
-            unmap()
+            self._deferred.append(unmap)
+            due = self._take_deferred()
+        for fn in due:
+            fn()
+
+    def _take_deferred(self) -> list[Callable[[], None]]:
+        if self._users > 0:
+            return []
+        due, self._deferred = self._deferred, []
+        return due
 
     def __enter__(self) -> MappingFence:  # enter(), raising; inlined: every API call goes through here
         with self._lock:
@@ -60,9 +72,12 @@ class MappingFence:
     def __exit__(self, *exc: object) -> None:
         with self._lock:
             self._users -= 1
-            if not self._closing:
+            if not self._closing and not self._deferred:
                 return
+            due = self._take_deferred()
             unmap = self._take_unmap()
+        for fn in due:
+            fn()
         if unmap is not None:
             unmap()
 
@@ -84,7 +99,10 @@ class MappingFence:
         with self._lock:
             self._closing = True
             self._unmap = unmap
+            due = self._take_deferred()
             unmap_now = self._take_unmap()
+        for fn in due:
+            fn()
         if unmap_now is not None:
             unmap_now()
 

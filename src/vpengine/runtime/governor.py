@@ -233,6 +233,20 @@ class Governor:
                 control.set(entry, "camera_priority", cam.priority)
         self._refresh_foundation()
 
+    def relane(self, cfg: EngineConfig, lanes: Lanes) -> None:
+        """A head was added or removed (Note [Heads at run time] in lanes.py): the lanes to govern are ``lanes``;
+        an added head's lanes start with its configured priority and their cameras'."""
+        heads = tuple(lane for model, of in lanes.by_model.items() if model != "foundation" for lane in of)
+        cameras = {cam.name: cam.priority for cam in cfg.cameras}
+        with self._lock:
+            for lane in heads:
+                if lane not in self._heads:
+                    self.control.set(lane.entry, "priority", cfg.head(lane.model).priority)
+                    self.control.set(lane.entry, "camera_priority", cameras.get(lane.camera, 0))
+            self.lanes, self._heads = lanes, heads
+            self._refresh_foundation()
+        self.wake()
+
     # ------------------------------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="vpengine-governor", daemon=True)
@@ -258,13 +272,13 @@ class Governor:
             self._wake.clear()
             if self._stopping:
                 return
-            was_idle, idle = idle, not self.ranked()
-            if idle:
-                continue
-            if was_idle:
-                for hist in self._offered.values():
-                    hist.clear()
             try:
+                was_idle, idle = idle, not self.ranked()
+                if idle:
+                    continue
+                if was_idle:
+                    for hist in self._offered.values():
+                        hist.clear()
                 self.step()
             except Exception:  # a bug here must not take the engine down; said once, then quietly retried
                 if not self._failed:
@@ -274,8 +288,9 @@ class Governor:
     # ---------------------------------------------------------------------------------------------- steps
     def ranked(self) -> bool:
         """Whether the lanes' priorities differ, so that some may give way to others; else none is capped."""
-        keys = {(self.control.get(e, "priority"), self.control.get(e, "camera_priority")) for e in self._entries()}
-        return len(keys) > 1 or self.policy.throttling
+        with self._lock:
+            keys = {(self.control.get(e, "priority"), self.control.get(e, "camera_priority")) for e in self._entries()}
+            return len(keys) > 1 or self.policy.throttling
 
     def _entries(self) -> list[str]:
         return [lane.entry for lane in self._heads]
@@ -283,8 +298,9 @@ class Governor:
     def step(self, now: float | None = None) -> dict[str, float | None]:
         """One decision: measure, decide, write the caps; returns the head lanes' caps."""
         now = self._clock() if now is None else now
-        caps = self.policy.decide(self.views(now), now)
-        self._apply(caps)
+        with self._lock:  # not while relane renames the lanes
+            caps = self.policy.decide(self.views(now), now)
+            self._apply(caps)
         return caps
 
     def views(self, now: float) -> list[LaneView]:

@@ -246,6 +246,14 @@ class Handoffs:
     results: dict[str, SlotEvents] = field(default_factory=dict)
     inline: InlineLaunch | None = None
 
+    def add_head(self, name: str, out_ring: SlotRing) -> None:
+        """The hand-off of a head added at run time: its results' events, where the others have them (CUDA)."""
+        if self.features is not None:
+            self.results[name] = SlotEvents(out_ring.n_slots, blocking=True)
+
+    def remove_head(self, name: str) -> None:
+        self.results.pop(name, None)
+
     def for_worker(self, name: str) -> WorkerHandoff:
         if name == "foundation":
             return WorkerHandoff(None, self.features, self.inline)

@@ -11,6 +11,19 @@ from there: this module is the only one that turns a camera into its index, read
 tests/unit/test_lanes.py keeps it so). One camera is the case of one lane per model: its reader and entry are then the
 model's own name (which keeps one-camera stats and ring names as they always were); with several cameras both are
 ``model@camera``.
+
+Note [Heads at run time]
+~~~~~~~~~~~~~~~~~~~~~~~~
+Every mailbox and the control block are laid out at start, in shared memory other processes have mapped, so a head
+added while the engine runs (``Engine.add_head``) cannot grow them. Instead the engine starts with
+``runtime.spare_heads`` *seats*: a seat is a model that is not there, named ``+0``, ``+1``, ... (no head can be: head
+names are identifiers), with a lane on every camera, hence its control-block entries and an inactive reader of the
+features mailbox per camera (and one more features slot for it to pin). A head added takes a free seat: its entries
+and readers are renamed to its own lanes' names (``seat_renames``) in the engine's process before its worker, which
+attaches with the new names, starts; the other workers address readers and entries by index and never notice.
+Its own output mailbox is new. Removing it stops its worker, clears its entries and readers and gives their names
+back to the seat. So a head added runs exactly like one configured, and the engine's preallocation holds: adding a
+head allocates its output mailbox and its model, nothing that other models share.
 """
 
 from __future__ import annotations
@@ -46,6 +59,8 @@ class Lanes:
 
     cameras: tuple[str, ...]
     by_model: Mapping[str, tuple[Lane, ...]]
+    #: the free seats of heads added at run time (Note [Heads at run time]), in order
+    seats: tuple[str, ...] = ()
 
     def of(self, model: str) -> tuple[Lane, ...]:
         """``model``'s lanes, in priority order; KeyError naming the models for an unknown one."""
@@ -87,19 +102,37 @@ class Lanes:
 
     def control_names(self) -> list[str]:
         """Every entry of the control block: each model's own (process state, heartbeat, errors; with one camera
-        its lane's too), then every lane's that is not its model's."""
-        own = list(self.by_model)
-        return own + [lane.entry for lanes in self.by_model.values() for lane in lanes if lane.entry not in own]
+        its lane's too), then every lane's that is not its model's; then the same for each free seat."""
+        models = {**self.by_model, **{seat: self.seat_lanes(seat) for seat in self.seats}}
+        own = list(models)
+        return own + [lane.entry for lanes in models.values() for lane in lanes if lane.entry not in own]
+
+    def seat_lanes(self, seat: str) -> tuple[Lane, ...]:
+        """A free seat's lanes: one on every camera, whose readers wait, inactive, in the features mailbox."""
+        return tuple(_lane(seat, camera, self.cameras, None) for camera in self.cameras)
+
+    def seat_renames(self, seat: str, head: str) -> dict[str, str]:
+        """What ``head``, taking ``seat``, renames the seat's entries and readers to: the seat's own entry to the
+        head's, and its lane on each camera the head serves to the head's lane there."""
+        renames = {seat: head}
+        for mine in self.of(head):
+            renames[_lane(seat, mine.camera, self.cameras, None).entry] = mine.entry
+        return renames
 
 
-def make_lanes(cfg: EngineConfig) -> Lanes:
-    """The lanes of the engine ``cfg`` describes (Note [Lanes])."""
-    cameras = tuple(cfg.camera_names())
+def _lane(model: str, camera: str, cameras: tuple[str, ...], rate_hz: float | None) -> Lane:
     only = len(cameras) == 1
+    name = model if only else f"{model}@{camera}"
+    return Lane(model, camera, cameras.index(camera), reader=name, entry=name, only=only, rate_hz=rate_hz)
 
-    def lane(model: str, camera: str) -> Lane:
-        name = model if only else f"{model}@{camera}"
-        rate = cfg.model(model).rate_hz
-        return Lane(model, camera, cameras.index(camera), reader=name, entry=name, only=only, rate_hz=rate)
 
-    return Lanes(cameras, {m: tuple(lane(m, c) for c in cfg.model_cameras(m)) for m in cfg.model_names()})
+def make_lanes(cfg: EngineConfig, seats: tuple[str, ...] | None = None) -> Lanes:
+    """The lanes of the engine ``cfg`` describes (Note [Lanes]); ``seats``: its free seats (Note [Heads at run
+    time]; default: all of ``runtime.spare_heads``)."""
+    cameras = tuple(cfg.camera_names())
+    by_model = {
+        m: tuple(_lane(m, c, cameras, cfg.model(m).rate_hz) for c in cfg.model_cameras(m)) for m in cfg.model_names()
+    }
+    if seats is None:
+        seats = tuple(f"+{k}" for k in range(cfg.runtime.spare_heads))
+    return Lanes(cameras, by_model, seats)

@@ -145,6 +145,12 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
     fifo_fm = FIFO_MARGIN if cfg.foundation_model.input_mode == "fifo" else 0
     fifo_heads = FIFO_MARGIN if any(h.input_mode == "fifo" for h in cfg.heads) else 0
     feature_readers = [r for h in cfg.heads for r in readers(h.name, h.input_mode)]
+    # the seats of heads added at run time: inactive until a head takes one (Note [Heads at run time])
+    feature_readers += [
+        ReaderDecl(lane.reader, "latest", active=False, tag=lane.reader_tag)
+        for seat in lanes.seats
+        for lane in lanes.seat_lanes(seat)
+    ]
     boxes: list[dict[str, Any]] = [
         dict(
             name="input",

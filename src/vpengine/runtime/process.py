@@ -214,6 +214,7 @@ class ProcessRunner(Runner):
         self._zygote: Zygote | None = None  # the one new workers are forked from
         self._retired: list[Zygote] = []  # older ones, still the parents of workers they forked
         self._owner = os.getpid()  # Note [Child lifecycle]: a fork of the engine stops nothing
+        self._retired_children: list[_Child] = []  # workers of heads removed, their sockets still open
 
     def _wake(self) -> None:
         with self._wake_lock:
@@ -295,8 +296,15 @@ class ProcessRunner(Runner):
         self._started(errors)
 
     # ----------------------------------------------------------------------------------------- monitor
+    def _close_retired(self) -> None:
+        with self._lock:
+            for ch in self._retired_children:
+                ch.close()
+            self._retired_children.clear()
+
     def _watch(self) -> None:
         while not self._stopping:
+            self._close_retired()
             timeout = min(self._run_due_restarts(), POLL_S)
             objs: list[Any] = [self._wake_r]
             with self._lock:
@@ -318,6 +326,13 @@ class ProcessRunner(Runner):
                         continue
                     was_ready = ch.ready
                     ch.drain()
+                    if name in self._adding:  # a head added at run time: add() hears how its start went
+                        if ch.ready:
+                            self._added(name, None)
+                        elif ch.error is not None or not ch.alive():
+                            ch.handled = True
+                            self._added(name, ch.error or f"{name} exited with code {ch.proc.returncode}")
+                        continue
                     if ch.ready and not was_ready:
                         log.info("%s is ready again (pid %d)", name, ch.proc.pid)
                     if ch.alive():
@@ -345,6 +360,25 @@ class ProcessRunner(Runner):
                     log.error("%s has not reported for %.0f s (runtime.hang_timeout_s); killing it", name, now - hb)
                     ch.error = f"hung for {now - hb:.0f} s"
                     ch.proc.kill()
+
+    def _retire(self, name: str) -> list[threading.Thread]:
+        with self._lock:
+            ch = self._children.pop(name, None)
+        if ch is None:
+            return []
+        with contextlib.suppress(OSError, ValueError):
+            ch.conn.send(Stop())
+        for ring in self.rings.values():
+            ring.wake_all()
+        _join_all([ch], self.cfg.runtime.stop_timeout_s)
+        for end in (ch.proc.terminate, ch.proc.kill):
+            if ch.alive():
+                end()
+                _join_all([ch], _TERM_GRACE_S)
+        with self._lock:  # the monitor may be polling its socket now: it closes it once it is not
+            self._retired_children.append(ch)
+        self._wake()
+        return []
 
     # -------------------------------------------------------------------------------------------- stop
     def stop(self) -> list[str]:
@@ -378,11 +412,12 @@ class ProcessRunner(Runner):
         for name, ch in children:
             self.control.set_state(name, STOPPED)
             ch.close()
+        if self._monitor is not None and self._monitor is not threading.current_thread():
+            self._monitor.join(2.0)
+        self._close_retired()
         for z in [*self._retired, *([self._zygote] if self._zygote else [])]:
             z.close(_ZYGOTE_GRACE_S)  # after the workers: its end would SIGKILL those still there
         self._spawner.close()
-        if self._monitor is not None and self._monitor is not threading.current_thread():
-            self._monitor.join(2.0)
         with self._wake_lock:
             for fd in (self._wake_r, self._wake_w):
                 with contextlib.suppress(OSError):

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from vpengine.config import EngineConfig
-from vpengine.runtime.control import FAILED, RESTARTING, ControlBlock
+from vpengine.runtime.control import FAILED, RESTARTING, STOPPED, ControlBlock
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotRing
 
@@ -75,6 +75,9 @@ class Runner(ABC):
         self._restarted_at: dict[str, collections.deque[float]] = {s.name: collections.deque() for s in specs}
         self._pending: dict[str, _Restart] = {}
         self._monitor: threading.Thread | None = None  # runs _watch once every worker is ready
+        # workers added at run time, until ready or failed: name -> (done, its start-up error or None)
+        self._adding: dict[str, tuple[threading.Event, list[str]]] = {}
+        self._removing: set[str] = set()  # workers being removed at run time
 
     # --------------------------------------------------------------------------------------- interface
     @abstractmethod
@@ -92,6 +95,66 @@ class Runner(ABC):
     @abstractmethod
     def _watch(self) -> None:
         """The monitor's loop, until stop: notice deaths and hangs, run due restarts."""
+
+    @abstractmethod
+    def _retire(self, name: str) -> list[threading.Thread]:
+        """Stop one worker and forget it (a head removed; the caller holds the lock for the forgetting); returns
+        threads that may still touch the mailboxes."""
+
+    # ------------------------------------------------------------------------------ heads at run time
+    def add(self, spec: WorkerSpec, out_ring: SlotRing) -> None:
+        """Start the worker of a head added at run time (Note [Heads at run time] in lanes.py) and wait until it is
+        ready; EngineStartError with its start-up error (and nothing left of it) if it is not."""
+        name = spec.name
+        done: tuple[threading.Event, list[str]] = (threading.Event(), [])
+        with self._lock:
+            if self._stopping:
+                raise EngineDeadError("engine is stopped")
+            self.specs[name] = spec
+            self.rings[out_ring.name] = out_ring
+            self._restarted_at[name] = collections.deque()
+            self._adding[name] = done
+            try:
+                self._launch(name)
+            except BaseException as e:
+                done[1].append(f"{name}: {e}")
+                done[0].set()
+        limit = self.cfg.runtime.ready_timeout_s
+        if not done[0].wait(limit):
+            done[1].append(f"{name} was not ready within {limit} s (runtime.ready_timeout_s)")
+        with self._lock:
+            self._adding.pop(name, None)
+        if done[1]:
+            self.remove(name)
+            raise EngineStartError("\n".join(done[1]))
+
+    def _added(self, name: str, error: str | None) -> bool:
+        """The monitor heard that worker ``name`` is ready (``error`` None) or failed to start; True if it is one
+        being added (then it is the caller of ``add``'s to handle, not restarted)."""
+        done = self._adding.get(name)
+        if done is None:
+            return False
+        if error is not None:
+            done[1].append(error)
+        done[0].set()
+        return True
+
+    def remove(self, name: str) -> list[threading.Thread]:
+        """Stop worker ``name`` for good and forget it (a head removed at run time): no restart, its pins released,
+        its unanswered frames answered. Returns threads that may still touch the mailboxes (a thread-mode model that
+        did not return within runtime.stop_timeout_s)."""
+        with self._lock:
+            self._pending.pop(name, None)
+            self._removing.add(name)  # its exit is no crash: no restart
+        left = self._retire(name)
+        with self._lock:
+            self._removing.discard(name)
+            self._cleanup_after(name)
+            self.control.set_state(name, STOPPED)
+            spec = self.specs.pop(name)
+            self.rings.pop(spec.out_ring.name, None)  # its owner unmaps it
+            self._restarted_at.pop(name, None)
+        return left
 
     def _started(self, errors: list[str]) -> None:
         """The end of ``start``, every worker heard from: ``errors`` (their start-up failures) stop them all and
@@ -154,6 +217,8 @@ class Runner(ABC):
     def _on_exit(self, name: str, crashed: bool, reason: str) -> None:
         """Called by the runner's monitor when a worker is gone."""
         with self._lock:
+            if name in self._removing:
+                return  # Runner.remove cleans up after it
             self._cleanup_after(name)
             if self._stopping:
                 return

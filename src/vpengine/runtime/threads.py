@@ -37,7 +37,9 @@ class ThreadRunner(Runner):
         # what the workers hand each other on the device and the submitting thread (handoff.py)
         self.handoffs = handoffs or Handoffs()
         self._threads: dict[str, threading.Thread] = {}
-        self._events: queue.Queue[tuple[str, str, str]] = queue.Queue()  # (name, "ready"|"error"|"exit", text)
+        # (name, "ready"|"error"|"exit", text, the thread's generation)
+        self._events: queue.Queue[tuple[str, str, str, int]] = queue.Queue()
+        self._retired_gen: dict[str, int] = {}  # a removed head's last generation: its threads' events are stale
         self._generation: dict[str, int] = dict.fromkeys(self.specs, 0)
         self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
 
@@ -56,21 +58,21 @@ class ThreadRunner(Runner):
                 handoff=self.handoffs.for_worker(name),
             )
         except BaseException as e:
-            self._events.put((name, "error", describe_exception(name, e)))
+            self._events.put((name, "error", describe_exception(name, e), gen))
             return
-        self._events.put((name, "ready", ""))
+        self._events.put((name, "ready", "", gen))
         try:
             core.run(lambda: self._should_stop(name, gen))
         except BaseException as e:
             text = describe_exception(name, e)
             self.control.add(name, "errors")
             self.control.set_error(name, text)
-            self._events.put((name, "exit", text))
+            self._events.put((name, "exit", text, gen))
             return
-        self._events.put((name, "exit", ""))
+        self._events.put((name, "exit", "", gen))
 
     def _launch(self, name: str) -> None:
-        self._generation[name] += 1
+        self._generation[name] = self._generation.get(name, 0) + 1
         t = threading.Thread(
             target=self._main, args=(name, self._generation[name]), name=f"vpengine-{name}", daemon=True
         )
@@ -90,7 +92,7 @@ class ThreadRunner(Runner):
         errors = []
         while waiting:
             try:
-                name, kind, text = self._events.get(timeout=max(0.0, deadline - time.monotonic()))
+                name, kind, text, _ = self._events.get(timeout=max(0.0, deadline - time.monotonic()))
             except queue.Empty:
                 self._not_ready(waiting)
             waiting.discard(name)
@@ -102,11 +104,17 @@ class ThreadRunner(Runner):
         while not self._stopping:
             timeout = min(self._run_due_restarts(), POLL_S)
             try:
-                name, kind, text = self._events.get(timeout=max(0.01, timeout))
+                name, kind, text, gen = self._events.get(timeout=max(0.01, timeout))
             except queue.Empty:
                 self._check_hangs()
                 continue
-            if kind == "exit" and not self._stopping:
+            if name not in self.specs or name in self._removing or gen <= self._retired_gen.get(name, 0):
+                continue  # stop's wake-up, or a removed head's (its exit is expected)
+            if kind == "ready":
+                self._added(name, None)
+            elif self._added(name, text or f"{name} exited during start-up"):
+                pass  # a head being added failed to start: add() takes it away again
+            elif kind == "exit" and not self._stopping:
                 first_line = text.splitlines()[0] if text else "exited"
                 with self._lock:
                     was_hung = name in self._hung  # its crash was counted when it was found hung
@@ -142,6 +150,22 @@ class ThreadRunner(Runner):
                 self.control.set_error(name, text)
                 log.error("%s", text)
 
+    def _retire(self, name: str) -> list[threading.Thread]:
+        with self._lock:
+            self._retired_gen[name] = self._generation[name]
+            self._generation[name] += 1  # its loop ends at its next look
+            self._hung.discard(name)
+            thread = self._threads.pop(name, None)
+        for ring in self.rings.values():
+            ring.wake_all()  # a worker asleep on its mailbox looks now
+        if thread is None:
+            return []
+        thread.join(self.cfg.runtime.stop_timeout_s)
+        if thread.is_alive():
+            log.error("%s did not stop within %.1f s; abandoned (daemon thread)", name, self.cfg.runtime.stop_timeout_s)
+            return [thread]
+        return []
+
     def threads_alive(self) -> list[threading.Thread]:
         threads = [t for t in self._threads.values() if t.is_alive()]
         if self._monitor is not None and self._monitor.is_alive():
@@ -156,7 +180,7 @@ class ThreadRunner(Runner):
             ring.wake_all()
         if self.handoffs.inline is not None:
             self.handoffs.inline.wake()  # an armed foundation worker disarms and sees the stop
-        self._events.put(("", "stop", ""))  # the monitor leaves now, not at its next poll
+        self._events.put(("", "stop", "", 0))  # the monitor leaves now, not at its next poll
         deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
         abandoned = []
         for name, t in self._threads.items():

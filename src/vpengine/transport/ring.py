@@ -61,6 +61,7 @@ from __future__ import annotations
 import os
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from typing import TypeVar
 
 import torch
@@ -369,6 +370,27 @@ class SlotRing:
     def release_reader(self, name: str) -> int | None:
         """Drop the pin of a reader whose process died. Returns the origin of the slot it held (None: none)."""
         return self._unpin(self._reader_index[name])
+
+    def rename_reader(self, old: str, new: str) -> None:
+        """Give reader ``old`` the name ``new`` in this process (a seat taken or given back, Note [Heads at run
+        time] in runtime/lanes.py); a process that attaches after it sees the new name. Other processes address
+        readers by index."""
+        if new in self._reader_index:
+            raise ValueError(f"ring {self.name!r} has a reader {new!r} already")
+        index = self._reader_index.pop(old)
+        readers = list(self.desc.readers)
+        readers[index] = replace(readers[index], name=new)
+        self.desc = replace(self.desc, readers=tuple(readers))
+        self._reader_index[new] = index
+
+    def clear_reader(self, name: str) -> None:
+        """Make reader ``name`` inactive and forget what it read, missed and pins: a seat given back."""
+        index = self._reader_index[name]
+        self._unpin(index)
+        q, r = self._q, self._reader(index)
+        with self._mutex:
+            for field in (R_ACTIVE, R_CURSOR, R_READS, R_MISSED):
+                q[r + field] = 0
 
     def reset_writer(self) -> int:
         """Forget slots a dead writer left half-written. Returns how many there were."""

@@ -1,0 +1,180 @@
+"""Note [Heads at run time]: heads added and removed while the engine serves frames, in both modes; what they leave
+behind over many cycles; bad requests refused with the engine as it was."""
+
+from __future__ import annotations
+
+import gc
+import os
+import threading
+import time
+
+import pytest
+
+from helpers.frames import frame
+from tests_paths import tiny
+from vpengine.config import ConfigError
+from vpengine.engine import Engine, EngineStartError
+
+pytestmark = pytest.mark.timeout(300)
+
+DET2 = {"name": "det2", "model": "tiny_det"}
+
+
+def two_heads(mode, *overrides):
+    return tiny(mode, "heads=[{name: depth, model: tiny_depth}, {name: seg, model: tiny_seg}]", *overrides)
+
+
+def descendants() -> set[int]:
+    """Live processes descending from this one (workers are forked by a zygote this process started)."""
+    parents: dict[int, int] = {}
+    for pid in os.listdir("/proc"):
+        if pid.isdigit():
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    parents[int(pid)] = int(f.read().rsplit(")", 1)[1].split()[1])
+            except OSError:
+                continue
+    found, frontier = set(), {os.getpid()}
+    while frontier:
+        frontier = {p for p, pp in parents.items() if pp in frontier} - found
+        found |= frontier
+    return found
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_a_head_added_while_serving_answers_every_frame_after_it_and_the_others_never_miss_one(mode):
+    with Engine(two_heads(mode)) as eng:
+        imgs = [frame(i) for i in range(4)]
+        added = threading.Event()
+        errors = []
+
+        def add():
+            try:
+                eng.add_head(DET2)
+            except BaseException as e:
+                errors.append(e)
+            added.set()
+
+        answered = []
+        adder = threading.Thread(target=add)
+        adder.start()
+        deadline = time.monotonic() + 120
+        while sum(after for after, _ in answered) < 5:
+            after_add = added.is_set()
+            out = eng.wait(eng.submit(imgs[len(answered) % 4]), timeout=30)
+            answered.append((after_add, set(out)))
+            assert time.monotonic() < deadline
+        adder.join()
+        assert not errors, errors
+        assert all({"depth", "seg"} <= heads for _, heads in answered)  # no frame left out while det2 was built
+        assert all("det2" in heads for after, heads in answered if after)
+        assert [h.name for h in eng.config.heads] == ["depth", "seg", "det2"]
+        assert eng.stats()["models"]["det2"]["runs"] >= 5
+        assert eng.latest("det2") is not None
+        assert eng.lanes.seats == ()  # the one spare seat is taken
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_removing_a_head_stops_its_worker_frees_its_mailbox_and_its_seat(mode):
+    with Engine(two_heads(mode)) as eng:
+        eng.add_head(DET2)
+        eng.wait(eng.submit(frame(0)), timeout=30)
+        procs = descendants()
+        eng.remove_head("det2")
+        assert "out.det2" not in eng.stats()["mailboxes"] and "det2" not in eng.stats()["models"]
+        assert set(eng.wait(eng.submit(frame(1)), timeout=30)) == {"depth", "seg"}
+        assert eng.lanes.seats == ("+0",)
+        if mode == "process":
+            assert len(procs - descendants()) == 1  # det2's worker is gone, nobody else
+        eng.add_head({**DET2, "rate_hz": 5})  # the seat serves again, at its new rate
+        assert eng.rate("det2") == 5
+        time.sleep(0.3)  # a period of 5 Hz: the next frame is due
+        assert set(eng.wait(eng.submit(frame(2)), timeout=30)) == {"depth", "seg", "det2"}
+        eng.remove_head("seg")  # a head of the config goes too; it has no seat to give back
+        time.sleep(0.3)
+        assert eng.lanes.seats == () and set(eng.wait(eng.submit(frame(3)), timeout=30)) == {"depth", "det2"}
+
+
+def open_fds() -> int:
+    return len(os.listdir("/proc/self/fd"))
+
+
+def rss_mb() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def test_a_hundred_add_remove_cycles_leave_no_fd_thread_or_memory_behind():
+    with Engine(two_heads("thread")) as eng:
+        img = frame(0)
+
+        def cycle():
+            eng.add_head(DET2)
+            assert "det2" in eng.wait(eng.submit(img), timeout=30)
+            eng.remove_head("det2")
+
+        for _ in range(10):  # allocators and caches settle
+            cycle()
+        gc.collect()
+        fds, threads, rss = open_fds(), threading.active_count(), rss_mb()
+        for _ in range(90):
+            cycle()
+        gc.collect()
+        assert open_fds() == fds
+        assert threading.active_count() == threads
+        assert rss_mb() - rss < 40, f"{rss_mb() - rss:.1f} MB more after 90 cycles"
+        assert set(eng.wait(eng.submit(img), timeout=30)) == {"depth", "seg"}
+
+
+def test_process_mode_add_remove_cycles_leave_no_process_or_fd_behind():
+    with Engine(two_heads("process")) as eng:
+        eng.add_head(DET2)
+        eng.remove_head("det2")
+        procs, fds = descendants(), open_fds()
+        for _ in range(4):
+            eng.add_head(DET2)
+            assert "det2" in eng.wait(eng.submit(frame(0)), timeout=30)
+            eng.remove_head("det2")
+        time.sleep(0.5)  # the monitor closes a removed worker's socket at its next look
+        assert descendants() == procs
+        assert open_fds() == fds
+
+
+def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():
+    with Engine(two_heads("thread")) as eng:
+
+        def unchanged():
+            assert [h.name for h in eng.config.heads] == ["depth", "seg"] and eng.lanes.seats == ("+0",)
+            assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
+
+        with pytest.raises(ConfigError, match="unique; repeated: \\['seg'\\]"):
+            eng.add_head({"name": "seg", "model": "tiny_seg"})
+        with pytest.raises(ConfigError, match="heads.2.priority"):
+            eng.add_head({**DET2, "priority": 101})
+        with pytest.raises(ConfigError, match="heads.2"):
+            eng.add_head("{name: det2, model: tiny_det, no_such_field: 1}")
+        with pytest.raises(ValueError, match="a mapping"):
+            eng.add_head("just text")
+        with pytest.raises(ValueError, match="input_mode fifo"):
+            eng.add_head({**DET2, "input_mode": "fifo"})
+        with pytest.raises(EngineStartError, match="injected build failure"):
+            eng.add_head({"name": "bad", "model": "helpers.faulty:FaultyHead", "options": {"fail_build": True}})
+        unchanged()
+        with pytest.raises(KeyError, match="no head named 'nope'; heads: \\['depth', 'seg'\\]"):
+            eng.remove_head("nope")
+        with pytest.raises(ValueError, match="foundation model"):
+            eng.remove_head("foundation")
+        eng.remove_head("seg")
+        with pytest.raises(ValueError, match="last head"):
+            eng.remove_head("depth")
+        eng.add_head({"name": "seg", "model": "tiny_seg"})  # the name is free again; the seat takes it
+        eng.set_priority("seg", 5)  # the doors know the added head
+        assert eng.stats()["models"]["seg"]["priority"] == 5
+        assert set(eng.wait(eng.submit(frame(1)), timeout=30)) == {"depth", "seg"}
+
+
+def test_no_seat_left_says_how_to_get_one():
+    with Engine(two_heads("thread", "runtime.spare_heads=0")) as eng:
+        with pytest.raises(RuntimeError, match="runtime.spare_heads is 0"):
+            eng.add_head(DET2)
+        assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}

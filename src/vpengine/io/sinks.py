@@ -38,7 +38,7 @@ DEPTH_FORMATS = ("png16", "npy")
 #: Pictures are JPEGs of this quality: a third of quality 95's size (OpenCV's default), no difference to the eye.
 JPEG_QUALITY = 90
 #: Threads that write a folder sink's files (Note [Parallel file writes]).
-FILE_WRITERS = min(4, os.cpu_count() or 1)
+FILE_WRITERS = min(8, os.cpu_count() or 1)
 
 
 class Sink:

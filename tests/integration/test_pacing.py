@@ -101,3 +101,13 @@ def test_a_frame_that_cannot_be_read_ends_the_run_after_every_frame_before_it_we
         run_recorded(Numbered(20, fail_at=7), rec)
     for head in ("depth", "seg", "det"):
         assert [name for h, _, name, _ in rec.got if h == head] == [f"{i:06d}" for i in range(7)], head
+
+
+def test_a_run_without_a_progress_bar_reads_the_engines_stats_for_its_summary_alone(monkeypatch):
+    from vpengine.engine import Engine
+
+    calls = []
+    stats = Engine.stats
+    monkeypatch.setattr(Engine, "stats", lambda self: calls.append(1) or stats(self))
+    s = run_pipeline(tiny("thread"), Numbered(30), progress=False)
+    assert s["frames_submitted"] == 30 and len(calls) == 1  # not once a frame for rates nobody sees

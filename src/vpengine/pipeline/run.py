@@ -235,7 +235,8 @@ class Pipeline:
 
     def _progressed(self, done: int) -> None:
         bar = self._bar
-        if done > bar.n:
+        # a disabled bar counts nothing (bar.n stays 0): every frame would read engine.stats() for rates nobody sees
+        if not bar.disable and done > bar.n:
             before, after = bar.n // 10, done // 10
             bar.update(done - bar.n)
             if after > before:

@@ -243,7 +243,8 @@ def load_depth(head_dir: str | Path, frame: str) -> np.ndarray:
 
 class FolderSink(Sink):
     """Every head's outputs as files in ``out_dir`` (layout in the module's docstring). Line files
-    (``detections.jsonl``, ``depth_scale.jsonl``) are started afresh, never appended to."""
+    (``detections.jsonl``, ``depth_scale.jsonl``) are started afresh, never appended to. Pictures and arrays are
+    written on threads of their own (Note [Parallel file writes]): every file is there once ``close`` returns."""
 
     def __init__(
         self,

@@ -265,20 +265,22 @@ def test_run_writes_an_annotated_video_of_the_shipped_street_sample(tmp_path):
     cap.release()
 
 
-@pytest.mark.parametrize("cmd", ["run", "predict"])
+@pytest.mark.parametrize("cmd", ["run", "lockstep", "predict"])
 def test_ctrl_c_ends_the_run_with_its_summary(tmp_path, cmd):
     import signal
     import time
 
     out = tmp_path / "out"
     source = "synthetic:160x120@30:100000"
-    args = ["run", "-c", "tiny", "-s", source] if cmd == "run" else ["predict", source]
+    args = ["run", "-c", "tiny", "-s", source] if cmd != "predict" else ["predict", source]
+    if cmd == "lockstep":  # frames read ahead on a thread of their own (Note [Read ahead])
+        args += ["--pace", "lockstep"]
     proc = subprocess.Popen(
         command(*args, "-o", str(out), "--no-progress"), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True,
     )  # fmt: skip
     try:
-        first = out / "depth" if cmd == "run" else out
+        first = out / "depth" if cmd != "predict" else out
         deadline = time.monotonic() + 120
         while not (first.is_dir() and any(first.glob("0*"))):  # frames are going through
             assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
@@ -292,6 +294,10 @@ def test_ctrl_c_ends_the_run_with_its_summary(tmp_path, cmd):
     assert "interrupted after " in stdout and "foundation" in stdout  # the summary table
     s = json.loads((out / "summary.json").read_text())
     assert s["interrupted"] and 0 < s["frames_submitted"] < 100000
+    if cmd == "lockstep":  # every frame that went in was answered by every head and written, nothing more
+        n = s["frames_submitted"]
+        assert len(list((out / "depth").glob("*.png"))) == len(list((out / "seg").glob("*.png"))) == n
+        assert len((out / "det" / "detections.jsonl").read_text().splitlines()) == n
 
 
 def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, capsys, monkeypatch):

@@ -4,9 +4,16 @@ waits for a head that will not answer."""
 
 from __future__ import annotations
 
+import threading
+
+import numpy as np
 import pytest
 
+from helpers.frames import frame
 from tests_paths import MEDIA, tiny
+from vpengine.engine.results import Result
+from vpengine.io.base import Frame, Source
+from vpengine.io.sinks import Sink
 from vpengine.io.sources import VideoSource
 from vpengine.pipeline.run import run_pipeline
 
@@ -39,3 +46,68 @@ def test_lockstep_keeps_several_frames_in_flight_and_still_runs_every_frame_thro
         assert m["runs"] == 30 and m["skipped"] == 0 and m["dropped"] == 0, (name, m)
     for name in ("depth", "seg", "det"):
         assert s["models"][name]["results_received"] == 30
+
+
+class Numbered(Source):
+    """``n`` frames told apart by their content (``helpers.frames``), of another size than the models' input; the
+    frame ``fail_at`` cannot be read. Records the threads that read it."""
+
+    height, width = 90, 200
+
+    def __init__(self, n: int, fail_at: int | None = None) -> None:
+        self.n, self.fail_at = n, fail_at
+        self.readers: set[str] = set()
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __iter__(self):  # type: ignore[no-untyped-def]
+        for i in range(self.n):
+            self.readers.add(threading.current_thread().name)
+            if i == self.fail_at:
+                raise ValueError(f"frame {i} is corrupt")
+            yield Frame(frame(i, self.height, self.width), None, f"{i:06d}")
+
+
+class Recorded(Sink):
+    def __init__(self) -> None:
+        self.got: list[tuple[str, int, str, np.ndarray | None]] = []
+
+    def write(self, result: Result, image: np.ndarray | None, name: str) -> None:
+        self.got.append((result.head, result.frame_id, name, image))
+
+
+def run_recorded(source: Numbered, rec: Recorded) -> None:
+    try:
+        run_pipeline(tiny("thread"), source, sink_factories=[lambda info, served: rec], progress=False)
+    finally:  # what reached the sinks, also when the run raised
+        assert source.readers and all(t.startswith("vpengine-read") for t in source.readers)  # Note [Read ahead]
+
+
+def test_frames_read_ahead_reach_every_head_in_order_each_output_with_its_own_frame():
+    rec = Recorded()
+    run_recorded(Numbered(25), rec)
+    for head in ("depth", "seg", "det"):
+        got = [(fid, name, image) for h, fid, name, image in rec.got if h == head]
+        assert [name for _, name, _ in got] == [f"{i:06d}" for i in range(25)], head
+        assert [fid for fid, _, _ in got] == sorted(fid for fid, _, _ in got)
+        for _, name, image in got:
+            assert image is not None and np.array_equal(image, frame(int(name), 90, 200)), (head, name)
+
+
+def test_a_frame_that_cannot_be_read_ends_the_run_after_every_frame_before_it_went_through_every_head():
+    rec = Recorded()
+    with pytest.raises(ValueError, match="frame 7 is corrupt"):
+        run_recorded(Numbered(20, fail_at=7), rec)
+    for head in ("depth", "seg", "det"):
+        assert [name for h, _, name, _ in rec.got if h == head] == [f"{i:06d}" for i in range(7)], head
+
+
+def test_a_run_without_a_progress_bar_reads_the_engines_stats_for_its_summary_alone(monkeypatch):
+    from vpengine.engine import Engine
+
+    calls = []
+    stats = Engine.stats
+    monkeypatch.setattr(Engine, "stats", lambda self: calls.append(1) or stats(self))
+    s = run_pipeline(tiny("thread"), Numbered(30), progress=False)
+    assert s["frames_submitted"] == 30 and len(calls) == 1  # not once a frame for rates nobody sees

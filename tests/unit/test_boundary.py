@@ -98,13 +98,24 @@ def test_a_wide_frame_is_written_scaled_with_its_aspect_between_bands_of_the_mea
     assert b.write(same, dst).identity and (dst == same).all()
 
 
-def test_frames_of_ever_new_sizes_keep_a_bounded_number_of_buffers():
+def test_frames_of_every_shape_are_written_into_the_slot_whole_between_bands_of_the_mean_colour():
     b = Boundary(tiny("thread"), {})
-    dst = np.zeros((120, 160, 3), np.uint8)
+    mean_bgr = np.round(np.array([0.406, 0.456, 0.485]) * 255)
     rng = np.random.default_rng(2)
-    for w in range(200, 200 + 4 * SIZES_KEPT, 4):  # a folder of images, each of another size
-        b.write(rng.integers(0, 256, (100, w, 3), np.uint8), dst)
-        assert len(b._scratch) <= SIZES_KEPT
+    # wide, tall (bands left and right), smaller (enlarged), odd sizes: a folder of images of every shape
+    for h, w in [(100, 200), (100, 204), (240, 90), (61, 47), (120, 159)]:
+        frame = rng.integers(0, 256, (h, w, 3), np.uint8)
+        dst = np.full((120, 160, 3), 7, np.uint8)  # what an earlier frame left in the slot
+        p = b.write(frame, dst)
+        filt = cv2.INTER_AREA if p.w < w else cv2.INTER_LINEAR
+        inside = dst[p.y0 : p.y0 + p.h, p.x0 : p.x0 + p.w]
+        np.testing.assert_array_equal(inside, cv2.resize(frame, (p.w, p.h), interpolation=filt))
+        band = np.ones((120, 160), bool)
+        band[p.y0 : p.y0 + p.h, p.x0 : p.x0 + p.w] = False
+        assert band.any() and (dst[band] == mean_bgr).all(), (h, w)
+
+
+def test_buffers_are_kept_for_a_bounded_number_of_sizes():
     cache: dict = {}
     first = buffer_for(cache, (10, 20), np.uint8)
     for i in range(SIZES_KEPT - 1):

@@ -3,6 +3,7 @@ sink's failure raised in the caller."""
 
 from __future__ import annotations
 
+import json
 import threading
 import time
 
@@ -244,14 +245,54 @@ def test_the_folder_sink_writes_the_maps_of_a_frame_of_any_shape_at_that_shape(t
         assert cv2.imread(str(tmp_path / h / "viz" / "f0.jpg")).shape == (*hw, 3)
 
 
-def test_a_file_that_cannot_be_written_raises(tmp_path):
+def test_a_file_that_cannot_be_written_raises_from_close_naming_it(tmp_path):
     from vpengine.io.sinks import FolderSink
 
     sink = FolderSink(tmp_path, HEADS)
     (tmp_path / "seg").rmdir()
     (tmp_path / "seg").write_text("a file where the head's folder was")
+    sink.write(head_results(0)[1], None, "f0")  # written on a file thread (Note [Parallel file writes])
     with pytest.raises(OSError, match=r"cannot write '.*/seg/f0.png'"):  # loudly, not cv2's False
+        sink.close()
+
+
+def test_a_failed_file_write_is_raised_by_a_later_write_and_every_write_that_returned_is_on_disk(tmp_path):
+    from vpengine.io.sinks import FILE_WRITERS, FolderSink
+
+    sink = FolderSink(tmp_path, HEADS)
+    (tmp_path / "seg").rmdir()
+    (tmp_path / "seg").write_text("a file where the head's folder was")
+    returned = []
+    with pytest.raises(OSError, match=r"cannot write '.*/seg/f0.png'"):
         sink.write(head_results(0)[1], None, "f0")
+        for i in range(1, 2 * FILE_WRITERS + 2):  # no more files than that are in the works at once
+            sink.write(head_results(i)[0], None, f"f{i}")
+            returned.append(f"f{i}")
+    sink.close()
+    assert sorted(p.stem for p in (tmp_path / "depth").glob("*.png")) == returned
+    scales = tmp_path / "depth" / "depth_scale.jsonl"  # none yet when the very first depth write raised
+    lines = scales.read_text().splitlines() if scales.exists() else []
+    assert [json.loads(x)["frame"] for x in lines] == returned  # a scale line for every PNG, and only for those
+
+
+def test_the_folder_sink_writes_its_files_off_the_callers_thread(tmp_path, monkeypatch):
+    from vpengine.io import sinks
+
+    threads = set()
+    imwrite = sinks._imwrite
+
+    def recording(*args):  # type: ignore[no-untyped-def]
+        threads.add(threading.current_thread().name)
+        imwrite(*args)
+
+    monkeypatch.setattr(sinks, "_imwrite", recording)
+    sink = sinks.FolderSink(tmp_path, HEADS)
+    for i in range(6):
+        for r in head_results(i):
+            sink.write(r, None, f"f{i}")
+    sink.close()
+    assert threads and threading.current_thread().name not in threads
+    assert len(list((tmp_path / "depth").glob("*.png"))) == len(list((tmp_path / "seg").glob("*.png"))) == 6
 
 
 def test_annotated_pictures_wait_for_every_head_and_fill_a_missing_one_with_its_newest_result(tmp_path):

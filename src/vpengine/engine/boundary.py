@@ -258,7 +258,7 @@ class Boundary:
         self.kinds = {h: output_kinds(meta, spec, self.canvas_hw) for h, (meta, spec) in heads.items()}
         self.native = {h.name for h in cfg.heads if h.output.grid == "native"}
         self._placements: dict[tuple[int, int], Placement] = {}
-        self._scratch: dict[tuple[int, int], np.ndarray] = {}
+        self._pad_row = np.tile(self.pad, (self.canvas_hw[1], 1))  # one canvas row of pad pixels
 
     def add_head(self, name: str, meta: dict[str, Any], spec: SpecDict, native: bool) -> None:
         """A head added at run time: how its outputs map to a frame's grid (``native``: output.grid native)."""
@@ -329,18 +329,22 @@ class Boundary:
             return p
         import cv2
 
-        scratch = buffer_for(self._scratch, (p.h, p.w), self.dtype)
-        shrink = p.w < frame.shape[1]
-        cv2.resize(
+        # resized straight into the slot's region (OpenCV writes into a strided view of the right size and type),
+        # and the bands filled from rows of pad pixels: broadcasting the 3-channel pad pixel itself makes numpy
+        # copy 3 bytes at a time, 3 ms a band of a 1080p canvas against 0.1 ms
+        y0, x0, y1, x1 = p.y0, p.x0, p.y0 + p.h, p.x0 + p.w
+        region = dst[y0:y1, x0:x1]
+        out = cv2.resize(
             np.ascontiguousarray(frame),
             (p.w, p.h),
-            dst=scratch,
-            interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR,
+            dst=region,
+            interpolation=cv2.INTER_AREA if p.w < frame.shape[1] else cv2.INTER_LINEAR,
         )
-        y0, x0, y1, x1 = p.y0, p.x0, p.y0 + p.h, p.x0 + p.w
-        dst[y0:y1, x0:x1] = scratch
-        dst[:y0] = self.pad
-        dst[y1:] = self.pad
-        dst[y0:y1, :x0] = self.pad
-        dst[y0:y1, x1:] = self.pad
+        if out is not region:  # pragma: no cover - an OpenCV that would not write into the view
+            region[...] = out
+        row = self._pad_row
+        dst[:y0] = row
+        dst[y1:] = row
+        dst[y0:y1, :x0] = row[:x0]
+        dst[y0:y1, x1:] = row[x1:]
         return p

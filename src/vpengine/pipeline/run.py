@@ -14,7 +14,8 @@ Several cameras: a source for each, by camera name; every source feeds its camer
 per camera as well as per model.
 
 A camera is read on its own thread and the loop takes its newest frame; frames it replaced are counted too (Note
-[Live capture] in ``vpengine.io.sources``). Outputs are written on a writer thread (Note [Sink thread] in
+[Live capture] in ``vpengine.io.sources``). In lockstep, files are read a few frames ahead on a thread of their own
+(Note [Read ahead] in ``vpengine.io.readahead``). Outputs are written on a writer thread (Note [Sink thread] in
 ``vpengine.io.sinks``). Ctrl-C ends the run after the frame in hand and still makes and writes the summary (Note
 [Ctrl-C] in ``vpengine.pipeline.pacing``).
 
@@ -40,6 +41,7 @@ from vpengine.config import EngineConfig
 from vpengine.engine import Engine
 from vpengine.engine.results import Result
 from vpengine.io.base import Frame, Source
+from vpengine.io.readahead import ReadAhead
 from vpengine.io.sinks import AnnotatedSink, FolderSink, Sink, SinkThread, per_camera
 from vpengine.named_inputs import config_for_cameras
 from vpengine.pipeline.pacing import Feed, FrameLoop, ctrl_c, lockstep, pipelined, realtime
@@ -52,6 +54,9 @@ log = logging.getLogger("vpengine.run")
 SinkFactory = Callable[[dict[str, dict[str, Any]], dict[str, list[str]]], Sink]
 #: Input frames kept per source for the sinks and pictures that draw on them (Note [Pictures and frames]).
 FRAMES_KEPT = 64
+#: Frames a lockstep run reads ahead of the loop, per source (Note [Read ahead]): enough to cover a slow decode
+#: (a keyframe) while the loop writes a round of frames and waits for the oldest in flight.
+READ_AHEAD = 4
 
 
 class Pipeline:
@@ -157,15 +162,17 @@ class Pipeline:
         (Note [Ctrl-C])."""
         from tqdm import tqdm
 
-        self.feeds = [
-            Feed(camera, s, 1.0 / (self.fps or s.fps or 30.0), self.fps is None and s.live, iter(s))
-            for camera, s in self.sources.items()
-        ]
         lengths = [min(len(s) or self.max_frames or 0, self.max_frames or len(s)) for s in self.sources.values()]
         total = sum(lengths) if all(lengths) else None  # None: a source of unknown length
         self._bar = tqdm(total=total, unit="frame", disable=not self.progress, mininterval=0.5, dynamic_ncols=True)
         t_start = time.monotonic()
         try:
+            self.feeds = []
+            for camera, s in self.sources.items():
+                frames = self._frames(camera, s)
+                self.feeds.append(
+                    Feed(camera, s, 1.0 / (self.fps or s.fps or 30.0), self.fps is None and s.live, frames)
+                )
             with ctrl_c() as stop:
                 self._feed(stop)
                 interrupted = stop.is_set()
@@ -194,6 +201,14 @@ class Pipeline:
             if not res:
                 break
 
+    def _frames(self, camera: str | None, source: Source) -> Iterator[Frame]:
+        """``source``'s frames for the frame loop: in lockstep read ahead on a thread of their own, so that the
+        loop's thread does not decode (Note [Read ahead] in vpengine.io.readahead); as they come otherwise (realtime
+        reads each source on a feed thread already, a live source on its own reader)."""
+        if self.pace != "lockstep" or source.live:
+            return iter(source)
+        return ReadAhead(source, READ_AHEAD, self.max_frames, name=f"vpengine-read-{camera or 'camera'}")
+
     def _end_feeds(self) -> None:
         for f in self.feeds:
             close = getattr(f.frames, "close", None)  # a generator's clean-up (a camera's reader thread)
@@ -221,7 +236,8 @@ class Pipeline:
 
     def _progressed(self, done: int) -> None:
         bar = self._bar
-        if done > bar.n:
+        # a disabled bar counts nothing (bar.n stays 0): every frame would read engine.stats() for rates nobody sees
+        if not bar.disable and done > bar.n:
             before, after = bar.n // 10, done // 10
             bar.update(done - bar.n)
             if after > before:

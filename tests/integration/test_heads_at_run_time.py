@@ -4,9 +4,12 @@ behind over many cycles; bad requests refused with the engine as it was."""
 from __future__ import annotations
 
 import gc
+import json
 import os
 import threading
 import time
+import urllib.error
+import urllib.request
 
 import pytest
 
@@ -178,3 +181,34 @@ def test_no_seat_left_says_how_to_get_one():
         with pytest.raises(RuntimeError, match="runtime.spare_heads is 0"):
             eng.add_head(DET2)
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
+
+
+def request(url: str, method: str, body: bytes | None = None) -> tuple[int, dict]:
+    req = urllib.request.Request(url, data=body, method=method)
+    try:
+        with urllib.request.urlopen(req, timeout=120) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read())
+
+
+def test_the_live_view_adds_and_removes_heads_and_says_why_it_will_not():
+    from vpengine.web import WebServer
+
+    with Engine(two_heads("thread")) as eng, WebServer(eng, "127.0.0.1", 0) as view:
+        url = view.url + "api/heads"
+        assert request(url, "POST", json.dumps(DET2).encode()) == (201, {"head": "det2"})
+        assert "det2" in eng.wait(eng.submit(frame(0)), timeout=30)
+        status, reply = request(url, "POST", b"{name: det3, model: tiny_det}")  # YAML too
+        assert status == 409 and "runtime.spare_heads is 1" in reply["error"]
+        status, reply = request(url, "POST", b"{name: seg, model: tiny_seg}")
+        assert status == 400 and "unique" in reply["error"]
+        assert request(url + "/det2", "DELETE") == (200, {"removed": "det2"})
+        status, reply = request(
+            url, "POST", b"{name: bad, model: 'helpers.faulty:FaultyHead', options: {fail_build: true}}"
+        )
+        assert status == 422 and "injected build failure" in reply["error"]
+        status, reply = request(url + "/nope", "DELETE")
+        assert status == 404 and "no head named 'nope'" in reply["error"]
+        assert request(url, "GET")[0] == 405
+        assert set(eng.wait(eng.submit(frame(1)), timeout=30)) == {"depth", "seg"}

@@ -8,15 +8,18 @@
     PUT  /api/priority/<key>     {"priority": 10} (an integer, checks.MIN_PRIORITY..MAX_PRIORITY, higher more
                                  important); key: a head, head@camera (that lane only) or @camera (the camera's
                                  own); 400 with the reason, 404 for an unknown head
+    POST /api/heads              a head's config as under ``heads:`` (JSON or YAML): Engine.add_head, 201 once it
+                                 is ready; 400 naming the bad field, 409 with no seat free, 422 if it fails to build
+    DELETE /api/heads/<head>     Engine.remove_head; 404 for an unknown head, 400 for the last one
     GET  /api/latest/<head>.jpg  the head's newest result as a picture (?width=N, default 640; ?camera=NAME, default
                                  the first camera the head serves; 400 naming the cameras for an unknown one); 204
                                  before its first
     GET  /metrics                Prometheus text format (``vpengine_*``)
 
-The stack is the standard library's threading HTTP server: six routes and a thread per connection need no
+The stack is the standard library's threading HTTP server: eight routes and a thread per connection need no
 framework, and the engine's process gains no event loop. ``prometheus-client`` (the ``web`` extra) formats the
 metrics. Requests do nothing to the engine beyond reading its control block, borrowing one result per picture,
-``set_rate`` and ``set_priority``; pictures are bounded (Note [Pictures and frames] in ``pictures.py``).
+``set_rate``, ``set_priority``, ``add_head`` and ``remove_head``; pictures are bounded (Note [Pictures and frames] in ``pictures.py``).
 
 Note [Who may talk to the view]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
@@ -277,6 +280,12 @@ class _Handler(BaseHTTPRequestHandler):
             elif path.startswith("/api/priority/"):
                 self._only(method, "PUT")
                 self._put_priority(unquote(path[len("/api/priority/") :]), body)
+            elif path == "/api/heads":
+                self._only(method, "POST")
+                self._add_head(body)
+            elif path.startswith("/api/heads/"):
+                self._only(method, "DELETE")
+                self._remove_head(unquote(path[len("/api/heads/") :]))
             elif path.startswith("/api/latest/") and path.endswith(".jpg"):
                 self._only(method, "GET")
                 self._picture(unquote(path[len("/api/latest/") : -len(".jpg")]), query)
@@ -374,6 +383,34 @@ class _Handler(BaseHTTPRequestHandler):
             raise _HttpError(HTTPStatus.BAD_REQUEST, str(e)) from None
         log.info("live view: priority of %s set to %d", key, priority)
         self._send_json(HTTPStatus.OK, {"head": head, "camera": camera, "priority": priority})
+
+    def _add_head(self, body: bytes) -> None:
+        from vpengine.engine import EngineDeadError, EngineStartError
+
+        eng = self._engine()
+        try:
+            name = eng.add_head(body.decode("utf-8", "replace"))  # JSON is YAML: one parser takes both
+        except EngineStartError as e:
+            raise _HttpError(HTTPStatus.UNPROCESSABLE_ENTITY, str(e)) from None
+        except EngineDeadError:
+            raise
+        except RuntimeError as e:  # no seat free
+            raise _HttpError(HTTPStatus.CONFLICT, str(e)) from None
+        except ValueError as e:  # ConfigError too
+            raise _HttpError(HTTPStatus.BAD_REQUEST, str(e)) from None
+        log.info("live view: head %s added", name)
+        self._send_json(HTTPStatus.CREATED, {"head": name})
+
+    def _remove_head(self, name: str) -> None:
+        eng = self._engine()
+        try:
+            eng.remove_head(name)
+        except KeyError as e:
+            raise _HttpError(HTTPStatus.NOT_FOUND, str(e.args[0]) if e.args else str(e)) from None
+        except ValueError as e:
+            raise _HttpError(HTTPStatus.BAD_REQUEST, str(e)) from None
+        log.info("live view: head %s removed", name)
+        self._send_json(HTTPStatus.OK, {"removed": name})
 
     def _picture(self, head: str, query: dict[str, list[str]]) -> None:
         eng = self._engine()

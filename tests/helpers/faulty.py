@@ -27,6 +27,7 @@ class FaultOptions(Options):
     stall_every: int | None = None  # every Nth run also sleeps stall_ms (a transient lag)
     stall_ms: float = 0.0
     fail_build: bool = False
+    build_s: float = 0.0  # building takes this long (a head that compiles)
     log_at_build: str | None = None  # log this (WARNING, logger vpengine.faulty) when built
 
 
@@ -45,6 +46,8 @@ class FaultyHead(TinyDepthHead):
         fault = ctx.options(FaultOptions)
         if fault.fail_build and not ctx.plan_only:
             raise RuntimeError("injected build failure")
+        if fault.build_s and not ctx.plan_only:
+            time.sleep(fault.build_s)
         if fault.log_at_build and not ctx.plan_only:
             logging.getLogger("vpengine.faulty").warning("%s", fault.log_at_build)
         return cls(ctx, fault)

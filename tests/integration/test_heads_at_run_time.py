@@ -212,3 +212,83 @@ def test_the_live_view_adds_and_removes_heads_and_says_why_it_will_not():
         assert status == 404 and "no head named 'nope'" in reply["error"]
         assert request(url, "GET")[0] == 405
         assert set(eng.wait(eng.submit(frame(1)), timeout=30)) == {"depth", "seg"}
+
+
+def test_other_callers_go_on_unharmed_while_heads_come_and_go():
+    """stats, set_priority, set_rate, results and latest from other threads during add/remove cycles: no error but
+    the documented ones (an unknown head while it is away), and every removed mailbox unmapped though they never stop
+    calling."""
+    with Engine(two_heads("thread")) as eng:
+        stop, errors = threading.Event(), []
+        img = frame(0)
+
+        def call(fn):
+            while not stop.is_set():
+                try:
+                    fn()
+                except KeyError as e:  # det2 away: the documented error
+                    if "det2" not in str(e):
+                        errors.append(e)
+                except BaseException as e:
+                    errors.append(e)
+
+        callers = [
+            lambda: eng.stats(),
+            lambda: eng.set_priority("det2", 3),
+            lambda: eng.set_rate("det2", 20),
+            lambda: eng.results(timeout=0.05),
+            lambda: eng.latest("det2"),
+        ]
+        threads = [threading.Thread(target=call, args=(fn,), daemon=True) for fn in callers]
+        for t in threads:
+            t.start()
+        try:
+            for _ in range(15):
+                eng.add_head(DET2)
+                eng.wait(eng.submit(img), timeout=30)
+                eng.remove_head("det2")
+        finally:
+            stop.set()
+            for t in threads:
+                t.join(10)
+        assert not errors, errors[:3]
+        assert not eng._res.fence._deferred  # each removed mailbox was unmapped once the calls before it ended
+        assert set(eng.wait(eng.submit(img), timeout=30)) == {"depth", "seg"}
+
+
+def test_stop_while_a_head_warms_up_ends_the_add_at_once():
+    eng = Engine(two_heads("thread")).start()
+    slow = {"name": "slow", "model": "helpers.faulty:FaultyHead", "options": {"build_s": 30}}
+    outcome = []
+    adder = threading.Thread(target=lambda: outcome.append(_raised(lambda: eng.add_head(slow))))
+    adder.start()
+    time.sleep(1.0)
+    t = time.monotonic()
+    eng.stop()
+    adder.join(20)
+    assert not adder.is_alive() and time.monotonic() - t < 20
+    assert outcome and isinstance(outcome[0], RuntimeError) and "stop" in str(outcome[0])
+
+
+def _raised(fn):
+    try:
+        fn()
+    except BaseException as e:
+        return e
+    return None
+
+
+def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use():
+    """Thread mode: a removed head whose model does not return within runtime.stop_timeout_s is abandoned; its seat
+    is retired, not handed to the next head, which would share its features reader with the old thread."""
+    with Engine(two_heads("thread", "runtime.stop_timeout_s=0.5", "runtime.spare_heads=2")) as eng:
+        stuck = {"name": "stuck", "model": "helpers.faulty:FaultyHead", "options": {"hang_at_run": 1, "hang_s": 3}}
+        eng.add_head(stuck)
+        eng.submit(frame(0))
+        time.sleep(0.5)  # it is inside its hang
+        eng.remove_head("stuck")
+        assert eng.lanes.seats == ("+1",)  # +0 stays out of use while its thread lives
+        eng.add_head(DET2)
+        for i in range(10):  # the old thread wakes meanwhile and leaves; det2 is unharmed
+            assert "det2" in eng.wait(eng.submit(frame(i)), timeout=30)
+            time.sleep(0.4)

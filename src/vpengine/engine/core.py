@@ -83,6 +83,10 @@ def _fenced(method: _F) -> _F:
     return cast(_F, call)
 
 
+def _env_for(setup: CudaSetup | None, cfg: EngineConfig, name: str) -> dict[str, str]:
+    return worker_env(cfg, setup, name)
+
+
 class _Resources:
     """What must be released even if the user forgets stop(): workers, mailboxes, control block. Refers to nothing
     that refers to the Engine, so that an Engine nobody refers to is collected and this is closed by its finalizer."""
@@ -164,6 +168,7 @@ class Engine:
         self._cuda: CudaSetup | None = None  # set at start on CUDA
         self._handoffs = Handoffs()  # thread mode: replaced at start (runtime/handoff.py)
         self._seats: dict[str, str] = {}  # head added at run time -> its seat (Note [Heads at run time])
+        self._heads_lock = threading.Lock()  # one add_head or remove_head at a time
 
     # ------------------------------------------------------------------------------------------ lifecycle
     def start(self) -> Engine:
@@ -194,7 +199,7 @@ class Engine:
                 from vpengine.runtime.process import ProcessRunner
 
                 # not a bound method: the runner must not refer to the Engine (see _Resources)
-                env_for = functools.partial(worker_env, cfg, self._cuda)
+                env_for = functools.partial(_env_for, self._cuda)
                 res.runner = ProcessRunner(specs, res.rings, res.control, cfg, env_for=env_for)
             else:
                 from vpengine.runtime.handoff import make_handoffs

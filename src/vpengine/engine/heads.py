@@ -24,6 +24,7 @@ from vpengine.config import EngineConfig, HeadConfig, load_config
 from vpengine.models.weights import check_checkpoints
 from vpengine.runtime.lanes import Lanes, make_lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
+from vpengine.runtime.supervisor import EngineDeadError
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotRing
 
@@ -31,9 +32,6 @@ if TYPE_CHECKING:
     from vpengine.engine.core import Engine
 
 log = logging.getLogger("vpengine")
-
-#: one add or remove at a time, per process (they rename shared entries, which must not interleave)
-_LOCK = threading.Lock()
 
 
 def head_spec(plan: Plan, rings: dict[str, SlotRing], name: str, config: dict[str, Any]) -> WorkerSpec:
@@ -82,7 +80,7 @@ def _rename(engine: Engine, renames: dict[str, str], clear: bool) -> None:
 def add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
     engine._require_running()
     res = engine._res
-    with _LOCK:
+    with engine._heads_lock:
         raw = engine.config.model_dump(mode="json")
         cfg = load_config({**raw, "heads": [*raw["heads"], _head_data(head)]})
         h = cfg.heads[-1]
@@ -96,31 +94,36 @@ def add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             )
         lanes = make_lanes(cfg, seats[1:])
         plan = replace(make_plan(cfg), lanes=lanes)
-        check_checkpoints(cfg, {h.name: plan.heads[h.name]})
+        model = plan.heads[h.name]
+        check_checkpoints(cfg, {h.name: model})
         box = next(m for m in mailboxes(plan, cfg.mode == "process") if m["name"] == f"out.{h.name}")
         check_preallocation([box])
-        ring = SlotRing.create(**box)
+        control, runner, governor = res.control, res.runner, res.governor
+        if control is None or runner is None or governor is None:
+            raise EngineDeadError("engine is stopped")
         renames = lanes.seat_renames(seats[0], h.name)
-        assert res.control is not None and res.runner is not None and res.governor is not None
+        ring = SlotRing.create(**box)
+        started = False
         try:
             _rename(engine, renames, clear=False)
             for lane in lanes.of(h.name):
-                res.control.set_rate(lane.entry, lane.rate_hz)
+                control.set_rate(lane.entry, lane.rate_hz)
             res.rings[ring.name] = ring
             engine._handoffs.add_head(h.name, ring)
-            res.runner.add(head_spec(plan, res.rings, h.name, cfg.model_dump(mode="json")), ring)
+            engine.boundary.add_head(h.name, model.meta, model.output_spec, h.output.grid == "native")
+            started = True
+            runner.add(head_spec(plan, res.rings, h.name, cfg.model_dump(mode="json")), ring)
+            engine._require_running()  # stopped while it warmed up: nothing to attach it to
+            engine._outbox.add_head(h.name, model, ring, lanes)
         except BaseException:
+            left = runner.remove(h.name) if started else []
+            engine.boundary.remove_head(h.name)
             engine._handoffs.remove_head(h.name)
-            res.rings.pop(ring.name, None)
-            _rename(engine, {new: old for old, new in renames.items()}, clear=True)
-            ring.close()
+            _give_back(engine, {new: old for old, new in renames.items()}, h.name, ring, left)
             raise
-        model = plan.heads[h.name]
-        engine.boundary.add_head(h.name, model.meta, model.output_spec, h.output.grid == "native")
-        engine._outbox.add_head(h.name, model, ring, lanes)
         engine._seats[h.name] = seats[0]
         engine.config, engine.plan = cfg, plan
-        res.governor.relane(cfg, lanes)
+        governor.relane(cfg, lanes)
         log.info("head %r (%s) added, in seat %s", h.name, h.model, seats[0])
         return h.name
 
@@ -128,7 +131,7 @@ def add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
 def remove_head(engine: Engine, name: str) -> None:
     engine._require_running()
     res = engine._res
-    with _LOCK:
+    with engine._heads_lock:
         heads = list(engine.plan.heads)
         if name == "foundation":
             raise ValueError("the foundation model serves every head: stop the engine instead of removing it")
@@ -136,37 +139,64 @@ def remove_head(engine: Engine, name: str) -> None:
             raise KeyError(f"no head named {name!r}; heads: {heads}")
         if len(heads) == 1:
             raise ValueError(f"{name!r} is the engine's last head: stop the engine instead of removing it")
-        assert res.control is not None and res.runner is not None and res.governor is not None
+        control, runner, governor = res.control, res.runner, res.governor
+        if control is None or runner is None or governor is None:
+            raise EngineDeadError("engine is stopped")
         ring = res.rings[f"out.{name}"]
-        for thread in res.runner.remove(name):
-            res.fence.hold_until_gone(thread)
+        left = runner.remove(name)
         raw = engine.config.model_dump(mode="json")
         cfg = load_config({**raw, "heads": [x for x in raw["heads"] if x["name"] != name]})
         seat = engine._seats.pop(name, None)
-        renames = _seat_back(engine.lanes, res.control.index, name, seat)
-        lanes = make_lanes(cfg, tuple(sorted([*engine.lanes.seats, *([seat] if seat else [])], key=_seat_order)))
-        plan = replace(engine.plan, cfg=cfg, heads={h: m for h, m in engine.plan.heads.items() if h != name})
-        plan = replace(plan, lanes=lanes)
+        back = _seat_back(engine.lanes, control.index, name, seat, retire=bool(left))
+        freed = (seat,) if seat is not None and not left else ()
+        lanes = make_lanes(cfg, tuple(sorted([*engine.lanes.seats, *freed], key=_seat_order)))
+        heads_left = {h: m for h, m in engine.plan.heads.items() if h != name}
+        plan = replace(engine.plan, cfg=cfg, heads=heads_left, lanes=lanes)
         engine._outbox.remove_head(name, lanes)
         engine.boundary.remove_head(name)
         engine._handoffs.remove_head(name)
         engine.config, engine.plan = cfg, plan
-        res.governor.relane(cfg, lanes)
+        governor.relane(cfg, lanes)
+        _give_back(engine, back, name, ring, left)
+        log.info("head %r removed%s", name, f", seat {seat} free again" if freed else "")
+
+
+def _give_back(
+    engine: Engine, renames: dict[str, str], name: str, ring: SlotRing, left: list[threading.Thread]
+) -> None:
+    """What a head held goes back: its entries and readers cleared and renamed (to its seat, or retired), its output
+    mailbox unmapped once no call in flight and no thread left behind (``left``: a thread-mode worker that did not
+    stop) can hold it; then its device memory."""
+    res = engine._res
+    res.rings.pop(ring.name, None)
+    if not left:
         _rename(engine, renames, clear=True)
-        res.rings.pop(ring.name, None)
-        res.fence.defer(ring.close)  # once no call in flight holds it (Note [Unmapping at stop])
+
+    def close() -> None:
+        ring.close()
         _free_device_memory(engine.config)
-        log.info("head %r removed%s", name, f", seat {seat} free again" if seat else "")
+
+    def after_threads() -> None:
+        for t in left:
+            t.join()
+        res.fence.defer(close)
+
+    if left:  # its seat stays retired (renamed away from the head's names, never cleared: the thread may write)
+        _rename(engine, renames, clear=False)
+        threading.Thread(target=after_threads, name=f"vpengine-unmap-{name}", daemon=True).start()
+    else:
+        res.fence.defer(close)  # Note [Unmapping at stop]: once no call in flight holds it
 
 
 def _seat_order(seat: str) -> int:
     return int(seat.lstrip("+"))
 
 
-def _seat_back(lanes: Lanes, taken: Mapping[str, int], name: str, seat: str | None) -> dict[str, str]:
-    """Where a removed head's entries and readers go: back to its seat, or (a head of the config, which has none)
-    to names no model can have, retired (``taken``: the names in use)."""
-    if seat is not None:
+def _seat_back(lanes: Lanes, taken: Mapping[str, int], name: str, seat: str | None, retire: bool) -> dict[str, str]:
+    """Where a removed head's entries and readers go: back to its seat, or (a head of the config, which has none,
+    or ``retire``: one whose worker thread is still there) to names no model can have, retired (``taken``: the names
+    in use)."""
+    if seat is not None and not retire:
         return {new: old for old, new in lanes.seat_renames(seat, name).items()}
     k = 1
     while f"~{k}:{name}" in taken:

@@ -393,7 +393,10 @@ class Outbox:
         """Per head: published, delivered to results(), missed by it, pending, dropped, streaming, borrowed."""
         out = {}
         for h in self.heads:
-            st = self._rings[f"out.{h}"].stats()
+            ring = self._rings.get(f"out.{h}")
+            if ring is None:
+                continue  # removed meanwhile
+            st = ring.stats()
             rr = st["readers"]["results"]  # type: ignore[index]
             out[h] = {
                 "published": st["published"],

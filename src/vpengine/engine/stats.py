@@ -27,9 +27,12 @@ def model_stats(
     per_camera: dict[str, dict[str, Any]] = {}
     for name, mine in lanes.by_model.items():
         several = not mine[0].only
-        snap = ctl.snapshot(name, cameras=[lane.entry for lane in mine] if several else None)
-        readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
-        reads = [readers[lane.reader] for lane in mine]  # type: ignore[index]
+        try:
+            snap = ctl.snapshot(name, cameras=[lane.entry for lane in mine] if several else None)
+            readers = rings["input" if name == "foundation" else "features"].stats()["readers"]
+            reads = [readers[lane.reader] for lane in mine]  # type: ignore[index]
+        except KeyError:  # a head removed while these stats were read (Note [Heads at run time])
+            continue
         snap["frames_seen"] = sum(r["reads"] + r["missed"] for r in reads)
         snap["pending"] = sum(r["pending"] for r in reads)
         models[name] = snap
@@ -99,6 +102,6 @@ def engine_stats(engine: Engine) -> dict[str, Any]:
         "models": models,
         "cameras": per_camera,
         "results": engine._outbox.stats(),
-        "mailboxes": {n: r.stats() for n, r in rings.items()},
+        "mailboxes": {n: r.stats() for n, r in list(rings.items())},
         "memory": engine.memory_report,
     }

@@ -131,9 +131,9 @@ class ControlBlock:
         time] in runtime/lanes.py); a process that attaches after it sees the new name."""
         if new in self.index:
             raise ValueError(f"the control block has an entry {new!r} already")
-        i = self.index.pop(old)
+        # new objects, never changed in place: other threads read and iterate them meanwhile
         self.names = tuple(new if n == old else n for n in self.names)
-        self.index[new] = i
+        self.index = {n: i for i, n in enumerate(self.names)}
 
     def clear(self, name: str) -> None:
         """Zero entry ``name`` as at create (no rate limit, no cap): a seat given back starts afresh. Only while

@@ -82,6 +82,7 @@ from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any
 
+from vpengine.config import EngineConfig
 from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.sockets import (
     Failed,
@@ -203,9 +204,9 @@ def _join_all(children: list[_Child], timeout: float) -> None:
 
 
 class ProcessRunner(Runner):
-    def __init__(self, *args, env_for: Callable[[str], dict[str, str]] | None = None, **kw) -> None:  # type: ignore[no-untyped-def]
+    def __init__(self, *args, env_for: Callable[[EngineConfig, str], dict[str, str]] | None = None, **kw) -> None:  # type: ignore[no-untyped-def]
         super().__init__(*args, **kw)
-        self._env_for = env_for or (lambda name: {})
+        self._env_for = env_for or (lambda cfg, name: {})
         self._children: dict[str, _Child] = {}
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)  # a full pipe already wakes the monitor: never block a writer on it
@@ -252,7 +253,8 @@ class ProcessRunner(Runner):
         child_spec = replace(
             spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
         )
-        env = {**os.environ, **self._env_for(name)}
+        # the worker's own config: a head added at run time is not in the one the engine started with
+        env = {**os.environ, **self._env_for(EngineConfig.model_validate(spec.config), name)}
         proc, conn = start_with_socket(
             lambda theirs: self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs)
         )
@@ -386,6 +388,7 @@ class ProcessRunner(Runner):
             self._children, self._zygote, self._retired = {}, None, []
             return []
         self._stopping = True  # before the lock: a launch waiting on the zygote, lock held, gives up
+        self._abandon_adds()
         with self._lock:
             self._pending.clear()
         with contextlib.suppress(OSError):

@@ -104,12 +104,14 @@ class Runner(ABC):
     # ------------------------------------------------------------------------------ heads at run time
     def add(self, spec: WorkerSpec, out_ring: SlotRing) -> None:
         """Start the worker of a head added at run time (Note [Heads at run time] in lanes.py) and wait until it is
-        ready; EngineStartError with its start-up error (and nothing left of it) if it is not."""
+        ready. EngineStartError with its start-up error if it is not, EngineDeadError if the engine stops meanwhile;
+        then the caller takes it away again with ``remove``."""
         name = spec.name
         done: tuple[threading.Event, list[str]] = (threading.Event(), [])
         with self._lock:
             if self._stopping:
                 raise EngineDeadError("engine is stopped")
+            self.cfg = EngineConfig.model_validate(spec.config)  # the engine's config now: with the head
             self.specs[name] = spec
             self.rings[out_ring.name] = out_ring
             self._restarted_at[name] = collections.deque()
@@ -120,24 +122,33 @@ class Runner(ABC):
                 done[1].append(f"{name}: {e}")
                 done[0].set()
         limit = self.cfg.runtime.ready_timeout_s
-        if not done[0].wait(limit):
-            done[1].append(f"{name} was not ready within {limit} s (runtime.ready_timeout_s)")
-        with self._lock:
+        ready = done[0].wait(limit)
+        with self._lock:  # the monitor reports under the lock: nothing it heard is lost between here and there
             self._adding.pop(name, None)
-        if done[1]:
-            self.remove(name)
-            raise EngineStartError("\n".join(done[1]))
+            errors = list(done[1]) if ready else [f"{name} was not ready within {limit} s (runtime.ready_timeout_s)"]
+            stopping = self._stopping
+        if stopping:
+            raise EngineDeadError(f"engine stopped while {name} was being added")
+        if errors:
+            raise EngineStartError("\n".join(errors))
+
+    def _abandon_adds(self) -> None:
+        """At stop: a head being added will not be ready; its ``add`` returns now (and raises)."""
+        with self._lock:
+            for done in self._adding.values():
+                done[0].set()
 
     def _added(self, name: str, error: str | None) -> bool:
         """The monitor heard that worker ``name`` is ready (``error`` None) or failed to start; True if it is one
         being added (then it is the caller of ``add``'s to handle, not restarted)."""
-        done = self._adding.get(name)
-        if done is None:
-            return False
-        if error is not None:
-            done[1].append(error)
-        done[0].set()
-        return True
+        with self._lock:
+            done = self._adding.get(name)
+            if done is None:
+                return False
+            if error is not None:
+                done[1].append(error)
+            done[0].set()
+            return True
 
     def remove(self, name: str) -> list[threading.Thread]:
         """Stop worker ``name`` for good and forget it (a head removed at run time): no restart, its pins released,
@@ -151,8 +162,7 @@ class Runner(ABC):
             self._removing.discard(name)
             self._cleanup_after(name)
             self.control.set_state(name, STOPPED)
-            spec = self.specs.pop(name)
-            self.rings.pop(spec.out_ring.name, None)  # its owner unmaps it
+            self.specs.pop(name)  # its output mailbox stays in ``rings``: its owner unmaps it
             self._restarted_at.pop(name, None)
         return left
 

@@ -64,6 +64,8 @@ class ThreadRunner(Runner):
         try:
             core.run(lambda: self._should_stop(name, gen))
         except BaseException as e:
+            if gen <= self._retired_gen.get(name, 0):
+                return  # its head was removed, and its names may be another's now: it leaves without a word
             text = describe_exception(name, e)
             self.control.add(name, "errors")
             self.control.set_error(name, text)
@@ -175,6 +177,8 @@ class ThreadRunner(Runner):
     def stop(self) -> list[str]:
         with self._lock:
             self._stopping = True
+            threads = list(self._threads.items())  # add() may launch one meanwhile
+        self._abandon_adds()
         self.control.request_stop()
         for ring in self.rings.values():
             ring.wake_all()
@@ -183,7 +187,7 @@ class ThreadRunner(Runner):
         self._events.put(("", "stop", "", 0))  # the monitor leaves now, not at its next poll
         deadline = time.monotonic() + self.cfg.runtime.stop_timeout_s
         abandoned = []
-        for name, t in self._threads.items():
+        for name, t in threads:
             t.join(max(0.0, deadline - time.monotonic()))
             if t.is_alive():
                 abandoned.append(name)

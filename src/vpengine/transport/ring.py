@@ -377,11 +377,12 @@ class SlotRing:
         readers by index."""
         if new in self._reader_index:
             raise ValueError(f"ring {self.name!r} has a reader {new!r} already")
-        index = self._reader_index.pop(old)
+        index = self._reader_index[old]
         readers = list(self.desc.readers)
         readers[index] = replace(readers[index], name=new)
         self.desc = replace(self.desc, readers=tuple(readers))
-        self._reader_index[new] = index
+        # a new dict, not this one changed: other threads iterate it meanwhile (stats)
+        self._reader_index = {r.name: i for i, r in enumerate(readers)}
 
     def clear_reader(self, name: str) -> None:
         """Make reader ``name`` inactive and forget what it read, missed and pins: a seat given back."""

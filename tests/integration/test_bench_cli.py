@@ -165,6 +165,22 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert bad.returncode != 0 and "--heads 'nope': the config's heads are depth, seg, det" in bad.stderr
 
 
+def test_heads_bench_adds_and_removes_a_head_under_a_stream_and_counts_what_is_left(tmp_path):
+    p = vpengine(
+        "bench", "heads", "-c", "tiny", "--set", "device=cpu", "--cycles", "2", "--hold", "0.5",
+        "--out", str(tmp_path), "--name", "heads", timeout=300,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    res = json.loads((tmp_path / "heads.json").read_text())
+    assert res["serving"] == ["depth", "seg"] and res["added"] == "det" and len(res["cycles"]) == 2
+    for c in res["cycles"]:
+        assert c["add_s"] > 0 and c["runs"] > 0  # it served while attached
+        assert set(c["longest_gap_ms"]) == {"depth", "seg"} and all(g > 0 for g in c["longest_gap_ms"].values())
+    assert res["after"]["fds"] == res["before"]["fds"] and res["after"]["threads"] == res["before"]["threads"]
+    bad = vpengine("bench", "heads", "-c", "tiny", "--set", "device=cpu", "--head", "nope", "--out", str(tmp_path))
+    assert bad.returncode != 0 and "--head 'nope'" in bad.stderr
+
+
 def test_run_street_viz_runs_from_a_clone_on_the_shipped_sample_into_a_folder_of_its_own(tmp_path):
     tracked = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
     script = ROOT / "benchmarks" / "run_street_viz.py"

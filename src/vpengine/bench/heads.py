@@ -122,9 +122,9 @@ def main(args: argparse.Namespace) -> int:
             res["before"] = _usage()
             for k in range(args.cycles):
                 before = _device_used(cfg.device)
-                t0 = time.time()
+                t0 = time.monotonic()
                 eng.add_head(added)
-                t1 = time.time()
+                t1 = time.monotonic()
                 time.sleep(args.hold)
                 runs = eng.stats()["models"][name]["runs"]
                 with_head = _device_used(cfg.device)

@@ -8,6 +8,7 @@ Integer outputs (class ids, labels, counts) must be equal.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 
@@ -458,21 +459,35 @@ def representative_recipes() -> list:
     return [min(rs, key=lambda r: _SIZES.get(str(r.defaults.get("size")), 9)) for rs in groups.values()]
 
 
+def _foundation_config(name: str) -> dict:
+    base = {"mode": "thread", "input": {"height": 112, "width": 112}, "weights": {"random_weights": True}}
+    return {**base, "foundation_model": {"model": name, "preprocess": {"size": 112}}}
+
+
+@functools.cache
+def _foundations_by_size() -> list[dict]:
+    """Every foundation recipe's config, the fewest parameters first (ties in registry order). Planned once: a plan
+    builds its backbone, a second or more even on the meta device, and every head tries the backbones in turn."""
+    sized = []
+    for fm in recipes("foundation"):
+        cfg = _foundation_config(fm.name)
+        sized.append((sum(p.numel() for p in make_plan(load_config(cfg)).foundation.parameters()), cfg))
+    return [cfg for _, cfg in sorted(sized, key=lambda s: s[0])]
+
+
 def _recipe_config(recipe) -> dict | None:
     """A small config that runs ``recipe``: as the foundation model, or as a head on the smallest backbone it fits."""
-    base = {"mode": "thread", "input": {"height": 112, "width": 112}, "weights": {"random_weights": True}}
     if recipe.role == "foundation":
-        return {**base, "foundation_model": {"model": recipe.name, "preprocess": {"size": 112}}}
+        return _foundation_config(recipe.name)
     head = {"name": "h", "model": recipe.name, "options": REQUIRED_OPTIONS.get(recipe.target, {})}
-    fits = []
-    for fm in recipes("foundation"):
-        cfg = {**base, "foundation_model": {"model": fm.name, "preprocess": {"size": 112}}, "heads": [head]}
+    for fm in _foundations_by_size():
+        cfg = {**fm, "heads": [head]}
         try:
-            plan = make_plan(load_config(cfg))
+            make_plan(load_config(cfg))
         except ValueError:
             continue
-        fits.append((sum(p.numel() for p in plan.foundation.parameters()), cfg))
-    return min(fits, key=lambda b: b[0])[1] if fits else None
+        return cfg
+    return None
 
 
 def _recipe_param(r):

@@ -8,6 +8,7 @@ Integer outputs (class ids, labels, counts) must be equal.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 
@@ -95,12 +96,10 @@ def onnx_io(path) -> tuple[list[tuple[str, str, tuple[int, ...]]], list[tuple[st
 
 
 # ------------------------------------------------------------------------------------------ eager vs backends
-@pytest.mark.parametrize("name", TINY_MODELS)
-def test_onnx_export_has_the_spec_io_passes_the_checker_and_matches_pytorch(name, tmp_path):
-    cfg = tiny("thread")
-    model = build(cfg, name)
+def assert_export_is_the_models(ex, model: Model, cfg, name: str, tmp_path) -> None:
+    """The ONNX executor ``ex`` of tiny ``model`` exported a file into ``tmp_path``'s cache that has the model's specs
+    as inputs and outputs (a batch of one frame), passes the checker, and runs as the eager model on three frames."""
     specs_in, specs_out = dict(model.input_spec), dict(model.output_spec)
-    ex = make_executor(model, "onnx", CPU, name, cache_dir=tmp_path)
     path = ex.artifact.path
     assert path.is_file() and path.is_relative_to(tmp_path / "onnx")
     onnx.checker.check_model(str(path), full_check=True)
@@ -116,7 +115,18 @@ def test_onnx_export_has_the_spec_io_passes_the_checker_and_matches_pytorch(name
         assert_outputs_match(snapshot(ex(x)), want, 1e-4, f"{name} onnx vs eager, frame {i}")
 
 
-@pytest.mark.parametrize("name", [pytest.param("foundation", marks=pytest.mark.slow), "depth", "seg", "det"])
+# The foundation model's export is checked the same way by test_onnx_cache_is_reused_and_a_new_input_size_exports_again,
+# which exports it first.
+@pytest.mark.parametrize("name", [n for n in TINY_MODELS if n != "foundation"])
+def test_onnx_export_has_the_spec_io_passes_the_checker_and_matches_pytorch(name, tmp_path):
+    cfg = tiny("thread")
+    model = build(cfg, name)
+    assert_export_is_the_models(make_executor(model, "onnx", CPU, name, cache_dir=tmp_path), model, cfg, name, tmp_path)
+
+
+# The foundation model's compile (inductor's C++ for the whole preprocessing and ViT) is checked the same way, and
+# at batch sizes 1 to 3, by tests/unit/test_batching.py::test_backends_run_a_batch_as_its_frames_alone.
+@pytest.mark.parametrize("name", ["depth", "seg", "det"])
 def test_compile_matches_eager_on_new_input_tensors_without_recompiling(name):
     cfg = tiny("thread")
     ex = make_executor(build(cfg, name), "compile", CPU, name)
@@ -360,8 +370,10 @@ def test_cache_key_follows_everything_that_shapes_the_graph():
 
 def test_onnx_cache_is_reused_and_a_new_input_size_exports_again(tmp_path):
     cfg = tiny("thread")
-    first = make_executor(build(cfg, "foundation"), "onnx", CPU, "foundation", cache_dir=tmp_path)
+    model = build(cfg, "foundation")
+    first = make_executor(model, "onnx", CPU, "foundation", cache_dir=tmp_path)
     assert first.artifact.exported
+    assert_export_is_the_models(first, model, cfg, "foundation", tmp_path)
     path = first.artifact.path
     mtime = path.stat().st_mtime_ns
     x = inputs_for(cfg, "foundation", 0)
@@ -458,21 +470,35 @@ def representative_recipes() -> list:
     return [min(rs, key=lambda r: _SIZES.get(str(r.defaults.get("size")), 9)) for rs in groups.values()]
 
 
+def _foundation_config(name: str) -> dict:
+    base = {"mode": "thread", "input": {"height": 112, "width": 112}, "weights": {"random_weights": True}}
+    return {**base, "foundation_model": {"model": name, "preprocess": {"size": 112}}}
+
+
+@functools.cache
+def _foundations_by_size() -> list[dict]:
+    """Every foundation recipe's config, the fewest parameters first (ties in registry order). Planned once: a plan
+    builds its backbone, a second or more even on the meta device, and every head tries the backbones in turn."""
+    sized = []
+    for fm in recipes("foundation"):
+        cfg = _foundation_config(fm.name)
+        sized.append((sum(p.numel() for p in make_plan(load_config(cfg)).foundation.parameters()), cfg))
+    return [cfg for _, cfg in sorted(sized, key=lambda s: s[0])]
+
+
 def _recipe_config(recipe) -> dict | None:
     """A small config that runs ``recipe``: as the foundation model, or as a head on the smallest backbone it fits."""
-    base = {"mode": "thread", "input": {"height": 112, "width": 112}, "weights": {"random_weights": True}}
     if recipe.role == "foundation":
-        return {**base, "foundation_model": {"model": recipe.name, "preprocess": {"size": 112}}}
+        return _foundation_config(recipe.name)
     head = {"name": "h", "model": recipe.name, "options": REQUIRED_OPTIONS.get(recipe.target, {})}
-    fits = []
-    for fm in recipes("foundation"):
-        cfg = {**base, "foundation_model": {"model": fm.name, "preprocess": {"size": 112}}, "heads": [head]}
+    for fm in _foundations_by_size():
+        cfg = {**fm, "heads": [head]}
         try:
-            plan = make_plan(load_config(cfg))
+            make_plan(load_config(cfg))
         except ValueError:
             continue
-        fits.append((sum(p.numel() for p in plan.foundation.parameters()), cfg))
-    return min(fits, key=lambda b: b[0])[1] if fits else None
+        return cfg
+    return None
 
 
 def _recipe_param(r):

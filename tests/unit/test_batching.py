@@ -192,10 +192,15 @@ def test_backends_run_a_batch_as_its_frames_alone(backend, name, tmp_path):
     cfg = tiny("thread")
     model = build(cfg, name)
     inputs = tiny_inputs(cfg, name, model)
+    # inputs of both kinds: inference tensors (the last frame, and every frame of a head's features) and plain ones
+    # (the batches, and the foundation's other frames)
+    with torch.inference_mode():
+        inputs[-1] = {k: v.clone() for k, v in inputs[-1].items()}
     ex = make_executor(model, backend, CPU, name, cache_dir=tmp_path, max_batch=B)
     assert ex.describe()["max_batch"] == B
-    # compile: every batch size was compiled at warm-up, so none of these calls may compile again; onnx: the export
-    # computes the exact preprocessing, which the eager model then runs too
+    # compile: every batch size was compiled at warm-up, so none of these calls may compile again, though every
+    # call gets new tensors (as mailbox slots do) of either kind; onnx: the export computes the exact
+    # preprocessing, which the eager model then runs too
     exact = exact_preprocessing() if backend == "onnx" else contextlib.nullcontext()
     with torch.compiler.set_stance("fail_on_recompile"), exact:
         alone = [{k: v.clone() for k, v in ex(x).items()} for x in inputs]

@@ -292,3 +292,19 @@ def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use():
         for i in range(10):  # the old thread wakes meanwhile and leaves; det2 is unharmed
             assert "det2" in eng.wait(eng.submit(frame(i)), timeout=30)
             time.sleep(0.4)
+
+
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_a_head_added_for_one_of_two_cameras_serves_that_camera_only(mode):
+    cfg = two_heads(mode, "cameras=[{name: front}, {name: rear}]", "runtime.spare_heads=2")
+    with Engine(cfg) as eng:
+        eng.add_head({**DET2, "cameras": ["rear"]})
+        assert eng.lanes.seats == ("+1",) and eng.lanes.served("det2") == ["rear"]
+        for i in range(3):
+            front = eng.wait(eng.submit(frame(i), camera="front"), timeout=30)
+            rear = eng.wait(eng.submit(frame(i), camera="rear"), timeout=30)
+            assert set(front) == {"depth", "seg"} and set(rear) == {"depth", "seg", "det2"}
+        assert eng.stats()["cameras"]["rear"]["det2"]["runs"] == 3 and "det2" not in eng.stats()["cameras"]["front"]
+        eng.remove_head("det2")
+        eng.add_head({**DET2, "cameras": ["front"]})  # the seat given back serves the other camera now
+        assert set(eng.wait(eng.submit(frame(5), camera="front"), timeout=30)) == {"depth", "seg", "det2"}

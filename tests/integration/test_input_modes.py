@@ -56,5 +56,7 @@ def test_fifo_models_get_mailboxes_with_room_to_catch_up():
         with Engine(tiny("thread", *overrides)) as e:
             return e._res.rings["input"].n_slots, e._res.rings["features"].n_slots
 
-    assert sizes() == (3, 5)  # latest everywhere: the minimum, readers + 2
-    assert sizes("foundation_model.input_mode=fifo", "heads.seg.input_mode=fifo") == (7, 9)
+    assert sizes("runtime.spare_heads=0") == (3, 5)  # latest everywhere: the minimum, readers + 2
+    assert sizes() == (3, 6)  # and a slot for the spare seat's reader (Note [Heads at run time])
+    fifo = ("foundation_model.input_mode=fifo", "heads.seg.input_mode=fifo")
+    assert sizes("runtime.spare_heads=0", *fifo) == (7, 9)

@@ -560,8 +560,8 @@ class Engine:
         self._require_running()
         ctl = self._res.control
         assert ctl is not None
-        if model not in ctl.index:
-            raise KeyError(f"no model named {model!r}; models: {list(ctl.names)}")
+        if model not in self.lanes.by_model:  # the control block also holds the spare seats' entries
+            raise KeyError(f"no model named {model!r}; models: {list(self.lanes.by_model)}")
         return ctl
 
     def stats(self) -> dict[str, Any]:

@@ -473,12 +473,14 @@ class WorkerCore:
     def _failed(self, pairs: list[tuple[SlotInfo, SlotInfo]], error: BaseException) -> None:
         """A run raised ``error`` (its output slots are given back): answer its frames, then count and log the
         error and go on, or raise it again where it leaves this worker unable to go on (Note [Frame errors])."""
+        poisoned = poisons(error)
+        if not poisoned:  # counted before the frames are answered: whoever the answer wakes sees the count
+            self.control.add(self.name, "errors")
+            self.control.set_error(self.name, describe_exception(self.name, error))
         for slot, _ in pairs:
             self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
-        if poisons(error):
+        if poisoned:
             raise error
-        self.control.add(self.name, "errors")
-        self.control.set_error(self.name, describe_exception(self.name, error))
         where = traceback.extract_tb(error.__traceback__)[-1:]
         reason = (type(error).__name__, *((where[0].filename, where[0].lineno or 0) if where else ("", 0)))
         if reason not in self._reasons:  # once per reason: a model failing on every frame does not flood the log

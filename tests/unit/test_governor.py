@@ -317,14 +317,15 @@ def test_the_governor_thread_sleeps_while_priorities_are_equal_and_set_priority_
         assert steps == []
         gov.set_priority("depth", 5)
         assert woke.wait(10.0), "set_priority did not wake the governor"
-        n = len(steps)
-        time.sleep(0.3)
-        assert len(steps) > n  # priorities differ now: it ticks
+        n, deadline = len(steps), time.monotonic() + 10
+        while len(steps) <= n + 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(steps) > n + 3  # priorities differ now: it ticks
         gov.set_priority("depth", 0)
-        time.sleep(0.1)  # the tick under way ends
+        time.sleep(0.1)
         n = len(steps)
         time.sleep(0.3)
-        assert len(steps) == n  # equal again: asleep
+        assert len(steps) <= n + 1  # equal again: asleep (one tick under way may end); ticking gives ~30
     finally:
         gov.stop()
         control.close()

@@ -338,9 +338,8 @@ class FolderSink(Sink):
 
 class _FileWrites:
     """Note [Parallel file writes]: encoding a frame's pictures takes longer than a frame at the rates a GPU
-    runs: a 16-bit depth PNG, a colour-mapped depth PNG and a class map of a 768x576 frame took 12 + 14 + 1 ms on
-    a core of a 2-core CPU, against 6.7 ms a frame at 150 Hz, and on the one sink thread (Note [Sink thread]) a
-    lockstep run waited for them. So every file is written by a small pool of threads (OpenCV and numpy let go of the GIL
+    runs (a 16-bit depth PNG and a colour-mapped one take several frame periods of a 150 Hz run on one core),
+    and on the one sink thread (Note [Sink thread]) a lockstep run waited for them. So every file is written by a small pool of threads (OpenCV and numpy let go of the GIL
     while they encode), while the sink thread goes on with the next result; what has to be in order (the lines
     of ``detections.jsonl`` and ``depth_scale.jsonl``) stays on the sink thread. At most ``2 * workers`` files are
     in the works: one more waits for the oldest. A write that failed raises its error (naming the file) from a

@@ -181,6 +181,29 @@ def test_heads_bench_adds_and_removes_a_head_under_a_stream_and_counts_what_is_l
     assert bad.returncode != 0 and "--head 'nope'" in bad.stderr
 
 
+def test_steer_bench_measures_lanes_under_each_priority_and_a_change_through_every_door(tmp_path):
+    p = vpengine(
+        "bench", "steer", "-c", "tiny", "--set", "device=cpu", "--cameras", "2", "--seconds", "1", "--settle", "0.5",
+        "--changes", "1", "--out", str(tmp_path), "--name", "steer", timeout=300,
+    )  # fmt: skip
+    assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
+    res = json.loads((tmp_path / "steer.json").read_text())
+    lanes = {(h, c) for h in ("depth", "seg", "det") for c in ("cam0", "cam1")}
+    for phase in ("equal", "priority"):
+        rows = {(r["head"], r["camera"]): r for r in res[phase]}
+        assert set(rows) == lanes
+        assert all(r["achieved_hz"] > 0 and r["latency_ms"]["p99"] > 0 for r in rows.values())
+        raised = rows[("depth", "cam0")]["priority"]
+        assert raised == (0 if phase == "equal" else 10) and rows[("depth", "cam1")]["priority"] == 0
+    # nothing is throttled while every priority is equal (Note [Give way])
+    assert all(r["skipped_by"]["priority"] == 0 and r["cap_hz"] is None for r in res["equal"])
+    assert res["change"]["lane"] == "det@cam1" and res["change"]["priority"] == 11
+    assert set(res["change"]["doors"]) == {"api", "web", "ros2"}
+    assert all(len(v) == 1 and all(c["ms"] > 0 for c in v) for v in res["change"]["doors"].values())
+    bad = vpengine("bench", "steer", "-c", "tiny", "--set", "device=cpu", "--doors", "api,fax", "--out", str(tmp_path))
+    assert bad.returncode != 0 and "--doors: fax not known; accepted: api, web, ros2" in bad.stderr
+
+
 def test_run_street_viz_runs_from_a_clone_on_the_shipped_sample_into_a_folder_of_its_own(tmp_path):
     tracked = {p: p.stat().st_mtime_ns for p in (ROOT / "benchmarks" / "results").rglob("*") if p.is_file()}
     script = ROOT / "benchmarks" / "run_street_viz.py"

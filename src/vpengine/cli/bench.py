@@ -20,6 +20,7 @@ BENCHES = {
     "paper": ("vpengine.bench.paper", "the VPEngine paper's experiments E1-E5 and the device-time floor"),
     "cameras": ("vpengine.bench.cameras", "several cameras on one batched engine against one engine a camera"),
     "heads": ("vpengine.bench.heads", "heads added and removed while a stream runs: gaps, time, device memory"),
+    "steer": ("vpengine.bench.steer", "priorities under overload and how soon a priority change takes effect"),
     "web": ("vpengine.bench.web", "the live view's cost: E5's 30 Hz stream with and without a viewer"),
     "report": ("vpengine.bench.report", "summary.md and summary.png from a folder of results files"),
 }

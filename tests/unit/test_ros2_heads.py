@@ -7,14 +7,15 @@ No DDS here (tests/integration/test_ros2_bridge.py runs the same over DDS); the 
 
 from __future__ import annotations
 
+import itertools
 import json
-import queue
 import threading
 import time
 
 import pytest
 
 from helpers.frames import frame
+from helpers.waiting import Commands
 from tests_paths import tiny
 from vpengine.ros2 import cdr
 from vpengine.ros2.control import ControlLoop
@@ -199,18 +200,11 @@ class _SlowCore:
 
 def test_head_commands_run_one_at_a_time_off_the_control_thread_and_each_outcome_is_published(caplog):
     core = _SlowCore(build_s=1.0)
-    commands: queue.SimpleQueue = queue.SimpleQueue()
-
-    def wait_commands(timeout: float):
-        try:
-            return [commands.get(timeout=timeout)]
-        except queue.Empty:
-            return []
-
+    commands = Commands()
     published: list[HeadOutcome] = []
     heads = HeadCommands(core, lambda t: None, lambda t: None, published.append)  # type: ignore[arg-type]
     diagnostics: list[float] = []
-    loop = ControlLoop(core, diagnostics.append, wait_commands, period_s=0.2, heads=heads)  # type: ignore[arg-type]
+    loop = ControlLoop(core, diagnostics.append, commands.wait, period_s=0.2, heads=heads)  # type: ignore[arg-type]
     stop = threading.Event()
     threads = [threading.Thread(target=loop.run, args=(stop,)), threading.Thread(target=heads.run, args=(stop,))]
     for th in threads:
@@ -231,7 +225,7 @@ def test_head_commands_run_one_at_a_time_off_the_control_thread_and_each_outcome
             th.join(10)
     (applied,) = core.rates
     assert applied - sent < 0.1  # not behind the build
-    gaps = [b - a for a, b in zip(diagnostics, diagnostics[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(diagnostics)]
     assert max(gaps) < 0.4, gaps  # /diagnostics kept its beat through two builds
     assert core.order[:4] == ["a", "b", "-a", "-nope"] and core.most_at_once == 1
     assert [(o.command, o.head, o.ok) for o in published[:4]] == [

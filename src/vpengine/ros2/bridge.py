@@ -339,10 +339,12 @@ class Ros2Bridge:
         self._diag.write(diagnostics_to_dds(d))
 
     def _open_topics(self, topics: list[OutputTopic]) -> None:
-        assert self.dds is not None
+        dds = self.dds
+        if dds is None:  # a head finished building as the bridge stopped: refused, the engine as it was
+            raise RuntimeError("the bridge is stopping")
         for t in topics:
             dtype = T.Detection2DArray_ if t.msgtype == DETECTIONS_TYPE else T.Image_
-            self._writers[t.topic] = self.dds.writer(t.topic, dtype, self.opts.output_qos)
+            self._writers[t.topic] = dds.writer(t.topic, dtype, self.opts.output_qos)
 
     def _close_topics(self, topics: list[OutputTopic]) -> None:
         with self._writing:  # never under a write in progress (Note [Head commands])
@@ -350,6 +352,8 @@ class Ros2Bridge:
                 self._writers.pop(t.topic).close()
 
     def _publish_head_outcome(self, outcome: HeadOutcome) -> None:
+        if self.dds is None:  # stopped meanwhile: nobody to tell (the outcome is logged)
+            return
         self._head_events.write(T.String_(outcome.text()))
         if outcome.ok:
             self._names.write(T.String_(model_names_text(outcome.model_names)))

@@ -14,7 +14,8 @@ thread only queues head commands, and one thread of their own takes them one at 
 (the engine adds or removes one head at a time anyway; one after another, a remove sent after an add finds the head).
 Every command has an outcome, success or the engine's error, published on ``<ns>/head_events`` (topics have no reply
 channel), logged, and counted in /diagnostics; a failed command leaves the engine and the topics as they were.
-An added head's topics are opened before its first output is routed to them; a removed head's outputs stop being
+An added head's topics are opened before its outputs are routed to them (the few it may give in between, as the
+engine attaches it before the interface learns of it, are not published); a removed head's outputs stop being
 routed before its topics are closed, and an output already on its way to a closed topic is dropped by the
 transport, not published.
 """

@@ -112,9 +112,10 @@ class ControlLoop:
     reader acknowledges): at 1080p /diagnostics went silent for 3-17 s, longer than diagnostic_aggregator's stale
     timeout, and rate commands, wanted most when the machine is overloaded, waited as long. This loop waits only for
     commands (``wait_commands(timeout)`` returns the (kind, key, value) triples that arrived, kind ``rate`` from
-    the set_rate topic, ``priority`` from set_priority, ``add_head`` or ``remove_head`` (key empty), waiting at most ``timeout`` s), applies each at once and
-    publishes diagnostics right after it (the change is seen, and the diagnostics' stamp says when it was applied),
-    and otherwise publishes diagnostics every ``period_s`` on a fixed schedule. It touches the engine only through
+    the set_rate topic, ``priority`` from set_priority, ``add_head`` or ``remove_head`` (key empty), waiting at most
+    ``timeout`` s), applies each at once and publishes diagnostics right after it (the change is seen, and the
+    diagnostics' stamp says when it was applied), and otherwise publishes diagnostics every ``period_s`` on a fixed
+    schedule. It touches the engine only through
     ``set_rate``, ``set_priority`` and ``stats`` (shared-memory writes and reads), so it never waits for a frame or
     a result. ``before_diagnostics`` lets the transport refresh what only it knows (the input link: matched
     publishers, receive buffer) first. Head commands (kinds ``add_head``, ``remove_head``) take seconds, so this

@@ -4,7 +4,8 @@ The DDS bridge (:mod:`vpengine.ros2.bridge`), the rclpy node (:mod:`vpengine.ros
 sink (:mod:`vpengine.io.bag`) build on this and on its parts: :mod:`~vpengine.ros2.messages` (message types,
 decoding), :mod:`~vpengine.ros2.outputs` (each head's topics and messages), :mod:`~vpengine.ros2.frames` (the book of
 recent frames), :mod:`~vpengine.ros2.control` (rate and priority commands, the control thread),
-:mod:`~vpengine.ros2.heads` (heads added and removed at run time) and :mod:`~vpengine.ros2.diagnostics`. None of them imports a middleware.
+:mod:`~vpengine.ros2.heads` (heads added and removed at run time) and :mod:`~vpengine.ros2.diagnostics`. None of
+them imports a middleware.
 
 Note [Output headers]: every output of a head carries the ``header`` (stamp *and* frame_id) of the input message it
 was computed from, never the time of publishing. The engine only knows integer frame ids and a float capture time;

@@ -107,6 +107,26 @@ def test_an_added_head_gets_its_topics_names_and_status_and_a_removed_one_loses_
         core.stop()
 
 
+def test_with_several_cameras_an_added_head_gets_a_topic_on_each_camera_it_serves():
+    core = Ros2Core(tiny("thread"), cameras=["front", "rear"], overrides=["runtime.spare_heads=2"])
+    core.start()
+    hooks = Topics()
+    try:
+        rear = core.add_head("{name: seg2, model: tiny_seg, cameras: [rear]}", hooks.open)
+        both = core.add_head("{name: depth2, model: tiny_depth}", hooks.open)
+        assert rear.ok and both.ok, (rear, both)
+        assert rear.topics == ("/vpengine/rear/seg2/classes",)
+        assert both.topics == ("/vpengine/front/depth2/depth", "/vpengine/rear/depth2/depth")
+        assert [(t.camera, t.head) for t in hooks.opened] == [("rear", "seg2"), ("front", "depth2"), ("rear", "depth2")]
+        assert core.set_rate("seg2@rear", "2") == ("seg2@rear", 2.0)  # rate commands know the added head's lanes
+        camera = {s.name: dict(s.values) for s in core.diagnostics().status}["vpengine: camera rear"]
+        assert camera["seg2.target_hz"] == "2.00" and "depth2.target_hz" in camera, camera
+        out = core.remove_head("depth2", hooks.close)
+        assert out.topics == both.topics and hooks.closed == hooks.opened[1:]
+    finally:
+        core.stop()
+
+
 def test_bad_head_commands_report_the_engines_error_and_change_nothing():
     core = Ros2Core(tiny("thread"))
     hooks = Topics()

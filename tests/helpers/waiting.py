@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import queue
 import time
 from collections.abc import Callable, Iterable
 from typing import Any
@@ -31,3 +32,20 @@ def alive(pids: Iterable[int]) -> list[int]:
         except psutil.NoSuchProcess:
             pass
     return out
+
+
+class Commands:
+    """Commands for a control loop (vpengine.ros2.control.ControlLoop): :meth:`put` (kind, key, value) triples;
+    :meth:`wait` is its ``wait_commands``, one command per call."""
+
+    def __init__(self) -> None:
+        self._queue: queue.SimpleQueue[tuple[str, str, str]] = queue.SimpleQueue()
+
+    def put(self, command: tuple[str, str, str]) -> None:
+        self._queue.put(command)
+
+    def wait(self, timeout: float) -> list[tuple[str, str, str]]:
+        try:
+            return [self._queue.get(timeout=timeout)]
+        except queue.Empty:
+            return []

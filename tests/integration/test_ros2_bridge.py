@@ -565,6 +565,112 @@ def test_priority_commands_over_dds_reach_the_engine_on_the_control_thread():
     assert took < 2.0, took  # applied at once (Note [Control path]), not on the diagnostics period
 
 
+def test_heads_added_and_removed_over_dds_get_and_lose_their_topics_and_bad_commands_change_nothing():
+    """Note [Head commands]: add_head / remove_head samples reach the engine; an added head publishes on its own new
+    topic and is named in model_names and /diagnostics; a removed one's writer leaves the graph; each outcome is a
+    head_events message, and refused commands (a bad config, an unknown head) leave the engine as it was."""
+    from helpers.frames import frame
+    from tests_paths import tiny
+    from vpengine.ros2 import cdr
+    from vpengine.ros2 import dds_types as T
+    from vpengine.ros2.bridge import BridgeOptions, Ros2Bridge
+    from vpengine.ros2.core import Ros2Core
+    from vpengine.ros2.dds import DdsContext, loopback_config
+    from vpengine.ros2.messages import Header
+    from vpengine.ros2.outputs import image_out
+
+    domain = (DOMAIN + 4) % 220 + 1
+    core = Ros2Core(tiny("thread"), namespace="/vp4")
+    opts = BridgeOptions("/cam4/image", input_qos="default", domain_id=domain, dds_config=loopback_config())
+    with Ros2Bridge(core, opts):
+        ctx = DdsContext(domain)
+        try:
+            images = ctx.writer("/cam4/image", T.Image_, "default")
+            add = ctx.writer("/vp4/add_head", T.String_, "default")
+            remove = ctx.writer("/vp4/remove_head", T.String_, "default")
+            events = ctx.reader("/vp4/head_events", T.String_, "latched")
+            names = ctx.reader("/vp4/model_names", T.String_, "latched")
+            diag = ctx.reader("/diagnostics", T.DiagnosticArray_)
+            for w in (images, add, remove):
+                wait_matched(w)
+            sent = 0
+
+            def send(n: int) -> None:
+                nonlocal sent
+                for _ in range(n):
+                    images.write_raw(cdr.encode_image(image_out(frame(sent), "bgr8", Header(1_800_000_000, sent))))
+                    sent += 1
+                    time.sleep(0.3)
+
+            def outcome(timeout: float = 60.0) -> dict[str, Any]:
+                deadline = time.monotonic() + timeout
+                while time.monotonic() < deadline:
+                    events.wait(0.5)
+                    got = events.take(4)
+                    if got:
+                        assert len(got) == 1, got
+                        return json.loads(got[0].data)
+                raise AssertionError("no head_events message")
+
+            def model_names(want: list[str]) -> list[str]:
+                last: list[str] = []
+                deadline = time.monotonic() + 10
+                while last != want and time.monotonic() < deadline:
+                    names.wait(0.5)
+                    last = next((json.loads(m.data) for m in reversed(names.take(8))), last)
+                return last
+
+            base = ["foundation", "depth", "seg", "det"]
+            assert model_names(base) == base
+            add.write(T.String_("{name: det2, model: tiny_det}"))
+            done = outcome()
+            assert done["ok"] and done["head"] == "det2" and done["topics"] == ["/vp4/det2/detections"], done
+            assert done["model_names"] == [*base, "det2"]
+            assert model_names([*base, "det2"]) == [*base, "det2"]  # republished, latched
+            det2 = ctx.reader("/vp4/det2/detections", T.Detection2DArray_)
+            deadline = time.monotonic() + 10
+            while det2.matched() < 1:
+                assert time.monotonic() < deadline, "the added head's writer never matched"
+                time.sleep(0.05)
+            send(3)
+            got: list[Any] = []
+            deadline = time.monotonic() + 20
+            while len(got) < 3 and time.monotonic() < deadline:
+                det2.wait(0.5)
+                got += det2.take(8)
+            assert {(d.header.stamp.sec, d.header.stamp.nanosec) for d in got} == {(1_800_000_000, i) for i in range(3)}
+            found: set[str] = set()
+            for _, st in statuses(diag, 1.5):
+                found |= set(st)
+            assert "vp4: det2" in found
+
+            remove.write(T.String_(" det2 "))
+            done = outcome()
+            assert done["ok"] and done["head"] == "det2" and done["topics"] == ["/vp4/det2/detections"], done
+            assert model_names(base) == base
+            deadline = time.monotonic() + 10
+            while det2.matched():  # its writer is deleted: it leaves the graph
+                assert time.monotonic() < deadline, "the removed head's writer is still matched"
+                time.sleep(0.05)
+            det2.take(64)
+            send(2)
+            time.sleep(1.0)
+            assert det2.take(8) == []
+
+            before = (core.engine.stats()["models"].keys(), list(core.topics), core.model_names)
+            add.write(T.String_("{name: det3, model: tiny_det, no_such_field: 1}"))
+            done = outcome()
+            assert not done["ok"] and done["head"] == "det3" and "heads.3" in done["message"], done
+            remove.write(T.String_("nope"))
+            done = outcome()
+            assert not done["ok"] and "no head named 'nope'" in done["message"], done
+            assert done["model_names"] == base
+            assert (core.engine.stats()["models"].keys(), list(core.topics), core.model_names) == before
+            assert (core.counters["head_commands"], core.counters["head_commands_rejected"]) == (2, 2)
+        finally:
+            ctx.close()
+
+
 # ------------------------------------------------------------------------------------------- 1080p, big samples
 HD = ("--set", "input.height=1080", "--set", "input.width=1920")
 HD_INPUT = "/hd/image_raw"

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from helpers.frames import frame
+from helpers.waiting import Commands
 from tests_paths import tiny
 from vpengine import checks
 from vpengine.recent_frames import RecentFrames
@@ -717,22 +718,14 @@ class _FakeCore:
 
 
 def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplog):
-    import queue
     import threading
 
-    commands: queue.SimpleQueue = queue.SimpleQueue()
-
-    def wait_commands(timeout: float):
-        try:
-            return [commands.get(timeout=timeout)]
-        except queue.Empty:
-            return []
-
+    commands = Commands()
     published: list[float] = []
     refreshed: list[float] = []
     core = _FakeCore()
     loop = ControlLoop(
-        core, published.append, wait_commands, period_s=0.2, before_diagnostics=lambda: refreshed.append(1)
+        core, published.append, commands.wait, period_s=0.2, before_diagnostics=lambda: refreshed.append(1)
     )  # type: ignore[arg-type]
     stop = threading.Event()
     th = threading.Thread(target=loop.run, args=(stop,))
@@ -768,4 +761,4 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
     assert any("priority command {key: 'nope', value: '9'} ignored: no head" in r.getMessage() for r in caplog.records)
     assert len(refreshed) == len(published)
     with pytest.raises(ValueError, match="period must be > 0 s, got 0"):
-        ControlLoop(core, published.append, wait_commands, period_s=0)  # type: ignore[arg-type]
+        ControlLoop(core, published.append, commands.wait, period_s=0)  # type: ignore[arg-type]

@@ -45,3 +45,16 @@ def test_services_come_from_the_first_package_that_has_both(monkeypatch):
     assert node.find_services() == (change, names)
     mine = _fake_srv_package(monkeypatch, "vpengine_interfaces")
     assert node.find_services() == mine
+
+
+def test_head_services_come_from_a_package_that_has_both_and_are_optional(monkeypatch):
+    for pkg in node.SERVICE_PACKAGES:
+        monkeypatch.setitem(sys.modules, pkg, None)
+        monkeypatch.setitem(sys.modules, f"{pkg}.srv", None)
+    assert node.find_services(("AddHead", "RemoveHead")) is None  # -> the add_head / remove_head topics only
+    _fake_srv_package(monkeypatch, "vpengine_interfaces")  # rate services, no head services
+    assert node.find_services(("AddHead", "RemoveHead")) is None
+    srv = sys.modules["vpengine_interfaces.srv"]
+    srv.AddHead, srv.RemoveHead = type("AddHead", (), {}), type("RemoveHead", (), {})
+    assert node.find_services(("AddHead", "RemoveHead")) == (srv.AddHead, srv.RemoveHead)
+    assert node.find_services() == (srv.ChangeModelRate, srv.GetModelNames)

@@ -18,13 +18,19 @@ input topic (``--input-topic``)     sensor_msgs/Image                  sensor da
 ``<ns>/<head>/detections``          vision_msgs/Detection2DArray       latest
 ``<ns>/set_rate``                   diagnostic_msgs/KeyValue (in)      default
 ``<ns>/set_priority``               diagnostic_msgs/KeyValue (in)      default
+``<ns>/add_head``                   std_msgs/String (in): the head's   default
+                                    config, YAML or JSON
+``<ns>/remove_head``                std_msgs/String (in): a head name  default
+``<ns>/head_events``                std_msgs/String (JSON): each head  latched
+                                    command's outcome
 ``<ns>/model_names``                std_msgs/String (JSON list)        latched (transient local, keep last 1)
 ``/diagnostics``                    diagnostic_msgs/DiagnosticArray    default, 1 Hz
 ==================================  =================================  =========================================
 
 Several cameras (``--input-topic NAME=TOPIC`` for each; ``BridgeOptions.input_topic`` camera -> topic): each
 camera's outputs are under ``<ns>/<camera>/<head>/...`` with that camera's input headers, and each input topic has
-a thread of its own. Rate and priority commands may name ``head@camera``.
+a thread of its own. Rate and priority commands may name ``head@camera``; an added head gets topics on every camera
+it serves.
 
 Change a rate from any ROS 2 machine: ``ros2 topic pub --once /vpengine/set_rate diagnostic_msgs/msg/KeyValue
 "{key: depth, value: '5'}"`` (``'0'`` pauses, ``'max'`` removes the limit). Change a priority (an integer from
@@ -32,10 +38,17 @@ checks.MIN_PRIORITY to MAX_PRIORITY, higher more important; Note [Give way] in r
 ``/vpengine/set_priority``: ``{key: depth, value: '10'}``; the key ``depth@front`` is that head's lane of camera
 ``front`` only, ``@front`` the camera's own priority.
 
-Three threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to
+Add a head while it runs: ``ros2 topic pub --once /vpengine/add_head std_msgs/msg/String "{data: '{name: det2,
+model: tiny_det}'}"`` (the head's config as under ``heads:`` in a config file, validated like it); once it is built
+and warm, its topics are published like the others' and ``<ns>/model_names`` names it. Remove one with ``{data:
+det2}`` on ``/vpengine/remove_head``. Each command's outcome, success or the engine's error, is a JSON message on
+``<ns>/head_events`` (:class:`vpengine.ros2.heads.HeadOutcome`), also logged and counted in /diagnostics.
+
+Four threads (one more per extra camera): one takes input samples (raw CDR, decoded to a numpy view, handed to
 ``Engine.submit``), one publishes the results (``Engine.results``; each head's newest, Note [Output QoS] in
-:mod:`vpengine.ros2.outputs`), and one applies rate and priority commands and publishes diagnostics
-(Note [Control path] in :mod:`vpengine.ros2.control`), so neither waits behind the writes of big images. All
+:mod:`vpengine.ros2.outputs`), one applies rate and priority commands and publishes diagnostics
+(Note [Control path] in :mod:`vpengine.ros2.control`), so neither waits behind the writes of big images, and one
+adds and removes heads (Note [Head commands] in :mod:`vpengine.ros2.heads`), so no command waits for a build. All
 decisions about content live in :class:`vpengine.ros2.core.Ros2Core` and its parts.
 """
 
@@ -56,6 +69,7 @@ from vpengine.ros2.control import ControlLoop, model_names_text
 from vpengine.ros2.core import Ros2Core
 from vpengine.ros2.dds import DdsContext, Reader, Writer, bridge_config, dds_topic, receive_buffer_granted
 from vpengine.ros2.diagnostics import DiagnosticsOut, receive_buffer_limit
+from vpengine.ros2.heads import HEAD_COMMANDS, HeadCommands, HeadOutcome
 from vpengine.ros2.messages import DETECTIONS_TYPE, DetectionsOut, Header, ImageOut
 from vpengine.ros2.outputs import OUTPUT_QOS, OutputTopic
 
@@ -171,6 +185,8 @@ class Ros2Bridge:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._writers: dict[str, Writer] = {}
+        # held while writing an output and while closing a removed head's writers (Note [Head commands])
+        self._writing = threading.Lock()
         self.error: BaseException | None = None
         self.ns = core.namespace
 
@@ -189,15 +205,16 @@ class Ros2Bridge:
         self.core.start()
         o = self.opts
         self.dds = ctx = DdsContext(o.domain_id, bridge_config(o.dds_config))
-        for t in self.core.topics:
-            dtype = T.Detection2DArray_ if t.msgtype == DETECTIONS_TYPE else T.Image_
-            self._writers[t.topic] = ctx.writer(t.topic, dtype, o.output_qos)
+        self._open_topics(self.core.topics)
         self._diag = ctx.writer(o.diagnostics_topic, T.DiagnosticArray_, "default")
         self._names = ctx.writer(f"{self.ns}/model_names", T.String_, "latched")
         self._names.write(T.String_(model_names_text(self.core.model_names)))
+        self._head_events = ctx.writer(f"{self.ns}/head_events", T.String_, "latched")
         self._rates: Reader = ctx.reader(f"{self.ns}/set_rate", T.KeyValue_, "default")
         self._priorities: Reader = ctx.reader(f"{self.ns}/set_priority", T.KeyValue_, "default")
-        self._rates.also_wake_for(self._priorities)  # the control thread waits for both
+        self._head_commands = {kind: ctx.reader(f"{self.ns}/{kind}", T.String_, "default") for kind in HEAD_COMMANDS}
+        for r in (self._priorities, *self._head_commands.values()):
+            self._rates.also_wake_for(r)  # the control thread waits for every command topic
         in_type = T.CompressedImage_ if o.compressed else T.Image_
         #: camera (None: the one camera) -> its input reader
         self._inputs: dict[str | None, Reader] = {
@@ -206,12 +223,14 @@ class Ros2Bridge:
         if not o.compressed:  # a compressed frame is a fraction of the raw one: no buffer advice for it
             self.core.note_receive_buffer(receive_buffer_granted(receive_buffer_limit()))
             self.core.link_warnings()  # logged now, before the "ready" line, not in the middle of it
-        control = ControlLoop(
+        heads = HeadCommands(self.core, self._open_topics, self._close_topics, self._publish_head_outcome)
+        self._control = control = ControlLoop(
             self.core,
             self._publish_diagnostics,
             self._wait_commands,
             period_s=o.diagnostics_period_s,
             before_diagnostics=lambda: self.core.note_publishers(sum(r.matched() for r in self._inputs.values())),
+            heads=heads,
         )
         # one input thread per camera: a camera's decode never holds another camera's frames back
         self._threads = [
@@ -228,6 +247,7 @@ class Ros2Bridge:
             threading.Thread(
                 target=self._guard, args=(lambda: control.run(self._stop),), name="ros2-control", daemon=True
             ),
+            threading.Thread(target=self._guard, args=(lambda: heads.run(self._stop),), name="ros2-heads", daemon=True),
         ]
         for th in self._threads:
             th.start()
@@ -308,27 +328,52 @@ class Ros2Bridge:
     def _wait_commands(self, timeout: float) -> list[tuple[str, str, str]]:
         if not self._rates.wait(timeout):
             return []
-        return [
+        got = [
             (kind, kv.key, kv.value)
             for kind, reader in (("rate", self._rates), ("priority", self._priorities))
             for kv in reader.take(16)
         ]
+        return got + [(kind, "", m.data) for kind, reader in self._head_commands.items() for m in reader.take(16)]
 
     def _publish_diagnostics(self, d: DiagnosticsOut) -> None:
         self._diag.write(diagnostics_to_dds(d))
 
+    def _open_topics(self, topics: list[OutputTopic]) -> None:
+        dds = self.dds
+        if dds is None:  # a head finished building as the bridge stopped: refused, the engine as it was
+            raise RuntimeError("the bridge is stopping")
+        for t in topics:
+            dtype = T.Detection2DArray_ if t.msgtype == DETECTIONS_TYPE else T.Image_
+            self._writers[t.topic] = dds.writer(t.topic, dtype, self.opts.output_qos)
+
+    def _close_topics(self, topics: list[OutputTopic]) -> None:
+        with self._writing:  # never under a write in progress (Note [Head commands])
+            for t in topics:
+                self._writers.pop(t.topic).close()
+
+    def _publish_head_outcome(self, outcome: HeadOutcome) -> None:
+        if self.dds is None:  # stopped meanwhile: nobody to tell (the outcome is logged)
+            return
+        self._head_events.write(T.String_(outcome.text()))
+        if outcome.ok:
+            self._names.write(T.String_(model_names_text(outcome.model_names)))
+        self._control.diagnostics_now()
+
     def _publish(self, topic: OutputTopic, payload: Any) -> None:
-        w = self._writers[topic.topic]
         busy = self.core.busy
-        t0 = time.thread_time()
-        if isinstance(payload, ImageOut):
-            data = cdr.encode_image(payload)
-            t1 = time.thread_time()
-            w.write_raw(data)
-        else:
-            sample = detections_to_dds(payload)
-            t1 = time.thread_time()
-            w.write(sample)  # small: the IDL serializer is fine here
+        with self._writing:
+            w = self._writers.get(topic.topic)
+            if w is None:  # its head was removed meanwhile (Note [Head commands])
+                return
+            t0 = time.thread_time()
+            if isinstance(payload, ImageOut):
+                data = cdr.encode_image(payload)
+                t1 = time.thread_time()
+                w.write_raw(data)
+            else:
+                sample = detections_to_dds(payload)
+                t1 = time.thread_time()
+                w.write(sample)  # small: the IDL serializer is fine here
         busy["encode"] += t1 - t0
         busy["write"] += time.thread_time() - t1
         self.core.count_published(topic)

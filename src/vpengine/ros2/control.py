@@ -15,6 +15,7 @@ from typing import Protocol
 
 from vpengine import checks
 from vpengine.ros2.diagnostics import DiagnosticsOut
+from vpengine.ros2.heads import HEAD_COMMANDS, HeadCommands
 
 log = logging.getLogger("vpengine.ros2")
 
@@ -111,12 +112,14 @@ class ControlLoop:
     reader acknowledges): at 1080p /diagnostics went silent for 3-17 s, longer than diagnostic_aggregator's stale
     timeout, and rate commands, wanted most when the machine is overloaded, waited as long. This loop waits only for
     commands (``wait_commands(timeout)`` returns the (kind, key, value) triples that arrived, kind ``rate`` from
-    the set_rate topic or ``priority`` from set_priority, waiting at most ``timeout`` s), applies each at once and
-    publishes diagnostics right after it (the change is seen, and the diagnostics' stamp says when it was applied),
-    and otherwise publishes diagnostics every ``period_s`` on a fixed schedule. It touches the engine only through
+    the set_rate topic, ``priority`` from set_priority, ``add_head`` or ``remove_head`` (key empty), waiting at most
+    ``timeout`` s), applies each at once and publishes diagnostics right after it (the change is seen, and the
+    diagnostics' stamp says when it was applied), and otherwise publishes diagnostics every ``period_s`` on a fixed
+    schedule. It touches the engine only through
     ``set_rate``, ``set_priority`` and ``stats`` (shared-memory writes and reads), so it never waits for a frame or
     a result. ``before_diagnostics`` lets the transport refresh what only it knows (the input link: matched
-    publishers, receive buffer) first.
+    publishers, receive buffer) first. Head commands (kinds ``add_head``, ``remove_head``) take seconds, so this
+    loop only hands them to ``heads`` (Note [Head commands] in :mod:`vpengine.ros2.heads`).
     """
 
     def __init__(
@@ -127,12 +130,14 @@ class ControlLoop:
         *,
         period_s: float = 1.0,
         before_diagnostics: Callable[[], None] | None = None,
+        heads: HeadCommands | None = None,
     ) -> None:
         if not period_s > 0:
             raise ValueError(f"diagnostics period must be > 0 s, got {period_s}")
         self.core, self.publish, self.wait_commands = core, publish, wait_commands
         self.period_s = period_s
         self.before_diagnostics = before_diagnostics
+        self.heads = heads
 
     def diagnostics_now(self) -> None:
         if self.before_diagnostics is not None:
@@ -145,6 +150,9 @@ class ControlLoop:
         while not stop.is_set():
             applied = False
             for kind, key, value in self.wait_commands(max(0.0, min(next_at - time.monotonic(), 0.2))):
+                if kind in HEAD_COMMANDS and self.heads is not None:
+                    self.heads.put(kind, value)  # the head thread logs and publishes its outcome
+                    continue
                 apply = {"rate": self.core.set_rate, "priority": self.core.set_priority}[kind]
                 try:
                     apply(key, value)

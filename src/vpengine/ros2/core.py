@@ -3,8 +3,9 @@
 The DDS bridge (:mod:`vpengine.ros2.bridge`), the rclpy node (:mod:`vpengine.ros2.node`) and the rosbag2 source and
 sink (:mod:`vpengine.io.bag`) build on this and on its parts: :mod:`~vpengine.ros2.messages` (message types,
 decoding), :mod:`~vpengine.ros2.outputs` (each head's topics and messages), :mod:`~vpengine.ros2.frames` (the book of
-recent frames), :mod:`~vpengine.ros2.control` (rate and priority commands, the control thread) and
-:mod:`~vpengine.ros2.diagnostics`. None of them imports a middleware.
+recent frames), :mod:`~vpengine.ros2.control` (rate and priority commands, the control thread),
+:mod:`~vpengine.ros2.heads` (heads added and removed at run time) and :mod:`~vpengine.ros2.diagnostics`. None of
+them imports a middleware.
 
 Note [Output headers]: every output of a head carries the ``header`` (stamp *and* frame_id) of the input message it
 was computed from, never the time of publishing. The engine only knows integer frame ids and a float capture time;
@@ -41,6 +42,7 @@ from vpengine.ros2.diagnostics import (
     model_status,
     receive_buffer_advice,
 )
+from vpengine.ros2.heads import REFUSALS, HeadOutcome, TopicsHook, error_text, named_in, opened_text
 from vpengine.ros2.messages import Header, InputError, as_uint8, compressed_to_frame, image_to_frame
 from vpengine.ros2.outputs import OutputTopic, Payload, normalize_namespace, payload_for, plan_outputs
 
@@ -82,7 +84,8 @@ class Ros2Core:
     A transport (DDS bridge, rclpy node) feeds input messages to :meth:`handle_image` / :meth:`handle_compressed`
     from its receive thread, publishes what :meth:`poll_outputs` returns from another thread, forwards rate and
     priority commands to :meth:`set_rate` and :meth:`set_priority`, and publishes :meth:`diagnostics` about once a
-    second. Uses the public Engine API only (submit, results, set_rate, set_priority, stats, head_info).
+    second. Uses the public Engine API only (submit, results, set_rate, set_priority, add_head, remove_head, stats,
+    head_info).
 
     Frames of any size go to the engine as they come, and every output is published at the camera's size, in its
     pixels, under its header (Note [Frame grid] in engine/boundary.py). ``input_size="config"`` starts the engine at once
@@ -119,19 +122,18 @@ class Ros2Core:
         self.input_size = input_size
         planner = self._new_engine(self.config)  # planned only: head metadata without starting anything
         self.model_names: list[str] = self.config.model_names()
-        self.head_infos: dict[str, dict[str, Any]] = {h.name: planner.head_info(h.name) for h in self.config.heads}
         #: the engine's cameras, in priority order; with several, each has its own input topic and namespace
         self.cameras: list[str] = planner.cameras
         self.several = len(self.cameras) > 1
-        served = {c: [h for h in self.head_infos if c in planner.lanes.served(h)] for c in self.cameras}
-        self.topics, self.unmapped = plan_outputs(
-            self.head_infos, self.namespace, depth_color, seg_overlay, served if self.several else None
-        )
-        for h in self.unmapped:
+        self._depth_color, self._seg_overlay = depth_color, seg_overlay
+        infos = {h.name: planner.head_info(h.name) for h in self.config.heads}
+        topics, unmapped = self._plan(infos, planner)
+        for h in unmapped:
             log.warning("head %r has no ROS 2 message mapping (kind 'generic'); its outputs are not published", h)
-        self._by_head: dict[tuple[str | None, str], list[OutputTopic]] = collections.defaultdict(list)
-        for t in self.topics:
-            self._by_head[(t.camera, t.head)].append(t)
+        self._route(infos, topics)
+        # add_head / remove_head change the heads and their topics one command at a time (Note [Head commands])
+        self._heads_lock = threading.Lock()
+        self.last_head_outcome: HeadOutcome | None = None
         self.book = RecentFrames[Header](
             frames=16 * len(self.cameras) if seg_overlay or keep_frames else 0, tags=HEADERS_KEPT
         )
@@ -165,6 +167,24 @@ class Ros2Core:
         self.busy: collections.Counter[str] = collections.Counter()
         self.hardware_id = f"vpengine {self.config.name} ({self.config.device})"
         self.status_prefix = self.namespace.strip("/").replace("/", ".") or "vpengine"
+
+    def _plan(self, infos: dict[str, dict[str, Any]], engine: Engine) -> tuple[list[OutputTopic], list[str]]:
+        """The output topics of the heads ``infos`` (head -> its info), each on the cameras it serves in ``engine``,
+        and the heads with no ROS message mapping (:func:`plan_outputs`)."""
+        served = {c: [h for h in infos if c in engine.lanes.served(h)] for c in self.cameras}
+        return plan_outputs(
+            infos, self.namespace, self._depth_color, self._seg_overlay, served if self.several else None
+        )
+
+    def _route(self, infos: dict[str, dict[str, Any]], topics: list[OutputTopic]) -> None:
+        """Publish each head's outputs on ``topics`` from now on. The output thread reads the routes once per
+        result, so a head command swaps them whole (one assignment), never edits them in place."""
+        routes: dict[tuple[str | None, str], tuple[list[OutputTopic], dict[str, Any]]] = {}
+        for t in topics:
+            routes.setdefault((t.camera, t.head), ([], infos[t.head]))[0].append(t)
+        self.head_infos: dict[str, dict[str, Any]] = infos
+        self.topics: list[OutputTopic] = topics
+        self._routes = routes
 
     def _new_engine(self, cfg: Any) -> Engine:
         from vpengine.engine import Engine
@@ -289,15 +309,15 @@ class Ros2Core:
                     self.outputs_superseded[r.head] += 1
             results = [r for r in results if newest[(r.camera, r.head)] is r]
         for r in results:
-            topics = self._by_head.get((r.camera if self.several else None, r.head))
-            if not topics:
+            route = self._routes.get((r.camera if self.several else None, r.head))
+            if route is None:  # a head with no ROS mapping, or one added or removed just now
                 continue
+            topics, info = route
             header = self.book.tag(r.frame_id)
             if header is None:  # see Note [Output headers]
                 self.counters["header_fallbacks"] += 1
                 header = Header.from_seconds(r.capture_time)
             frame = self.book.frame(r.frame_id)
-            info = self.head_infos[r.head]
             t0 = time.thread_time()
             for t in topics:
                 try:
@@ -408,6 +428,62 @@ class Ros2Core:
         log.info("priority of %s set to %d", key, priority)
         return key, priority
 
+    def add_head(self, config_text: str, open_topics: TopicsHook) -> HeadOutcome:
+        """Add a head while the engine runs: ``config_text`` is its config as under ``heads:`` (YAML or JSON),
+        validated like the config file (``Engine.add_head``). Its output topics, per camera it serves, are planned
+        like the others' and handed to ``open_topics`` (the transport creates their publishers) before its outputs
+        are routed to them. The outcome names the engine's error (a bad config, a name taken, no seat free, a failed
+        build) or a clash of ROS names, and then nothing changed. Takes seconds (build and warm-up): call it on no
+        thread that must answer meanwhile (Note [Head commands] in :mod:`vpengine.ros2.heads`). Counted."""
+        with self._heads_lock:
+            name = named_in(config_text)
+            try:
+                eng = self._started()
+                name = eng.add_head(config_text)
+                try:
+                    infos = {**self.head_infos, name: eng.head_info(name)}
+                    topics, _ = self._plan(infos, eng)
+                    added = [t for t in topics if t.head == name]
+                    open_topics(added)
+                except BaseException:
+                    eng.remove_head(name)  # a ROS name taken, or no publisher: the engine as it was
+                    raise
+            except REFUSALS as e:
+                return self._head_outcome("add_head", name, e)
+            self._route(infos, topics)
+            self.model_names = eng.config.model_names()
+            names = tuple(t.topic for t in added)
+            return self._head_outcome("add_head", name, opened_text(name, names), names)
+
+    def remove_head(self, name: str, close_topics: TopicsHook) -> HeadOutcome:
+        """Remove head ``name`` while the engine runs (``Engine.remove_head``): its outputs stop being routed, then
+        ``close_topics`` gets its topics (the transport closes their publishers). The outcome names the engine's
+        error (an unknown head, the foundation model, the last head), and then nothing changed. Counted."""
+        name = str(name).strip()
+        with self._heads_lock:
+            try:
+                eng = self._started()
+                eng.remove_head(name)
+            except REFUSALS as e:
+                return self._head_outcome("remove_head", name, e)
+            gone = [t for t in self.topics if t.head == name]
+            self._route(
+                {h: i for h, i in self.head_infos.items() if h != name}, [t for t in self.topics if t not in gone]
+            )
+            self.model_names = eng.config.model_names()
+            close_topics(gone)
+            names = tuple(t.topic for t in gone)
+            return self._head_outcome("remove_head", name, f"head {name!r} removed", names)
+
+    def _head_outcome(
+        self, command: str, head: str | None, what: str | BaseException, topics: tuple[str, ...] = ()
+    ) -> HeadOutcome:
+        ok, message = (False, error_text(what)) if isinstance(what, BaseException) else (True, what)
+        self.counters["head_commands" if ok else "head_commands_rejected"] += 1
+        out = HeadOutcome(command, head, ok, message, topics, tuple(self.model_names))
+        self.last_head_outcome = out
+        return out
+
     def diagnostics(self, now: float | None = None) -> DiagnosticsOut:
         """One status per model (see :func:`model_status`), one for the interface itself and, with several cameras,
         one per camera (``<prefix>: camera <name>``: its input counters and its models' rates and counts)."""
@@ -438,8 +514,13 @@ class Ros2Core:
                 "rate_commands_rejected",
                 "priority_commands",
                 "priority_commands_rejected",
+                "head_commands",
+                "head_commands_rejected",
             )
         ]
+        if self.last_head_outcome is not None:
+            o = self.last_head_outcome
+            values.append(("last_head_command", f"{o.command} {o.head}: {'ok' if o.ok else 'refused'}: {o.message}"))
         values += [(f"rejected.{r}", str(n)) for r, n in sorted(self.rejected.counts.items())]
         values += [(f"output_errors.{r}", str(n)) for r, n in sorted(self.output_errors.counts.items())]
         values += [(f"results_missed.{h}", str(r.get("missed", 0))) for h, r in results.items()]

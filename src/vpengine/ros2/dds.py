@@ -203,6 +203,11 @@ class Writer:
 
             raise DDSException(ret, f"writing {len(data)} serialized bytes on {self.dds.topic.name}")
 
+    def close(self) -> None:
+        """Delete the writer now (its readers see it leave), not whenever the last reference goes; not while
+        another thread writes with it."""
+        self.dds.__del__()
+
     def matched(self) -> int:
         """How many readers this writer is matched with."""
         return len(self.dds.get_matched_subscriptions())

@@ -29,6 +29,23 @@ checks.MIN_PRIORITY to MAX_PRIORITY, higher more important), set with ``ros2 par
 The ``<ns>/set_rate`` and ``<ns>/set_priority`` topics (diagnostic_msgs/KeyValue) and the latched
 ``<ns>/model_names`` topic work in both cases.
 
+Heads are added and removed while the node runs through the ``<ns>/add_head`` and ``<ns>/remove_head`` topics
+(std_msgs/String), each outcome on the latched ``<ns>/head_events`` (Note [Head commands] in
+:mod:`vpengine.ros2.heads`), as on the bridge; and, when the interface package has them, through services that
+answer with the outcome (there is no standard service type that carries a text and answers with one)::
+
+    # AddHead.srv     (served at ~/add_head)
+    string config         # the head's config as under heads: in a config file, YAML or JSON
+    ---
+    bool success
+    string message        # what was done, or the engine's error
+
+    # RemoveHead.srv  (served at ~/remove_head)
+    string name
+    ---
+    bool success
+    string message
+
 Parameters: ``config`` (required), ``input_topic`` (/camera/image_raw), ``input_topics`` (several cameras: a string
 array of NAME=TOPIC, each camera's outputs under ``<output_namespace>/<NAME>/``), ``compressed`` (false), ``input_qos``
 (sensor | default), ``output_qos`` (latest | default, see Note [Output QoS] in :mod:`vpengine.ros2.outputs`),
@@ -51,6 +68,7 @@ from vpengine import checks
 from vpengine.ros2.control import ControlLoop, model_names_text
 from vpengine.ros2.core import Ros2Core, input_topics
 from vpengine.ros2.diagnostics import DiagnosticsOut
+from vpengine.ros2.heads import HEAD_COMMANDS, HeadCommands, HeadOutcome
 from vpengine.ros2.messages import DETECTIONS_TYPE, DetectionsOut, Header, ImageOut
 from vpengine.ros2.outputs import OUTPUT_QOS
 
@@ -70,12 +88,13 @@ def _require_rclpy() -> Any:
         ) from None
 
 
-def find_services() -> tuple[Any, Any] | None:
-    """(ChangeModelRate, GetModelNames) from the first installed package that has both, else None."""
+def find_services(names: tuple[str, ...] = ("ChangeModelRate", "GetModelNames")) -> tuple[Any, ...] | None:
+    """The service types ``names`` (by default ChangeModelRate, GetModelNames; the head commands: AddHead,
+    RemoveHead) from the first installed package that has them all, else None."""
     for pkg in SERVICE_PACKAGES:
         try:
             srv = importlib.import_module(f"{pkg}.srv")
-            return srv.ChangeModelRate, srv.GetModelNames
+            return tuple(getattr(srv, n) for n in names)
         except (ImportError, AttributeError):
             continue
     return None
@@ -201,15 +220,14 @@ def build_node(argv: list[str] | None = None) -> Any:
             latched = QoSProfile(
                 depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
             )
-            self._pubs = {
-                t.topic: self.create_publisher(
-                    _detection_type() if t.msgtype == DETECTIONS_TYPE else Image, t.topic, out_qos
-                )
-                for t in core.topics
-            }
+            self._out_qos = out_qos
+            self._pubs: dict[str, Any] = {}
+            self._writing = threading.Lock()  # held while publishing an output and while closing a head's topics
+            self._open_topics(core.topics)
             self._diag = self.create_publisher(DiagnosticArray, "/diagnostics", default_qos)
             self._names = self.create_publisher(String, f"{core.namespace}/model_names", latched)
             self._names.publish(String(data=model_names_text(core.model_names)))
+            self._head_events = self.create_publisher(String, f"{core.namespace}/head_events", latched)
             # Note [Control path] (vpengine.ros2.control): commands only queue here (callbacks of the
             # executor); the core's control loop applies them and publishes /diagnostics on its own thread. Input has
             # a callback group of its own, so a MultiThreadedExecutor never holds a command or a service call behind
@@ -221,6 +239,14 @@ def build_node(argv: list[str] | None = None) -> Any:
                     KeyValue,
                     f"{core.namespace}/set_{kind}",
                     lambda m, k=kind: self._commands.put((k, m.key, m.value)),
+                    default_qos,
+                    callback_group=control_group,
+                )
+            for kind in HEAD_COMMANDS:  # Note [Head commands]: queued here, carried out on the head thread
+                self.create_subscription(
+                    String,
+                    f"{core.namespace}/{kind}",
+                    lambda m, k=kind: self._commands.put((k, "", m.data)),
                     default_qos,
                     callback_group=control_group,
                 )
@@ -240,25 +266,62 @@ def build_node(argv: list[str] | None = None) -> Any:
                     in_qos,
                     callback_group=MutuallyExclusiveCallbackGroup(),
                 )
+            self._heads = HeadCommands(core, self._open_topics, self._close_topics, self._publish_head_outcome)
             self._services(control_group)
             self._stop = threading.Event()
-            control = ControlLoop(
+            self._control = ControlLoop(
                 core,
                 lambda d: self._diag.publish(ros_diagnostics(d)),
                 self._wait_commands,
                 before_diagnostics=lambda: core.note_publishers(
                     sum(self.count_publishers(t) for t in self._input_topics)
                 ),
+                heads=self._heads,
             )
             self._threads = [
                 threading.Thread(target=self._output_loop, name="vpengine-outputs", daemon=True),
-                threading.Thread(target=control.run, args=(self._stop,), name="vpengine-control", daemon=True),
+                threading.Thread(target=self._control.run, args=(self._stop,), name="vpengine-control", daemon=True),
+                threading.Thread(target=self._heads.run, args=(self._stop,), name="vpengine-heads", daemon=True),
             ]
             for th in self._threads:
                 th.start()
 
+        def _open_topics(self, topics: list[Any]) -> None:
+            for t in topics:
+                kind = _detection_type() if t.msgtype == DETECTIONS_TYPE else Image
+                self._pubs[t.topic] = self.create_publisher(kind, t.topic, self._out_qos)
+
+        def _close_topics(self, topics: list[Any]) -> None:
+            with self._writing:  # never under a publish in progress
+                for t in topics:
+                    self.destroy_publisher(self._pubs.pop(t.topic))
+
+        def _publish_head_outcome(self, outcome: HeadOutcome) -> None:
+            self._head_events.publish(String(data=outcome.text()))
+            if outcome.ok:
+                self._names.publish(String(data=model_names_text(outcome.model_names)))
+            self._control.diagnostics_now()
+
+        def _head_services(self) -> None:
+            found = find_services(("AddHead", "RemoveHead"))
+            if found is None:
+                return
+            add, remove = found
+            group = MutuallyExclusiveCallbackGroup()  # a build takes seconds: never in front of rate commands
+
+            def answer(kind: str, text: str, res: Any) -> Any:
+                out = self._heads.put(kind, text).result()  # one at a time, on the head thread
+                res.success, res.message = out.ok, out.message
+                return res
+
+            self.create_service(add, "~/add_head", lambda q, r: answer("add_head", q.config, r), callback_group=group)
+            self.create_service(
+                remove, "~/remove_head", lambda q, r: answer("remove_head", q.name, r), callback_group=group
+            )
+
         def _services(self, group: Any) -> None:
             core = self.core
+            self._head_services()
             found = find_services()
             if found is not None:
                 change, names = found
@@ -330,7 +393,11 @@ def build_node(argv: list[str] | None = None) -> Any:
             while not self._stop.is_set():
                 for topic, payload in self.core.poll_outputs(timeout=0.05):
                     msg = ros_image(payload) if isinstance(payload, ImageOut) else ros_detections(payload)
-                    self._pubs[topic.topic].publish(msg)
+                    with self._writing:
+                        pub = self._pubs.get(topic.topic)
+                        if pub is None:  # its head was removed meanwhile (Note [Head commands])
+                            continue
+                        pub.publish(msg)
                     self.core.count_published(topic)
 
         def shutdown(self) -> None:

@@ -1,7 +1,7 @@
 """Several cameras on one engine (Note [Cameras] in runtime/worker.py) against one engine a camera.
 
 Two measurements, on the config's models (``configs/bench.yaml`` by default: DINOv2 ViT-S/14 + depth, segmentation
-and detection heads at 1080p; ``--set`` as everywhere), in thread mode:
+and detection heads at 1080p, process mode; ``--set`` as everywhere):
 
 * ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
   synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
@@ -32,7 +32,7 @@ from vpengine.arguments import add_overrides_argument
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", "-c", default="bench", help="engine config (default: the shipped bench config)")
-    add_overrides_argument(p, "heads.det.backend=eager")
+    add_overrides_argument(p, "mode=thread")
     p.add_argument("--stream-cameras", type=int, default=4, help="cameras of the stream run (default 4; 0: skip)")
     p.add_argument("--fps", type=float, default=30.0, help="each camera's rate in the stream run (default 30 Hz)")
     p.add_argument("--seconds", type=float, default=10.0, help="length of the stream run (default 10 s)")
@@ -46,7 +46,6 @@ def _config(base: Any, cameras: int) -> Any:
     from vpengine.config import load_config
 
     data = base.model_dump()
-    data["mode"] = "thread"
     data["cameras"] = [{"name": f"cam{i}"} for i in range(cameras)] if cameras > 1 else []
     return load_config(data)
 
@@ -174,6 +173,7 @@ def main(args: argparse.Namespace) -> int:
     res: dict[str, Any] = {
         "config": args.config,
         "overrides": list(args.overrides),
+        "mode": base.mode,
         "heads": [h.name for h in base.heads],
         "throughput": [],
     }

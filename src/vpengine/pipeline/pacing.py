@@ -108,6 +108,7 @@ class Answers:
         self._ending = False  # no more rounds come
         self._abandoned = False
         self._error: BaseException | None = None
+        self._raised = False  # raised in the loop once already (finish does not raise it again)
         self._thread = threading.Thread(target=self._answer, name="vpengine-answers", daemon=True)
         self._thread.start()
 
@@ -142,7 +143,8 @@ class Answers:
             self._cond.notify_all()
 
     def _raise(self) -> None:
-        if self._error is not None:
+        if self._error is not None and not self._raised:
+            self._raised = True
             raise self._error
 
     def _answer(self) -> None:

@@ -4,6 +4,7 @@ once, in order, each with its own outputs, and what errors and Ctrl-C on either 
 
 from __future__ import annotations
 
+import _thread
 import threading
 import time
 from types import SimpleNamespace
@@ -140,7 +141,7 @@ def test_a_wait_that_times_out_is_logged_and_the_frames_after_it_are_answered(ca
 def test_a_second_ctrl_c_ends_the_run_at_once_though_a_head_never_answers():
     rec = Recorder()
     never = threading.Event()
-    rec.wait = lambda fid, timeout: never.wait() or {}  # type: ignore[method-assign]
+    rec.wait = lambda fid, timeout: never.wait() and {"head": fid}  # type: ignore[method-assign]
     submit = rec.submit
 
     def submit_then_abort(feed, frame, stamp):  # type: ignore[no-untyped-def]
@@ -155,6 +156,21 @@ def test_a_second_ctrl_c_ends_the_run_at_once_though_a_head_never_answers():
         lockstep(make_loop(rec, frames_then(10), 3))
     assert time.monotonic() - t0 < 1.0 and rec.handled == []
     never.set()  # the answering thread, abandoned, ends once its wait returns, and handles nothing
+    time.sleep(0.1)
+    assert rec.handled == []
+
+
+def test_a_second_ctrl_c_while_the_frames_in_hand_are_answered_ends_the_run_at_once():
+    # the first Ctrl-C (stop) after frame 1: the loop waits for the answers; the second (SIGINT) must not
+    rec = Recorder(stop_after=2)
+    never = threading.Event()
+    rec.wait = lambda fid, timeout: never.wait() and {"head": fid}  # type: ignore[method-assign]
+    threading.Timer(0.2, _thread.interrupt_main).start()
+    t0 = time.monotonic()
+    with pytest.raises(KeyboardInterrupt):
+        lockstep(make_loop(rec, frames_then(10), 3))
+    assert time.monotonic() - t0 < 1.5 and rec.submitted == [0, 1]
+    never.set()
     time.sleep(0.1)
     assert rec.handled == []
 

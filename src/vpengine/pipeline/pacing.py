@@ -65,28 +65,30 @@ def lockstep(loop: FrameLoop) -> None:
     active = list(loop.feeds)
     answers = Answers(loop)
     try:
-        while active and answers.room() and not loop.stop.is_set():
-            fids = []
-            for feed in list(active):
-                frame = None
-                if loop.max_frames is None or feed.submitted < loop.max_frames:
-                    frame = next(feed.frames, None)
-                if frame is None:
-                    active.remove(feed)
-                    continue
-                stamp = frame.timestamp
-                if stamp is None:  # a file without stamps: its own timeline at its pace
-                    stamp = feed.submitted * feed.period
-                fids.append(loop.submit(feed, frame, stamp))
-            if fids:
-                answers.put(fids)
-    except Exception:
-        answers.finish()  # a source that failed (--strict): the frames before it are answered and written first
+        try:
+            while active and answers.room() and not loop.stop.is_set():
+                fids = []
+                for feed in list(active):
+                    frame = None
+                    if loop.max_frames is None or feed.submitted < loop.max_frames:
+                        frame = next(feed.frames, None)
+                    if frame is None:
+                        active.remove(feed)
+                        continue
+                    stamp = frame.timestamp
+                    if stamp is None:  # a file without stamps: its own timeline at its pace
+                        stamp = feed.submitted * feed.period
+                    fids.append(loop.submit(feed, frame, stamp))
+                if fids:
+                    answers.put(fids)
+        except Exception:
+            answers.finish()  # a source that failed (--strict): the frames before it are answered and written first
+            raise
+        answers.finish()  # the frames in hand are answered, after the last frame or a Ctrl-C alike
+    except BaseException as e:
+        if not isinstance(e, Exception):  # a second Ctrl-C, also while finishing: at once, as a head that never
+            answers.abandon()  # answers must not hold it up
         raise
-    except BaseException:
-        answers.abandon()  # a second Ctrl-C: at once, as a head that never answers must not hold it up
-        raise
-    answers.finish()  # the frames in hand are answered, after the last frame or a Ctrl-C alike
 
 
 class Answers:

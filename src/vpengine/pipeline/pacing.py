@@ -41,7 +41,8 @@ class Feed:
 @dataclass
 class FrameLoop:
     """What both pacings take: the feeds, when to stop, and the pipeline's three steps (``submit`` a feed's frame
-    and return its frame id, ``handle`` results, report ``progressed`` frames)."""
+    and return its frame id, ``handle`` results, report ``progressed`` frames). Lockstep calls ``handle`` and
+    ``progressed`` on its answering thread (Note [Answering thread]), realtime on the loop's."""
 
     feeds: list[Feed]
     max_frames: int | None
@@ -62,43 +63,121 @@ class FrameLoop:
 # One source is the same loop with one feed.
 def lockstep(loop: FrameLoop) -> None:
     active = list(loop.feeds)
-    rounds: collections.deque[list[int]] = collections.deque()  # submitted, not yet answered, oldest first
-    done = 0
-
-    def settle(fids: list[int]) -> None:
-        nonlocal done
-        for fid in fids:
-            try:
-                loop.handle(loop.engine.wait(fid, timeout=60.0).values())
-            except TimeoutError as e:
-                log.warning("%s", e)
-        done += len(fids)
-        loop.progressed(done)
-
+    answers = Answers(loop)
     try:
-        while active and not loop.stop.is_set():
-            fids = []
-            for feed in list(active):
-                frame = None
-                if loop.max_frames is None or feed.submitted < loop.max_frames:
-                    frame = next(feed.frames, None)
-                if frame is None:
-                    active.remove(feed)
-                    continue
-                stamp = frame.timestamp
-                if stamp is None:  # a file without stamps: its own timeline at its pace
-                    stamp = feed.submitted * feed.period
-                fids.append(loop.submit(feed, frame, stamp))
-            if fids:
-                rounds.append(fids)
-            while len(rounds) >= loop.in_flight:
-                settle(rounds.popleft())
-    except Exception:
-        while rounds:  # a source that failed (--strict): the frames before it are answered and written first
-            settle(rounds.popleft())
+        try:
+            while active and answers.room() and not loop.stop.is_set():
+                fids = []
+                for feed in list(active):
+                    frame = None
+                    if loop.max_frames is None or feed.submitted < loop.max_frames:
+                        frame = next(feed.frames, None)
+                    if frame is None:
+                        active.remove(feed)
+                        continue
+                    stamp = frame.timestamp
+                    if stamp is None:  # a file without stamps: its own timeline at its pace
+                        stamp = feed.submitted * feed.period
+                    fids.append(loop.submit(feed, frame, stamp))
+                if fids:
+                    answers.put(fids)
+        except Exception:
+            answers.finish()  # a source that failed (--strict): the frames before it are answered and written first
+            raise
+        answers.finish()  # the frames in hand are answered, after the last frame or a Ctrl-C alike
+    except BaseException as e:
+        if not isinstance(e, Exception):  # a second Ctrl-C, also while finishing: at once, as a head that never
+            answers.abandon()  # answers must not hold it up
         raise
-    while rounds:  # the frames in hand are answered, after the last frame or a Ctrl-C alike
-        settle(rounds.popleft())
+
+
+class Answers:
+    """Note [Answering thread]: a lockstep loop's thread used to submit a round, wait for the oldest round's outputs
+    (which maps them back to each frame's grid, Note [Frame grid]) and hand them on, one after the other, so a run
+    went at the sum of those host steps even when the models were faster. Here a thread of its own answers the
+    rounds (``engine.wait`` and ``handle`` of each frame, then the progress count) in the order they were submitted,
+    while the loop reads and submits the next ones; a run goes at the slower of the two. Nothing of Note [Frames in
+    flight] changes: ``room`` lets the loop submit a round only while fewer than ``in_flight`` rounds have outputs
+    still in the mailboxes (a round counts until its frames' outputs are taken out, before they are handled), so no
+    frame nobody has taken is overwritten; results are handled in frame order, on one thread, as before. An error
+    on the answering side (a dead engine, a sink that failed) ends the answering there and is raised in the loop at
+    its next ``room`` or at ``finish``; a wait that times out is logged and the run goes on, as before."""
+
+    def __init__(self, loop: FrameLoop) -> None:
+        self._loop = loop
+        self._cond = threading.Condition()
+        self._rounds: collections.deque[list[int]] = collections.deque()  # submitted, not yet taken, oldest first
+        self._ending = False  # no more rounds come
+        self._abandoned = False
+        self._error: BaseException | None = None
+        self._raised = False  # raised in the loop once already (finish does not raise it again)
+        self._thread = threading.Thread(target=self._answer, name="vpengine-answers", daemon=True)
+        self._thread.start()
+
+    def room(self) -> bool:
+        """Wait until the loop may submit another round (Note [Frames in flight]); raises the answering side's
+        error. False once the loop should stop (Ctrl-C)."""
+        with self._cond:
+            # in slices: a Ctrl-C sets stop without a notify
+            while len(self._rounds) >= self._loop.in_flight and self._error is None and not self._loop.stop.is_set():
+                self._cond.wait(0.1)
+            self._raise()
+        return not self._loop.stop.is_set()
+
+    def put(self, fids: list[int]) -> None:
+        with self._cond:
+            self._rounds.append(fids)
+            self._cond.notify_all()
+
+    def finish(self) -> None:
+        """Answer every round submitted, then raise the answering side's error if it had one."""
+        with self._cond:
+            self._ending = True
+            self._cond.notify_all()
+        while self._thread.is_alive():
+            self._thread.join(0.1)  # in slices, as in room
+        self._raise()
+
+    def abandon(self) -> None:
+        """Answer and handle nothing more; the thread ends once a wait in progress returns (the engine stops)."""
+        with self._cond:
+            self._abandoned = True
+            self._cond.notify_all()
+
+    def _raise(self) -> None:
+        if self._error is not None and not self._raised:
+            self._raised = True
+            raise self._error
+
+    def _answer(self) -> None:
+        loop, done = self._loop, 0
+        try:
+            while True:
+                with self._cond:
+                    while not self._rounds and not self._ending and not self._abandoned:
+                        self._cond.wait()
+                    if self._abandoned or not self._rounds:
+                        return
+                    fids = self._rounds[0]  # counted in flight until its outputs are taken
+                answered = []
+                for fid in fids:
+                    try:
+                        answered.append(loop.engine.wait(fid, timeout=60.0))
+                    except TimeoutError as e:
+                        log.warning("%s", e)
+                with self._cond:
+                    self._rounds.popleft()
+                    self._cond.notify_all()
+                    if self._abandoned:
+                        return
+                for results in answered:
+                    loop.handle(results.values())
+                done += len(fids)
+                loop.progressed(done)
+        except BaseException as e:
+            with self._cond:
+                self._error = e
+                self._cond.notify_all()
 
 
 # Note [Frames in flight]: lockstep promises every frame through every head, in order, each output paired with its
@@ -108,7 +187,7 @@ def lockstep(loop: FrameLoop) -> None:
 # fifo) whatever the config says: in lockstep the pipeline, not a camera, decides what queues, so a model sees the
 # same frames either way. How many rounds (a frame of each camera): what the mailboxes hold without overwriting a
 # frame nobody has taken (a fifo reader's margin, FIFO_MARGIN, and each head's kept results, output.slots), less one
-# for the round being submitted.
+# for the round being submitted. The rounds are answered on a thread of their own (Note [Answering thread]).
 def pipelined(cfg: EngineConfig) -> tuple[EngineConfig, int]:
     """The config a lockstep run uses and how many rounds of frames it keeps in flight (Note [Frames in flight])."""
     overrides = ["foundation_model.input_mode=fifo"] + [f"heads.{h.name}.input_mode=fifo" for h in cfg.heads]

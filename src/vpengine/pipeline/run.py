@@ -15,7 +15,8 @@ per camera as well as per model.
 
 A camera is read on its own thread and the loop takes its newest frame; frames it replaced are counted too (Note
 [Live capture] in ``vpengine.io.sources``). In lockstep, files are read a few frames ahead on a thread of their own
-(Note [Read ahead] in ``vpengine.io.readahead``). Outputs are written on a writer thread (Note [Sink thread] in
+(Note [Read ahead] in ``vpengine.io.readahead``) and answered on another (Note [Answering thread] in
+``vpengine.pipeline.pacing``). Outputs are written on a writer thread (Note [Sink thread] in
 ``vpengine.io.sinks``). Ctrl-C ends the run after the frame in hand and still makes and writes the summary (Note
 [Ctrl-C] in ``vpengine.pipeline.pacing``).
 

@@ -192,7 +192,7 @@ def test_steer_bench_measures_lanes_under_each_priority_and_a_change_through_eve
     for phase in ("equal", "priority"):
         rows = {(r["head"], r["camera"]): r for r in res[phase]}
         assert set(rows) == lanes
-        assert all(r["achieved_hz"] > 0 and r["latency_ms"]["p99"] > 0 for r in rows.values())
+        assert all(r["runs_hz"] > 0 and r["achieved_hz"] > 0 and r["latency_ms"]["p99"] > 0 for r in rows.values())
         raised = rows[("depth", "cam0")]["priority"]
         assert raised == (0 if phase == "equal" else 10) and rows[("depth", "cam1")]["priority"] == 0
     # nothing is throttled while every priority is equal (Note [Give way])

@@ -4,16 +4,19 @@ One engine on the config's models (``configs/bench.yaml`` by default: DINOv2 ViT
 detection at 1080p; ``--set`` as everywhere), ``--cameras`` cameras (8) each at ``--fps`` (30 Hz), their frames
 submitted together as synchronised cameras deliver them, more than the device serves. Three phases:
 
-* ``equal``: every priority equal (the default), ``--seconds`` long: per lane (head, camera) the achieved rate, the
-  latency from submit to the result on the host (p50, p99), and from ``stats()`` the runs skipped by reason (rate,
-  priority, overload), deadline misses and the throttle cap.
+* ``equal``: every priority equal (the default), ``--seconds`` long: per lane (head, camera), as the engine counted
+  it (``stats()``), its runs per second, p99 latency from submit to output, runs skipped by reason (rate, priority,
+  overload), deadline misses, throttle cap and results the stream missed; and as the stream took its outputs,
+  their rate and latency from submit to the host (p50, p99), by when each was published (taking 1,000 mapped
+  outputs a second can lag on one thread; its lag is not theirs).
 * ``priority``: ``--head`` on the first camera raised to ``--priority`` (``Engine.set_priority``), measured the same
   way after ``--settle`` s: that lane should hold the cameras' rate within its deadline while the others give way.
 * ``change``: through each door of ``--doors`` (``api``: ``Engine.set_priority``; ``web``: the live view's
   ``PUT /api/priority/<head>@<camera>``; ``ros2``: a diagnostic_msgs/KeyValue on ``<ns>/set_priority`` over
   CycloneDDS, taken by the ROS 2 interface's control path), ``--changes`` times: a lane the governor holds at its
   floor (the config's last head on the last camera) is raised above every other; measured is the time from the
-  call to that lane's first output of a frame submitted after the call (the first run under the new order). The
+  call to the publishing of that lane's first output of a frame submitted after the call (the first run under
+  the new order). The
   lane is put back and throttled again before the next change.
 
 ::
@@ -57,7 +60,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 class _Stream:
     """Synchronised cameras at ``fps`` from a thread of their own, and every result taken on another, kept per lane
-    as (arrival, latency); ``watch`` reports the first output of a lane for a frame submitted after a moment."""
+    as (published, latency); ``watch`` reports the first output of a lane for a frame submitted after a moment."""
 
     def __init__(self, eng: Any, imgs: list[np.ndarray], fps: float) -> None:
         self.eng, self.imgs, self.fps = eng, imgs, fps
@@ -86,21 +89,19 @@ class _Stream:
 
     def _collect(self) -> None:
         while not self._stop.is_set():
-            rs = self.eng.results(timeout=0.05, copy=False)
-            now = time.monotonic()
-            for r in rs:
-                self.lanes[(r.head, r.camera)].append((now, r.latency))
+            for r in self.eng.results(timeout=0.05, copy=False):
+                self.lanes[(r.head, r.camera)].append((r.t_publish, r.latency))
                 w = self._watch
                 if w is not None and (r.head, r.camera) == w[:2]:
                     with self._lock:
                         sent = self._submitted.get(r.frame_id, 0.0)
                     if sent >= w[2] and not w[4].is_set():
-                        w[3].append(now)
+                        w[3].append(r.t_publish)
                         w[4].set()
 
     def watch(self, head: str, camera: str, since: float) -> Callable[[float], float | None]:
         """From now, look for the first output of (head, camera) for a frame submitted at ``since`` or later; the
-        returned function waits up to its timeout and gives when that output arrived (None: not yet)."""
+        returned function waits up to its timeout and gives when that output was published (None: not yet)."""
         seen: list[float] = []
         done = threading.Event()
         self._watch = (head, camera, since, seen, done)
@@ -122,41 +123,52 @@ class _Stream:
 
 
 def _lane_counts(eng: Any) -> dict[tuple[str, str], dict[str, Any]]:
+    keys = ("runs", "skipped_by", "deadline_misses", "priority", "cap_hz", "e2e_latency_ms")
     return {
-        (head, cam): {k: s[k] for k in ("skipped_by", "deadline_misses", "priority", "cap_hz", "target_hz")}
+        (head, cam): {k: s[k] for k in keys}
         for cam, models in eng.stats()["cameras"].items()
         for head, s in models.items()
         if head in eng.plan.heads
     }
 
 
-def _phase(eng: Any, stream: _Stream, seconds: float) -> list[dict[str, Any]]:
-    """Each lane over ``seconds`` from now: what the stream saw and what stats() counted meanwhile."""
+def _phase(eng: Any, seconds: float) -> tuple[list[dict[str, Any]], tuple[float, float]]:
+    """Each lane over ``seconds`` from now as the engine counted it, and the span: the outputs the stream took are
+    added later (:func:`_seen`), once it has caught up with them."""
     before = _lane_counts(eng)
+    missed = {h: r["missed"] for h, r in eng.stats()["results"].items()}
     t0 = time.monotonic()
     time.sleep(seconds)
     t1 = time.monotonic()
     after = _lane_counts(eng)
-    seen = stream.window(t0, t1)
+    missed = {h: r["missed"] - missed.get(h, 0) for h, r in eng.stats()["results"].items()}
     rows = []
     for (head, cam), a in after.items():
         b = before.get((head, cam), a)
-        skipped = {k: v - b["skipped_by"][k] for k, v in a["skipped_by"].items()}
         row = {"head": head, "camera": cam, "priority": a["priority"], "cap_hz": a["cap_hz"]}
-        row |= seen.get((head, cam), {"achieved_hz": 0.0, "latency_ms": None})
-        row |= {"skipped_by": skipped, "deadline_misses": a["deadline_misses"] - b["deadline_misses"]}
+        row |= {"runs_hz": (a["runs"] - b["runs"]) / (t1 - t0), "engine_p99_ms": a["e2e_latency_ms"]["p99"]}
+        row |= {"skipped_by": {k: v - b["skipped_by"][k] for k, v in a["skipped_by"].items()}}
+        row |= {"deadline_misses": a["deadline_misses"] - b["deadline_misses"], "results_missed": missed.get(head)}
         rows.append(row)
-    return rows
+    return rows, (t0, t1)
+
+
+def _seen(rows: list[dict[str, Any]], stream: _Stream, span: tuple[float, float]) -> None:
+    """Add what the stream took of each lane's outputs published within ``span``: their rate and their latency
+    from submit to the host (Result.latency, so a stream that took them late does not count its own lag)."""
+    seen = stream.window(*span)
+    for row in rows:
+        row |= seen.get((row["head"], row["camera"]), {"achieved_hz": 0.0, "latency_ms": None})
 
 
 def _summary(rows: list[dict[str, Any]], head: str, camera: str) -> str:
     lane = next(r for r in rows if (r["head"], r["camera"]) == (head, camera))
     others = [r for r in rows if r is not lane]
-    p99 = lane["latency_ms"]["p99"] if lane["latency_ms"] else float("nan")
     held_back = sum(sum(r["skipped_by"].values()) for r in others)
     return (
-        f"{head}@{camera} {lane['achieved_hz']:.1f} Hz, p99 {p99:.1f} ms; the other lanes "
-        f"{np.mean([r['achieved_hz'] for r in others]):.1f} Hz on average, {held_back} runs skipped"
+        f"{head}@{camera} {lane['runs_hz']:.1f} Hz, p99 {lane['engine_p99_ms']:.1f} ms, "
+        f"{lane['deadline_misses']} deadline misses; the other lanes {np.mean([r['runs_hz'] for r in others]):.1f} "
+        f"Hz on average, {held_back} runs skipped"
     )
 
 
@@ -307,12 +319,12 @@ def main(args: argparse.Namespace) -> int:
         stream = _Stream(eng, Bench(cfg).images(), args.fps)
         try:
             time.sleep(args.settle)
-            res["equal"] = _phase(eng, stream, args.seconds)
+            res["equal"], equal = _phase(eng, args.seconds)
             log("equal priorities: " + _summary(res["equal"], head, first))
             write_results(args.out, out_name, res)  # a run cut short keeps what it measured
             eng.set_priority(head, args.priority, camera=first)
             time.sleep(args.settle)
-            res["priority"] = _phase(eng, stream, args.seconds)
+            res["priority"], raised_span = _phase(eng, args.seconds)
             log(f"{head}@{first} at priority {args.priority}: " + _summary(res["priority"], head, first))
             write_results(args.out, out_name, res)
             res["change"] = {"lane": f"{raised}@{last}", "priority": args.priority + 1, "doors": {}}
@@ -321,6 +333,8 @@ def main(args: argparse.Namespace) -> int:
                     eng, stream, door, raised, last, args.priority + 1, args.changes, args.settle
                 )
                 write_results(args.out, out_name, res)
+            _seen(res["equal"], stream, equal)  # by now the stream has taken what those phases published
+            _seen(res["priority"], stream, raised_span)
         finally:
             stream.close()
     print(write_results(args.out, out_name, res))

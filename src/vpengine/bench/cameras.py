@@ -51,7 +51,7 @@ def _config(base: Any, cameras: int) -> Any:
 
 
 def _device_memory(engine: Any) -> int | None:
-    """Device memory this process uses (the engine and its workers are threads of it)."""
+    """Device memory the engine uses: this process's and, in process mode, its workers'."""
     import os
 
     import torch
@@ -62,7 +62,8 @@ def _device_memory(engine: Any) -> int | None:
 
     by_pid = process_memory(torch.device(engine.config.device).index or 0)
     if by_pid:
-        return by_pid.get(os.getpid())
+        pids = {os.getpid(), *(s["pid"] for s in engine.stats()["models"].values())}
+        return sum(by_pid.get(pid, 0) for pid in pids)
     return int(torch.cuda.memory_reserved())
 
 

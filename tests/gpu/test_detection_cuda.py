@@ -97,12 +97,16 @@ def test_compiled_static_path_is_one_cuda_graph_per_batch_size_and_equals_torchv
         detection.assert_same_detections(got, want, f"{weights}, {frame}, batch of {b}")
 
 
-@pytest.mark.parametrize("batch", [1, 4, 8])
-def test_lite_recipe_at_1080p_compiled_is_faster_than_torchvision_eager(batch):
-    """frcnn_dinov2_lite as the shipped GPU config runs it (ViT-S features of 1080p frames, 80 classes, fp16):
-    device time of the compiled static path against torchvision's eager path, printed for the results."""
+@pytest.fixture(scope="module")
+def lite_paths():
+    """frcnn_dinov2_lite as the shipped GPU config runs it (ViT-S features of 1080p frames, 80 classes, fp16), once
+    for every batch size below: torchvision's eager path and the compiled static path (8 compiles, minutes cold)."""
+    import torch._inductor.config as inductor_config
+
     from helpers import heads
 
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
     grid, dim = (37, 66), 384
     cfg = heads.head_config(
         (1080, 1920), {"name": "det", "model": "frcnn_dinov2_lite", "options": {"num_classes": 80}}, device=CUDA
@@ -110,7 +114,17 @@ def test_lite_recipe_at_1080p_compiled_is_faster_than_torchvision_eager(batch):
     torchvision_path = heads.build_head(cfg, grid, dim, CUDA)
     torchvision_path.forward = torchvision_path.forward_reference  # what the head ran before the static path
     slow = make_executor(torchvision_path, "eager", CUDA, "det", precision="fp16")
-    fast = make_executor(heads.build_head(cfg, grid, dim, CUDA), "compile", CUDA, "det", precision="fp16", max_batch=8)
+    with inductor_config.patch(compile_threads=1):  # as the inductor_in_process fixture: no pool left behind
+        fast = make_executor(
+            heads.build_head(cfg, grid, dim, CUDA), "compile", CUDA, "det", precision="fp16", max_batch=8
+        )
+    return slow, fast, grid, dim
+
+
+@pytest.mark.parametrize("batch", [1, 4, 8])
+def test_lite_recipe_at_1080p_compiled_is_faster_than_torchvision_eager(batch, lite_paths):
+    """Device time of the compiled static path against torchvision's eager path, printed for the results."""
+    slow, fast, grid, dim = lite_paths
     x = {"patch.3": torch.randn(batch, grid[0] * grid[1], dim, device=CUDA).half()}
     slow_ms = event_ms(lambda: slow(x), 20, warmup=3)
     fast_ms = event_ms(lambda: fast(x), 50, warmup=5)

@@ -30,11 +30,14 @@ shipped bench config (process mode: no stall):
   three or four times per (cold) build, and so did a thread that only woke every 10 ms: the whole interpreter
   stopped, as in a full collection. So the heap is frozen while a build runs (``gc.freeze``): collections walk only
   the objects made since, and it is unfrozen when no thread builds (its objects are collected as before from then
-  on). A heap that the program froze itself is left as it is. (The freeze has not yet run on a GPU; a full
-  collection of a tiny engine's heap took 0.3 s unfrozen and nothing frozen, on a CPU.)
+  on). A heap that the program froze itself is left as it is. Full collections still run during a build that
+  makes many lasting objects (a first add imports much of torch's compiler stack: on a CPU two of 0.1-0.3 s
+  remained), but each walks only what the build made. (The freeze has not yet run on a GPU.)
 
 Both are process-wide, so they are set by the first of the threads that build at once and undone after the last.
-Building at start needs neither: nothing serves yet.
+They cover the whole of ``Engine.add_head`` (``Runner.beside_serving``): its planning builds the head on the meta
+device in the caller's thread, which on a first add imports much of torch's compiler stack. Building at start needs
+neither: nothing serves yet.
 """
 
 from __future__ import annotations
@@ -111,6 +114,9 @@ class ThreadRunner(Runner):
         self._generation: dict[str, int] = dict.fromkeys(self.specs, 0)
         self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
 
+    def beside_serving(self) -> contextlib.AbstractContextManager[None]:
+        return _beside_serving()
+
     def _should_stop(self, name: str, gen: int) -> bool:
         return self._stopping or self.control.stopping or self._generation[name] != gen
 
@@ -119,7 +125,7 @@ class ThreadRunner(Runner):
         # others serve once the monitor watches: a head added, a restart (Note [Building beside serving threads])
         serving = self._monitor is not None
         try:
-            with _beside_serving() if serving else contextlib.nullcontext():
+            with self.beside_serving() if serving else contextlib.nullcontext():
                 core = prepare_worker(
                     spec,
                     self.rings[spec.in_ring.name],

@@ -35,7 +35,8 @@ shipped bench config (process mode: no stall):
   build made: on a CPU, a first add's two full collections took 30-90 ms instead of 200-240 ms, and none ran in
   the 8 s of serving after it. (The freeze has not yet run on a GPU.)
 
-Both are process-wide, so they are set by the first of the threads that build at once and undone after the last.
+Both are process-wide, so they are set by the first of the threads that build at once and undone after the last
+(a build that never returns, Note [Hung threads], leaves them set: objects older than it are then never collected).
 They cover the whole of ``Engine.add_head`` (``Runner.beside_serving``): its planning builds the head on the meta
 device in the caller's thread, which on a first add imports much of torch's compiler stack. Building at start needs
 neither: nothing serves yet.

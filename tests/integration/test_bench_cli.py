@@ -176,6 +176,9 @@ def test_heads_bench_adds_and_removes_a_head_under_a_stream_and_counts_what_is_l
     for c in res["cycles"]:
         assert c["add_s"] > 0 and c["runs"] > 0  # it served while attached
         assert set(c["longest_gap_ms"]) == {"depth", "seg"} and all(g > 0 for g in c["longest_gap_ms"].values())
+        stops = c["interpreter"]
+        assert stops["longest_stop_ms"] >= 10  # the waking thread woke, every 10 ms at best
+        assert (stops["full_gcs"] > 0) == (stops["longest_full_gc_ms"] > 0)
     assert res["after"]["fds"] == res["before"]["fds"] and res["after"]["threads"] == res["before"]["threads"]
     bad = vpengine("bench", "heads", "-c", "tiny", "--set", "device=cpu", "--head", "nope", "--out", str(tmp_path))
     assert bad.returncode != 0 and "--head 'nope'" in bad.stderr

@@ -308,3 +308,106 @@ def test_a_head_added_for_one_of_two_cameras_serves_that_camera_only(mode):
         eng.remove_head("det2")
         eng.add_head({**DET2, "cameras": ["front"]})  # the seat given back serves the other camera now
         assert set(eng.wait(eng.submit(frame(5), camera="front"), timeout=30)) == {"depth", "seg", "det2"}
+
+
+def tensors_and_modules() -> tuple[int, int]:
+    """Tensors and modules the garbage collector tracks: what a head left alive would hold."""
+    import torch
+
+    gc.collect()
+    objects = gc.get_objects()
+    kinds = [type(o) for o in objects]  # not isinstance: it asks lazy objects for their __class__
+    return sum(issubclass(k, torch.Tensor) for k in kinds), sum(issubclass(k, torch.nn.Module) for k in kinds)
+
+
+@pytest.mark.parametrize("backend", ["eager", "compile"])
+def test_a_removed_thread_mode_head_frees_its_model_and_backend_and_cycles_leave_nothing(backend, monkeypatch):
+    """Thread mode: once removed, a head's model, executor and device context (its CUDA streams: Note [Reused
+    streams] in backends/streams.py) are garbage, with no collection, and cycles leave no tensor or module behind
+    (on CUDA: no device memory either)."""
+    import weakref
+
+    import torch
+
+    import vpengine.backends
+    import vpengine.runtime.prepare
+
+    built: list[weakref.ref] = []
+    make_executor, device_context = vpengine.backends.make_executor, vpengine.runtime.prepare.DeviceContext
+
+    def spy_executor(model, *args, **kw):
+        ex = make_executor(model, *args, **kw)
+        if args[2] == "det2":
+            built.extend([weakref.ref(model), weakref.ref(ex)])
+        return ex
+
+    def spy_device(*args, **kw):
+        dev = device_context(*args, **kw)
+        built.append(weakref.ref(dev))
+        return dev
+
+    det2 = {**DET2, "backend": backend}
+    with Engine(two_heads("thread")) as eng:
+        monkeypatch.setattr(vpengine.backends, "make_executor", spy_executor)
+        monkeypatch.setattr(vpengine.runtime.prepare, "DeviceContext", spy_device)  # det2's only: the rest run
+        cuda = eng.config.device.startswith("cuda")
+
+        def cycle():
+            eng.add_head(det2)
+            assert "det2" in eng.wait(eng.submit(frame(0)), timeout=60)
+            eng.remove_head("det2")
+            assert set(eng.wait(eng.submit(frame(1)), timeout=30)) == {"depth", "seg"}
+
+        gc.disable()  # garbage by reference counting alone: removing a head runs no collection (heads.py)
+        try:
+            cycle()
+        finally:
+            gc.enable()
+        assert len(built) == 3  # the spies saw det2's model, executor and device context
+        assert [r() for r in built] == [None] * 3, "a removed head's model, executor or device context is alive"
+        cycle()  # caches (dynamo's, the allocator's, the streams') settle
+        held = tensors_and_modules()
+        if cuda:
+            torch.cuda.synchronize()
+        device_bytes = torch.cuda.memory_allocated() if cuda else 0
+        for _ in range(3):
+            cycle()
+        assert all(r() is None for r in built)
+        now = tensors_and_modules()
+        assert now[0] <= held[0] and now[1] <= held[1], f"(tensors, modules): {now} after 3 cycles, {held} before"
+        if cuda:
+            torch.cuda.synchronize()
+            assert torch.cuda.memory_allocated() <= device_bytes
+
+
+def test_a_head_is_built_with_a_short_switch_interval_and_a_frozen_heap_and_both_are_restored(monkeypatch):
+    """Note [Building beside serving threads]: the serving threads get the interpreter lock back often, and the
+    garbage collector scans only the build's objects, while a head builds beside them; the engine's start (nothing
+    serves) and everything after the add keep the interval and the heap as they were."""
+    import sys
+
+    import vpengine.runtime.plan
+    import vpengine.runtime.prepare
+    from vpengine.runtime.threads import BUILD_SWITCH_INTERVAL_S
+
+    seen: dict[str, list[tuple[float, bool]]] = {}
+    build_model = vpengine.runtime.prepare.build_model
+
+    def spy(cfg, name, *args, plan_only, **kw):
+        state = (sys.getswitchinterval(), gc.get_freeze_count() > 0)
+        seen.setdefault(f"{name} on meta" if plan_only else name, []).append(state)
+        return build_model(cfg, name, *args, plan_only=plan_only, **kw)
+
+    monkeypatch.setattr(vpengine.runtime.prepare, "build_model", spy)
+    monkeypatch.setattr(vpengine.runtime.plan, "build_model", spy)  # the add's planning, in the caller's thread
+    before = sys.getswitchinterval()
+    assert before > BUILD_SWITCH_INTERVAL_S
+    assert gc.get_freeze_count() == 0
+    with Engine(two_heads("thread")) as eng:
+        eng.add_head(DET2)
+        assert (sys.getswitchinterval(), gc.get_freeze_count()) == (before, 0)
+        assert "det2" in eng.wait(eng.submit(frame(0)), timeout=30)
+    at_start, beside = (before, False), (BUILD_SWITCH_INTERVAL_S, True)
+    assert seen["foundation"] == seen["depth"] == seen["seg"] == [at_start]
+    assert seen["foundation on meta"][0] == at_start and seen["foundation on meta"][-1] == beside  # start, add
+    assert seen["det2 on meta"] == seen["det2"] == [beside]

@@ -57,6 +57,7 @@ import torch
 from vpengine.backends.base import Executor, PrecisionRunner, cast_model_
 from vpengine.backends.compile_cache import use_compile_cache
 from vpengine.backends.options import BackendError, CompileOptions
+from vpengine.backends.streams import lend
 from vpengine.models.base import Model
 
 log = logging.getLogger("vpengine.backends")
@@ -156,7 +157,7 @@ class CompiledExecutor(Executor):
 
     def _capture(self) -> None:
         cur = torch.cuda.current_stream(self.device)
-        side = torch.cuda.Stream(self.device)
+        side = lend(self, self.device)  # Note [Reused streams]: a head added again captures on the same stream
         side.wait_stream(cur)
         with torch.inference_mode(), torch.cuda.stream(side):
             for static in self._static.values():

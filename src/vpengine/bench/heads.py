@@ -5,9 +5,11 @@ The config's heads but one serve a stream of synthetic frames at ``--fps``; the 
 config's last: the detection head of the shipped bench config) is added and removed ``--cycles`` times, ``--hold``
 seconds apart. Per cycle: how long ``add_head`` took (build, warm-up, CUDA graphs), the longest gap between two
 outputs of each serving head from the start of the add until a second after it (against the frame period: a head
-that kept serving shows gaps of about one period), and the device memory in use before the add, with the head,
-and after its removal (on CUDA: the whole device's, every worker process included). Over all cycles: the open file
-descriptors, threads and child processes of this process before and after.
+that kept serving shows gaps of about one period), what stopped this whole process's interpreter meanwhile (the
+longest gap of a thread that only wakes every 10 ms, and the full garbage collections and the longest one: Note
+[Building beside serving threads] in runtime/threads.py), and the device memory in use before the add, with the
+head, and after its removal (on CUDA: the whole device's, every worker process included). Over all cycles: the open
+file descriptors, threads and child processes of this process before and after.
 
 ::
 
@@ -18,6 +20,7 @@ descriptors, threads and child processes of this process before and after.
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import threading
 import time
@@ -61,6 +64,44 @@ def _children() -> int:
 
 def _usage() -> dict[str, int]:
     return {"fds": len(os.listdir("/proc/self/fd")), "threads": threading.active_count(), "children": _children()}
+
+
+class _Pauses:
+    """When this process's interpreter stopped: a thread that wakes every 10 ms notes each wake-up, and every full
+    garbage collection is noted with its length."""
+
+    def __init__(self) -> None:
+        self.wakes: list[float] = []
+        self.collections: list[tuple[float, float]] = []  # (start, seconds)
+        self._started = 0.0
+        self.stop = threading.Event()
+        gc.callbacks.append(self._collected)
+        self.thread = threading.Thread(target=self._wake, daemon=True)
+        self.thread.start()
+
+    def _wake(self) -> None:
+        while not self.stop.wait(0.01):
+            self.wakes.append(time.monotonic())
+
+    def _collected(self, phase: str, info: dict[str, int]) -> None:
+        if phase == "start":
+            self._started = time.monotonic()
+        elif info["generation"] == 2:
+            self.collections.append((self._started, time.monotonic() - self._started))
+
+    def between(self, t0: float, t1: float) -> dict[str, Any]:
+        t = np.asarray([w for w in self.wakes if t0 <= w <= t1])
+        full = [d for start, d in self.collections if t0 <= start <= t1]
+        return {
+            "longest_stop_ms": float(np.diff(t).max() * 1000) if len(t) > 1 else float("nan"),
+            "full_gcs": len(full),
+            "longest_full_gc_ms": max(full, default=0.0) * 1000,
+        }
+
+    def close(self) -> None:
+        self.stop.set()
+        gc.callbacks.remove(self._collected)
+        self.thread.join(1.0)
 
 
 class _Stream:
@@ -117,6 +158,7 @@ def main(args: argparse.Namespace) -> int:
     out_name = args.name or f"heads_{str(cfg.device).split(':')[0]}"
     with Engine(cfg) as eng:
         stream = _Stream(eng, Bench(cfg).images(), args.fps)
+        pauses = _Pauses()
         try:
             time.sleep(args.hold)
             res["before"] = _usage()
@@ -132,16 +174,19 @@ def main(args: argparse.Namespace) -> int:
                 time.sleep(args.hold)
                 gaps = {h: stream.longest_gap_ms(h, t0, t1 + 1.0) for h in res["serving"]}
                 cycle = {"add_s": t1 - t0, "runs": runs, "longest_gap_ms": gaps, "period_ms": period_ms}
+                cycle |= {"interpreter": pauses.between(t0, t1 + 1.0)}
                 cycle |= {"device_bytes": {"before": before, "with_head": with_head, "after": _device_used(cfg.device)}}
                 res["cycles"].append(cycle)
                 log(
                     f"cycle {k + 1}: add {t1 - t0:.1f} s, {runs} runs, longest gaps "
                     + ", ".join(f"{h} {g:.0f} ms" for h, g in gaps.items())
-                    + f" (period {period_ms:.0f} ms)"
+                    + f" (period {period_ms:.0f} ms); interpreter stopped up to "
+                    + f"{cycle['interpreter']['longest_stop_ms']:.0f} ms"
                 )
                 write_results(args.out, out_name, res)  # a run cut short keeps what it measured
             res["after"] = _usage()
         finally:
+            pauses.close()
             stream.close()
     print(write_results(args.out, out_name, res))
     return 0

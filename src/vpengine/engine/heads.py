@@ -11,7 +11,7 @@ config, its entries retired), and its output mailbox unmapped once no call in fl
 
 from __future__ import annotations
 
-import gc
+import contextlib
 import logging
 import threading
 from collections.abc import Mapping
@@ -79,6 +79,13 @@ def _rename(engine: Engine, renames: dict[str, str], clear: bool) -> None:
 
 def add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
     engine._require_running()
+    runner = engine._res.runner
+    # planning too: it builds the head on the meta device (Note [Building beside serving threads] in threads.py)
+    with runner.beside_serving() if runner is not None else contextlib.nullcontext():
+        return _add_head(engine, head)
+
+
+def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
     res = engine._res
     with engine._heads_lock:
         raw = engine.config.model_dump(mode="json")
@@ -206,9 +213,10 @@ def _seat_back(lanes: Lanes, taken: Mapping[str, int], name: str, seat: str | No
 
 def _free_device_memory(cfg: EngineConfig) -> None:
     """Thread mode on CUDA: the removed head's model and graphs were its thread's; hand their memory back to the
-    driver (a process-mode worker's went with its process)."""
+    driver (a process-mode worker's went with its process). They are garbage once its thread has ended, by reference
+    counting alone (tests/integration/test_heads_at_run_time.py): no garbage collection here, which would stop every
+    serving thread while it walks the heap (Note [Building beside serving threads] in runtime/threads.py)."""
     if cfg.mode == "thread" and cfg.device.startswith("cuda"):
         import torch
 
-        gc.collect()
         torch.cuda.empty_cache()

@@ -18,6 +18,8 @@ from collections.abc import Iterator
 
 import torch
 
+from vpengine.backends.streams import lend
+
 
 class DeviceContext:
     def __init__(self, device: torch.device | str, priority: int = 0) -> None:
@@ -29,8 +31,8 @@ class DeviceContext:
             if self.device.index is None:  # "cuda" and "cuda:0" must compare equal to the rings' devices
                 self.device = torch.device("cuda", torch.cuda.current_device())
             torch.cuda.set_device(self.device)
-            # CUDA: lower numbers are more urgent
-            self.stream: torch.cuda.Stream | None = torch.cuda.Stream(self.device, priority=-priority)
+            # CUDA: lower numbers are more urgent. Lent, not new: Note [Reused streams] in backends/streams.py.
+            self.stream: torch.cuda.Stream | None = lend(self, self.device, -priority)
             self.event: torch.cuda.Event | None = torch.cuda.Event(blocking=True)
         else:
             self.stream = None

@@ -11,6 +11,7 @@ loop: it is marked ``failed`` in ``stats()`` and the rest of the engine goes on 
 from __future__ import annotations
 
 import collections
+import contextlib
 import logging
 import threading
 import time
@@ -102,6 +103,11 @@ class Runner(ABC):
         threads that may still touch the mailboxes."""
 
     # ------------------------------------------------------------------------------ heads at run time
+    def beside_serving(self) -> contextlib.AbstractContextManager[None]:
+        """Around Python work of the engine's process while the workers serve (a head added, a worker rebuilt):
+        what keeps it from stalling them. Nothing here: workers in processes of their own are not stalled by it."""
+        return contextlib.nullcontext()
+
     def add(self, spec: WorkerSpec, out_ring: SlotRing) -> None:
         """Start the worker of a head added at run time (Note [Heads at run time] in lanes.py) and wait until it is
         ready. EngineStartError with its start-up error if it is not, EngineDeadError if the engine stops meanwhile;

@@ -25,15 +25,14 @@ shipped bench config (process mode: no stall):
   While a thread builds beside serving ones the interval is ``BUILD_SWITCH_INTERVAL_S`` (a tenth of the default),
   which costs the builder only the switches that a serving thread asks for.
 * The garbage collector. A build makes many objects that live on, so the collector runs full collections, and a
-  full collection walks every object of the process (half a million in a tiny engine, 0.3 s on a CPU) with the lock
-  held: no thread runs meanwhile. With the switch interval short, the serving threads still stopped for 0.5-0.7 s
-  three or four times per (cold) build, and so did a thread that only woke every 10 ms: the whole interpreter
+  full collection walks every object of the process (hundreds of thousands once torch is loaded) with the lock
+  held: no thread runs meanwhile. With the switch interval short, the serving threads still stopped for many frame
+  periods a few times per (cold) build, and so did a thread that only woke every 10 ms: the whole interpreter
   stopped, as in a full collection. So the heap is frozen while a build runs (``gc.freeze``): collections walk only
   the objects made since, and it is unfrozen when no thread builds (its objects are collected as before from then
   on). A heap that the program froze itself is left as it is. Full collections still run during a build that
   makes many lasting objects (a first add imports much of torch's compiler stack), but each walks only what the
-  build made: on a CPU, a first add's two full collections took 30-90 ms instead of 200-240 ms, and none ran in
-  the 8 s of serving after it. (The freeze has not yet run on a GPU.)
+  build made, a fraction of the heap.
 
 Both are process-wide, so they are set by the first of the threads that build at once and undone after the last
 (a build that never returns, Note [Hung threads], leaves them set: objects older than it are then never collected).

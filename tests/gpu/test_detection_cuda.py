@@ -77,15 +77,16 @@ def test_static_path_on_cuda_equals_torchvision_and_never_syncs(frame, grid, wei
 
 
 @pytest.mark.parametrize("weights", ["spread", "trained"])
-@pytest.mark.parametrize(("frame", "grid"), FRAMES, ids=IDS)
+@pytest.mark.parametrize(("frame", "grid"), FRAMES[::2], ids=IDS[::2])  # a small grid and 1080p: each compiles
 def test_compiled_static_path_is_one_cuda_graph_per_batch_size_and_equals_torchvision(
     frame, grid, weights, trained_state
 ):
     head, reference = heads_for(frame, grid, weights, trained_state, {"score_threshold": 0.05})
-    # the compile backend's defaults: fullgraph (a graph break fails warm-up) and CUDA graphs
-    ex = make_executor(head, "compile", CUDA, "det", max_batch=4)
+    # the compile backend's defaults: fullgraph (a graph break fails warm-up) and CUDA graphs; two batch sizes show
+    # a graph each (a compile each, tens of seconds cold on one compile thread)
+    ex = make_executor(head, "compile", CUDA, "det", max_batch=2)
     assert ex.describe()["cudagraphs"] and ex.describe()["fullgraph"]
-    for b in (1, 2, 3, 4):
+    for b in (1, 2):
         x = detection.tokens(reference, b, seed=b, device=CUDA)
         torch.cuda.set_sync_debug_mode("error")
         try:

@@ -63,6 +63,8 @@ def _device_memory(engine: Any) -> int | None:
     by_pid = process_memory(torch.device(engine.config.device).index or 0)
     if by_pid:
         pids = {os.getpid(), *(s["pid"] for s in engine.stats()["models"].values())}
+        if not pids & by_pid.keys():  # NVML sees other pids (another pid namespace): no figure rather than 0
+            return None
         return sum(by_pid.get(pid, 0) for pid in pids)
     return int(torch.cuda.memory_reserved())
 

@@ -149,14 +149,16 @@ def test_compare_script_runs_both_trees_and_reports_after_against_before(tmp_pat
 
 def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_path):
     p = vpengine(
-        "bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--stream-cameras", "2", "--seconds", "1",
+        "bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--set", "mode=thread", "--stream-cameras", "2",
+        "--seconds", "1",
         "--cameras", "1,2", "--rounds", "3", "--heads", "depth,seg", "--out", str(tmp_path), "--name", "cams",
         timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     res = json.loads((tmp_path / "cams.json").read_text())
     s = res["stream"]
-    assert res["heads"] == ["depth", "seg"] and set(s["counted"]) == {"foundation", "depth", "seg"}
+    assert res["mode"] == "thread" and res["heads"] == ["depth", "seg"]
+    assert set(s["counted"]) == {"foundation", "depth", "seg"}
     assert s["cameras"] == 2 and 0 < s["frames_all_heads"] <= s["frames_submitted"]
     assert s["counted"]["foundation"]["batched"] > 0  # two synchronised cameras: the backbone ran them together
     assert [t["cameras"] for t in res["throughput"]] == [1, 2]
@@ -186,7 +188,8 @@ def test_heads_bench_adds_and_removes_a_head_under_a_stream_and_counts_what_is_l
 
 def test_steer_bench_measures_lanes_under_each_priority_and_a_change_through_every_door(tmp_path):
     p = vpengine(
-        "bench", "steer", "-c", "tiny", "--set", "device=cpu", "--cameras", "2", "--seconds", "1", "--settle", "0.5",
+        "bench", "steer", "-c", "tiny", "--set", "device=cpu", "--set", "mode=thread", "--cameras", "2", "--seconds", "1",
+        "--settle", "0.5",
         "--changes", "1", "--out", str(tmp_path), "--name", "steer", timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]

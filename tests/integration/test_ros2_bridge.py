@@ -411,8 +411,10 @@ def test_bad_inputs_are_logged_once_per_reason_and_the_interface_recovers_after_
 
     try:
         wait_matched(writer)
+        base = statuses(diag, 1.2)[-1][1]["vpengine: interface"][2]
         before = len(BRIDGE_LOG)
-        # one at a time: of several waiting, the bridge would decode only the newest (the rest superseded)
+        # one at a time: of several waiting, the bridge decodes only the newest (the rest superseded, counted; on a
+        # busy machine the bridge may fall behind one)
         for i in range(10):
             writer.write(image("yuv422", 320, 320 * 120, 1_850_000_000 + i))
             time.sleep(0.1)
@@ -422,7 +424,10 @@ def test_bad_inputs_are_logged_once_per_reason_and_the_interface_recovers_after_
         time.sleep(1.5)
         level, message, values = statuses(diag, 1.2)[-1][1]["vpengine: interface"]
         assert level == 1 and "inputs rejected in the last 5 s (encoding, short_data, step)" in message, message
-        assert values["rejected.encoding"] == "10" and values["rejected.short_data"] == "1", values
+        encoding = int(values["rejected.encoding"]) - int(base.get("rejected.encoding", 0))
+        superseded = int(values["superseded"]) - int(base["superseded"])
+        assert encoding >= 8 and encoding + superseded == 10, values  # each of the ten: rejected or superseded
+        assert values["rejected.short_data"] == "1", values
         assert values["rejected.step"] == "1", values
         lines = [ln for ln in BRIDGE_LOG[before:] if "input message rejected" in ln]
         assert len(lines) == 3, lines  # ten of one reason: one line; each later reason: its own line
@@ -437,7 +442,7 @@ def test_bad_inputs_are_logged_once_per_reason_and_the_interface_recovers_after_
             time.sleep(0.1)
         level, message, values = statuses(diag, 1.2)[-1][1]["vpengine: interface"]
         assert level == 0 and "rejected" not in message, message
-        assert values["rejected"] == "12", values  # the totals stay
+        assert int(values["rejected"]) == int(base["rejected"]) + encoding + 2, values  # the totals stay
     finally:
         ctx.close()
 

@@ -566,3 +566,14 @@ def test_serve_options_from_the_command_line(monkeypatch):
     assert given == ServeOptions(("0.0.0.0", 1), "t")
     monkeypatch.setenv("VPENGINE_SERVE_TOKEN", "from-env")
     assert serve_options(p.parse_args(["--serve", "[::]:9"])) == ServeOptions(("::", 9), "from-env")
+
+
+def test_where_another_door_owns_heads_the_view_refuses_head_commands_with_its_reason(engine):
+    """Under ``vpengine ros2 --serve`` a head added through the view would have no topics: it says where to go."""
+    why = "under vpengine ros2, add and remove heads on /vpengine/add_head and /vpengine/remove_head: they get topics"
+    engine.add_head = engine.remove_head = lambda *a: pytest.fail(f"the engine was asked: {a}")
+    with WebServer(engine, "127.0.0.1", 0, heads_elsewhere=why) as v:
+        for method, path, body in (("POST", "api/heads", b'{"name": "det2", "model": "tiny_det"}'),
+                                   ("DELETE", "api/heads/depth", None)):  # fmt: skip
+            status, _, reply = request(v.url + path, method, body)
+            assert status == 409 and json.loads(reply) == {"error": why}, (method, status, reply)

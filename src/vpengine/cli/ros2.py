@@ -130,7 +130,10 @@ def main(args: argparse.Namespace) -> int:
     previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
     try:
         bridge.start()
-        view.enter_context(serving(serve, lambda: core.engine, core.book.frame))
+        # a head added or removed through the view would have no topics: the ROS 2 commands own heads here
+        ns = core.namespace
+        elsewhere = f"under vpengine ros2, add and remove heads on {ns}/add_head and {ns}/remove_head: they get topics"
+        view.enter_context(serving(serve, lambda: core.engine, core.book.frame, heads_elsewhere=elsewhere))
         print(
             f"vpengine ros2: ready on domain {opts.domain_id}: {opts.subscribed_topic} -> "
             f"{', '.join(t.topic for t in core.topics)}",

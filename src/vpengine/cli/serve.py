@@ -101,17 +101,22 @@ def serving(
     engine: Any,
     frames: Callable[[int], np.ndarray | None] | None = None,
     frame_color: str = "bgr",
+    heads_elsewhere: str | None = None,
 ) -> Iterator[Any]:
     """The live view of ``engine`` (an Engine, or a callable returning it or None) while the block runs; yields
     the :class:`vpengine.web.WebServer` (None without ``--serve``). ``frames``: frame id -> the input frame
-    (``frame_color`` order), for overlays and boxes (Note [Pictures and frames] in ``vpengine.web.pictures``)."""
+    (``frame_color`` order), for overlays and boxes (Note [Pictures and frames] in ``vpengine.web.pictures``).
+    ``heads_elsewhere``: why the view refuses head commands (another door owns them)."""
     with contextlib.ExitStack() as stack:
         server = fox = None
         if options is not None and options.web is not None:
             from vpengine.web import WebServer
 
             host, port = options.web
-            server = _start("--serve", options.web, WebServer, engine, host, port, options.token, frames, frame_color)
+            server = _start(
+                "--serve", options.web, WebServer, engine, host, port, options.token, frames, frame_color,
+                heads_elsewhere,
+            )  # fmt: skip
             stack.callback(server.stop)
             print(f"vpengine: live view at {server.url}", file=sys.stderr, flush=True)
         if options is not None and options.foxglove is not None:

@@ -118,7 +118,8 @@ class WebServer:
     ``engine`` is an Engine, or a callable returning the Engine or None (an engine that starts later, as the ROS 2
     core's may: requests get 503 until then). ``frames`` looks up input frames by frame id for overlays and boxes
     (Note [Pictures and frames]); ``frame_color`` is their channel order. ``port`` 0 picks a free one (see
-    :attr:`url`). Bound beyond loopback, ``token`` is required (Note [Who may talk to the view]).
+    :attr:`url`). Bound beyond loopback, ``token`` is required (Note [Who may talk to the view]). ``heads_elsewhere``:
+    head commands are refused (409) with this reason, because another door owns them.
     """
 
     def __init__(
@@ -129,6 +130,7 @@ class WebServer:
         token: str | None = None,
         frames: FrameLookup | None = None,
         frame_color: str = "bgr",
+        heads_elsewhere: str | None = None,
     ) -> None:
         if not isinstance(port, int) or not 0 <= port <= 65535:
             raise ValueError(f"port must be an integer in 0..65535, got {port!r}")
@@ -139,6 +141,9 @@ class WebServer:
             raise ValueError(f"serving on {host!r} reaches beyond this machine: give a token, or bind to 127.0.0.1")
         self._get_engine: Callable[[], Engine | None] = engine if callable(engine) else (lambda: engine)
         self.token = token
+        #: why heads are not added or removed here (another door owns them, e.g. the ROS 2 interface, whose topics
+        #: must follow); None: they are
+        self.heads_elsewhere = heads_elsewhere
         self.pictures = Pictures(frames, frame_color)
         self._page: bytes | None = None
         self._metrics: Any = None
@@ -282,9 +287,11 @@ class _Handler(BaseHTTPRequestHandler):
                 self._put_priority(unquote(path[len("/api/priority/") :]), body)
             elif path == "/api/heads":
                 self._only(method, "POST")
+                self._heads_here()
                 self._add_head(body)
             elif path.startswith("/api/heads/"):
                 self._only(method, "DELETE")
+                self._heads_here()
                 self._remove_head(unquote(path[len("/api/heads/") :]))
             elif path.startswith("/api/latest/") and path.endswith(".jpg"):
                 self._only(method, "GET")
@@ -383,6 +390,10 @@ class _Handler(BaseHTTPRequestHandler):
             raise _HttpError(HTTPStatus.BAD_REQUEST, str(e)) from None
         log.info("live view: priority of %s set to %d", key, priority)
         self._send_json(HTTPStatus.OK, {"head": head, "camera": camera, "priority": priority})
+
+    def _heads_here(self) -> None:
+        if self.view.heads_elsewhere is not None:
+            raise _HttpError(HTTPStatus.CONFLICT, self.view.heads_elsewhere)
 
     def _add_head(self, body: bytes) -> None:
         from vpengine.engine import EngineDeadError, EngineStartError

@@ -1,12 +1,16 @@
-"""Shared fixtures. Every test is checked for leaks: no new /dev/shm entries, no child process left alive."""
+"""Shared fixtures. Every test is checked for leaks: no new /dev/shm entries, no child process left alive, Ctrl-C's
+handler as the test found it."""
 
 from __future__ import annotations
 
 import os
+import signal
 import time
 
 import psutil
 import pytest
+
+from helpers.leaks import shm_held_by
 
 
 def _children() -> set[int]:
@@ -26,21 +30,17 @@ def _held_by_other_workers(names: set[str]) -> set[str]:
     for worker in parent.children():
         if worker.pid != me.pid:
             others |= {worker.pid, *(p.pid for p in worker.children(recursive=True))}
-    held: set[str] = set()
-    for pid in others:
-        try:
-            with open(f"/proc/{pid}/maps") as f:
-                held |= {line.split("/dev/shm/", 1)[1].split()[0] for line in f if "/dev/shm/" in line}
-        except OSError:  # it ended meanwhile
-            continue
-    return names & held
+    return shm_held_by(others, names)
 
 
 @pytest.fixture(autouse=True)
 def no_leaks():
     shm_before = set(os.listdir("/dev/shm"))
     kids_before = _children()
+    sigint_before = signal.getsignal(signal.SIGINT)
     yield
+    # a handler left behind swallows the next test's Ctrl-C (or a user's, where the engine is a library)
+    assert signal.getsignal(signal.SIGINT) is sigint_before, f"SIGINT handler left: {signal.getsignal(signal.SIGINT)}"
     deadline = time.monotonic() + 10
     while (left := _children() - kids_before) and time.monotonic() < deadline:
         time.sleep(0.1)

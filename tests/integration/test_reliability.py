@@ -215,7 +215,7 @@ def test_no_worker_outlives_a_sigkilled_parent(case):
 # ------------------------------------------------------------------------------------- 6: dropped engines
 def test_engines_dropped_without_stop_are_collected_and_leave_no_worker():
     threads_before = set(threading.enumerate())
-    for mode, n in (("process", 2), ("thread", 20)):  # a process engine takes seconds to start, a thread one not
+    for mode, n in (("process", 2), ("thread", 8)):  # a process engine takes seconds to start, a thread one not
         refs, pids = [], []
         for _ in range(n):
             e = Engine(tiny(mode, "heads=[]")).start()

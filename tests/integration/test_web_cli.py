@@ -62,7 +62,7 @@ def eventually(check, timeout: float, what: str):
 
 def test_run_serves_the_view_while_it_runs_and_rates_and_priorities_set_there_reach_the_engine():
     proc = start(
-        "run", "-c", "configs/tiny.yaml", "-s", "synthetic:160x120@30:360", "--no-progress",
+        "run", "-c", "configs/tiny.yaml", "-s", "synthetic:160x120@30:180", "--no-progress",
         "--set", "mode=thread", "--serve", "0",
     )  # fmt: skip
     try:

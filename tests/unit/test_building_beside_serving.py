@@ -32,8 +32,10 @@ def test_a_heap_the_program_froze_stays_frozen():
     gc.freeze()
     try:
         frozen = gc.get_freeze_count()
+        young = [[] for _ in range(1000)]  # tracked, not frozen: a freeze inside would take them too
         with beside_serving():
             pass
-        assert gc.get_freeze_count() == frozen
+        # neither unfrozen nor frozen again; other threads (a previous test's, ending) may free a few frozen objects
+        assert frozen - len(young) < gc.get_freeze_count() <= frozen
     finally:
         gc.unfreeze()

@@ -5,6 +5,7 @@ once, in order, each with its own outputs, and what errors and Ctrl-C on either 
 from __future__ import annotations
 
 import _thread
+import signal
 import threading
 import time
 from types import SimpleNamespace
@@ -160,7 +161,16 @@ def test_a_second_ctrl_c_ends_the_run_at_once_though_a_head_never_answers():
     assert rec.handled == []
 
 
-def test_a_second_ctrl_c_while_the_frames_in_hand_are_answered_ends_the_run_at_once():
+@pytest.fixture
+def python_sigint():
+    """Python's own SIGINT handler, as in a terminal: a suite started in the background (``cmd &``) inherits SIGINT
+    ignored, and then interrupt_main raises nothing."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_a_second_ctrl_c_while_the_frames_in_hand_are_answered_ends_the_run_at_once(python_sigint):
     # the first Ctrl-C (stop) after frame 1: the loop waits for the answers; the second (SIGINT) must not
     rec = Recorder(stop_after=2)
     never = threading.Event()

@@ -72,11 +72,10 @@ def test_paper_runs_every_cpu_experiment_and_the_report_reads_them(tmp_path, cli
 
 
 def test_set_reaches_the_engine_and_the_report_labels_it(tmp_path, cli):
-    p = vpengine(
+    p = cli(
         "bench", "paper", "--config", "configs/tiny.yaml", "--set", "mode=thread", "--experiments", "E2",
         "--heads", "2", "--frames", "3", "--results", "borrow", "--tag", "thread", "--out", str(tmp_path),
         "--frame-size", "200x90",
-        timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     assert "E2 N=2: engine (thread mode, MPS auto, results borrow)" in p.stdout
@@ -154,11 +153,10 @@ def test_compare_script_runs_both_trees_and_reports_after_against_before(tmp_pat
 
 
 def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_path, cli):
-    p = vpengine(
+    p = cli(
         "bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--set", "mode=thread", "--stream-cameras", "2",
         "--seconds", "1",
         "--cameras", "1,2", "--rounds", "3", "--heads", "depth,seg", "--out", str(tmp_path), "--name", "cams",
-        timeout=300,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     res = json.loads((tmp_path / "cams.json").read_text())

@@ -276,6 +276,8 @@ def test_ctrl_c_ends_the_run_with_its_summary(tmp_path, cmd):
     args = ["run", "-c", "tiny", "-s", source] if cmd != "predict" else ["predict", source]
     if cmd == "lockstep":  # frames read ahead on a thread of their own (Note [Read ahead])
         args += ["--pace", "lockstep"]
+    if cmd != "run":  # process mode's workers once (run), thread mode's quicker start for the other two
+        args += ["--mode", "thread"]
     proc = subprocess.Popen(
         command(*args, "-o", str(out), "--no-progress"), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True,

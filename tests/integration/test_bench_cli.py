@@ -241,10 +241,11 @@ def test_run_street_viz_runs_from_a_clone_on_the_shipped_sample_into_a_folder_of
     assert now == tracked
 
 
-def test_resources_reports_how_long_each_engine_took_to_start(tmp_path):
-    p = vpengine(
+def test_resources_reports_how_long_each_engine_took_to_start(tmp_path, cli):
+    # each measurement runs in a process of its own already (resources.isolated): the command around it in this one
+    p = cli(
         "bench", "resources", "--config", "tiny", "--heads", "1", "--modes", "thread", "--seconds", "0.2",
-        "--device", "cpu", "--height", "120", "--width", "160", "--out", str(tmp_path), timeout=300,
+        "--device", "cpu", "--height", "120", "--width", "160", "--out", str(tmp_path),
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     (row,) = json.loads((tmp_path / "resources_gpu.json").read_text())["rows"]

@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
 import time
 
 import psutil
 import pytest
 
 from helpers.leaks import shm_held_by
+from tests_paths import ROOT
 
 
 def _children() -> set[int]:
@@ -64,3 +66,21 @@ def restart_backoff(monkeypatch):
         monkeypatch.setattr(supervisor, "RESTART_BACKOFF_S", seconds)
 
     return set_delay
+
+
+@pytest.fixture
+def cli(capsys, monkeypatch):
+    """``cli(*args, cwd=ROOT)``: ``vpengine ARGS`` through the CLI's own main function in this process, answered as
+    a finished subprocess (exit code, stdout, stderr). The console script calls the same function; what this skips is
+    a new interpreter and its torch import (seconds each), so the end-to-end tests keep the console script for the
+    runs and take this for the messages and the runs whose process is not what they test."""
+    from vpengine.cli.main import main
+
+    def call(*args: str, cwd=ROOT) -> subprocess.CompletedProcess:
+        monkeypatch.chdir(cwd)
+        capsys.readouterr()
+        code = main(list(args))
+        out, err = capsys.readouterr()
+        return subprocess.CompletedProcess(["vpengine", *args], code, out, err)
+
+    return call

@@ -1,4 +1,5 @@
-"""The command line end to end, as a user runs it (real console script, real processes)."""
+"""The command line end to end, as a user runs it: the real console script in real processes, or its main function
+in this process (the ``cli`` fixture) where a test is about what a command does rather than the process it runs in."""
 
 from __future__ import annotations
 
@@ -70,8 +71,8 @@ def test_run_on_the_street_video_writes_every_heads_outputs_and_a_summary(tmp_pa
     assert (out / "depth" / "viz" / "000000.jpg").exists() and (out / "det" / "viz" / "000000.jpg").exists()
 
 
-def test_run_with_the_synthetic_source_needs_no_files(tmp_path):
-    p = vpengine(
+def test_run_with_the_synthetic_source_needs_no_files(tmp_path, cli):
+    p = cli(
         "run",
         "-c",
         "configs/tiny.yaml",
@@ -120,7 +121,7 @@ def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_i
     assert len(names) == s["frames_submitted"] and names[-1] == 149  # gaps where frames were replaced
 
 
-def test_image_folder_source(tmp_path):
+def test_image_folder_source(tmp_path, cli, caplog):
     import cv2
 
     frames = tmp_path / "frames"
@@ -129,7 +130,7 @@ def test_image_folder_source(tmp_path):
         cv2.imwrite(str(frames / f"im{i}.png"), np.full((60, 80, 3), i * 40, np.uint8))
     out = tmp_path / "o"
     # a head paused from the start: lockstep waits for the others only
-    p = vpengine(
+    p = cli(
         "run",
         "-c",
         "configs/tiny.yaml",
@@ -145,16 +146,16 @@ def test_image_folder_source(tmp_path):
     assert sorted(x.name for x in (out / "depth").glob("*.png")) == [f"im{i}.png" for i in range(5)]
     s = json.loads((out / "summary.json").read_text())
     assert s["models"]["seg"]["runs"] == 0 and s["models"]["depth"]["results_received"] == 5
-    assert "no output from" not in p.stderr  # never waited for the paused head
+    assert "no output from" not in p.stderr + caplog.text  # never waited for the paused head (a logged warning)
 
 
-def test_config_errors_are_reported_without_a_traceback(tmp_path):
+def test_config_errors_are_reported_without_a_traceback(tmp_path, cli):
     bad = tmp_path / "bad.yaml"
     bad.write_text("heads:\n  - {name: d, model: tiny_depth, rate: 5}\n")
-    p = vpengine("run", "-c", str(bad), "-s", "synthetic:64x64@30:3")
+    p = cli("run", "-c", str(bad), "-s", "synthetic:64x64@30:3")
     assert p.returncode == 1
     assert "heads.0.rate: unknown key" in p.stderr and "Traceback" not in p.stderr
-    p = vpengine("run", "-c", "configs/tiny.yaml", "-s", str(tmp_path / "missing.avi"))
+    p = cli("run", "-c", "configs/tiny.yaml", "-s", str(tmp_path / "missing.avi"))
     assert p.returncode == 1 and "does not exist" in p.stderr
 
 
@@ -168,7 +169,7 @@ def test_info_reports_versions_devices_and_mps():
 
 
 # ------------------------------------------------------------------------------------------------ predict, configs
-def test_predict_writes_annotated_pictures_to_a_new_folder_each_time_from_any_directory(tmp_path):
+def test_predict_writes_annotated_pictures_to_a_new_folder_each_time_from_any_directory(tmp_path, cli):
     """No config file, no media: the default config and the sample ship with the package."""
     import cv2
 
@@ -183,7 +184,7 @@ def test_predict_writes_annotated_pictures_to_a_new_folder_each_time_from_any_di
     for i in range(3):
         cv2.imwrite(str(frames / f"im{i}.jpg"), np.full((120, 160, 3), 60 * i, np.uint8))
     # a second run never writes into the first one's folder; the config's rate limits are off, and it says so
-    p = vpengine(
+    p = cli(
         "predict", str(frames / "*.jpg"), "-c", "tiny", "--set", "heads.seg.rate_hz=1", "--mode", "thread",
         "--no-progress", cwd=tmp_path,
     )  # fmt: skip
@@ -200,13 +201,13 @@ def test_predict_writes_annotated_pictures_to_a_new_folder_each_time_from_any_di
     ]
 
 
-def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path, monkeypatch, capsys):
+def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path, monkeypatch, capsys, cli):
     p = vpengine("config", "list", cwd=tmp_path)
     assert p.returncode == 0, p.stderr
     listed = dict(line.split(None, 1) for line in p.stdout.splitlines())
     assert set(listed) >= {"tiny", "dinov2s_depth_seg_det", "tiny_every_frame"}
     assert listed["tiny"].startswith("Tiny random-weight models")
-    p = vpengine("config", "show", "tiny", cwd=tmp_path)
+    p = cli("config", "show", "tiny", cwd=tmp_path)
     assert p.returncode == 0 and "name: tiny" in p.stdout and "model: tiny_vit" in p.stdout
     monkeypatch.chdir(tmp_path)  # the rest in this process: nothing here starts an engine
     from vpengine import configs
@@ -250,10 +251,10 @@ def test_the_package_installs_its_configs_and_samples(tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ runs to live with
-def test_run_writes_an_annotated_video_of_the_shipped_street_sample(tmp_path):
+def test_run_writes_an_annotated_video_of_the_shipped_street_sample(tmp_path, cli):
     import cv2
 
-    p = vpengine(
+    p = cli(
         "run", "-c", "tiny", "-s", "sample:street", "--max-frames", "12", "--video", str(tmp_path / "v.mp4"),
         "--mode", "thread", "--no-progress",
     )  # fmt: skip
@@ -275,6 +276,8 @@ def test_ctrl_c_ends_the_run_with_its_summary(tmp_path, cmd):
     args = ["run", "-c", "tiny", "-s", source] if cmd != "predict" else ["predict", source]
     if cmd == "lockstep":  # frames read ahead on a thread of their own (Note [Read ahead])
         args += ["--pace", "lockstep"]
+    if cmd != "run":  # process mode's workers once (run), thread mode's quicker start for the other two
+        args += ["--mode", "thread"]
     proc = subprocess.Popen(
         command(*args, "-o", str(out), "--no-progress"), cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
         text=True,
@@ -300,7 +303,7 @@ def test_ctrl_c_ends_the_run_with_its_summary(tmp_path, cmd):
         assert len((out / "det" / "detections.jsonl").read_text().splitlines()) == n
 
 
-def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, capsys, monkeypatch):
+def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, capsys, monkeypatch, cli):
     """In the CLI's own process, with an engine that must not be made: every check comes first."""
     from vpengine.cli.main import main
 
@@ -338,7 +341,7 @@ def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, ca
         err = capsys.readouterr().err
         assert e.value.code == 2 and f"argument {option}: expected " in err, (option, value, err)
     monkeypatch.undo()
-    p = vpengine(*run, "-o", str(tmp_path / "full"), "--exist-ok", "--mode", "thread")
+    p = cli(*run, "-o", str(tmp_path / "full"), "--exist-ok", "--mode", "thread")
     assert p.returncode == 0, p.stderr
     assert (tmp_path / "full" / "summary.json").exists() and (tmp_path / "full" / "old.png").exists()
 
@@ -346,27 +349,26 @@ def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, ca
 def test_a_missing_optional_extra_says_what_to_install(tmp_path):
     bag = tmp_path / "in.mcap"
     bag.write_bytes(b"")
+    # one interpreter for both commands: each answers and the next one runs, with its exit code after its message
     script = (
-        "import sys; sys.modules['rosbags'] = None; sys.modules['cyclonedds'] = None\n"
+        "import json, sys; sys.modules['rosbags'] = None; sys.modules['cyclonedds'] = None\n"
         "from vpengine.cli.main import main\n"
-        "sys.exit(main(sys.argv[1:]))"
+        "for args in json.loads(sys.argv[1]):\n"
+        "    print(f'exit {main(args)}', file=sys.stderr)"
     )
-    for args in (["run", "-c", "tiny", "-s", str(bag)], ["ros2", "-c", "tiny", "--input-topic", "/cam"]):
-        p = subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=120)
-        assert p.returncode == 1, p.stderr
-        assert (
-            p.stderr.strip()
-            .splitlines()[-1]
-            .endswith(
-                "needs the optional extra 'ros2' ("
-                + ("rosbags" if args[0] == "run" else "cyclonedds")
-                + " is not installed): pip install 'vpengine[ros2]'"
-            )
-        )
-        assert "Traceback" not in p.stderr
+    runs = [["run", "-c", "tiny", "-s", str(bag)], ["ros2", "-c", "tiny", "--input-topic", "/cam"]]
+    p = subprocess.run([sys.executable, "-c", script, json.dumps(runs)], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0 and "Traceback" not in p.stderr, p.stderr
+    lines = p.stderr.strip().splitlines()
+    ends = [i for i, line in enumerate(lines) if line.startswith("exit ")]
+    assert [lines[i] for i in ends] == ["exit 1", "exit 1"], p.stderr
+    for i, missing in zip(ends, ("rosbags", "cyclonedds")):
+        assert lines[i - 1].endswith(
+            f"needs the optional extra 'ros2' ({missing} is not installed): pip install 'vpengine[ros2]'"
+        ), p.stderr
 
 
-def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path):
+def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path, cli):
     import cv2
 
     frames = tmp_path / "frames"
@@ -374,7 +376,7 @@ def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path):
     for i in range(4):
         cv2.imwrite(str(frames / f"im{i}.png"), np.full((120, 160, 3), 50 * i, np.uint8))
     (frames / "im2.png").write_bytes(b"not an image")
-    p = vpengine("run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress")
+    p = cli("run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress")
     assert p.returncode == 0, p.stderr
     assert "images skipped as unreadable: 1 (listed in summary.json)" in p.stdout
     s = json.loads((tmp_path / "o" / "summary.json").read_text())
@@ -383,7 +385,7 @@ def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path):
     ]
 
 
-def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path):
+def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path, cli):
     import cv2
 
     from vpengine.io.sinks import load_depth
@@ -393,9 +395,9 @@ def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path):
     sizes = [(120, 160), (90, 200), (300, 140)]
     for i, (h, w) in enumerate(sizes):
         cv2.imwrite(str(frames / f"im{i}.png"), np.full((h, w, 3), 70 * i, np.uint8))
-    p = vpengine("predict", str(frames), "-o", str(tmp_path / "p"), "--mode", "thread", "--no-progress")
+    p = cli("predict", str(frames), "-o", str(tmp_path / "p"), "--mode", "thread", "--no-progress")
     assert p.returncode == 0, p.stderr
-    p = vpengine("run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress")
+    p = cli("run", "-c", "tiny", "-s", str(frames), "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress")
     assert p.returncode == 0, p.stderr
     for i, size in enumerate(sizes):
         assert load_depth(tmp_path / "o" / "depth", f"im{i}").shape == size

@@ -3,7 +3,7 @@
     E1     shared backbone + N depth heads vs N independent models vs the models one after another
     E2     N detection heads in parallel (the engine) vs one after another
     E3     CUDA MPS off vs on, 4 and 8 heads
-    E4     rate limits 5-30 Hz against 10 s of 30 Hz input
+    E4     rate limits 5-30 Hz against 10 s (--e4-seconds) of 30 Hz input
     E5     a long 30 Hz stream through depth, seg and det: latency, loss, device memory over time
     floor  the engine vs the same models' device time
 
@@ -19,7 +19,7 @@ import contextlib
 import time
 from typing import Any
 
-from vpengine.arguments import add_overrides_argument
+from vpengine.arguments import add_overrides_argument, positive_float
 
 EXPERIMENTS = ("E1", "E2", "E3", "E4", "E5", "floor")
 
@@ -38,6 +38,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument("--heads", default="1,2,4,8", help="head counts of E1 and E2 (default: %(default)s)")
     p.add_argument("--frames", type=int, default=100, help="frames per lockstep measurement (default: %(default)s)")
+    p.add_argument(
+        "--e4-seconds", type=positive_float, default=10.0, help="seconds of 30 Hz input in E4 (default: %(default)s)"
+    )
     p.add_argument("--e5-frames", type=int, default=10000, help="frames of the E5 stream (default: %(default)s)")
     p.add_argument(
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (default: %(default)s)"
@@ -114,7 +117,7 @@ def main(args: argparse.Namespace) -> int:
         "E1": lambda imgs: e1_shared_backbone.run(b, imgs, ns),
         "E2": lambda imgs: e2_parallel_heads.run(b, imgs, ns),
         "E3": lambda imgs: e3_mps.run(b, imgs),
-        "E4": lambda imgs: e4_rates.run(b, imgs),
+        "E4": lambda imgs: e4_rates.run(b, imgs, args.e4_seconds),
         "E5": lambda imgs: e5_stream.run(b, imgs, args.e5_frames),
         "floor": lambda imgs: floor.run(b, imgs, kinds),
     }

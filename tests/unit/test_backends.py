@@ -442,6 +442,10 @@ REQUIRED_OPTIONS = {"vpengine.models.detection:FasterRCNNHead": {"num_classes": 
 #: (Faster R-CNN was here until it exported with the tracing exporter: see the test below.)
 KNOWN_EXPORT_FAILURES: dict[str, str] = {}
 _SIZES = {"s": 0, "b": 1, "l": 2, "g": 3}
+#: Recipes that differ from another recipe of their class only in widths and proposal counts (``_WIDTHS``), which
+#: change no export path: that other, smaller recipe stands for them.
+SAME_PATH_AS = {"frcnn_dinov2": "frcnn_dinov2_lite"}
+_WIDTHS = {"out_channels", "representation_size", "rpn_pre_nms_top_n_test", "rpn_post_nms_top_n_test"}
 
 
 def representative_recipes() -> list:
@@ -453,6 +457,8 @@ def representative_recipes() -> list:
     """
     groups: dict = {}
     for r in recipes():
+        if r.name in SAME_PATH_AS:
+            continue
         variant = tuple(sorted((k, repr(v)) for k, v in r.defaults.items() if k not in ("size", "default_checkpoint")))
         groups.setdefault((r.target, variant), []).append(r)
     return [min(rs, key=lambda r: _SIZES.get(str(r.defaults.get("size")), 9)) for rs in groups.values()]
@@ -531,6 +537,11 @@ def test_every_registered_model_exports_to_onnx_and_matches_pytorch(recipe, tmp_
 def test_representatives_cover_every_model_class_and_pair_heads_with_a_backbone():
     chosen = representative_recipes()
     assert {r.target for r in chosen} == {r.target for r in recipes()}
+    by_name = {r.name: r for r in recipes()}
+    for name, other in SAME_PATH_AS.items():
+        a, b = by_name[name], by_name[other]
+        differ = {k for k in a.defaults.keys() | b.defaults.keys() if a.defaults.get(k) != b.defaults.get(k)}
+        assert a.target == b.target and differ <= _WIDTHS and b in chosen, (name, other, differ)
     assert all(r.name.startswith("tiny_") for r in chosen if r.target.startswith("vpengine.models.tiny:"))
     cfg = _recipe_config(next(r for r in recipes("head") if r.name == "tiny_depth"))
     assert cfg is not None and cfg["foundation_model"]["model"] == "tiny_vit"

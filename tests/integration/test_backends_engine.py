@@ -39,14 +39,23 @@ def confident(det: dict, margin: float = 1e-3) -> list[tuple]:
     return sorted(zip(map(tuple, det["boxes"][keep].tolist()), det["labels"][keep].tolist()))
 
 
+# cropped, not resized: the CPU's fast 8-bit resize and an ONNX export's float resize differ by a grey level
+EXACT = "foundation_model.preprocess.resize=none"
+
+
+@pytest.fixture(scope="module")
+def all_eager():
+    """An all-eager engine's outputs for the frames. One run in thread mode serves both modes, which give identical
+    outputs (tests/integration/test_pipeline.py::test_process_and_thread_mode_give_identical_outputs)."""
+    return run_lockstep(tiny("thread", EXACT), N_FRAMES)
+
+
 @pytest.mark.parametrize("mode", ["thread", "process"])
-def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, tmp_path, monkeypatch):
-    # cropped, not resized: the CPU's fast 8-bit resize and an ONNX export's float resize differ by a grey level
-    exact = "foundation_model.preprocess.resize=none"
-    want = run_lockstep(tiny(mode, exact), N_FRAMES)
+def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, all_eager, tmp_path, monkeypatch):
+    want = all_eager
     cfg = tiny(
         mode,
-        exact,
+        EXACT,
         "foundation_model.backend=onnx",
         "heads.depth.backend=compile",
     )

@@ -138,7 +138,7 @@ def test_compiled_faster_rcnn_never_recompiles_once_warm_whatever_the_batch_and_
     cfg = tiny(
         "thread",
         "heads.det.model=frcnn_dinov2_lite",
-        "heads.det.options={num_classes: 3}",
+        "heads.det.options={num_classes: 3, score_threshold: 0.3}",  # random scores ~1/4: a few boxes, more or fewer
         "weights.random_weights=true",
     )
     model = build(cfg, "det")
@@ -155,11 +155,14 @@ def test_compiled_faster_rcnn_never_recompiles_once_warm_whatever_the_batch_and_
         opts = {"fullgraph": False, "compiler": "aot_eager"}
         ex = make_executor(model, "compile", CPU, "det", options=opts, max_batch=2)
         g = torch.Generator().manual_seed(0)
+        counts: list[int] = []
         with torch.compiler.set_stance("fail_on_recompile"):
             for i, (b, scale) in enumerate([(1, 1.0), (2, 4.0), (1, 0.1), (2, 0.5), (1, 8.0), (2, 2.0)]):
                 x = {k: torch.randn((b, *s.shape), generator=g) * scale for k, s in model.input_spec.items()}
                 out = ex(x)
                 assert out["count"].shape == (b,), f"frame {i}"
+                counts += out["count"].tolist()
+        assert len(set(counts)) > 1 and max(counts) > 0, counts  # whatever the box count: it did change
     finally:
         dynamo_log.removeHandler(catch)
     assert not limit_hits, [r.getMessage() for r in limit_hits]

@@ -238,18 +238,22 @@ def test_static_buffer_backends_refuse_batches_they_were_not_set_up_for(backend,
         make_executor(build(cfg, "depth"), backend, CPU, "depth", cache_dir=tmp_path, max_batch=0)
 
 
-def test_compile_keeps_every_batch_size_past_dynamo_s_recompile_limit(monkeypatch):
+def test_compile_keeps_every_batch_size_past_dynamo_s_recompile_limit():
     # each batch size is a recompilation; past torch._dynamo.config.recompile_limit (8) dynamo would quietly run
-    # the model eagerly, so here it must fail instead, and must not need to
-    monkeypatch.setattr(torch._dynamo.config, "fail_on_recompile_limit_hit", True)
+    # the model eagerly, so here it must fail instead, and must not need to. (dynamo's own patch, not monkeypatch:
+    # after monkeypatch's undo, later compiles in the process found the entry missing)
     cfg = tiny("thread")
     model = build(cfg, "depth")
     n = torch._dynamo.config.recompile_limit + 2
-    ex = make_executor(model, "compile", CPU, "depth", max_batch=n, options={"compiler": "eager"})
-    x = torch.cat([features_of(cfg, model, 1)[0]["patch.3"]] * n)
-    with torch.compiler.set_stance("fail_on_recompile"):
-        for b in (n, 1, n - 1):
-            assert ex({"patch.3": x[:b]})["depth"].shape == (b, 120, 160)
+    with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
+        ex = make_executor(model, "compile", CPU, "depth", max_batch=n, options={"compiler": "eager"})
+        x = torch.cat([features_of(cfg, model, 1)[0]["patch.3"]] * n)
+        with torch.compiler.set_stance("fail_on_recompile"):
+            for b in (n, 1, n - 1):
+                assert ex({"patch.3": x[:b]})["depth"].shape == (b, 120, 160)
+    # its entries, past the limit, would count against the next compile of this head in the process (another test's)
+    del ex
+    torch._dynamo.reset()
 
 
 class _PatchAndClass(Model):

@@ -103,7 +103,7 @@ def test_full_hd_depth_maps_of_several_heads_arrive_exact():
     with Engine(cfg) as engine:
         kept = engine.wait(engine.submit(img), timeout=120)  # held through the frames below
         addresses = []
-        for i in range(4):
+        for i in range(2):  # the first frame after the kept one, and one that takes a dropped one's place
             out = engine.wait(engine.submit(flipped if i % 2 == 0 else img), timeout=120)
             assert sorted(out) == ["depth", "depth1"]
             name = "flipped" if i % 2 == 0 else "upright"

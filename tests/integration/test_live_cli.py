@@ -3,27 +3,19 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import pytest
 
 from helpers.streams import MjpegCamera
-from tests_paths import ROOT, TINY
+from tests_paths import TINY
 
 pytestmark = pytest.mark.timeout(300)
 
 
-def vpengine(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "vpengine.cli.main", *args], capture_output=True, text=True, timeout=240, cwd=ROOT
-    )
-
-
-def test_run_on_an_http_camera_paces_live_and_stops_after_max_frames(tmp_path):
-    with MjpegCamera(width=160, height=120, fps=30) as cam:
-        p = vpengine("run", "-c", str(TINY), "-s", cam.url, "--max-frames", "8", "--mode", "thread", "--no-progress",
-                     "-o", str(tmp_path / "out"))  # fmt: skip
+def test_run_on_an_http_camera_paces_live_and_stops_after_max_frames(tmp_path, cli):
+    with MjpegCamera(width=160, height=120, fps=30) as cam:  # served from a thread: the run may be in this process
+        p = cli("run", "-c", str(TINY), "-s", cam.url, "--max-frames", "8", "--mode", "thread", "--no-progress",
+                "-o", str(tmp_path / "out"))  # fmt: skip
     assert p.returncode == 0, p.stderr
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
     assert s["pace"] == "realtime" and s["frames_submitted"] == 8

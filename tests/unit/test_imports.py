@@ -12,6 +12,7 @@ imported before them anyway.
 from __future__ import annotations
 
 import ast
+import functools
 import itertools
 import re
 from collections.abc import Iterator
@@ -144,7 +145,11 @@ def _dotted(node: ast.expr) -> str | None:
     return None
 
 
-PARSED = {m: parse(m) for m in MODULES}
+@functools.cache
+def parsed_modules() -> dict[str, Parsed]:
+    """Every module of the package, parsed once per process on first use: not at collection, which every pytest
+    worker pays whether or not it runs a test of this file."""
+    return {m: parse(m) for m in MODULES}
 
 
 # The import circles allowed, as the (importer, imported) edge by name that closes each. Keep it this short: each
@@ -165,7 +170,7 @@ def module_graph(allowed: dict[tuple[str, str], str] | None = None) -> dict[str,
     """importer -> {imported module: the first import that makes the edge}, less the ``allowed`` edges."""
     allowed = ALLOWED_CIRCLES if allowed is None else allowed
     graph: dict[str, dict[str, Import]] = {m: {} for m in MODULES}
-    for m, parsed in PARSED.items():
+    for m, parsed in parsed_modules().items():
         for imp in parsed.imports:
             if imp.target in MODULES and imp.target != m and (m, imp.target) not in allowed:
                 graph[m].setdefault(imp.target, imp)
@@ -269,7 +274,7 @@ def test_imports_by_name_are_edges_and_each_allowed_circle_is_needed():
 
 def imports_in(package: str) -> Iterator[Import]:
     """Every import (by name too) of the modules in ``package``."""
-    for m, parsed in PARSED.items():
+    for m, parsed in parsed_modules().items():
         if m == package or m.startswith(package + "."):
             yield from parsed.imports
 
@@ -293,7 +298,7 @@ def test_no_private_name_of_another_module_is_used():
     """``from x import _y`` and ``x._y`` reach into another module; a package's private submodule
     (models/_triton_upsample_argmax.py) is its own package's to import."""
     found = []
-    for m, parsed in PARSED.items():
+    for m, parsed in parsed_modules().items():
         for imp in parsed.imports:
             if imp.name is not None and is_private(imp.name):
                 private_module = imp.target != imp.module

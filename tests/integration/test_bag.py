@@ -213,20 +213,16 @@ def check_mcap(bag: Path) -> None:
     }
 
 
-def test_console_script_reads_a_bare_mcap_file_of_compressed_images_and_writes_colour_topics(tmp_path):
-    """The real console script, in the config's process mode, on a bare .mcap file (no metadata.yaml)."""
+def test_a_bare_mcap_file_of_compressed_images_gives_colour_topics_in_process_mode(tmp_path, capsys):
+    """The config's process mode (the engine's workers in processes of their own), on a bare .mcap file (no
+    metadata.yaml). The console script runs the same main function (test_cli.py runs it in processes of its own)."""
     src, out = tmp_path / "in", tmp_path / "out"
     write_bag(src, "mcap", "jazzy", compressed=True, topic="/cam/image/compressed", extra_topic=False)
     bare = tmp_path / "cam.mcap"
     shutil.copy(next(src.glob("*.mcap")), bare)
-    exe = shutil.which("vpengine", path=str(ROOT / ".venv" / "bin"))
-    cmd = [exe] if exe else [sys.executable, "-m", "vpengine.cli.main"]
-    p = subprocess.run(
-        [*cmd, "run", "-c", "configs/tiny.yaml", "-s", str(bare), "--out-bag", str(out), "--viz", "--no-progress"],
-        capture_output=True, text=True, timeout=240, cwd=ROOT,
-    )  # fmt: skip
-    assert p.returncode == 0, p.stderr
-    assert f"{N} frames" in p.stdout and "outputs recorded to bag" in p.stdout
+    assert run("-s", str(bare), "--out-bag", str(out), "--viz") == 0
+    printed = capsys.readouterr().out
+    assert f"{N} frames" in printed and "outputs recorded to bag" in printed
     check_outputs(read_bag(out, "jazzy"), viz=True)
 
 

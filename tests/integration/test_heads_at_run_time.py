@@ -302,9 +302,18 @@ def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use():
         eng.remove_head("stuck")
         assert eng.lanes.seats == ("+1",)  # +0 stays out of use while its thread lives
         eng.add_head(DET2)
-        for i in range(10):  # the old thread wakes meanwhile and leaves; det2 is unharmed
+
+        def stuck_alive() -> bool:
+            return any(t.name == "vpengine-stuck" for t in threading.enumerate())
+
+        deadline, after = time.monotonic() + 30, 0
+        i = 0
+        while after < 3:  # the old thread wakes meanwhile and leaves; det2 is unharmed, then and after
             assert "det2" in eng.wait(eng.submit(frame(i)), timeout=30)
-            time.sleep(0.4)
+            assert time.monotonic() < deadline, "the abandoned thread never left"
+            after += not stuck_alive()
+            i += 1
+            time.sleep(0.2)
 
 
 @pytest.mark.parametrize("mode", ["thread", "process"])

@@ -6,11 +6,17 @@ import ctypes
 import logging
 import os
 import signal
+import threading
 import time
 from pathlib import Path
 
 from vpengine.models.base import BuildContext, Model, Options
 from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyViTOptions
+
+#: Set by a test that is done with a slow build (``build_s``) of a head in its own process: the build ends there, so
+#: the thread left building does not outlive the test. While it builds it holds models.build's ``build_lock``, which
+#: every build and plan of the process takes: the next tests' engines would wait out the rest of its sleep.
+BUILDS_RELEASED = threading.Event()
 
 
 class FaultOptions(Options):
@@ -27,7 +33,7 @@ class FaultOptions(Options):
     stall_every: int | None = None  # every Nth run also sleeps stall_ms (a transient lag)
     stall_ms: float = 0.0
     fail_build: bool = False
-    build_s: float = 0.0  # building takes this long (a head that compiles)
+    build_s: float = 0.0  # building takes this long (a head that compiles), or until BUILDS_RELEASED is set
     log_at_build: str | None = None  # log this (WARNING, logger vpengine.faulty) when built
 
 
@@ -47,7 +53,7 @@ class FaultyHead(TinyDepthHead):
         if fault.fail_build and not ctx.plan_only:
             raise RuntimeError("injected build failure")
         if fault.build_s and not ctx.plan_only:
-            time.sleep(fault.build_s)
+            BUILDS_RELEASED.wait(fault.build_s)
         if fault.log_at_build and not ctx.plan_only:
             logging.getLogger("vpengine.faulty").warning("%s", fault.log_at_build)
         return cls(ctx, fault)

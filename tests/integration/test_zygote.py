@@ -144,11 +144,11 @@ ENGINE = """
 """
 
 
-def test_sigkill_of_the_engine_leaves_no_zygote_and_no_worker():
+def test_sigkill_of_the_engine_leaves_no_zygote_and_no_worker(tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests")])}
-    proc = subprocess.Popen(
-        [sys.executable, "-c", textwrap.dedent(ENGINE)], cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True
-    )
+    script = tmp_path / "engine.py"
+    script.write_text(textwrap.dedent(ENGINE))  # no __main__ guard needed: workers never re-import the user's script
+    proc = subprocess.Popen([sys.executable, str(script)], cwd=ROOT, env=env, stdout=subprocess.PIPE, text=True)
     pids: list[int] = []
     try:
         got = json.loads(proc.stdout.readline())

@@ -7,6 +7,7 @@ No DDS and no processes here; the engine tests use the real engine in thread mod
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from types import SimpleNamespace
 
 import numpy as np
@@ -360,25 +361,20 @@ def test_a_model_giving_way_shows_its_priority_cap_and_skips():
 
 
 # ---------------------------------------------------------------------------------------------- the core
-def _poll_until(core: Ros2Core, n: int, timeout: float = 20.0) -> list:
+def _poll_until(core: Ros2Core, done: Callable[[list], bool], timeout: float = 20.0) -> list:
+    """Outputs until ``done(outputs so far)``, or ``timeout`` s."""
     out: list = []
     deadline = time.monotonic() + timeout
-    while len(out) < n and time.monotonic() < deadline:
+    while not done(out) and time.monotonic() < deadline:
         out += core.poll_outputs(0.2)
     return out
 
 
-def _poll_answered(core: Ros2Core, frames: int, timeout: float = 20.0) -> list:
-    """Outputs until every topic has each of ``frames`` frames published or superseded (Note [Output QoS])."""
-    out: list = []
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        out += core.poll_outputs(0.2)
-        if all(
-            sum(t is topic for t, _ in out) + core.outputs_superseded[topic.head] >= frames for topic in core.topics
-        ):
-            break
-    return out
+def _answered(core: Ros2Core, frames: int) -> Callable[[list], bool]:
+    """Every topic has each of ``frames`` frames published or superseded (Note [Output QoS])."""
+    return lambda out: all(
+        sum(t is topic for t, _ in out) + core.outputs_superseded[topic.head] >= frames for topic in core.topics
+    )
 
 
 def test_keep_frames_keeps_the_input_pictures_for_a_viewer():
@@ -405,7 +401,7 @@ def test_core_outputs_carry_the_exact_input_header_on_every_topic():
             assert fid is not None
             sent[fid] = h
             time.sleep(0.3)
-        out = _poll_answered(core, 3)
+        out = _poll_until(core, _answered(core, 3))
     finally:
         core.stop()
     by_topic: dict[str, list] = {}
@@ -458,7 +454,7 @@ def test_frames_of_another_size_come_out_at_their_size_under_their_header():
     core.start()
     try:
         assert core.handle_image(image_msg(big, "bgr8", stamp=SimpleNamespace(sec=7, nanosec=5))) is not None
-        out = _poll_until(core, 3)
+        out = _poll_until(core, lambda out: len(out) >= 3)
         depth = next(p for t, p in out if t.role == "depth")
         classes = next(p for t, p in out if t.topic == "/vpengine/seg/classes")
         dets = next(p for t, p in out if t.topic == "/vpengine/det/detections")
@@ -481,7 +477,7 @@ def test_first_message_size_mode_starts_the_engine_at_that_size():
         big = np.tile(frame(2)[:21, :28], (4, 4, 1))
         assert core.handle_image(image_msg(big, "bgr8")) is not None
         assert (core.engine.config.input.height, core.engine.config.input.width) == (84, 112)
-        out = _poll_until(core, 3)
+        out = _poll_until(core, lambda out: len(out) >= 3)
         depth = next(p for t, p in out if t.role == "depth")
         assert (depth.width, depth.height) == (112, 84)
     finally:

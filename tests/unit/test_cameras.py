@@ -113,9 +113,12 @@ def test_frames_that_come_together_run_as_one_batch_and_give_what_they_give_alon
                     np.testing.assert_allclose(front[head][key], alone[i][head][key], rtol=1e-4, atol=1e-5)
                 assert front["depth"].camera == "front" and rear["depth"].camera == "rear"
         models = e.stats()["models"]
-        # after each camera's frame spacing is known, the backbone waits for the other camera's frame: one call
-        assert models["foundation"]["batched"] >= 24, models["foundation"]
-        assert models["depth"]["batched"] >= 24, models["depth"]
+        # after each camera's frame spacing is known, the backbone waits for the other camera's frame: one call. A
+        # pair not run together was split for a reason the model counts (Note [Cameras]: a frame deferred while the
+        # model seemed behind, a guess a loaded machine can mislead, or one that came too late): two frames each
+        for m in ("foundation", "depth"):
+            st = models[m]
+            assert st["batched"] + 2 * (st["deferred"] + st["late"]) >= 24 and st["batched"] > 0, st
         assert models["foundation"]["runs"] == 51 and models["foundation"]["dropped"] == 0
 
 

@@ -4,12 +4,11 @@ times each step from its call, or from the moment the step says its latency star
 
 from __future__ import annotations
 
-import time
-
+import pytest
 import torch
 
 from vpengine.bench.common import event_ms
-from vpengine.bench.paper.harness import timed
+from vpengine.bench.paper import harness
 
 
 def test_event_ms_is_the_median_of_one_sample_per_call(monkeypatch):
@@ -35,14 +34,23 @@ def test_event_ms_is_the_median_of_one_sample_per_call(monkeypatch):
     assert log == ["record", "run", "record", "sync"] * 5
 
 
-def test_timed_counts_from_the_time_a_step_returns():
+def test_timed_counts_from_the_time_a_step_returns(monkeypatch):
+    class Clock:  # a clock the steps advance: the test asserts arithmetic, not how a busy machine sleeps
+        now = 0.0
+
+        @classmethod
+        def perf_counter(cls) -> float:
+            return cls.now
+
+    monkeypatch.setattr(harness, "time", Clock)
+
     def step(i: int) -> float | dict[str, int]:
-        time.sleep(0.02)  # e.g. writing the frame into its slot: not latency
-        start = time.perf_counter()
-        time.sleep(0.01)
+        Clock.now += 0.020  # e.g. writing the frame into its slot: not latency
+        start = Clock.now
+        Clock.now += 0.010
         return start if i % 2 else {"outputs": 1}  # odd steps say where their latency starts; others return data
 
-    out = timed(step, 20, warmup=0)
-    assert out["n"] == 20
-    assert out["p90"] > 25 and out["p50"] < 25  # half the samples 30+ ms, half 10+ ms
-    assert 10 <= out["p50"] < 25
+    out = harness.timed(step, 20, warmup=2)
+    expected = [0.010 if i % 2 else 0.030 for i in range(20)]  # odd: from the float they returned; even: from the call
+    assert out == pytest.approx(harness.pct(expected) | {"hz": 1e3 / 20.0})
+    assert out["p90"] == pytest.approx(30.0) and out["p50"] == pytest.approx(20.0)

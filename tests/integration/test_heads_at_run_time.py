@@ -272,6 +272,12 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
     try:
         assert not adder.is_alive() and time.monotonic() - t < 20
         assert outcome and isinstance(outcome[0], RuntimeError) and "stop" in str(outcome[0])
+        # The build left behind holds the process's build lock until it returns (Note [One build at a time]): a new
+        # engine waits its ready timeout, no longer, and says who holds it.
+        t = time.monotonic()
+        with pytest.raises(Exception, match="model 'slow'") as e:
+            Engine(two_heads("thread", "runtime.ready_timeout_s=1")).start()
+        assert time.monotonic() - t < 15, e.value
     finally:
         faulty.BUILDS_RELEASED.set()  # the build left behind ends now, not 30 s into the next tests
     try:

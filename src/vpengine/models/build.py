@@ -6,21 +6,84 @@ the given device with its checkpoint loaded) and leaves it in eval mode with gra
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import threading
+import time
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import torch
 
 from vpengine.config import EngineConfig
-from vpengine.models.base import BuildContext, Model, Role
+from vpengine.models.base import BuildContext, Model, ModelBuildError, Role
 from vpengine.models.registry import resolve
 from vpengine.specs import SpecDict, TensorSpec
 
-#: Held while a model is constructed, and by workers while they capture CUDA graphs. Construction draws from
-#: PyTorch's process-global RNG (default layer init, seeded random weights), so thread-mode workers building at once
-#: would interleave their draws and get weights that differ from run to run (and from process mode); a graph capture
-#: must not overlap a build whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
-build_lock = threading.Lock()
+log = logging.getLogger(__name__)
+
+# Note [One build at a time]
+# ~~~~~~~~~~~~~~~~~~~~~~~~~~
+# A model is constructed, and a worker captures its CUDA graphs, under the process's one ``build_lock``.
+# Construction draws from PyTorch's process-global RNG (default layer init, seeded random weights), so thread-mode
+# workers building at once would interleave their draws and get weights that differ from run to run (and from
+# process mode); a graph capture must not overlap a build whose layer init draws from the CUDA RNG that the capture
+# has claimed (seen on an H100).
+#
+# A build cannot be interrupted, so the lock is held until the build returns, even when nobody waits for it any more
+# (a stop or a failed add_head abandons a thread-mode build) or never (a user's constructor that hangs). So nobody
+# waits for it blindly: a waiter gives up when its engine stops waiting (``cancelled``) and after its config's
+# ``runtime.ready_timeout_s``, and both that error and a log line after WAIT_LOG_S of waiting name the holder.
+
+WAIT_LOG_S = 5.0  # a wait this long is worth a line in the log: a start looks stuck otherwise
+
+
+class BuildCancelled(ModelBuildError):
+    """A build waiting for the build lock was no longer wanted (its engine stopped, its head was removed)."""
+
+
+class BuildLock:
+    """Note [One build at a time]: the process's build lock, which knows who holds it and since when."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._holder: tuple[str, str, float] | None = None  # (what builds, its thread's name, since: monotonic)
+
+    def holder(self) -> str | None:
+        """Who holds the lock now, in words; None when nobody does."""
+        h = self._holder
+        if h is None:
+            return None
+        what, thread, since = h
+        return f"{what} (thread {thread!r}, for {time.monotonic() - since:.0f} s)"
+
+    @contextlib.contextmanager
+    def held(self, what: str, timeout: float, cancelled: Callable[[], bool] | None = None) -> Iterator[None]:
+        """Hold the lock while building ``what``; wait at most ``timeout`` s for it, and not once ``cancelled()``."""
+        start = time.monotonic()
+        logged = False
+        while not self._lock.acquire(timeout=0.25):
+            waited = time.monotonic() - start
+            if cancelled is not None and cancelled():
+                raise BuildCancelled(f"{what}: no longer wanted while waiting to build")
+            if waited >= timeout:
+                raise ModelBuildError(
+                    f"{what}: waited {waited:.0f} s (runtime.ready_timeout_s) to build while {self.holder()} built; "
+                    "one model builds at a time in a process (Note [One build at a time]), and a build holds its "
+                    "turn until it returns, even one a stopped engine left behind"
+                )
+            if not logged and waited >= WAIT_LOG_S:
+                log.warning("%s waits to build: %s is building (one model at a time in a process)", what, self.holder())
+                logged = True
+        self._holder = (what, threading.current_thread().name, time.monotonic())
+        try:
+            yield
+        finally:
+            self._holder = None
+            self._lock.release()
+
+
+build_lock = BuildLock()
 
 
 def model_config(cfg: EngineConfig, name: str) -> Any:
@@ -41,12 +104,18 @@ def build_model(
     upstream_meta: dict[str, Any],
     device: torch.device,
     plan_only: bool,
+    cancelled: Callable[[], bool] | None = None,
 ) -> Model:
-    """Build one recipe. With ``plan_only`` it lands on the meta device with no weights (for planning)."""
+    """Build one recipe. With ``plan_only`` it lands on the meta device with no weights (for planning).
+
+    Note [One build at a time]: waits for the process's build lock at most the config's ``runtime.ready_timeout_s``,
+    and not once ``cancelled()``.
+    """
     mcfg = model_config(cfg, name)
     cls, defaults = resolve(mcfg.model, role)
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
-    with build_lock, torch.device("meta" if plan_only else device):
+    wait_s = cfg.runtime.ready_timeout_s
+    with build_lock.held(f"model {name!r}", wait_s, cancelled), torch.device("meta" if plan_only else device):
         model = cls.from_config(ctx)
     if not plan_only:
         model.load_checkpoint(ctx)

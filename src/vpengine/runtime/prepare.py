@@ -8,11 +8,12 @@ from __future__ import annotations
 import os
 import threading
 import time
+from collections.abc import Callable
 
 import torch
 
 from vpengine.models.base import check_outputs
-from vpengine.models.build import build_lock, build_model, model_config
+from vpengine.models.build import BuildCancelled, build_lock, build_model, model_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
@@ -44,8 +45,13 @@ def prepare_worker(
     control: ControlBlock,
     own_process: bool,
     handoff: WorkerHandoff | None = None,
+    cancelled: Callable[[], bool] | None = None,
 ) -> WorkerCore:
-    """Build the model on its device, warm it up (allocations happen here, before READY), return its loop."""
+    """Build the model on its device, warm it up (allocations happen here, before READY), return its loop.
+
+    ``cancelled``: whether the build is still wanted (a thread-mode engine that stopped, a head removed): checked while
+    waiting for the build lock and between the build and the warm-up (Note [One build at a time]).
+    """
     from vpengine.backends import make_executor
     from vpengine.runtime.control import LOADING, READY
 
@@ -68,10 +74,14 @@ def prepare_worker(
         except Exception:  # the bindings are optional in thread mode; MPS status is informational
             control.set(spec.name, "mps_active", 0)
     with dev.active():
-        model = build_model(cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False)
+        model = build_model(
+            cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False, cancelled=cancelled
+        )
+        if cancelled is not None and cancelled():
+            raise BuildCancelled(f"{spec.name}: no longer wanted once built")
         # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
         # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
-        with build_lock:
+        with build_lock.held(f"model {spec.name!r} (warm-up)", cfg.runtime.ready_timeout_s, cancelled):
             executor = make_executor(
                 model,
                 mcfg.backend,

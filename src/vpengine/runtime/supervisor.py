@@ -132,6 +132,8 @@ class Runner(ABC):
         with self._lock:  # the monitor reports under the lock: nothing it heard is lost between here and there
             self._adding.pop(name, None)
             errors = list(done[1]) if ready else [f"{name} was not ready within {limit} s (runtime.ready_timeout_s)"]
+            if not ready:
+                errors[0] += _build_lock_holder()
             stopping = self._stopping
         if stopping:
             raise EngineDeadError(f"engine stopped while {name} was being added")
@@ -186,7 +188,7 @@ class Runner(ABC):
         self.stop()
         raise EngineStartError(
             f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
-            "(runtime.ready_timeout_s)"
+            f"(runtime.ready_timeout_s){_build_lock_holder()}"
         )
 
     @property
@@ -289,3 +291,11 @@ class Runner(ABC):
                 else:
                     nxt = min(nxt, r.due - now)
             return nxt
+
+
+def _build_lock_holder() -> str:
+    """Why a thread-mode start may be waiting: who holds the process's build lock, if anyone."""
+    from vpengine.models.build import build_lock
+
+    holder = build_lock.holder()
+    return f"; {holder} holds this process's build lock (Note [One build at a time])" if holder else ""

@@ -134,6 +134,7 @@ class ThreadRunner(Runner):
                     self.control,
                     own_process=False,
                     handoff=self.handoffs.for_worker(name),
+                    cancelled=lambda: self._should_stop(name, gen),
                 )
         except BaseException as e:
             self._events.put((name, "error", describe_exception(name, e), gen))

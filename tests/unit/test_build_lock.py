@@ -1,0 +1,103 @@
+"""Note [One build at a time]: the process's build lock is held until a build returns, so nobody waits for it
+blindly: a waiter gives up once it is no longer wanted or after its timeout, and the error and the log name the
+holder."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import pytest
+
+from vpengine.models import build
+from vpengine.models.base import ModelBuildError
+from vpengine.models.build import BuildCancelled, BuildLock
+
+
+@pytest.fixture
+def held():
+    """A lock held by another thread, named 'builder', building "model 'slow'", until the test ends."""
+    lock = BuildLock()
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:
+        with lock.held("model 'slow'", 5):
+            entered.set()
+            release.wait(30)
+
+    t = threading.Thread(target=hold, name="builder", daemon=True)
+    t.start()
+    assert entered.wait(10)
+    yield lock
+    release.set()
+    t.join(10)
+    assert lock.holder() is None  # released with the build
+
+
+def test_a_waiter_past_its_timeout_fails_naming_the_holder(held):
+    assert "model 'slow'" in held.holder() and "'builder'" in held.holder()
+    t = time.monotonic()
+    with pytest.raises(ModelBuildError) as e, held.held("model 'depth'", 0.5):
+        pass
+    assert time.monotonic() - t < 5
+    text = str(e.value)
+    assert "model 'depth'" in text and "model 'slow'" in text and "'builder'" in text
+    assert "runtime.ready_timeout_s" in text
+    assert not isinstance(e.value, BuildCancelled)
+
+
+def test_a_waiter_no_longer_wanted_leaves_without_building(held):
+    wanted = threading.Event()
+    wanted.set()
+    ran = []
+    out: list[BaseException] = []
+
+    def wait() -> None:
+        try:
+            with held.held("model 'depth'", 60, cancelled=lambda: not wanted.is_set()):
+                ran.append(1)
+        except BaseException as e:
+            out.append(e)
+
+    t = threading.Thread(target=wait, daemon=True)
+    t.start()
+    time.sleep(0.3)
+    assert t.is_alive()  # waiting: the holder builds
+    wanted.clear()  # e.g. its engine stopped
+    t.join(10)
+    assert not t.is_alive() and not ran
+    assert len(out) == 1 and isinstance(out[0], BuildCancelled) and "model 'depth'" in str(out[0])
+
+
+def test_a_long_wait_is_logged_once_with_the_holder(held, monkeypatch, caplog):
+    monkeypatch.setattr(build, "WAIT_LOG_S", 0.3)
+    logged = caplog.at_level(logging.WARNING, logger="vpengine.models.build")
+    with logged, pytest.raises(ModelBuildError), held.held("model 'depth'", 1.5):
+        pass
+    lines = [r.getMessage() for r in caplog.records if r.name == "vpengine.models.build"]
+    assert len(lines) == 1, lines
+    assert "model 'depth' waits" in lines[0] and "model 'slow'" in lines[0]
+
+
+def test_builds_take_turns_and_a_free_lock_is_taken_at_once():
+    lock = BuildLock()
+    inside, overlap = [0], []
+
+    def build_one() -> None:
+        with lock.held("model 'x'", 30):
+            inside[0] += 1
+            overlap.append(inside[0])
+            time.sleep(0.01)
+            inside[0] -= 1
+
+    threads = [threading.Thread(target=build_one) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(30)
+    assert overlap == [1] * 8  # never two at once
+    t = time.monotonic()
+    with lock.held("model 'y'", 30):
+        assert lock.holder().startswith("model 'y'")
+    assert time.monotonic() - t < 1

@@ -35,6 +35,28 @@ def _held_by_other_workers(names: set[str]) -> set[str]:
     return shm_held_by(others, names)
 
 
+_GROUPS_LOST: list[str] = []  # grouped tests whose group pytest-xdist could not mark (see below)
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests of one ``xdist_group`` (the DDS tests) must run in one worker, one at a time; pytest-xdist marks them by
+    a suffix of their node ids, which some pytest versions silently ignore: then they would run side by side."""
+    if config.getoption("loadgroup", default=False):  # a pytest-xdist worker under --dist loadgroup
+        _GROUPS_LOST[:] = [i.nodeid for i in items if i.get_closest_marker("xdist_group") and "@" not in i.nodeid]
+
+
+@pytest.fixture(autouse=True)
+def grouped_as_marked(request):
+    if _GROUPS_LOST and request.node.get_closest_marker("xdist_group"):
+        pytest.fail(
+            f"--dist loadgroup has no effect with pytest {pytest.__version__} and this pytest-xdist: the "
+            f"{len(_GROUPS_LOST)} tests of an xdist_group would run in several workers at once; install the dev "
+            "extras' pytest",
+            pytrace=False,
+        )
+
+
 @pytest.fixture(autouse=True)
 def no_leaks():
     shm_before = set(os.listdir("/dev/shm"))

@@ -696,11 +696,12 @@ def hd_frame(i: int, encoding: str = "bgr8") -> bytearray:
     return cdr.encode_image(image_out(img, encoding, Header(1_900_000_000 + i, 0, "hd")))
 
 
-def statuses(diag: Any, seconds: float) -> list[tuple[float, dict[str, Any]]]:
-    """Every /diagnostics message for ``seconds``: (its stamp, {status name: (level, message, values)})."""
-    out = []
+def statuses(diag: Any, seconds: float, until: Any = None) -> list[tuple[float, dict[str, Any]]]:
+    """Every /diagnostics message for ``seconds``, or until ``until(messages so far)``: (its stamp, {status name:
+    (level, message, values)})."""
+    out: list[tuple[float, dict[str, Any]]] = []
     end = time.monotonic() + seconds
-    while time.monotonic() < end:
+    while time.monotonic() < end and not (until is not None and until(out)):
         diag.wait(0.1)
         for d in diag.take(32):
             out.append(
@@ -794,11 +795,15 @@ def test_diagnostics_keep_their_beat_and_rate_commands_apply_under_1080p_load(br
         gaps = np.diff(stamps)
         assert len(stamps) >= 5 and (gaps < 2.5).all(), gaps  # no beat held back by the stuck subscriber
 
+        def showing(shown: str) -> Any:  # a predicate over statuses: the depth head's target reads ``shown``
+            return lambda got: any(st["vpengine: depth"][2]["target_hz"] == shown for _, st in got)
+
         delays = []
         for value, shown in (("7", "7.00"), ("max", "unlimited"), ("3", "3.00")):
             sent = time.time()
             rates.write(T.KeyValue_("depth", value))
-            seen = [t for t, st in statuses(diag, 3.0) if st["vpengine: depth"][2]["target_hz"] == shown]
+            got = statuses(diag, 3.0, until=showing(shown))
+            seen = [t for t, st in got if showing(shown)([(t, st)])]
             assert seen, value
             delays.append(seen[0] - sent)  # the diagnostics' stamp: when the bridge had applied it
         assert max(delays) < 1.5, delays  # applied, not stuck behind the backed-up writes

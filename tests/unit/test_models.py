@@ -218,3 +218,37 @@ def test_cpu_uint8_fast_resize_stays_within_one_grey_level_of_the_float_path():
     one_level = (1 / 255) / min(IMAGENET_STD)  # one grey level in normalised units
     assert (fast - slow).abs().max().item() <= one_level
     assert (fast - slow).abs().mean().item() < 0.5 * one_level
+
+
+def test_planning_the_tiny_pipeline_imports_no_compiler():
+    """Every CLI start plans its config on the meta device. Integer arithmetic there runs PyTorch's Python reference
+    kernels, whose first use imports torch._dynamo (~2 s on a small machine), which the README's tiny job never
+    needs: its detection head computes its cell boxes on the CPU."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys, torch\n"
+        "from vpengine.config import load_config\n"
+        "from vpengine.runtime.plan import make_plan\n"
+        "plan = make_plan(load_config('configs/tiny.yaml'))\n"
+        "assert set(plan.heads) == {'depth', 'seg', 'det'}, plan.heads\n"
+        "print('torch._dynamo' in sys.modules)\n"
+    )
+    from tests_paths import ROOT
+
+    p = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.split() == ["False"], p.stdout
+
+
+def test_the_tiny_detection_heads_cells_are_built_where_the_model_is():
+    cfg = tiny("thread")
+    plan = make_plan(cfg)
+    for device in ("meta", "cpu"):
+        head = build_model(cfg, "det", "head", plan.features, plan.feature_meta, torch.device(device), device == "meta")
+        assert head.cells.device.type == device and head.cells.shape[-1] == 4
+    gh, gw = plan.feature_meta["grid"]
+    h, w = cfg.input.height, cfg.input.width
+    want = torch.tensor([[0, 0, w / gw, h / gh], [w - w / gw, h - h / gh, w, h]])
+    assert torch.allclose(head.cells[[0, -1]], want)

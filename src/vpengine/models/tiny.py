@@ -216,9 +216,12 @@ class TinyDetHead(_TinyHead):
         }
         gh, gw = self.grid
         h, w = self.out_hw
-        ys, xs = torch.meshgrid(torch.arange(gh), torch.arange(gw), indexing="ij")
+        # Computed on the CPU and then moved to where the model is built: integer arithmetic on the meta device
+        # (planning) runs PyTorch's Python reference kernels, whose first use imports torch._dynamo, ~2 s of every
+        # CLI start with this head.
+        ys, xs = torch.meshgrid(torch.arange(gh, device="cpu"), torch.arange(gw, device="cpu"), indexing="ij")
         cells = torch.stack([xs * w / gw, ys * h / gh, (xs + 1) * w / gw, (ys + 1) * h / gh], -1).reshape(-1, 4)
-        self.register_buffer("cells", cells.float(), persistent=False)
+        self.register_buffer("cells", cells.float().to(torch.get_default_device()), persistent=False)
         self.meta = {
             "kind": "detection",
             "output_grid": {"boxes": "boxes"},

@@ -211,7 +211,12 @@ class RuntimeConfig(_Strict):
         "control block and the features mailbox from start, one more features slot per camera (Note [Heads at run "
         "time]).",
     )
-    ready_timeout_s: float = Field(300.0, gt=0, le=86400, description="How long a worker may take to load and warm up.")
+    ready_timeout_s: float = Field(
+        300.0,
+        gt=0,
+        le=86400,
+        description="How long a worker may take to load and warm up, and a build may wait for another in its process.",
+    )
     stop_timeout_s: float = Field(3.0, gt=0, le=600, description="Grace time at stop before workers are terminated.")
     max_restarts: int = Field(
         5,

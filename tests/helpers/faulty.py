@@ -15,7 +15,7 @@ from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyVi
 
 #: Set by a test that is done with a slow build (``build_s``) of a head in its own process: the build ends there, so
 #: the thread left building does not outlive the test. While it builds it holds models.build's ``build_lock``, which
-#: every build and plan of the process takes: the next tests' engines would wait out the rest of its sleep.
+#: every build and plan of the process takes: the next tests' engines would time out waiting for it.
 BUILDS_RELEASED = threading.Event()
 
 

@@ -18,6 +18,7 @@ from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.config import ConfigError
 from vpengine.engine import Engine, EngineStartError
+from vpengine.models.build import build_lock
 
 pytestmark = pytest.mark.timeout(300)
 
@@ -265,7 +266,10 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
     outcome = []
     adder = threading.Thread(target=lambda: outcome.append(_raised(lambda: eng.add_head(slow))))
     adder.start()
-    time.sleep(1.0)
+    deadline = time.monotonic() + 60
+    while "model 'slow'" not in (build_lock.holder() or ""):  # it builds
+        assert adder.is_alive() and time.monotonic() < deadline, outcome
+        time.sleep(0.05)
     t = time.monotonic()
     eng.stop()
     adder.join(20)
@@ -275,9 +279,10 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
         # The build left behind holds the process's build lock until it returns (Note [One build at a time]): a new
         # engine waits its ready timeout, no longer, and says who holds it.
         t = time.monotonic()
-        with pytest.raises(Exception, match="model 'slow'") as e:
+        with pytest.raises(EngineStartError, match="model 'slow'") as e:
             Engine(two_heads("thread", "runtime.ready_timeout_s=1")).start()
         assert time.monotonic() - t < 15, e.value
+        assert "past runtime.ready_timeout_s = 1 s" in str(e.value)
     finally:
         faulty.BUILDS_RELEASED.set()  # the build left behind ends now, not 30 s into the next tests
     try:
@@ -287,6 +292,30 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
         assert not builders.count, "the released build never left"
     finally:
         faulty.BUILDS_RELEASED.clear()
+
+
+def test_a_thread_mode_start_waiting_on_another_build_fails_naming_it_and_leaves_no_waiter():
+    eng = Engine(two_heads("thread", "runtime.ready_timeout_s=1"))
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:  # e.g. another engine's build in this process that hangs
+        with build_lock.held("model 'elsewhere' of engine 'other'", 5):
+            entered.set()
+            release.wait(30)
+
+    holder = threading.Thread(target=hold, name="other-builder")
+    holder.start()
+    try:
+        assert entered.wait(10)
+        with pytest.raises(EngineStartError, match="model 'elsewhere' of engine 'other'"):
+            eng.start()
+        deadline = time.monotonic() + 10  # its workers stopped waiting: they are gone, not queued behind the holder
+        while any(t.name in ("vpengine-foundation", "vpengine-depth", "vpengine-seg") for t in threading.enumerate()):
+            assert time.monotonic() < deadline, threading.enumerate()
+            time.sleep(0.05)
+    finally:
+        release.set()
+        holder.join(10)
 
 
 def _raised(fn):

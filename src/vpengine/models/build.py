@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from vpengine.config import EngineConfig
-from vpengine.models.base import BuildContext, Model, ModelBuildError, Role
+from vpengine.models.base import BuildContext, Model, Role
 from vpengine.models.registry import resolve
 from vpengine.specs import SpecDict, TensorSpec
 
@@ -38,7 +38,12 @@ log = logging.getLogger(__name__)
 WAIT_LOG_S = 5.0  # a wait this long is worth a line in the log: a start looks stuck otherwise
 
 
-class BuildCancelled(ModelBuildError):
+class BuildLockTimeout(RuntimeError):
+    """A build waited its ``runtime.ready_timeout_s`` for the build lock: another build held it all along (the
+    process is busy, or a build hangs); nothing is wrong with the config that waited."""
+
+
+class BuildCancelled(RuntimeError):
     """A build waiting for the build lock was no longer wanted (its engine stopped, its head was removed)."""
 
 
@@ -55,11 +60,12 @@ class BuildLock:
         if h is None:
             return None
         what, thread, since = h
-        return f"{what} (thread {thread!r}, for {time.monotonic() - since:.0f} s)"
+        return f"{what} (thread {thread!r}, for {time.monotonic() - since:.1f} s)"
 
     @contextlib.contextmanager
     def held(self, what: str, timeout: float, cancelled: Callable[[], bool] | None = None) -> Iterator[None]:
-        """Hold the lock while building ``what``; wait at most ``timeout`` s for it, and not once ``cancelled()``."""
+        """Hold the lock while building ``what``; wait at most ``timeout`` s for it, and not once ``cancelled()``
+        (then ``BuildCancelled``, also when the lock was free: a build nobody wants does not take the lock)."""
         start = time.monotonic()
         logged = False
         while not self._lock.acquire(timeout=0.25):
@@ -67,16 +73,19 @@ class BuildLock:
             if cancelled is not None and cancelled():
                 raise BuildCancelled(f"{what}: no longer wanted while waiting to build")
             if waited >= timeout:
-                raise ModelBuildError(
-                    f"{what}: waited {waited:.0f} s (runtime.ready_timeout_s) to build while {self.holder()} built; "
-                    "one model builds at a time in a process (Note [One build at a time]), and a build holds its "
-                    "turn until it returns, even one a stopped engine left behind"
+                raise BuildLockTimeout(
+                    f"{what}: waited {waited:.1f} s, past runtime.ready_timeout_s = {timeout:g} s, to build while "
+                    f"{self.holder() or 'another build'} built; one model builds at a time in a process (Note [One "
+                    "build at a time]), and a build holds its turn until it returns, even one a stopped engine left "
+                    "behind"
                 )
             if not logged and waited >= WAIT_LOG_S:
-                log.warning("%s waits to build: %s is building (one model at a time in a process)", what, self.holder())
+                log.info("%s waits to build: %s is building (one model at a time in a process)", what, self.holder())
                 logged = True
-        self._holder = (what, threading.current_thread().name, time.monotonic())
         try:
+            if cancelled is not None and cancelled():
+                raise BuildCancelled(f"{what}: no longer wanted when its turn to build came")
+            self._holder = (what, threading.current_thread().name, time.monotonic())
             yield
         finally:
             self._holder = None
@@ -115,7 +124,8 @@ def build_model(
     cls, defaults = resolve(mcfg.model, role)
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
     wait_s = cfg.runtime.ready_timeout_s
-    with build_lock.held(f"model {name!r}", wait_s, cancelled), torch.device("meta" if plan_only else device):
+    what = f"model {name!r} of engine {cfg.name!r}"
+    with build_lock.held(what, wait_s, cancelled), torch.device("meta" if plan_only else device):
         model = cls.from_config(ctx)
     if not plan_only:
         model.load_checkpoint(ctx)

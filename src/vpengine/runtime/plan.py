@@ -12,7 +12,7 @@ import torch
 
 from vpengine.config import EngineConfig
 from vpengine.models.base import Model, ModelBuildError
-from vpengine.models.build import build_model
+from vpengine.models.build import BuildLockTimeout, build_model
 from vpengine.runtime.lanes import Lanes, make_lanes
 from vpengine.runtime.supervisor import EngineStartError
 from vpengine.specs import SpecDict, TensorSpec, format_specs, specs_nbytes
@@ -50,6 +50,13 @@ class Plan:
 
 
 def make_plan(cfg: EngineConfig) -> Plan:
+    try:
+        return _make_plan(cfg)
+    except BuildLockTimeout as e:  # a busy process, not a bad config (Note [One build at a time])
+        raise EngineStartError(str(e)) from None
+
+
+def _make_plan(cfg: EngineConfig) -> Plan:
     device = torch.device(cfg.device)
     frame_spec = {"frame": TensorSpec((cfg.input.height, cfg.input.width, 3), cfg.input.dtype)}
     fm = build_model(cfg, "foundation", "foundation", frame_spec, {}, device, plan_only=True)

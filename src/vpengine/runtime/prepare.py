@@ -81,7 +81,8 @@ def prepare_worker(
             raise BuildCancelled(f"{spec.name}: no longer wanted once built")
         # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
         # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
-        with build_lock.held(f"model {spec.name!r} (warm-up)", cfg.runtime.ready_timeout_s, cancelled):
+        what = f"model {spec.name!r} of engine {cfg.name!r} (warm-up)"
+        with build_lock.held(what, cfg.runtime.ready_timeout_s, cancelled):
             executor = make_executor(
                 model,
                 mcfg.backend,

@@ -133,7 +133,7 @@ class Runner(ABC):
             self._adding.pop(name, None)
             errors = list(done[1]) if ready else [f"{name} was not ready within {limit} s (runtime.ready_timeout_s)"]
             if not ready:
-                errors[0] += _build_lock_holder()
+                errors[0] += self.build_lock_note()
             stopping = self._stopping
         if stopping:
             raise EngineDeadError(f"engine stopped while {name} was being added")
@@ -185,11 +185,17 @@ class Runner(ABC):
 
     def _not_ready(self, waiting: set[str]) -> NoReturn:
         """``start`` waited past ``runtime.ready_timeout_s`` for ``waiting``: stop every worker and raise."""
+        note = self.build_lock_note()
         self.stop()
         raise EngineStartError(
             f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
-            f"(runtime.ready_timeout_s){_build_lock_holder()}"
+            f"(runtime.ready_timeout_s){note}"
         )
+
+    def build_lock_note(self) -> str:
+        """Why a start may be slow beyond this runner's workers: none by default (each worker process builds
+        alone); thread mode names who holds this process's build lock (Note [One build at a time])."""
+        return ""
 
     @property
     def stopping(self) -> bool:
@@ -291,11 +297,3 @@ class Runner(ABC):
                 else:
                     nxt = min(nxt, r.due - now)
             return nxt
-
-
-def _build_lock_holder() -> str:
-    """Why a thread-mode start may be waiting: who holds the process's build lock, if anyone."""
-    from vpengine.models.build import build_lock
-
-    holder = build_lock.holder()
-    return f"; {holder} holds this process's build lock (Note [One build at a time])" if holder else ""

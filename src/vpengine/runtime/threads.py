@@ -52,6 +52,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+from vpengine.models.build import build_lock
 from vpengine.runtime.control import HUNG, POLL_S, STOPPED
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.prepare import prepare_worker
@@ -117,6 +118,10 @@ class ThreadRunner(Runner):
 
     def beside_serving(self) -> contextlib.AbstractContextManager[None]:
         return _beside_serving()
+
+    def build_lock_note(self) -> str:
+        holder = build_lock.holder()
+        return f"; {holder} holds this process's build lock (Note [One build at a time])" if holder else ""
 
     def _should_stop(self, name: str, gen: int) -> bool:
         return self._stopping or self.control.stopping or self._generation[name] != gen

@@ -72,9 +72,11 @@ def no_leaks():
     assert not alive, f"child processes left alive: {[psutil.Process(p).cmdline() for p in alive]}"
     # /dev/shm is the machine's, and tests run in parallel (pytest-xdist): an entry counts as left behind when it
     # outlives the test by the same grace the processes get, not when another test happens to hold one right now
-    while (new_shm := set(os.listdir("/dev/shm")) - shm_before) and time.monotonic() < deadline:
+    while new_shm := set(os.listdir("/dev/shm")) - shm_before:
+        new_shm -= _held_by_other_workers(new_shm)  # a test running in another worker holds them: not this one's
+        if not new_shm or time.monotonic() >= deadline:
+            break
         time.sleep(0.1)
-    new_shm -= _held_by_other_workers(new_shm)  # a long test of another worker holds them still
     assert not new_shm, f"/dev/shm entries left behind: {sorted(new_shm)}"
 
 

@@ -82,7 +82,7 @@ def net(tmp_path, monkeypatch) -> Iterator[dict[str, bytes]]:
 
     httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
     url = f"http://127.0.0.1:{httpd.server_address[1]}"
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread = threading.Thread(target=httpd.serve_forever, args=(0.05,), daemon=True)
     thread.start()
     entries = []
     for e in catalog.shipped():

@@ -155,8 +155,9 @@ class WebServer:
         server = type("Server", (ThreadingHTTPServer,), {"address_family": family, "daemon_threads": True})
         self.httpd = server((host.strip("[]"), port), handler)
         self.host, self.port = host, self.httpd.server_address[1]
+        # stop() waits for the loop's next look at its shutdown flag: at most this long (a Ctrl-C's last wait)
         self._thread = threading.Thread(
-            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.5}, name="vpengine-web", daemon=True
+            target=self.httpd.serve_forever, kwargs={"poll_interval": 0.1}, name="vpengine-web", daemon=True
         )
         self._thread.start()
         log.info("live view at %s", self.url)

@@ -44,3 +44,23 @@ def test_an_abbreviated_verbose_before_the_subcommand_still_counts(monkeypatch):
     monkeypatch.setattr(cli_main.logging, "basicConfig", lambda level, **kw: seen.append(level))
     assert cli_main.main(["--verb", "config", "list", "-v"]) == 0
     assert seen == [cli_main.logging.DEBUG]
+
+
+def test_help_and_usage_errors_import_no_torch():
+    """``vpengine --help``, a subcommand's help and a mistyped argument answer at once: the parser (every
+    benchmark's arguments included) imports no torch, which takes seconds on a small machine."""
+    code = (
+        "import sys\n"
+        "from vpengine.cli.main import build_parser\n"
+        "p = build_parser()\n"
+        "for argv in (['bench', 'hop', '--help'], ['run', '-c', 'tiny', '--no-such-flag']):\n"
+        "    try:\n"
+        "        p.parse_args(argv)\n"
+        "    except SystemExit:\n"
+        "        pass\n"
+        "print('torch' in sys.modules)\n"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.split()[-1] == "False", p.stdout[-500:]
+    assert "--no-such-flag" in p.stderr  # the usage error was answered

@@ -16,7 +16,6 @@ from multiprocessing.connection import Connection
 from typing import Any
 
 import numpy as np
-import torch
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -67,6 +66,8 @@ def _reader(fd: int) -> None:
 
 
 def measure(n: int, mbytes: float, device: str = "cpu", layout: str = "flat") -> dict[str, Any]:
+    import torch
+
     from vpengine.runtime.process import package_env, send_fds
     from vpengine.transport.ring import ReaderDecl, SlotRing
 

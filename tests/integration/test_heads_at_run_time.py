@@ -17,7 +17,7 @@ from helpers import faulty
 from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.config import ConfigError
-from vpengine.engine import Engine, EngineStartError
+from vpengine.engine import Engine, EngineDeadError, EngineStartError
 from vpengine.models.build import build_lock
 
 pytestmark = pytest.mark.timeout(300)
@@ -316,6 +316,35 @@ def test_a_thread_mode_start_waiting_on_another_build_fails_naming_it_and_leaves
     finally:
         release.set()
         holder.join(10)
+
+
+def test_an_add_waiting_to_plan_behind_another_build_ends_when_the_engine_stops():
+    eng = Engine(two_heads("thread")).start()
+    entered, release = threading.Event(), threading.Event()
+
+    def hold() -> None:  # another build in this process that takes its time
+        with build_lock.held("model 'elsewhere' of engine 'other'", 5):
+            entered.set()
+            release.wait(30)
+
+    holder = threading.Thread(target=hold, name="other-builder")
+    holder.start()
+    outcome: list[BaseException | None] = []
+    try:
+        assert entered.wait(10)
+        adder = threading.Thread(target=lambda: outcome.append(_raised(lambda: eng.add_head(DET2))))
+        adder.start()
+        time.sleep(0.5)
+        assert adder.is_alive()  # planning the head: its build waits for the lock
+        t = time.monotonic()
+        eng.stop()
+        adder.join(10)
+        assert not adder.is_alive() and time.monotonic() - t < 10
+    finally:
+        release.set()
+        holder.join(10)
+    assert len(outcome) == 1 and isinstance(outcome[0], EngineDeadError), outcome
+    assert "stopped while det2 was being added" in str(outcome[0])
 
 
 def _raised(fn):

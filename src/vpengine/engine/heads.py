@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import yaml
 
 from vpengine.config import EngineConfig, HeadConfig, load_config
+from vpengine.models.build import BuildCancelled
 from vpengine.models.weights import check_checkpoints
 from vpengine.runtime.lanes import Lanes, make_lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
@@ -100,7 +101,10 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
                 "seat is taken by a head added earlier; remove one, or start the engine with more spare heads"
             )
         lanes = make_lanes(cfg, seats[1:])
-        plan = replace(make_plan(cfg), lanes=lanes)
+        try:  # waits for the build lock while other builds run: not past a stop (Note [One build at a time])
+            plan = replace(make_plan(cfg, cancelled=lambda: res.runner is None or res.runner.stopping), lanes=lanes)
+        except BuildCancelled:
+            raise EngineDeadError(f"engine stopped while {h.name} was being added") from None
         model = plan.heads[h.name]
         check_checkpoints(cfg, {h.name: model})
         box = next(m for m in mailboxes(plan, cfg.mode == "process") if m["name"] == f"out.{h.name}")

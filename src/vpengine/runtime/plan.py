@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -49,17 +50,22 @@ class Plan:
         }
 
 
-def make_plan(cfg: EngineConfig) -> Plan:
+def make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None = None) -> Plan:
+    """The engine's plan for ``cfg``: every model built on the meta device, checked against its inputs.
+
+    ``cancelled``: whether the plan is still wanted (a head being added to an engine that stops), checked while a
+    build waits for the build lock (Note [One build at a time]); then ``BuildCancelled``.
+    """
     try:
-        return _make_plan(cfg)
+        return _make_plan(cfg, cancelled)
     except BuildLockTimeout as e:  # a busy process, not a bad config (Note [One build at a time])
         raise EngineStartError(str(e)) from None
 
 
-def _make_plan(cfg: EngineConfig) -> Plan:
+def _make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None) -> Plan:
     device = torch.device(cfg.device)
     frame_spec = {"frame": TensorSpec((cfg.input.height, cfg.input.width, 3), cfg.input.dtype)}
-    fm = build_model(cfg, "foundation", "foundation", frame_spec, {}, device, plan_only=True)
+    fm = build_model(cfg, "foundation", "foundation", frame_spec, {}, device, plan_only=True, cancelled=cancelled)
     if fm.input_spec != frame_spec:
         raise ModelBuildError(
             f"foundation model {cfg.foundation_model.model!r} reads {format_specs(fm.input_spec)}, but the input is "
@@ -69,7 +75,7 @@ def _make_plan(cfg: EngineConfig) -> Plan:
     warnings: list[str] = []
     refused: list[str] = []
     for h in cfg.heads:
-        model = build_model(cfg, h.name, "head", fm.output_spec, fm.meta, device, plan_only=True)
+        model = build_model(cfg, h.name, "head", fm.output_spec, fm.meta, device, plan_only=True, cancelled=cancelled)
         for k, spec in model.input_spec.items():
             if k not in fm.output_spec:
                 raise ModelBuildError(

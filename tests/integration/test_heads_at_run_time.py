@@ -14,6 +14,7 @@ import urllib.request
 import pytest
 
 from helpers import faulty
+from helpers.builds import held_elsewhere
 from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.config import ConfigError
@@ -296,42 +297,19 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
 
 def test_a_thread_mode_start_waiting_on_another_build_fails_naming_it_and_leaves_no_waiter():
     eng = Engine(two_heads("thread", "runtime.ready_timeout_s=1"))
-    entered, release = threading.Event(), threading.Event()
-
-    def hold() -> None:  # e.g. another engine's build in this process that hangs
-        with build_lock.held("model 'elsewhere' of engine 'other'", 5):
-            entered.set()
-            release.wait(30)
-
-    holder = threading.Thread(target=hold, name="other-builder")
-    holder.start()
-    try:
-        assert entered.wait(10)
+    with held_elsewhere(build_lock, "model 'elsewhere' of engine 'other'"):  # e.g. another engine's hung build
         with pytest.raises(EngineStartError, match="model 'elsewhere' of engine 'other'"):
             eng.start()
         deadline = time.monotonic() + 10  # its workers stopped waiting: they are gone, not queued behind the holder
         while any(t.name in ("vpengine-foundation", "vpengine-depth", "vpengine-seg") for t in threading.enumerate()):
             assert time.monotonic() < deadline, threading.enumerate()
             time.sleep(0.05)
-    finally:
-        release.set()
-        holder.join(10)
 
 
 def test_an_add_waiting_to_plan_behind_another_build_ends_when_the_engine_stops():
     eng = Engine(two_heads("thread")).start()
-    entered, release = threading.Event(), threading.Event()
-
-    def hold() -> None:  # another build in this process that takes its time
-        with build_lock.held("model 'elsewhere' of engine 'other'", 5):
-            entered.set()
-            release.wait(30)
-
-    holder = threading.Thread(target=hold, name="other-builder")
-    holder.start()
     outcome: list[BaseException | None] = []
-    try:
-        assert entered.wait(10)
+    with held_elsewhere(build_lock, "model 'elsewhere' of engine 'other'"):  # a build that takes its time
         adder = threading.Thread(target=lambda: outcome.append(_raised(lambda: eng.add_head(DET2))))
         adder.start()
         time.sleep(0.5)
@@ -340,9 +318,6 @@ def test_an_add_waiting_to_plan_behind_another_build_ends_when_the_engine_stops(
         eng.stop()
         adder.join(10)
         assert not adder.is_alive() and time.monotonic() - t < 10
-    finally:
-        release.set()
-        holder.join(10)
     assert len(outcome) == 1 and isinstance(outcome[0], EngineDeadError), outcome
     assert "stopped while det2 was being added" in str(outcome[0])
 

@@ -10,6 +10,7 @@ import time
 
 import pytest
 
+from helpers.builds import held_elsewhere
 from vpengine.models import build
 from vpengine.models.build import BuildCancelled, BuildLock, BuildLockTimeout
 
@@ -18,19 +19,8 @@ from vpengine.models.build import BuildCancelled, BuildLock, BuildLockTimeout
 def busy():
     """A lock held by another thread, named 'builder', building "model 'slow'", until the test ends."""
     lock = BuildLock()
-    entered, release = threading.Event(), threading.Event()
-
-    def hold() -> None:
-        with lock.held("model 'slow'", 5):
-            entered.set()
-            release.wait(30)
-
-    t = threading.Thread(target=hold, name="builder", daemon=True)
-    t.start()
-    assert entered.wait(10)
-    yield lock
-    release.set()
-    t.join(10)
+    with held_elsewhere(lock, "model 'slow'"):
+        yield lock
     assert lock.holder() is None  # released with the build
 
 

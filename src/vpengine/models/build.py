@@ -66,11 +66,12 @@ class BuildLock:
     def held(self, what: str, timeout: float, cancelled: Callable[[], bool] | None = None) -> Iterator[None]:
         """Hold the lock while building ``what``; wait at most ``timeout`` s for it, and not once ``cancelled()``
         (then ``BuildCancelled``, also when the lock was free: a build nobody wants does not take the lock)."""
+        unwanted = cancelled or (lambda: False)
         start = time.monotonic()
         logged = False
         while not self._lock.acquire(timeout=0.25):
             waited = time.monotonic() - start
-            if cancelled is not None and cancelled():
+            if unwanted():
                 raise BuildCancelled(f"{what}: no longer wanted while waiting to build")
             if waited >= timeout:
                 raise BuildLockTimeout(
@@ -83,7 +84,7 @@ class BuildLock:
                 log.info("%s waits to build: %s is building (one model at a time in a process)", what, self.holder())
                 logged = True
         try:
-            if cancelled is not None and cancelled():
+            if unwanted():
                 raise BuildCancelled(f"{what}: no longer wanted when its turn to build came")
             self._holder = (what, threading.current_thread().name, time.monotonic())
             yield
@@ -123,9 +124,8 @@ def build_model(
     mcfg = model_config(cfg, name)
     cls, defaults = resolve(mcfg.model, role)
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
-    wait_s = cfg.runtime.ready_timeout_s
     what = f"model {name!r} of engine {cfg.name!r}"
-    with build_lock.held(what, wait_s, cancelled), torch.device("meta" if plan_only else device):
+    with build_lock.held(what, cfg.runtime.ready_timeout_s, cancelled), torch.device("meta" if plan_only else device):
         model = cls.from_config(ctx)
     if not plan_only:
         model.load_checkpoint(ctx)

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import torch
 
 from vpengine.models.base import check_outputs
-from vpengine.models.build import BuildCancelled, build_lock, build_model, model_config
+from vpengine.models.build import build_lock, build_model, model_config
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
@@ -50,7 +50,7 @@ def prepare_worker(
     """Build the model on its device, warm it up (allocations happen here, before READY), return its loop.
 
     ``cancelled``: whether the build is still wanted (a thread-mode engine that stopped, a head removed): checked while
-    waiting for the build lock and between the build and the warm-up (Note [One build at a time]).
+    waiting for the build lock, and again when the warm-up's turn under it comes (Note [One build at a time]).
     """
     from vpengine.backends import make_executor
     from vpengine.runtime.control import LOADING, READY
@@ -77,8 +77,6 @@ def prepare_worker(
         model = build_model(
             cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False, cancelled=cancelled
         )
-        if cancelled is not None and cancelled():
-            raise BuildCancelled(f"{spec.name}: no longer wanted once built")
         # Under the build lock too: a CUDA graph capture (compile backend) must not overlap another thread building
         # a model, whose layer init draws from the CUDA RNG that the capture has claimed (seen on an H100).
         what = f"model {spec.name!r} of engine {cfg.name!r} (warm-up)"

@@ -131,9 +131,11 @@ class Runner(ABC):
         ready = done[0].wait(limit)
         with self._lock:  # the monitor reports under the lock: nothing it heard is lost between here and there
             self._adding.pop(name, None)
-            errors = list(done[1]) if ready else [f"{name} was not ready within {limit} s (runtime.ready_timeout_s)"]
-            if not ready:
-                errors[0] += self.build_lock_note()
+            errors = (
+                list(done[1])
+                if ready
+                else [f"{name} was not ready within {limit} s (runtime.ready_timeout_s){self.build_lock_note()}"]
+            )
             stopping = self._stopping
         if stopping:
             raise EngineDeadError(f"engine stopped while {name} was being added")

@@ -28,14 +28,18 @@ shipped bench config (process mode: no stall):
   full collection walks every object of the process (hundreds of thousands once torch is loaded) with the lock
   held: no thread runs meanwhile. With the switch interval short, the serving threads still stopped for many frame
   periods a few times per (cold) build, and so did a thread that only woke every 10 ms: the whole interpreter
-  stopped, as in a full collection. So the heap is frozen while a build runs (``gc.freeze``): collections walk only
-  the objects made since, and it is unfrozen when no thread builds (its objects are collected as before from then
-  on). A heap that the program froze itself is left as it is. Full collections still run during a build that
-  makes many lasting objects (a first add imports much of torch's compiler stack), but each walks only what the
-  build made, a fraction of the heap.
+  stopped. Freezing the heap for the build (``gc.freeze``) was not enough: a first compiled add makes enough
+  lasting objects (dynamo's graphs and guards, inductor's kernels) that one full collection of those alone stopped
+  every serving thread for 366 ms on an H200. So while a thread builds beside serving ones no full collection runs
+  (young collections do: they walk only young objects), and when the last build ends its young garbage is collected
+  and what it made is frozen with the rest, so no later full collection walks it either. The heap stays frozen
+  while the engines that built beside serving threads run, and is unfrozen when the last of them stops (nothing of
+  theirs serves then), unless the program had frozen it itself: that heap stays frozen. The cost is the cyclic
+  garbage a build left in the old generation, kept until that stop; a removed head's model is freed by reference
+  counting, not by the collector (tested with the collector off).
 
 Both are process-wide, so they are set by the first of the threads that build at once and undone after the last
-(a build that never returns, Note [Hung threads], leaves them set: objects older than it are then never collected).
+(a build that never returns, Note [Hung threads], leaves them set: no full collection runs until it returns).
 They cover the whole of ``Engine.add_head`` (``Runner.beside_serving``): its planning builds the head on the meta
 device in the caller's thread, which on a first add imports much of torch's compiler stack. Building at start needs
 neither: nothing serves yet.
@@ -65,31 +69,53 @@ log = logging.getLogger("vpengine.threads")
 BUILD_SWITCH_INTERVAL_S = 0.0005
 
 
+#: Gen-2 threshold while a build runs beside serving threads: no full collection (Note [Building beside serving
+#: threads]); the young generations keep theirs.
+_NO_FULL_COLLECTION = 2**31 - 1
+
+
 class _Builders:
-    """How many threads build beside serving ones, and what the first of them changed, to undo after the last."""
+    """How many threads build beside serving ones and what the first of them changed, to undo after the last; which
+    engines keep the heap frozen (Note [Building beside serving threads])."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.count = 0
         self.interval = sys.getswitchinterval()
-        self.froze = False
+        self.thresholds = gc.get_threshold()
+        self.holders: set[int] = set()  # id() of the runners whose builds' objects are frozen
+        self.ours = False  # the frozen heap is ours to unfreeze: nobody had frozen it before the first holder
+
+    def release(self, holder: int) -> None:
+        """``holder`` stopped: unfreeze the heap if it was the last holder, no build runs and the heap is ours."""
+        with self.lock:
+            self.holders.discard(holder)
+            self._unfreeze_if_unheld()
+
+    def _unfreeze_if_unheld(self) -> None:
+        if not self.holders and self.count == 0 and self.ours:
+            gc.unfreeze()
+            self.ours = False
 
 
 _builders = _Builders()
 
 
 @contextlib.contextmanager
-def _beside_serving() -> Iterator[None]:
-    """Note [Building beside serving threads]: a short switch interval and the heap frozen until the last builder is
-    done."""
+def _beside_serving(holder: int) -> Iterator[None]:
+    """Note [Building beside serving threads]: a short switch interval and no full collection until the last builder
+    is done; then what the builds made is frozen until ``holder`` (and every other holder) stops."""
     b = _builders
     with b.lock:
         if b.count == 0:
             b.interval = sys.getswitchinterval()
             sys.setswitchinterval(min(BUILD_SWITCH_INTERVAL_S, b.interval))
-            b.froze = gc.get_freeze_count() == 0  # a heap the program froze itself stays as it froze it
-            if b.froze:
-                gc.freeze()
+            b.thresholds = gc.get_threshold()
+            gc.set_threshold(b.thresholds[0], b.thresholds[1], _NO_FULL_COLLECTION)
+            if not b.holders:
+                b.ours = gc.get_freeze_count() == 0  # a heap the program froze itself stays frozen
+            gc.freeze()
+        b.holders.add(holder)
         b.count += 1
     try:
         yield
@@ -98,8 +124,10 @@ def _beside_serving() -> Iterator[None]:
             b.count -= 1
             if b.count == 0:
                 sys.setswitchinterval(b.interval)
-                if b.froze:
-                    gc.unfreeze()
+                gc.collect(1)  # the builds' young garbage: walks only the young generations
+                gc.freeze()
+                gc.set_threshold(*b.thresholds)
+                b._unfreeze_if_unheld()  # every holder stopped while it built
 
 
 class ThreadRunner(Runner):
@@ -117,7 +145,7 @@ class ThreadRunner(Runner):
         self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
 
     def beside_serving(self) -> contextlib.AbstractContextManager[None]:
-        return _beside_serving()
+        return _beside_serving(id(self))
 
     def build_lock_note(self) -> str:
         holder = build_lock.holder()
@@ -285,4 +313,5 @@ class ThreadRunner(Runner):
                 abandoned,
                 self.cfg.runtime.stop_timeout_s,
             )
+        _builders.release(id(self))  # Note [Building beside serving threads]: nothing of ours serves now
         return abandoned

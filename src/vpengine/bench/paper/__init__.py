@@ -2,7 +2,7 @@
 
     E1     shared backbone + N depth heads vs N independent models vs the models one after another
     E2     N detection heads in parallel (the engine) vs one after another
-    E3     CUDA MPS off vs on, 4 and 8 heads
+    E3     CUDA MPS off vs on, 4 and 8 heads (--e3-heads)
     E4     rate limits 5-30 Hz against 10 s (--e4-seconds) of 30 Hz input
     E5     a long 30 Hz stream through depth, seg and det: latency, loss, device memory over time
     floor  the engine vs the same models' device time
@@ -37,6 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         help=f"comma-separated subset of {', '.join(EXPERIMENTS)} (default: all)",
     )
     p.add_argument("--heads", default="1,2,4,8", help="head counts of E1 and E2 (default: %(default)s)")
+    p.add_argument("--e3-heads", default="4,8", help="head counts of E3, each kind (default: %(default)s)")
     p.add_argument("--frames", type=int, default=100, help="frames per lockstep measurement (default: %(default)s)")
     p.add_argument(
         "--e4-seconds", type=positive_float, default=10.0, help="seconds of 30 Hz input in E4 (default: %(default)s)"
@@ -62,13 +63,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tag", default="", help="suffix of the results file name")
 
 
-def _counts(text: str) -> list[int]:
+def _counts(text: str, flag: str = "--heads") -> list[int]:
     try:
         ns = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise ValueError(f"--heads {text!r}: expected head counts like 1,2,4,8") from None
+        raise ValueError(f"{flag} {text!r}: expected head counts like 1,2,4,8") from None
     if not ns or min(ns) < 1:
-        raise ValueError(f"--heads {text!r}: expected head counts of at least 1, like 1,2,4,8")
+        raise ValueError(f"{flag} {text!r}: expected head counts of at least 1, like 1,2,4,8")
     return ns
 
 
@@ -98,6 +99,7 @@ def main(args: argparse.Namespace) -> int:
     if unknown or not want:
         raise ValueError(f"--experiments {args.experiments!r}: accepted are {', '.join(EXPERIMENTS)}")
     ns = _counts(args.heads)
+    e3_ns = tuple(_counts(args.e3_heads, "--e3-heads"))
     kinds = floor.check_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
     b = Bench.load(args.config, args.overrides, args.frames, args.results == "copy")
     # what each experiment needs, checked before anything starts: a late refusal would waste the runs before it
@@ -116,7 +118,7 @@ def main(args: argparse.Namespace) -> int:
     runs: dict[str, Any] = {
         "E1": lambda imgs: e1_shared_backbone.run(b, imgs, ns),
         "E2": lambda imgs: e2_parallel_heads.run(b, imgs, ns),
-        "E3": lambda imgs: e3_mps.run(b, imgs),
+        "E3": lambda imgs: e3_mps.run(b, imgs, e3_ns),
         "E4": lambda imgs: e4_rates.run(b, imgs, args.e4_seconds),
         "E5": lambda imgs: e5_stream.run(b, imgs, args.e5_frames),
         "floor": lambda imgs: floor.run(b, imgs, kinds),

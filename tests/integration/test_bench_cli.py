@@ -156,7 +156,8 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     p = cli(
         "bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--set", "mode=thread", "--stream-cameras", "2",
         "--seconds", "1",
-        "--cameras", "1,2", "--rounds", "3", "--heads", "depth,seg", "--out", str(tmp_path), "--name", "cams",
+        "--cameras", "1,2", "--rounds", "3", "--point-seconds", "0", "--heads", "depth,seg", "--out", str(tmp_path),
+        "--name", "cams",
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
     res = json.loads((tmp_path / "cams.json").read_text())

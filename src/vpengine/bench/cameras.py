@@ -9,8 +9,9 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   and the device memory in use (NVML, else PyTorch's reserved bytes).
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with one frame in flight (submit, wait for every head), as each camera's
-  driver would: one engine with N cameras (batched) against N engines of one camera each running side by side in
-  this process (the GPU overlaps their streams). Their ratio is what batching buys.
+  driver would, ``--rounds`` frames a camera and for ``--point-seconds`` at least: one engine with N cameras
+  (batched) against N engines of one camera each running side by side in this process (the GPU overlaps their
+  streams). Their ratio is what batching buys.
 
 ::
 
@@ -37,7 +38,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--fps", type=float, default=30.0, help="each camera's rate in the stream run (default 30 Hz)")
     p.add_argument("--seconds", type=float, default=10.0, help="length of the stream run (default 10 s)")
     p.add_argument("--cameras", default="1,2,4,8", help="camera counts of the throughput sweep (default 1,2,4,8)")
-    p.add_argument("--rounds", type=int, default=60, help="frames a camera in each throughput point (default 60)")
+    p.add_argument(
+        "--rounds", type=int, default=60, help="frames a camera in each throughput point, at least (default 60)"
+    )
+    p.add_argument(
+        "--point-seconds",
+        type=float,
+        default=3.0,
+        help="each throughput point runs at least this long (default 3 s: a point of a fraction of a second is noise)",
+    )
     p.add_argument("--heads", default=None, help="the config's heads to run, comma separated (default: all)")
     p.add_argument("--name", default=None, help="results file name (default: cameras_<device>)")
 
@@ -126,35 +135,50 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     return out
 
 
-def _pump(eng: Any, camera: str | None, imgs: list[np.ndarray], rounds: int) -> None:
-    """One camera's frames, one in flight: submit, wait for every head, ``rounds`` times."""
-    for k in range(rounds):
-        eng.wait(eng.submit(imgs[k % len(imgs)], camera=camera), timeout=120)
+def _pump(eng: Any, camera: str | None, imgs: list[np.ndarray], rounds: int, until: float, done: list[Any]) -> None:
+    """One camera's frames, one in flight: submit, wait for every head, ``rounds`` times and until ``until``; the
+    count (or the error that ended it) is appended to ``done``."""
+    k = 0
+    try:
+        while k < rounds or time.monotonic() < until:
+            eng.wait(eng.submit(imgs[k % len(imgs)], camera=camera), timeout=120)
+            k += 1
+    except Exception as e:
+        done.append(e)
+    else:
+        done.append(k)
 
 
-def _all_cameras(pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], rounds: int) -> float:
-    """Every camera pumped by its own thread, as each camera's driver would; frames per second over them all."""
-    threads = [threading.Thread(target=_pump, args=(e, c, imgs, rounds)) for e, c in pairs]
+def _all_cameras(pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], rounds: int, seconds: float) -> float:
+    """Every camera pumped by its own thread, as each camera's driver would, ``rounds`` frames each and ``seconds``
+    at least; frames per second over them all."""
+    done: list[Any] = []
     t = time.monotonic()
+    threads = [threading.Thread(target=_pump, args=(e, c, imgs, rounds, t + seconds, done)) for e, c in pairs]
     for th in threads:
         th.start()
     for th in threads:
         th.join()
-    return len(pairs) * rounds / (time.monotonic() - t)
+    errors = [x for x in done if isinstance(x, Exception)]
+    if errors:
+        raise RuntimeError(
+            f"{len(errors)} of {len(pairs)} cameras' pumps failed: {type(errors[0]).__name__}: {errors[0]}"
+        ) from errors[0]
+    return sum(done) / (time.monotonic() - t)
 
 
-def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray]) -> dict[str, Any]:
+def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: float = 0.0) -> dict[str, Any]:
     """Frames per second through every head with a thread per camera, each with one frame in flight: one engine
-    with ``n`` cameras (batched) against ``n`` one-camera engines side by side."""
+    with ``n`` cameras (batched) against ``n`` one-camera engines side by side, each point ``seconds`` at least."""
     from vpengine.bench.paper.harness import engines, log
 
     with engines([_config(base, n)]) as (eng,):
         cams = eng.cameras if n > 1 else [None]
-        _all_cameras([(eng, c) for c in cams], imgs, 5)
-        batched = _all_cameras([(eng, c) for c in cams], imgs, rounds)
+        _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0)
+        batched = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds)
     with engines([_config(base, 1) for _ in range(n)]) as es:
-        _all_cameras([(e, None) for e in es], imgs, 5)
-        separate = _all_cameras([(e, None) for e in es], imgs, rounds)
+        _all_cameras([(e, None) for e in es], imgs, 5, 0.0)
+        separate = _all_cameras([(e, None) for e in es], imgs, rounds, seconds)
     log(f"throughput, {n} cameras: one engine {batched:.1f} frames/s, {n} engines {separate:.1f} frames/s")
     return {"cameras": n, "batched_fps": batched, "separate_fps": separate, "ratio": batched / separate}
 
@@ -164,6 +188,8 @@ def main(args: argparse.Namespace) -> int:
     from vpengine.bench.paper.harness import Bench
     from vpengine.config import load_config
 
+    if args.point_seconds < 0 or args.rounds < 1:
+        raise ValueError(f"--rounds {args.rounds}, --point-seconds {args.point_seconds}: at least 1 and 0")
     base = load_config(args.config, list(args.overrides))
     if args.heads:
         wanted = [h.strip() for h in args.heads.split(",") if h.strip()]
@@ -178,6 +204,7 @@ def main(args: argparse.Namespace) -> int:
         "overrides": list(args.overrides),
         "mode": base.mode,
         "heads": [h.name for h in base.heads],
+        "point_seconds": args.point_seconds,
         "throughput": [],
     }
     name = args.name or f"cameras_{str(base.device).split(':')[0]}"
@@ -186,7 +213,7 @@ def main(args: argparse.Namespace) -> int:
         res["stream"] = stream(base, args.stream_cameras, args.fps, args.seconds, imgs)
         write_results(args.out, name, res)
     for n in (int(x) for x in args.cameras.split(",") if x.strip()):
-        res["throughput"].append(throughput(base, n, args.rounds, imgs))
+        res["throughput"].append(throughput(base, n, args.rounds, imgs, args.point_seconds))
         path = write_results(args.out, name, res)
     print(path if res["throughput"] else write_results(args.out, name, res))
     return 0

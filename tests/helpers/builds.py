@@ -1,12 +1,25 @@
-"""Another thread's build holding a build lock (Note [One build at a time] in models/build.py)."""
+"""Another thread's build holding a build lock (Note [One build at a time] in models/build.py); whether this Python's
+collector can hold full collections off (Note [Building beside serving threads] in runtime/threads.py)."""
 
 from __future__ import annotations
 
 import contextlib
+import gc
 import threading
 from collections.abc import Iterator
 
 from vpengine.models.build import BuildLock
+from vpengine.runtime.threads import _NO_FULL_COLLECTION
+
+
+def full_collections_can_be_held_off() -> bool:
+    """Whether this Python's collector takes a third threshold (an incremental one, 3.14.0-3.14.4, ignores it)."""
+    before = gc.get_threshold()
+    gc.set_threshold(before[0], before[1], _NO_FULL_COLLECTION)
+    try:
+        return gc.get_threshold()[2] == _NO_FULL_COLLECTION
+    finally:
+        gc.set_threshold(*before)
 
 
 @contextlib.contextmanager

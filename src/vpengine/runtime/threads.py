@@ -35,8 +35,10 @@ shipped bench config (process mode: no stall):
   and what it made is frozen with the rest, so no later full collection walks it either. The heap stays frozen
   while the engines that built beside serving threads run, and is unfrozen when the last of them stops (nothing of
   theirs serves then), unless the program had frozen it itself: that heap stays frozen. The cost is the cyclic
-  garbage a build left in the old generation, kept until that stop; a removed head's model is freed by reference
-  counting, not by the collector (tested with the collector off).
+  garbage in the old generation when a build ends, kept until that stop; a removed head's model is freed by
+  reference counting, not by the collector (tested with the collector off). A Python whose collector is incremental
+  (3.14.0 to 3.14.4) ignores the threshold that holds full collections off; its collections walk a part of the old
+  generation at a time instead. A free-threaded Python walks the whole heap in every collection.
 
 Both are process-wide, so they are set by the first of the threads that build at once and undone after the last
 (a build that never returns, Note [Hung threads], leaves them set: no full collection runs until it returns).
@@ -54,7 +56,7 @@ import queue
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from vpengine.models.build import build_lock
 from vpengine.runtime.control import HUNG, POLL_S, STOPPED
@@ -79,7 +81,10 @@ class _Builders:
     engines keep the heap frozen (Note [Building beside serving threads])."""
 
     def __init__(self) -> None:
-        self.lock = threading.Lock()
+        # re-entrant: a collection run inside (ours, or one an allocation starts) may finalise an abandoned engine,
+        # whose stop releases its holder from this thread
+        self.lock = threading.RLock()
+        self.busy = False  # changing the collector's state: a release from inside only drops its holder
         self.count = 0
         self.interval = sys.getswitchinterval()
         self.thresholds = gc.get_threshold()
@@ -90,7 +95,48 @@ class _Builders:
         """``holder`` stopped: unfreeze the heap if it was the last holder, no build runs and the heap is ours."""
         with self.lock:
             self.holders.discard(holder)
-            self._unfreeze_if_unheld()
+            if not self.busy:  # else the change under way ends with this check
+                self._unfreeze_if_unheld()
+
+    def enter(self, holder: int, stopping: Callable[[], bool]) -> None:
+        with self.lock:
+            self.busy = True
+            try:
+                self.count += 1
+                if self.count == 1:
+                    self.interval = sys.getswitchinterval()
+                    sys.setswitchinterval(min(BUILD_SWITCH_INTERVAL_S, self.interval))
+                    self.thresholds = gc.get_threshold()
+                    gc.set_threshold(self.thresholds[0], self.thresholds[1], _NO_FULL_COLLECTION)
+                    if not self.holders:
+                        self.ours = gc.get_freeze_count() == 0  # a heap the program froze itself stays frozen
+                    gc.freeze()
+                if not stopping():  # checked under the lock that release takes: no holder added after its release
+                    self.holders.add(holder)
+            except BaseException:  # a Ctrl-C halfway: undo what was done
+                self._leave()
+                raise
+            finally:
+                self.busy = False
+
+    def leave(self) -> None:
+        with self.lock:
+            self._leave()
+
+    def _leave(self) -> None:
+        self.busy = True
+        try:
+            self.count -= 1
+            if self.count == 0:
+                try:
+                    sys.setswitchinterval(self.interval)
+                    gc.collect(1)  # the builds' young garbage: walks only the young generations
+                    gc.freeze()
+                finally:
+                    gc.set_threshold(*self.thresholds)
+        finally:
+            self.busy = False
+        self._unfreeze_if_unheld()  # every holder stopped while it built
 
     def _unfreeze_if_unheld(self) -> None:
         if not self.holders and self.count == 0 and self.ours:
@@ -102,32 +148,15 @@ _builders = _Builders()
 
 
 @contextlib.contextmanager
-def _beside_serving(holder: int) -> Iterator[None]:
+def _beside_serving(holder: int, stopping: Callable[[], bool] = lambda: False) -> Iterator[None]:
     """Note [Building beside serving threads]: a short switch interval and no full collection until the last builder
-    is done; then what the builds made is frozen until ``holder`` (and every other holder) stops."""
-    b = _builders
-    with b.lock:
-        if b.count == 0:
-            b.interval = sys.getswitchinterval()
-            sys.setswitchinterval(min(BUILD_SWITCH_INTERVAL_S, b.interval))
-            b.thresholds = gc.get_threshold()
-            gc.set_threshold(b.thresholds[0], b.thresholds[1], _NO_FULL_COLLECTION)
-            if not b.holders:
-                b.ours = gc.get_freeze_count() == 0  # a heap the program froze itself stays frozen
-            gc.freeze()
-        b.holders.add(holder)
-        b.count += 1
+    is done; then what the builds made is frozen until ``holder`` (and every other holder) stops. A holder that is
+    ``stopping()`` already has made its release: it holds nothing."""
+    _builders.enter(holder, stopping)
     try:
         yield
     finally:
-        with b.lock:
-            b.count -= 1
-            if b.count == 0:
-                sys.setswitchinterval(b.interval)
-                gc.collect(1)  # the builds' young garbage: walks only the young generations
-                gc.freeze()
-                gc.set_threshold(*b.thresholds)
-                b._unfreeze_if_unheld()  # every holder stopped while it built
+        _builders.leave()
 
 
 class ThreadRunner(Runner):
@@ -145,7 +174,7 @@ class ThreadRunner(Runner):
         self._hung: set[str] = set()  # Note [Hung threads]: told to leave, not gone yet
 
     def beside_serving(self) -> contextlib.AbstractContextManager[None]:
-        return _beside_serving(id(self))
+        return _beside_serving(id(self), lambda: self._stopping)
 
     def build_lock_note(self) -> str:
         holder = build_lock.holder()

@@ -122,6 +122,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "frames_not_all_heads": submitted - len(whole),
         "latency_all_heads_ms": pct(whole),
         "device_memory_bytes": memory,
+        "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
         "counted": {
             m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")}
             for m, s in st["models"].items()
@@ -130,7 +131,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     log(
         f"stream: {n} cameras at {fps:g} Hz, {len(whole)}/{submitted} frames through every head, "
         f"p50 {out['latency_all_heads_ms']['p50']:.1f} ms, p99 {out['latency_all_heads_ms']['p99']:.1f} ms, "
-        f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB"
+        f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS"
     )
     return out
 

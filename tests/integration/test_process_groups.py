@@ -71,12 +71,37 @@ def test_a_model_that_hangs_takes_its_process_down_and_both_come_back(restart_ba
     )
     with Engine(cfg) as e:
         before = pids(e)
-        for i in range(4):
-            e.wait(e.submit(frame(i)), heads=["det"], timeout=20)
-        wait_for(lambda: e.stats()["models"]["depth"]["restarts"] >= 1, what="the group restarted")
+        sent = iter(range(10**6))
+
+        def restarted() -> bool:  # frames until seg has run its third (a loaded machine may skip some)
+            e.wait(e.submit(frame(next(sent))), heads=["det"], timeout=20)
+            return e.stats()["models"]["depth"]["restarts"] >= 1
+
+        wait_for(restarted, timeout=40, what="the group restarted")
         models = e.stats()["models"]
         assert models["seg"]["crashes"] >= 1 and models["depth"]["crashes"] >= 1 and models["det"]["crashes"] == 0
         assert pids(e)["det"] == before["det"]
+        wait_for(lambda: pids(e)["depth"] == pids(e)["seg"] != before["depth"], what="one new process for both")
+
+
+def test_a_failed_restart_of_a_process_fails_every_model_in_it(restart_backoff):
+    """One process, one decision: when the process has crashed past runtime.max_restarts, every model in it is
+    failed, none comes back in another's restart."""
+    restart_backoff(0.1)
+    cfg = tiny("process", "heads.depth.process=heads", "heads.seg.process=heads", "runtime.max_restarts=1")
+    with Engine(cfg) as e:
+        for n in (1, 2):
+            pid = pids(e)["depth"]
+            os.kill(pid, signal.SIGKILL)
+            wait_for(
+                lambda pid=pid: pids(e)["depth"] != pid or e.stats()["models"]["depth"]["state"] == "failed",
+                what=f"crash {n} handled",
+            )
+        wait_for(lambda: e.stats()["models"]["seg"]["state"] == "failed", what="both failed")
+        models = e.stats()["models"]
+        assert [models[m]["state"] for m in ("depth", "seg", "det")] == ["failed", "failed", "running"]
+        assert [models[m]["restarts"] for m in ("depth", "seg")] == [1, 1]
+        assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"det"}
 
 
 def test_a_shared_process_is_neither_joined_nor_left_at_run_time():

@@ -8,6 +8,7 @@ import logging
 import os
 import signal
 import threading
+import time
 from multiprocessing.connection import Connection
 from typing import TYPE_CHECKING
 
@@ -96,6 +97,12 @@ def main(fd: int, parent_pid: int) -> None:
             conn.send(Failed(describe_exception(building, e)))
         finally:
             os._exit(3)
+    for core in cores:  # the first was built before the others: its last sign of life is not older than READY
+        control.heartbeat(core.spec.name)
+    if len(cores) > 1:  # one pool a process: the largest any of its models asks for
+        import torch
+
+        torch.set_num_threads(max(core.spec.engine_config().model(core.spec.name).cpu_threads for core in cores))
     conn.send(Ready(os.getpid()))
     if len(cores) == 1:
         _serve(cores[0], conn, control, stop)  # on this thread, as ever
@@ -108,8 +115,9 @@ def main(fd: int, parent_pid: int) -> None:
         t.daemon = True
         t.start()
     ended.wait()  # a loop left: told to stop (the others are leaving too: let them finish their run), or not
+    deadline = time.monotonic() + 5.0
     for t in threads:
-        t.join(5.0)
+        t.join(max(0.0, deadline - time.monotonic()))
     os._exit(0)
 
 

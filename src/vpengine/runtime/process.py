@@ -169,6 +169,7 @@ class _Child:
         self.error: str | None = None
         self.eof = False  # its socket reached EOF (it is exiting)
         self.handled = False  # its death was handled (cleanup, restart scheduled)
+        self.killed = False  # killed for a hang: once
 
     def alive(self) -> bool:
         """Not reported gone by the zygote (Note [Child lifecycle]): a worker whose socket closed is alive until its
@@ -271,10 +272,7 @@ class ProcessRunner(Runner):
 
     def _launch(self, name: str) -> None:
         names = self._members(name)
-        for other in names:  # one process restarts them all: their own restarts, if due later, are this one
-            if other != name and self._pending.pop(other, None) is not None:
-                self._restarted_at[other].append(time.monotonic())
-                self.control.add(other, "restarts")
+        assert names[0] == name, f"{name}'s process is launched through {names[0]}, the first of {names}"
         fds: list[int] = []
         exported: dict[str, RingDesc] = {}  # a mailbox two of them share goes once (the child maps it once)
 
@@ -289,12 +287,11 @@ class ProcessRunner(Runner):
             for s in (self.specs[n] for n in names)
         ]
         # the worker's own config: a head added at run time is not in the one the engine started with
-        env = {**os.environ, **self._env_for(EngineConfig.model_validate(specs[0].config), names[0])}
-        if len(names) > 1:  # MPS has one client priority a process: its most important model's
-            envs = [self._env_for(EngineConfig.model_validate(s.config), s.name) for s in specs]
-            priorities = [e["CUDA_MPS_CLIENT_PRIORITY"] for e in envs if "CUDA_MPS_CLIENT_PRIORITY" in e]
-            if priorities:
-                env["CUDA_MPS_CLIENT_PRIORITY"] = min(priorities)
+        envs = [self._env_for(EngineConfig.model_validate(s.config), s.name) for s in specs]
+        env = {**os.environ, **envs[0]}
+        priorities = [e["CUDA_MPS_CLIENT_PRIORITY"] for e in envs if "CUDA_MPS_CLIENT_PRIORITY" in e]
+        if priorities:  # MPS has one client priority a process: its most important model's ("0" normal, "1" below)
+            env["CUDA_MPS_CLIENT_PRIORITY"] = min(priorities)
         proc, conn = start_with_socket(
             lambda theirs: self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs)
         )
@@ -307,6 +304,9 @@ class ProcessRunner(Runner):
         child = _Child(proc, conn, names)
         for n in names:
             self._children[n] = child
+        if self._monitor is not None:  # a restart (the first's counted by the supervisor): the others' too
+            for other in names[1:]:
+                self.control.add(other, "restarts")
         self._wake()
 
     def _processes(self) -> list[_Child]:
@@ -391,11 +391,21 @@ class ProcessRunner(Runner):
                         reason += ": " + ch.error.strip().splitlines()[-1]
                     ch.close()
                     ch.handled = True
-                    # a worker leaves by itself only at stop: any exit now is a crash, exit code 0 included; every
-                    # model of its process went with it
-                    for name in ch.names:
-                        self._on_exit(name, crashed=True, reason=reason)
+                    # a worker leaves by itself only at stop: any exit now is a crash, exit code 0 included
+                    self._on_process_exit(ch.names, reason)
             self._check_hangs()
+
+    def _on_process_exit(self, names: tuple[str, ...], reason: str) -> None:
+        """A worker process is gone, and every model it ran (Note [Process groups]): each is cleaned up after and
+        counted a crash; the first decides for all whether and when they restart (one process, one decision)."""
+        first, others = names[0], names[1:]
+        for name in others:
+            self._cleanup_after(name)
+            if not self._stopping:
+                self.control.add(name, "crashes")
+        self._on_exit(first, crashed=True, reason=reason)
+        for name in others:
+            self.control.set(name, "state", self.control.get(first, "state"))
 
     def _check_hangs(self) -> None:
         limit = self.cfg.runtime.hang_timeout_s
@@ -404,7 +414,7 @@ class ProcessRunner(Runner):
         now = time.monotonic()
         with self._lock:
             for ch in self._watched():
-                if not ch.ready or not ch.alive():
+                if not ch.ready or ch.killed or not ch.alive():
                     continue
                 for name in ch.names:
                     hb = self.control.get(name, "heartbeat")
@@ -418,15 +428,17 @@ class ProcessRunner(Runner):
                             else "",
                         )
                         ch.error = f"{name} hung for {now - hb:.0f} s"
+                        ch.killed = True
                         ch.proc.kill()
                         break
 
     def _retire(self, name: str) -> list[threading.Thread]:
         with self._lock:
-            ch = self._children.pop(name, None)
-        if ch is None:
-            return []
-        assert ch.names == (name,), f"{name} shares its process with {ch.names}: removed only with them"
+            ch = self._children.get(name)
+            if ch is None:
+                return []
+            assert ch.names == (name,), f"{name} shares its process with {ch.names}: removed only with them"
+            del self._children[name]
         with contextlib.suppress(OSError, ValueError):
             ch.conn.send(Stop())
         for ring in self.rings.values():

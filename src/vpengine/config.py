@@ -100,6 +100,14 @@ class ModelConfig(_Strict):
         description="PyTorch intra-op threads in this model's worker process (CPU). In thread mode the models share "
         "one process and so one pool, sized by the foundation model's value; the heads' values are not used.",
     )
+    process: str | None = Field(
+        None,
+        pattern=r"^[A-Za-z0-9_.-]{1,64}$",
+        description="Process mode: models naming the same process share one worker process, each on its own "
+        "thread and CUDA stream: one CUDA context instead of one each (several hundred MB of device memory per "
+        "process), but a crash or hang of one restarts all of them. null: a process of its own. Thread mode: "
+        "unused (every model is in the engine's process).",
+    )
     mps_priority: Literal["normal", "below_normal"] | None = Field(
         None,
         description="CUDA MPS client priority of this model's process (CUDA_MPS_CLIENT_PRIORITY); null: below_normal "

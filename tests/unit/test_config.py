@@ -131,7 +131,9 @@ def leaf_fields() -> dict[str, str | None]:
 # 42: heads[].accept_backbone_mismatch, the explicit ask to run a head on features it was not trained on (issue 30).
 # 44: heads[].priority and cameras[].priority, who gives way when the device cannot serve every rate (issue 29).
 # 45: runtime.spare_heads, how many heads may be added while running: room reserved at start (issue 29).
-MAX_LEAF_FIELDS = 45
+# 46: process (each model), which models share a worker process: fault isolation against a CUDA context's device
+#     memory each, a trade only the user can make (issue 28).
+MAX_LEAF_FIELDS = 46
 
 
 def test_every_config_field_has_a_description_of_at_least_one_sentence():

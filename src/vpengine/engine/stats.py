@@ -70,9 +70,12 @@ def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, devic
         from vpengine.runtime.gpu import process_memory
 
         by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
-        if by_pid:
-            pids = {n: ctl.get(n, "pid") for n in ctl.names}
-            report["driver_bytes"] = {n: by_pid.get(p) for n, p in pids.items()}
+        if by_pid:  # a process's bytes once, under the models it runs (Note [Process groups] in process.py)
+            procs: dict[int, list[str]] = {}
+            for n in ctl.names:
+                if (pid := int(ctl.get(n, "pid"))) and pid != os.getpid():  # thread mode's: the parent's, below
+                    procs.setdefault(pid, []).append(n)
+            report["driver_bytes"] = {"+".join(names): by_pid.get(p) for p, names in procs.items()}
             report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
     return report
 

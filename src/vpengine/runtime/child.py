@@ -8,7 +8,13 @@ import logging
 import os
 import signal
 import threading
+import time
 from multiprocessing.connection import Connection
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from vpengine.runtime.control import ControlBlock
+    from vpengine.runtime.worker import WorkerCore
 
 _PR_SET_PDEATHSIG = 1
 
@@ -33,10 +39,11 @@ def main(fd: int, parent_pid: int) -> None:
 
         init = conn.recv()
         assert isinstance(init, Init), init
-        spec, log_level, log_file = init.spec, init.log_level, init.log_file
+        specs, log_level, log_file = (init.spec, *init.more), init.log_level, init.log_file
     except (EOFError, OSError):
         os._exit(2)
-    logging.basicConfig(level=log_level, format=f"%(asctime)s %(levelname)s [{spec.name}] %(name)s: %(message)s")
+    names = "+".join(s.name for s in specs)
+    logging.basicConfig(level=log_level, format=f"%(asctime)s %(levelname)s [{names}] %(name)s: %(message)s")
 
     from vpengine.runtime.control import ControlBlock
     from vpengine.runtime.prepare import prepare_worker
@@ -60,35 +67,86 @@ def main(fd: int, parent_pid: int) -> None:
     try:
         fds = recv_fds(conn)
     except BaseException as e:
-        conn.send(Failed(describe_exception(spec.name, e)))
+        conn.send(Failed(describe_exception(specs[0].name, e)))
         os._exit(3)
     threading.Thread(target=watch_parent, name="parent-watch", daemon=True).start()
+    building = specs[0].name
+    cores: list[WorkerCore] = []
     try:
         if log_file:
-            log_to_file(log_file, log_level, spec.name)
-        in_ring = SlotRing.attach(spec.in_ring, fds)
-        out_ring = SlotRing.attach(spec.out_ring, fds)
-        assert spec.control is not None  # the runner gives every child spec its control block
-        control = ControlBlock.attach(spec.control, fds)  # opening a region consumes (closes) its descriptor
-        device = spec.engine_config().device
+            log_to_file(log_file, log_level, names)
+        # a mailbox two models of this process share (the features between the backbone and a head) is mapped once:
+        # opening a region consumes (closes) its descriptor
+        rings: dict[str, SlotRing] = {}
+        for spec in specs:
+            for desc in (spec.in_ring, spec.out_ring):
+                if desc.name not in rings:
+                    rings[desc.name] = SlotRing.attach(desc, fds)
+        assert specs[0].control is not None  # the runner gives every child spec its control block
+        control = ControlBlock.attach(specs[0].control, fds)
+        device = specs[0].engine_config().device
         if device.startswith("cuda"):  # the context is ours: Note [Thread stack] in gpu.py
             from vpengine.runtime.gpu import trim_thread_stack
 
             trim_thread_stack(int(device.partition(":")[2] or 0))
-        core = prepare_worker(spec, in_ring, out_ring, control, own_process=True)
+        for spec in specs:
+            building = spec.name
+            cores.append(prepare_worker(spec, rings[spec.in_ring.name], rings[spec.out_ring.name], control, True))
     except BaseException as e:
         try:
-            conn.send(Failed(describe_exception(spec.name, e)))
+            conn.send(Failed(describe_exception(building, e)))
         finally:
             os._exit(3)
+    for core in cores:  # the first was built before the others: its last sign of life is not older than READY
+        control.heartbeat(core.spec.name)
+    if len(cores) > 1:  # one pool a process: the largest any of its models asks for
+        import torch
+
+        torch.set_num_threads(max(core.spec.engine_config().model(core.spec.name).cpu_threads for core in cores))
     conn.send(Ready(os.getpid()))
+    if len(cores) == 1:
+        _serve(cores[0], conn, control, stop)  # on this thread, as ever
+    ended = threading.Event()
+    threads = [
+        threading.Thread(target=_serve, args=(core, conn, control, stop, ended), name=f"vpengine-{core.spec.name}")
+        for core in cores
+    ]
+    for t in threads:
+        t.daemon = True
+        t.start()
+    ended.wait()  # a loop left: told to stop (the others are leaving too: let them finish their run), or not
+    deadline = time.monotonic() + 5.0
+    for t in threads:
+        t.join(max(0.0, deadline - time.monotonic()))
+    os._exit(0)
+
+
+_send_lock = threading.Lock()  # the process's models share its socket
+
+
+def _serve(
+    core: WorkerCore,
+    conn: Connection,
+    control: ControlBlock,
+    stop: threading.Event,
+    ended: threading.Event | None = None,
+) -> None:
+    """Run one model's loop until stop; a loop that raises reports its error and ends the process (Note [Process
+    groups] in process.py: the process is the unit of restart). ``ended``: set when the loop ends, for the thread
+    waiting on the process's models; without it the process ends here."""
+    from vpengine.runtime.sockets import Failed
+    from vpengine.runtime.worker import describe_exception
+
+    name = core.spec.name
     try:
         core.run(lambda: stop.is_set() or control.stopping)
     except BaseException as e:
-        text = describe_exception(spec.name, e)
-        control.add(spec.name, "errors")
-        control.set_error(spec.name, text)
-        with contextlib.suppress(OSError):
+        text = describe_exception(name, e)
+        control.add(name, "errors")
+        control.set_error(name, text)
+        with _send_lock, contextlib.suppress(OSError):
             conn.send(Failed(text))
         os._exit(1)
-    os._exit(0)
+    if ended is None:
+        os._exit(0)
+    ended.set()

@@ -64,6 +64,20 @@ Note [Child lifecycle]
   SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
   its reader thread 4 s; then the monitor thread 2 s: at most ``stop_timeout_s`` + 13.5 s (7.5 s more for each older
   zygote still kept for its workers). It always returns, in practice within ``stop_timeout_s``.
+
+Note [Process groups]
+~~~~~~~~~~~~~~~~~~~~~
+A CUDA context costs each process several hundred MB of device memory whatever it runs (Note [Thread stack] trims
+only a part), so ten workers pay for ten. Models whose configs name the same ``process`` share one
+worker: it gets one ``Init`` with all of their specs, maps each mailbox once (the features between a backbone and a
+head of one process too), builds them one after another, answers READY when all are, and runs each model's loop on
+its own thread and CUDA stream, as thread mode does in the engine's process. The process is the unit of fault
+isolation: a model whose loop ends with an error (a CUDA error, Note [Frame errors]), crashes or hangs ends the
+process, and every model in it is counted a crash and restarted with it, once (``_launch`` of the first restart due
+takes the others' pending restarts); MPS gives the process the client priority of its most important model. A head
+added at run time gets a process of its own, and a head that shares one is not removed while the engine runs (its
+process would go with it): both are refused with the reason. Thread mode has one process already and ignores
+``process``.
 """
 
 from __future__ import annotations
@@ -83,6 +97,7 @@ from pathlib import Path
 from typing import Any
 
 from vpengine.config import EngineConfig
+from vpengine.models.build import model_config
 from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.sockets import (
     Failed,
@@ -98,6 +113,7 @@ from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tes
 from vpengine.runtime.supervisor import Runner
 from vpengine.runtime.zygote import worker_path
 from vpengine.runtime.zygote_handle import WorkerProc, Zygote, describe_exit
+from vpengine.transport.ring import RingDesc
 
 log = logging.getLogger("vpengine.process")
 
@@ -145,13 +161,15 @@ class _Spawner:
 
 
 class _Child:
-    def __init__(self, proc: WorkerProc, conn: Connection) -> None:
+    def __init__(self, proc: WorkerProc, conn: Connection, names: tuple[str, ...]) -> None:
         self.proc = proc
         self.conn = conn
+        self.names = names  # the models it runs (Note [Process groups])
         self.ready = False
         self.error: str | None = None
         self.eof = False  # its socket reached EOF (it is exiting)
         self.handled = False  # its death was handled (cleanup, restart scheduled)
+        self.killed = False  # killed for a hang: once
 
     def alive(self) -> bool:
         """Not reported gone by the zygote (Note [Child lifecycle]): a worker whose socket closed is alive until its
@@ -245,16 +263,35 @@ class ProcessRunner(Runner):
             )
         return self._zygote
 
+    def _members(self, name: str) -> tuple[str, ...]:
+        """The models that share ``name``'s process, in the engine's order (Note [Process groups])."""
+        group = model_config(self.cfg, name).process
+        if group is None:
+            return (name,)
+        return tuple(n for n in self.specs if model_config(self.cfg, n).process == group)
+
     def _launch(self, name: str) -> None:
-        spec = self.specs[name]
+        names = self._members(name)
+        assert names[0] == name, f"{name}'s process is launched through {names[0]}, the first of {names}"
         fds: list[int] = []
-        in_ring = self.rings[spec.in_ring.name]
-        out_ring = self.rings[spec.out_ring.name]
-        child_spec = replace(
-            spec, in_ring=in_ring.export(fds), out_ring=out_ring.export(fds), control=self.control.export(fds)
-        )
+        exported: dict[str, RingDesc] = {}  # a mailbox two of them share goes once (the child maps it once)
+
+        def export(ring: str) -> RingDesc:
+            if ring not in exported:
+                exported[ring] = self.rings[ring].export(fds)
+            return exported[ring]
+
+        control = self.control.export(fds)
+        specs = [
+            replace(s, in_ring=export(s.in_ring.name), out_ring=export(s.out_ring.name), control=control)
+            for s in (self.specs[n] for n in names)
+        ]
         # the worker's own config: a head added at run time is not in the one the engine started with
-        env = {**os.environ, **self._env_for(EngineConfig.model_validate(spec.config), name)}
+        envs = [self._env_for(EngineConfig.model_validate(s.config), s.name) for s in specs]
+        env = {**os.environ, **envs[0]}
+        priorities = [e["CUDA_MPS_CLIENT_PRIORITY"] for e in envs if "CUDA_MPS_CLIENT_PRIORITY" in e]
+        if priorities:  # MPS has one client priority a process: its most important model's ("0" normal, "1" below)
+            env["CUDA_MPS_CLIENT_PRIORITY"] = min(priorities)
         proc, conn = start_with_socket(
             lambda theirs: self._live_zygote(env).fork(env, worker_path(), os.getcwd(), _affinity(), theirs)
         )
@@ -262,10 +299,19 @@ class ProcessRunner(Runner):
         if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
             proc.kill()
             raise PermissionError(f"worker {name}: socket peer has uid {uid}")
-        conn.send(Init(child_spec, self.cfg.logging.level, self.cfg.logging.file))
+        conn.send(Init(specs[0], self.cfg.logging.level, self.cfg.logging.file, more=tuple(specs[1:])))
         send_fds(conn, fds)
-        self._children[name] = _Child(proc, conn)
+        child = _Child(proc, conn, names)
+        for n in names:
+            self._children[n] = child
+        if self._monitor is not None:  # a restart (the first's counted by the supervisor): the others' too
+            for other in names[1:]:
+                self.control.add(other, "restarts")
         self._wake()
+
+    def _processes(self) -> list[_Child]:
+        """Every worker process once (the models of a group share one)."""
+        return list({id(ch): ch for ch in self._children.values()}.values())
 
     def threads_alive(self) -> list[threading.Thread]:
         return [self._monitor] if self._monitor is not None and self._monitor.is_alive() else []
@@ -273,28 +319,28 @@ class ProcessRunner(Runner):
     # ------------------------------------------------------------------------------------------- start
     def start(self) -> None:
         for name in self.specs:
-            self._launch(name)
+            if name not in self._children:  # the first of a group starts its process
+                self._launch(name)
         deadline = time.monotonic() + self.cfg.runtime.ready_timeout_s
-        waiting = set(self.specs)
+        waiting = self._processes()
         errors: list[str] = []
         while waiting:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                self._not_ready(waiting)
-            objs: list[Any] = [self._wake_r, *(self._children[n].conn for n in waiting if not self._children[n].eof)]
+                self._not_ready({n for ch in waiting for n in ch.names})
+            objs: list[Any] = [self._wake_r, *(ch.conn for ch in waiting if not ch.eof)]
             if self._wake_r in wait(objs, timeout=remaining):
                 os.read(self._wake_r, 4096)
-            for name in list(waiting):
-                ch = self._children[name]
+            for ch in list(waiting):
                 ch.drain()
                 if ch.ready:
-                    waiting.discard(name)
+                    waiting.remove(ch)
                 elif ch.error is not None:
                     errors.append(ch.error)
-                    waiting.discard(name)
+                    waiting.remove(ch)
                 elif not ch.alive():
-                    errors.append(f"{name} exited with code {ch.proc.returncode} before it was ready")
-                    waiting.discard(name)
+                    errors.append(f"{'+'.join(ch.names)} exited with code {ch.proc.returncode} before it was ready")
+                    waiting.remove(ch)
         self._started(errors)
 
     # ----------------------------------------------------------------------------------------- monitor
@@ -304,15 +350,17 @@ class ProcessRunner(Runner):
                 ch.close()
             self._retired_children.clear()
 
+    def _watched(self) -> list[_Child]:
+        """The worker processes to watch: not dead and handled already."""
+        return [ch for ch in self._processes() if not ch.handled and not all(n in self._pending for n in ch.names)]
+
     def _watch(self) -> None:
         while not self._stopping:
             self._close_retired()
             timeout = min(self._run_due_restarts(), POLL_S)
             objs: list[Any] = [self._wake_r]
             with self._lock:
-                for name, ch in self._children.items():
-                    if name in self._pending or ch.handled:
-                        continue
+                for ch in self._watched():
                     if not ch.eof:
                         objs.append(ch.conn)
                     if ch.proc.pidfd is not None:  # a death the zygote does not report wakes us too
@@ -323,20 +371,19 @@ class ProcessRunner(Runner):
             with self._lock:
                 if self._stopping:
                     return
-                for name, ch in self._children.items():
-                    if name in self._pending or ch.handled:
-                        continue
+                for ch in self._watched():
                     was_ready = ch.ready
                     ch.drain()
-                    if name in self._adding:  # a head added at run time: add() hears how its start went
+                    first = ch.names[0]
+                    if first in self._adding:  # a head added at run time (alone): add() hears how its start went
                         if ch.ready:
-                            self._added(name, None)
+                            self._added(first, None)
                         elif ch.error is not None or not ch.alive():
                             ch.handled = True
-                            self._added(name, ch.error or f"{name} exited with code {ch.proc.returncode}")
+                            self._added(first, ch.error or f"{first} exited with code {ch.proc.returncode}")
                         continue
                     if ch.ready and not was_ready:
-                        log.info("%s is ready again (pid %d)", name, ch.proc.pid)
+                        log.info("%s is ready again (pid %d)", "+".join(ch.names), ch.proc.pid)
                     if ch.alive():
                         continue  # gone without a report yet: poll() gives the zygote REPORT_GRACE_S to send one
                     reason = describe_exit(ch.proc.returncode)
@@ -345,8 +392,20 @@ class ProcessRunner(Runner):
                     ch.close()
                     ch.handled = True
                     # a worker leaves by itself only at stop: any exit now is a crash, exit code 0 included
-                    self._on_exit(name, crashed=True, reason=reason)
+                    self._on_process_exit(ch.names, reason)
             self._check_hangs()
+
+    def _on_process_exit(self, names: tuple[str, ...], reason: str) -> None:
+        """A worker process is gone, and every model it ran (Note [Process groups]): each is cleaned up after and
+        counted a crash; the first decides for all whether and when they restart (one process, one decision)."""
+        first, others = names[0], names[1:]
+        for name in others:
+            self._cleanup_after(name)
+            if not self._stopping:
+                self.control.add(name, "crashes")
+        self._on_exit(first, crashed=True, reason=reason)
+        for name in others:
+            self.control.set(name, "state", self.control.get(first, "state"))
 
     def _check_hangs(self) -> None:
         limit = self.cfg.runtime.hang_timeout_s
@@ -354,20 +413,32 @@ class ProcessRunner(Runner):
             return
         now = time.monotonic()
         with self._lock:
-            for name, ch in self._children.items():
-                if name in self._pending or not ch.ready or ch.handled or not ch.alive():
+            for ch in self._watched():
+                if not ch.ready or ch.killed or not ch.alive():
                     continue
-                hb = self.control.get(name, "heartbeat")
-                if hb > 0 and now - hb > limit:
-                    log.error("%s has not reported for %.0f s (runtime.hang_timeout_s); killing it", name, now - hb)
-                    ch.error = f"hung for {now - hb:.0f} s"
-                    ch.proc.kill()
+                for name in ch.names:
+                    hb = self.control.get(name, "heartbeat")
+                    if hb > 0 and now - hb > limit:
+                        log.error(
+                            "%s has not reported for %.0f s (runtime.hang_timeout_s); killing its process%s",
+                            name,
+                            now - hb,
+                            f" (and {', '.join(n for n in ch.names if n != name)} with it)"
+                            if len(ch.names) > 1
+                            else "",
+                        )
+                        ch.error = f"{name} hung for {now - hb:.0f} s"
+                        ch.killed = True
+                        ch.proc.kill()
+                        break
 
     def _retire(self, name: str) -> list[threading.Thread]:
         with self._lock:
-            ch = self._children.pop(name, None)
-        if ch is None:
-            return []
+            ch = self._children.get(name)
+            if ch is None:
+                return []
+            assert ch.names == (name,), f"{name} shares its process with {ch.names}: removed only with them"
+            del self._children[name]
         with contextlib.suppress(OSError, ValueError):
             ch.conn.send(Stop())
         for ring in self.rings.values():
@@ -396,14 +467,14 @@ class ProcessRunner(Runner):
         self.control.request_stop()
         for ring in self.rings.values():
             ring.wake_all()
-        children = list(self._children.items())
+        children = [(ch.names, ch) for ch in self._processes()]
         for _, ch in children:
             with contextlib.suppress(OSError, ValueError):
                 ch.conn.send(Stop())
         # Each phase waits for all children at once, against one deadline: nine hung workers take one grace time,
         # not nine.
         _join_all([ch for _, ch in children], self.cfg.runtime.stop_timeout_s)
-        forced = [name for name, ch in children if ch.alive()]
+        forced = [name for names, ch in children if ch.alive() for name in names]
         for _, ch in children:
             if ch.alive():
                 ch.proc.terminate()
@@ -412,8 +483,9 @@ class ProcessRunner(Runner):
             if ch.alive():
                 ch.proc.kill()  # works on a stopped (SIGSTOP) process too
         _join_all([ch for _, ch in children if ch.alive()], _TERM_GRACE_S)
-        for name, ch in children:
-            self.control.set_state(name, STOPPED)
+        for names, ch in children:
+            for name in names:
+                self.control.set_state(name, STOPPED)
             ch.close()
         if self._monitor is not None and self._monitor is not threading.current_thread():
             self._monitor.join(2.0)

@@ -60,6 +60,7 @@ class Init:
     spec: WorkerSpec
     log_level: str
     log_file: str | None
+    more: tuple[WorkerSpec, ...] = ()  # the other models of its process (Note [Process groups] in process.py)
 
 
 @dataclass(frozen=True)

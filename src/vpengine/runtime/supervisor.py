@@ -287,6 +287,8 @@ class Runner(ABC):
                 if self._stopping:
                     self._pending.clear()
                     break
+                if name not in self._pending:  # restarted with another model of its process (process mode)
+                    continue
                 if r.due <= now:
                     del self._pending[name]
                     self._restarted_at[name].append(now)

@@ -1,0 +1,123 @@
+"""Note [Process groups] in runtime/process.py: models naming one ``process`` share a worker process in process mode,
+each on its own thread; the process is the unit of restart; a head that shares one is neither added to it nor
+removed from it while the engine runs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+
+import pytest
+
+from helpers.frames import frame
+from helpers.waiting import wait_for
+from tests_paths import tiny
+from vpengine.engine import Engine
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def pids(e: Engine) -> dict[str, int]:
+    return {m: s["pid"] for m, s in e.stats()["models"].items()}
+
+
+def every_head(e: Engine, n: int, start: int = 0) -> None:
+    for i in range(n):
+        assert set(e.wait(e.submit(frame(start + i)), timeout=20)) == {"depth", "seg", "det"}
+
+
+@pytest.mark.parametrize("together", [("depth", "seg"), ("foundation", "depth", "seg", "det")])
+def test_models_naming_one_process_share_it_and_serve_every_frame(together):
+    sets = [f"{'foundation_model' if m == 'foundation' else 'heads.' + m}.process=shared" for m in together]
+    with Engine(tiny("process", *sets)) as e:
+        every_head(e, 6)
+        p = pids(e)
+        assert len({p[m] for m in together}) == 1  # one process
+        assert len(set(p.values())) == 4 - len(together) + 1  # the others alone
+        assert os.getpid() not in p.values()
+
+
+def test_a_crash_restarts_every_model_of_the_process_once(restart_backoff):
+    restart_backoff(0.2)
+    with Engine(tiny("process", "heads.depth.process=heads", "heads.seg.process=heads")) as e:
+        every_head(e, 3)
+        before = pids(e)
+        os.kill(before["depth"], signal.SIGKILL)
+        wait_for(
+            lambda: all(
+                e.stats()["models"][m]["state"] == "running" and pids(e)[m] != before[m] for m in ("depth", "seg")
+            ),
+            what="the process restarted",
+            show=lambda: e.stats()["models"],
+        )
+        after, models = pids(e), e.stats()["models"]
+        assert after["depth"] == after["seg"] and after["det"] == before["det"]
+        assert [models[m]["crashes"] for m in ("depth", "seg", "det")] == [1, 1, 0]
+        assert [models[m]["restarts"] for m in ("depth", "seg", "det")] == [1, 1, 0]
+        every_head(e, 3, start=3)
+
+
+def test_a_model_that_hangs_takes_its_process_down_and_both_come_back(restart_backoff):
+    restart_backoff(0.2)
+    opts = json.dumps({"hang_at_run": 3, "once_marker": None})
+    cfg = tiny(
+        "process",
+        "heads.seg.model=helpers.faulty:FaultyHead",
+        f"heads.seg.options={opts}",
+        "heads.seg.process=heads",
+        "heads.depth.process=heads",
+        "runtime.hang_timeout_s=1.5",
+    )
+    with Engine(cfg) as e:
+        before = pids(e)
+        sent = iter(range(10**6))
+
+        def restarted() -> bool:  # frames until seg has run its third (a loaded machine may skip some)
+            e.wait(e.submit(frame(next(sent))), heads=["det"], timeout=20)
+            return e.stats()["models"]["depth"]["restarts"] >= 1
+
+        wait_for(restarted, timeout=40, what="the group restarted")
+        models = e.stats()["models"]
+        assert models["seg"]["crashes"] >= 1 and models["depth"]["crashes"] >= 1 and models["det"]["crashes"] == 0
+        assert pids(e)["det"] == before["det"]
+        wait_for(lambda: pids(e)["depth"] == pids(e)["seg"] != before["depth"], what="one new process for both")
+
+
+def test_a_failed_restart_of_a_process_fails_every_model_in_it(restart_backoff):
+    """One process, one decision: when the process has crashed past runtime.max_restarts, every model in it is
+    failed, none comes back in another's restart."""
+    restart_backoff(0.1)
+    cfg = tiny("process", "heads.depth.process=heads", "heads.seg.process=heads", "runtime.max_restarts=1")
+    with Engine(cfg) as e:
+        for n in (1, 2):
+            pid = pids(e)["depth"]
+            os.kill(pid, signal.SIGKILL)
+            wait_for(
+                lambda pid=pid: pids(e)["depth"] != pid or e.stats()["models"]["depth"]["state"] == "failed",
+                what=f"crash {n} handled",
+            )
+        wait_for(lambda: e.stats()["models"]["seg"]["state"] == "failed", what="both failed")
+        models = e.stats()["models"]
+        assert [models[m]["state"] for m in ("depth", "seg", "det")] == ["failed", "failed", "running"]
+        assert [models[m]["restarts"] for m in ("depth", "seg")] == [1, 1]
+        assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"det"}
+
+
+def test_a_shared_process_is_neither_joined_nor_left_at_run_time():
+    with Engine(tiny("process", "heads.depth.process=heads", "heads.seg.process=heads")) as e:
+        with pytest.raises(ValueError, match=r"process 'heads' is the running process of \['depth', 'seg'\]"):
+            e.add_head({"name": "det2", "model": "tiny_det", "process": "heads"})
+        with pytest.raises(ValueError, match=r"'seg' shares process 'heads' with \['depth'\]"):
+            e.remove_head("seg")
+        e.add_head({"name": "det2", "model": "tiny_det", "process": "spare"})  # a new name: a process of its own
+        assert len(set(pids(e).values())) == 4
+        e.remove_head("det2")
+        e.remove_head("det")
+        assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"depth", "seg"}
+
+
+def test_thread_mode_ignores_processes():
+    with Engine(tiny("thread", "heads.depth.process=heads", "heads.seg.process=heads")) as e:
+        every_head(e, 2)
+        e.remove_head("seg")

@@ -77,7 +77,10 @@ def measure(
         pids = {m["pid"] for m in models.values()}
         per = process_memory(0)
         out["per_process_mb"] = {str(p): per[p] / 2**20 for p in pids | {psutil.Process().pid} if p in per}
-        out["per_model_driver_mb"] = {n: per.get(m["pid"], 0) / 2**20 for n, m in models.items()}
+        by_pid: dict[int, list[str]] = {}  # models sharing a process (Note [Process groups]) count it once
+        for n, m in models.items():
+            by_pid.setdefault(m["pid"], []).append(n)
+        out["per_model_driver_mb"] = {"+".join(ns): per.get(p, 0) / 2**20 for p, ns in by_pid.items()}
         out["per_model_torch_reserved_mb"] = {n: m["device_mem_bytes"] / 2**20 for n, m in models.items()}
         if cpu:
             procs = [psutil.Process(p) for p in pids | {psutil.Process().pid}]

@@ -84,7 +84,7 @@ def measure(
         out["per_model_torch_reserved_mb"] = {n: m["device_mem_bytes"] / 2**20 for n, m in models.items()}
         if cpu:
             procs = [psutil.Process(p) for p in pids | {psutil.Process().pid}]
-            names = {m["pid"]: n for n, m in models.items()} | {psutil.Process().pid: "engine (parent)"}
+            names = {p: "+".join(ns) for p, ns in by_pid.items()} | {psutil.Process().pid: "engine (parent)"}
             time.sleep(1.0)
             c0, t0 = _cpu(procs), time.monotonic()
             time.sleep(seconds)

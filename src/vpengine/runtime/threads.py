@@ -30,7 +30,7 @@ shipped bench config (process mode: no stall):
   periods a few times per (cold) build, and so did a thread that only woke every 10 ms: the whole interpreter
   stopped. Freezing the heap for the build (``gc.freeze``) was not enough: a first compiled add makes enough
   lasting objects (dynamo's graphs and guards, inductor's kernels) that one full collection of those alone stopped
-  every serving thread for 366 ms on an H200. So while a thread builds beside serving ones no full collection runs
+  every serving thread for many frame periods. So while a thread builds beside serving ones no full collection runs
   (young collections do: they walk only young objects), and when the last build ends its young garbage is collected
   and what it made is frozen with the rest, so no later full collection walks it either. The heap stays frozen
   while the engines that built beside serving threads run, and is unfrozen when the last of them stops (nothing of

@@ -104,6 +104,27 @@ def test_a_failed_restart_of_a_process_fails_every_model_in_it(restart_backoff):
         assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"det"}
 
 
+def test_a_restart_that_cannot_launch_the_process_fails_every_model_in_it(restart_backoff, monkeypatch):
+    """A relaunch that fails is a crash of every model of the process: they restart again or fail together, and
+    ``wait`` stops waiting for the failed ones."""
+    import vpengine.runtime.process
+
+    restart_backoff(0.1)
+    cfg = tiny("process", "heads.depth.process=heads", "heads.seg.process=heads", "runtime.max_restarts=1")
+    with Engine(cfg) as e:
+
+        def no_launch(*args, **kw):
+            raise OSError("no more processes")
+
+        monkeypatch.setattr(vpengine.runtime.process, "start_with_socket", no_launch)
+        os.kill(pids(e)["depth"], signal.SIGKILL)
+        wait_for(lambda: e.stats()["models"]["depth"]["state"] == "failed", what="the first failed")
+        models = e.stats()["models"]
+        assert [models[m]["state"] for m in ("depth", "seg", "det")] == ["failed", "failed", "running"]
+        assert [(models[m]["restarts"], models[m]["crashes"]) for m in ("depth", "seg")] == [(1, 2), (1, 2)]
+        assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"det"}
+
+
 def test_a_shared_process_is_neither_joined_nor_left_at_run_time():
     with Engine(tiny("process", "heads.depth.process=heads", "heads.seg.process=heads")) as e:
         with pytest.raises(ValueError, match=r"process 'heads' is the running process of \['depth', 'seg'\]"):

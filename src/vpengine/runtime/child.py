@@ -92,6 +92,10 @@ def main(fd: int, parent_pid: int) -> None:
         for spec in specs:
             building = spec.name
             cores.append(prepare_worker(spec, rings[spec.in_ring.name], rings[spec.out_ring.name], control, True))
+        if len(cores) > 1:  # one pool a process: the largest any of its models asks for
+            import torch
+
+            torch.set_num_threads(max(c.spec.engine_config().model(c.spec.name).cpu_threads for c in cores))
     except BaseException as e:
         try:
             conn.send(Failed(describe_exception(building, e)))
@@ -99,10 +103,6 @@ def main(fd: int, parent_pid: int) -> None:
             os._exit(3)
     for core in cores:  # the first was built before the others: its last sign of life is not older than READY
         control.heartbeat(core.spec.name)
-    if len(cores) > 1:  # one pool a process: the largest any of its models asks for
-        import torch
-
-        torch.set_num_threads(max(core.spec.engine_config().model(core.spec.name).cpu_threads for core in cores))
     conn.send(Ready(os.getpid()))
     if len(cores) == 1:
         _serve(cores[0], conn, control, stop)  # on this thread, as ever

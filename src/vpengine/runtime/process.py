@@ -68,16 +68,16 @@ Note [Child lifecycle]
 Note [Process groups]
 ~~~~~~~~~~~~~~~~~~~~~
 A CUDA context costs each process several hundred MB of device memory whatever it runs (Note [Thread stack] trims
-only a part), so ten workers pay for ten. Models whose configs name the same ``process`` share one
-worker: it gets one ``Init`` with all of their specs, maps each mailbox once (the features between a backbone and a
-head of one process too), builds them one after another, answers READY when all are, and runs each model's loop on
-its own thread and CUDA stream, as thread mode does in the engine's process. The process is the unit of fault
-isolation: a model whose loop ends with an error (a CUDA error, Note [Frame errors]), crashes or hangs ends the
-process, and every model in it is counted a crash and restarted with it, once (``_launch`` of the first restart due
-takes the others' pending restarts); MPS gives the process the client priority of its most important model. A head
-added at run time gets a process of its own, and a head that shares one is not removed while the engine runs (its
-process would go with it): both are refused with the reason. Thread mode has one process already and ignores
-``process``.
+only a part), so ten workers pay for ten. Models whose configs name the same ``process`` share one worker: it gets
+one ``Init`` with all of their specs, maps each mailbox once (the features between a backbone and a head of one
+process too), builds them one after another, answers READY when all are, and runs each model's loop on its own
+thread and CUDA stream, as thread mode does in the engine's process. The process is the unit of fault isolation: a
+model whose loop ends with an error (a CUDA error, Note [Frame errors]), crashes or hangs ends the process, and
+every model in it is counted a crash and restarted with it, once: the first model of the process alone has a restart
+pending and decides for all (they fail for good together, a launch that fails fails them all); MPS gives the process
+the client priority of its most important model. A head added at run time gets a process of its own, and a head that
+shares one is not removed while the engine runs (its process would go with it): both are refused with the reason.
+Thread mode has one process already and ignores ``process``.
 """
 
 from __future__ import annotations
@@ -273,6 +273,9 @@ class ProcessRunner(Runner):
     def _launch(self, name: str) -> None:
         names = self._members(name)
         assert names[0] == name, f"{name}'s process is launched through {names[0]}, the first of {names}"
+        if self._monitor is not None:  # a restart (the first's counted by the supervisor): the others' too
+            for other in names[1:]:
+                self.control.add(other, "restarts")
         fds: list[int] = []
         exported: dict[str, RingDesc] = {}  # a mailbox two of them share goes once (the child maps it once)
 
@@ -304,9 +307,6 @@ class ProcessRunner(Runner):
         child = _Child(proc, conn, names)
         for n in names:
             self._children[n] = child
-        if self._monitor is not None:  # a restart (the first's counted by the supervisor): the others' too
-            for other in names[1:]:
-                self.control.add(other, "restarts")
         self._wake()
 
     def _processes(self) -> list[_Child]:
@@ -398,13 +398,21 @@ class ProcessRunner(Runner):
     def _on_process_exit(self, names: tuple[str, ...], reason: str) -> None:
         """A worker process is gone, and every model it ran (Note [Process groups]): each is cleaned up after and
         counted a crash; the first decides for all whether and when they restart (one process, one decision)."""
-        first, others = names[0], names[1:]
-        for name in others:
+        for name in names[1:]:
             self._cleanup_after(name)
-            if not self._stopping:
+        self._on_first_exit(names, reason)
+
+    def _launch_failed(self, name: str, reason: str) -> None:
+        """A restart could not launch ``name``'s process: a crash of every model it runs, decided by the first."""
+        self._on_first_exit(self._members(name), reason)
+
+    def _on_first_exit(self, names: tuple[str, ...], reason: str) -> None:
+        first, others = names[0], names[1:]
+        if not self._stopping:
+            for name in others:
                 self.control.add(name, "crashes")
         self._on_exit(first, crashed=True, reason=reason)
-        for name in others:
+        for name in others:  # restarting again, or failed for good: as the first is
             self.control.set(name, "state", self.control.get(first, "state"))
 
     def _check_hangs(self) -> None:

@@ -278,6 +278,10 @@ class Runner(ABC):
                 delay,
             )
 
+    def _launch_failed(self, name: str, reason: str) -> None:
+        """A restart of ``name`` could not launch it: a crash like any other."""
+        self._on_exit(name, True, reason)
+
     def _run_due_restarts(self) -> float:
         """Launch restarts whose time has come; return seconds until the next one (inf if none)."""
         with self._lock:
@@ -287,8 +291,6 @@ class Runner(ABC):
                 if self._stopping:
                     self._pending.clear()
                     break
-                if name not in self._pending:  # restarted with another model of its process (process mode)
-                    continue
                 if r.due <= now:
                     del self._pending[name]
                     self._restarted_at[name].append(now)
@@ -297,7 +299,7 @@ class Runner(ABC):
                         self._launch(name)
                     except Exception as e:  # a failed launch counts as a crash
                         log.error("%s could not be restarted: %s", name, e)
-                        self._on_exit(name, True, f"restart failed: {e}")
+                        self._launch_failed(name, f"restart failed: {e}")
                 else:
                     nxt = min(nxt, r.due - now)
             return nxt

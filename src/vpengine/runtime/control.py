@@ -353,14 +353,17 @@ class ControlBlock:
         def total(field: str) -> int:
             return int(sum(self._get(self.index[p], field) for p in parts))
 
+        # ``skipped`` as the sum of its reasons, read once: its own counter moves a moment after a reason's, and a
+        # reader between the two would see them disagree
+        skipped_by = {r: total(f"skipped_{r}") for r in SKIP_REASONS}
         return {
             "state": STATES[self._get(i, "state")],
             "pid": self._get(i, "pid"),
             "target_hz": None if math.isnan(target) else target,
             "achieved_hz": achieved,
             "runs": total("runs"),
-            "skipped": total("skipped"),
-            "skipped_by": {r: total(f"skipped_{r}") for r in SKIP_REASONS},
+            "skipped": sum(skipped_by.values()),
+            "skipped_by": skipped_by,
             "deadline_misses": total("deadline_misses"),
             "priority": max(self._get(self.index[p], "priority") for p in (cameras or [name])),
             "cap_hz": None if math.isnan(cap) else cap,

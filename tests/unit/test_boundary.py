@@ -191,3 +191,15 @@ def test_the_engine_returns_no_empty_box_for_frames_of_odd_shape():
             assert len(boxes) == len(det["scores"]) == len(det["labels"]) == det["count"], hw
             assert ((boxes[:, 2] > boxes[:, 0]) & (boxes[:, 3] > boxes[:, 1])).all(), hw
             assert (boxes[:, [0, 2]] <= hw[1]).all() and (boxes[:, [1, 3]] <= hw[0]).all()
+
+
+@pytest.mark.parametrize("as_tensor", [False, True])
+def test_a_map_shrunk_to_a_third_is_averaged_and_one_shrunk_less_keeps_every_value_in_range(as_tensor):
+    stripes = np.tile(np.array([0.0, 1.0], np.float32), (120, 80))  # one-pixel columns: the finest pattern there is
+    m = torch.from_numpy(stripes) if as_tensor else stripes
+    third = np.asarray(Placement.fit((40, 53), (120, 160)).map_to_frame(m, labels=False))
+    assert third.shape == (40, 53)
+    assert np.abs(third[:, 1:-1] - 0.5).max() < 0.2  # averaged: no stripes of 0s and 1s aliased into the frame
+    less = np.asarray(Placement.fit((80, 107), (120, 160)).map_to_frame(m, labels=False))  # by 1.5: bilinear
+    assert less.shape == (80, 107) and less.min() >= 0 and less.max() <= 1
+    assert abs(float(less.mean()) - 0.5) < 0.05

@@ -11,9 +11,12 @@ The models are built, compiled and captured for one input size, the config's ``i
 A frame of any other size (up to ``input.max_frame_side``) is scaled to fit the canvas with its aspect ratio kept
 (never stretched) and centred; the band around it is filled with the normalisation mean, which is zero once
 normalised. Its outputs come back in the frame's own pixel grid: dense maps are cut out of the canvas and resized
-to the frame's size (bilinear for values, nearest for class ids), boxes are shifted and scaled into its pixels and
-clipped to it. A frame of the canvas size passes through untouched and costs nothing here. So the same frame gives
-the same outputs through every door, and a camera of another size gives outputs at its own size; setting
+to the frame's size (values bilinear, or area-averaged when shrunk to half or less; class ids nearest), boxes are
+shifted and scaled into its pixels and clipped to it. Area averaging keeps a fine pattern from aliasing, but at a
+factor that is not a whole number OpenCV's costs about ten times bilinear's, on the one thread that hands out every
+result, which then sets the pace of a GPU run; shrunk by less than half, bilinear still weighs in every canvas
+pixel. A frame of the canvas size passes through untouched and costs nothing here. So the same frame gives the same
+outputs through every door, and a camera of another size gives outputs at its own size; setting
 input.height/width to the camera's size spares the two host resizes.
 
 A head's ``output.grid: native`` keeps its outputs in the canvas grid instead (``Result.grid`` says which, and
@@ -107,13 +110,17 @@ class Placement:
             return self.boxes_to_frame(value)
         return self.map_to_frame(value, labels=kind == "labels")
 
+    def _area(self, fw: int) -> bool:
+        """Whether a map shrunk to ``fw`` wide is area-averaged (else bilinear; Note [Frame grid])."""
+        return self.w >= AREA_SHRINK * fw
+
     def map_to_frame(self, m: Any, labels: bool) -> Any:
         """A map ``[H, W, ...]`` in the canvas -> ``[h, w, ...]`` at the frame's size: the frame's region cut out
         and resized, bilinear for values (``labels`` False) or nearest for class ids. Numpy arrays or tensors."""
         region = m[self.y0 : self.y0 + self.h, self.x0 : self.x0 + self.w]
         fh, fw = self.frame_hw
         if isinstance(m, torch.Tensor):
-            return _resize_tensor(region, (fh, fw), labels, shrink=fw < self.w)
+            return _resize_tensor(region, (fh, fw), labels, shrink=self._area(fw))
         import cv2
 
         if labels:
@@ -122,8 +129,7 @@ class Placement:
             rows = np.minimum(((np.arange(fh) + 0.5) * (self.h / fh)).astype(np.intp), self.h - 1)
             cols = np.minimum(((np.arange(fw) + 0.5) * (self.w / fw)).astype(np.intp), self.w - 1)
             return region[rows][:, cols]
-        # area averaging when shrinking (no aliasing), bilinear when enlarging
-        filt = cv2.INTER_AREA if fw < self.w else cv2.INTER_LINEAR
+        filt = cv2.INTER_AREA if self._area(fw) else cv2.INTER_LINEAR
         if region.dtype in _CV_LINEAR:
             return cv2.resize(region, (fw, fh), interpolation=filt)
         return cv2.resize(region.astype(np.float32), (fw, fh), interpolation=filt).astype(m.dtype)
@@ -145,6 +151,8 @@ def buffer_for(cache: dict[tuple[int, int], np.ndarray], size: tuple[int, int], 
     return buf
 
 
+#: Maps shrunk by this factor or more are area-averaged, by less bilinear (Note [Frame grid]).
+AREA_SHRINK = 2
 _CV_NEAREST = {np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "float32", "float64")}
 _CV_LINEAR = {np.dtype(t) for t in ("uint8", "uint16", "int16", "float32", "float64")}
 

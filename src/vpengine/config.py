@@ -348,6 +348,15 @@ class EngineConfig(_Strict):
         """The foundation model's config (``foundation``) or a head's."""
         return self.foundation_model if name == "foundation" else self.head(name)
 
+    def process_mates(self, name: str) -> list[str]:
+        """The models that share model ``name``'s worker process, ``name`` included, foundation first and the heads
+        in order (Note [Process groups] in runtime/process.py); ``[name]`` alone in thread mode or when it names no
+        process."""
+        group = self.model(name).process
+        if group is None or self.mode != "process":
+            return [name]
+        return [n for n in self.model_names() if self.model(n).process == group]
+
 
 # ------------------------------------------------------------------------------------------------- loading
 #: Bounds on a config, checked before anything expands it. A 1 KB YAML file of nested aliases (or merge keys) can

@@ -14,6 +14,7 @@ from helpers.frames import frame
 from helpers.waiting import wait_for
 from tests_paths import tiny
 from vpengine.engine import Engine
+from vpengine.engine.stats import processes
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -36,6 +37,9 @@ def test_models_naming_one_process_share_it_and_serve_every_frame(together):
         assert len({p[m] for m in together}) == 1  # one process
         assert len(set(p.values())) == 4 - len(together) + 1  # the others alone
         assert os.getpid() not in p.values()
+        names = processes(p)  # how reports name processes: a shared one once, under all its models
+        assert "+".join(together) in names.values() and names[os.getpid()] == "engine (parent)"
+        assert len(names) == len(set(p.values())) + 1
 
 
 def test_a_crash_restarts_every_model_of_the_process_once(restart_backoff):

@@ -181,3 +181,12 @@ def test_mps_off_unquoted_is_off_in_a_file_and_on_the_command_line(tmp_path):
     assert load_config("tiny", ["mps=off"]).mps == "off"
     with pytest.raises(ConfigError, match="mps"):
         load_config("tiny", ["mps=true"])  # on is not a setting: auto or required say which
+
+
+def test_process_mates_are_the_models_naming_one_process_in_process_mode_only():
+    from tests_paths import tiny
+
+    cfg = tiny("process", "heads.det.process=p", "foundation_model.process=p", "heads.seg.process=q")
+    assert cfg.process_mates("det") == cfg.process_mates("foundation") == ["foundation", "det"]
+    assert cfg.process_mates("seg") == ["seg"] and cfg.process_mates("depth") == ["depth"]
+    assert tiny("thread", "heads.det.process=p", "foundation_model.process=p").process_mates("det") == ["det"]

@@ -56,6 +56,7 @@ def measure(
     import torch
 
     from vpengine.engine import Engine
+    from vpengine.engine.stats import processes
     from vpengine.runtime.gpu import device_memory_used, process_memory
 
     if torch.cuda.is_available():
@@ -74,17 +75,12 @@ def measure(
         used = device_memory_used(0)
         out["device_mem_mb"] = (used - before) / 2**20 if used is not None and before is not None else None
         models = e.stats()["models"]
-        pids = {m["pid"] for m in models.values()}
+        names = processes({n: m["pid"] for n, m in models.items()})  # a shared process once (Note [Process groups])
         per = process_memory(0)
-        out["per_process_mb"] = {str(p): per[p] / 2**20 for p in pids | {psutil.Process().pid} if p in per}
-        by_pid: dict[int, list[str]] = {}  # models sharing a process (Note [Process groups]) count it once
-        for n, m in models.items():
-            by_pid.setdefault(m["pid"], []).append(n)
-        out["per_model_driver_mb"] = {"+".join(ns): per.get(p, 0) / 2**20 for p, ns in by_pid.items()}
+        out["per_process_mb"] = {name: per[p] / 2**20 for p, name in names.items() if p in per}
         out["per_model_torch_reserved_mb"] = {n: m["device_mem_bytes"] / 2**20 for n, m in models.items()}
         if cpu:
-            procs = [psutil.Process(p) for p in pids | {psutil.Process().pid}]
-            names = {p: "+".join(ns) for p, ns in by_pid.items()} | {psutil.Process().pid: "engine (parent)"}
+            procs = [psutil.Process(p) for p in names]
             time.sleep(1.0)
             c0, t0 = _cpu(procs), time.monotonic()
             time.sleep(seconds)

@@ -58,7 +58,7 @@ def export_model(
     from vpengine.backends.onnx_export import check_onnx_precision, export_onnx, resolve_exporter
     from vpengine.backends.options import parse_options
     from vpengine.config import load_config
-    from vpengine.models.build import build_model, model_config
+    from vpengine.models.build import build_model
     from vpengine.runtime.plan import make_plan
 
     cfg = load_config(config)
@@ -68,7 +68,7 @@ def export_model(
     if precision is not None:
         where = "foundation_model" if name == "foundation" else f"heads.{name}"
         cfg = load_config(cfg, [f"{where}.precision={precision}"])
-    precision = model_config(cfg, name).precision or cfg.precision
+    precision = cfg.model(name).precision or cfg.precision
     check_onnx_precision(precision, name)
     parse_options("onnx", {"opset": opset, "exporter": exporter}, name)
     plan = make_plan(cfg)
@@ -83,7 +83,7 @@ def export_model(
     result = export_onnx(model, path, precision, opset, exporter, name, verify=verify)
     manifest: dict[str, Any] = {
         "model": name,
-        "recipe": model_config(cfg, name).model,
+        "recipe": cfg.model(name).model,
         "file": path.name,
         "precision": precision,
         "opset": opset,

@@ -92,14 +92,12 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
         raw = engine.config.model_dump(mode="json")
         cfg = load_config({**raw, "heads": [*raw["heads"], _head_data(head)]})
         h = cfg.heads[-1]
-        if h.process is not None and cfg.mode == "process":
-            running = [("foundation", cfg.foundation_model), *((x.name, x) for x in cfg.heads[:-1])]
-            names = [n for n, m in running if m.process == h.process]
-            if names:
-                raise ValueError(
-                    f"head {h.name!r}: process {h.process!r} is the running process of {names}; a head added at run "
-                    "time gets a process of its own (process: null, or a name no model has)"
-                )
+        names = cfg.process_mates(h.name)[:-1]  # the new head comes last
+        if names:
+            raise ValueError(
+                f"head {h.name!r}: process {h.process!r} is the running process of {names}; a head added at run "
+                "time gets a process of its own (process: null, or a name no model has)"
+            )
         if h.input_mode == "fifo":
             raise ValueError(f"head {h.name!r}: input_mode fifo is for heads configured at start; add it as latest")
         seats = engine.lanes.seats
@@ -158,14 +156,12 @@ def remove_head(engine: Engine, name: str) -> None:
             raise KeyError(f"no head named {name!r}; heads: {heads}")
         if len(heads) == 1:
             raise ValueError(f"{name!r} is the engine's last head: stop the engine instead of removing it")
-        group = engine.config.head(name).process if engine.config.mode == "process" else None
-        if group is not None:
-            others = [m for m in ["foundation", *heads] if m != name and engine.config.model(m).process == group]
-            if others:
-                raise ValueError(
-                    f"{name!r} shares process {group!r} with {others}: a head that shares its worker process cannot "
-                    "be removed while the engine runs"
-                )
+        others = [m for m in engine.config.process_mates(name) if m != name]
+        if others:
+            raise ValueError(
+                f"{name!r} shares process {engine.config.head(name).process!r} with {others}: a head that shares its "
+                "worker process cannot be removed while the engine runs"
+            )
         control, runner, governor = res.control, res.runner, res.governor
         if control is None or runner is None or governor is None:
             raise EngineDeadError("engine is stopped")

@@ -70,14 +70,21 @@ def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, devic
         from vpengine.runtime.gpu import process_memory
 
         by_pid = process_memory(device.index or 0)  # as the driver reports it (contexts included)
-        if by_pid:  # a process's bytes once, under the models it runs (Note [Process groups] in process.py)
-            procs: dict[int, list[str]] = {}
-            for n in ctl.names:
-                if (pid := int(ctl.get(n, "pid"))) and pid != os.getpid():  # thread mode's: the parent's, below
-                    procs.setdefault(pid, []).append(n)
-            report["driver_bytes"] = {"+".join(names): by_pid.get(p) for p, names in procs.items()}
-            report["driver_bytes"]["engine (parent)"] = by_pid.get(os.getpid())
+        if by_pid:
+            procs = processes({n: int(ctl.get(n, "pid")) for n in ctl.names})
+            report["driver_bytes"] = {names: by_pid.get(p) for p, names in procs.items()}
     return report
+
+
+def processes(pids: Mapping[str, int]) -> dict[int, str]:
+    """pid -> a name for it: the models it runs joined by ``+`` (Note [Process groups] in runtime/process.py), so a
+    process's figures are given once, under all its models; this process is ``engine (parent)`` (thread mode's
+    models too). Models without a process yet (pid 0) are left out."""
+    out: dict[int, list[str]] = {}
+    for name, pid in pids.items():
+        if pid and pid != os.getpid():
+            out.setdefault(pid, []).append(name)
+    return {p: "+".join(names) for p, names in out.items()} | {os.getpid(): "engine (parent)"}
 
 
 def engine_stats(engine: Engine) -> dict[str, Any]:

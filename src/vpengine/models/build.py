@@ -96,11 +96,6 @@ class BuildLock:
 build_lock = BuildLock()
 
 
-def model_config(cfg: EngineConfig, name: str) -> Any:
-    """The config block of model ``name``: ``foundation`` or a head's name."""
-    return cfg.foundation_model if name == "foundation" else cfg.head(name)
-
-
 def frame_spec(cfg: EngineConfig) -> SpecDict:
     """What the foundation model reads: one frame of the configured input size and dtype."""
     return {"frame": TensorSpec((cfg.input.height, cfg.input.width, 3), cfg.input.dtype)}
@@ -121,7 +116,7 @@ def build_model(
     Note [One build at a time]: waits for the process's build lock at most the config's ``runtime.ready_timeout_s``,
     and not once ``cancelled()``.
     """
-    mcfg = model_config(cfg, name)
+    mcfg = cfg.model(name)
     cls, defaults = resolve(mcfg.model, role)
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
     what = f"model {name!r} of engine {cfg.name!r}"

@@ -13,7 +13,7 @@ from collections.abc import Callable
 import torch
 
 from vpengine.models.base import check_outputs
-from vpengine.models.build import build_lock, build_model, model_config
+from vpengine.models.build import build_lock, build_model
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
@@ -56,7 +56,7 @@ def prepare_worker(
     from vpengine.runtime.control import LOADING, READY
 
     cfg = spec.engine_config()
-    mcfg = model_config(cfg, spec.name)
+    mcfg = cfg.model(spec.name)
     device = torch.device(cfg.device)
     if own_process:
         # A GPU worker needs no CPU thread pool: left at its default (one thread per core, in every worker), the

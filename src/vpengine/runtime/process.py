@@ -97,7 +97,6 @@ from pathlib import Path
 from typing import Any
 
 from vpengine.config import EngineConfig
-from vpengine.models.build import model_config
 from vpengine.runtime.control import POLL_S, STOPPED
 from vpengine.runtime.sockets import (
     Failed,
@@ -265,10 +264,7 @@ class ProcessRunner(Runner):
 
     def _members(self, name: str) -> tuple[str, ...]:
         """The models that share ``name``'s process, in the engine's order (Note [Process groups])."""
-        group = model_config(self.cfg, name).process
-        if group is None:
-            return (name,)
-        return tuple(n for n in self.specs if model_config(self.cfg, n).process == group)
+        return tuple(self.cfg.process_mates(name))
 
     def _launch(self, name: str) -> None:
         names = self._members(name)

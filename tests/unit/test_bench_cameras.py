@@ -1,5 +1,5 @@
 """bench cameras' throughput points: every camera's pump counted, a point at least as long as asked, a failed pump
-an error rather than a rate over frames that never ran."""
+an error rather than a rate over frames that never ran, a file run's frames in flight and every one answered."""
 
 from __future__ import annotations
 
@@ -15,12 +15,17 @@ class Engine:
 
     def __init__(self, step: float, fail_at: int | None = None) -> None:
         self.step, self.fail_at, self.n = step, fail_at, 0
+        self.open: list[int] = []  # submitted, not yet waited for
+        self.most_open = 0
 
     def submit(self, img, camera=None):
         self.n += 1
+        self.open.append(self.n)
+        self.most_open = max(self.most_open, len(self.open))
         return self.n
 
     def wait(self, fid, timeout):
+        assert fid == self.open.pop(0), "answers waited for out of order"
         if fid == self.fail_at:
             raise TimeoutError(f"frame {fid}: no result")
         time.sleep(self.step)
@@ -29,15 +34,21 @@ class Engine:
 def test_a_point_runs_its_rounds_and_at_least_its_seconds():
     engines = [Engine(0.01), Engine(0.01)]
     t = time.monotonic()
-    fps = _all_cameras([(e, None) for e in engines], [None], rounds=3, seconds=0.3)
+    fps = _all_cameras([(e, None) for e in engines], [None], rounds=3, seconds=0.3, in_flight=1)
     took = time.monotonic() - t
     assert took >= 0.3 and all(e.n > 3 for e in engines)
     assert fps == pytest.approx(sum(e.n for e in engines) / took, rel=0.05)
     quick = [Engine(0.0), Engine(0.0)]
-    _all_cameras([(e, None) for e in quick], [None], rounds=5, seconds=0.0)
+    _all_cameras([(e, None) for e in quick], [None], rounds=5, seconds=0.0, in_flight=1)
     assert [e.n for e in quick] == [5, 5]
 
 
 def test_a_pump_that_fails_fails_the_point():
     with pytest.raises(RuntimeError, match="1 of 2 cameras' pumps failed: TimeoutError: frame 2: no result"):
-        _all_cameras([(Engine(0.0), None), (Engine(0.0, fail_at=2), None)], [None], rounds=5, seconds=0.0)
+        _all_cameras([(Engine(0.0), None), (Engine(0.0, fail_at=2), None)], [None], rounds=5, seconds=0.0, in_flight=1)
+
+
+def test_a_pump_keeps_its_frames_in_flight_and_waits_for_every_one():
+    engines = [Engine(0.0), Engine(0.0)]
+    _all_cameras([(e, None) for e in engines], [None], rounds=10, seconds=0.0, in_flight=3)
+    assert [(e.n, e.most_open, e.open) for e in engines] == [(10, 3, []), (10, 3, [])]

@@ -8,10 +8,12 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
   and the device memory in use (NVML, else PyTorch's reserved bytes).
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
-  each camera pumped by its own thread with one frame in flight (submit, wait for every head), as each camera's
-  driver would, ``--rounds`` frames a camera and for ``--point-seconds`` at least: one engine with N cameras
-  (batched) against N engines of one camera each running side by side in this process (the GPU overlaps their
-  streams). Their ratio is what batching buys.
+  each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
+  in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
+  frames a camera and for ``--point-seconds`` at least: one engine with N cameras (batched) against N engines of one
+  camera each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching
+  buys. With one frame in flight a camera's next frame waited for its last one's every result, so one engine ran
+  its stages one batch after the other while N engines overlapped theirs: that measured latency, not throughput.
 
 ::
 
@@ -22,6 +24,7 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
 from __future__ import annotations
 
 import argparse
+import collections
 import threading
 import time
 from typing import Any
@@ -136,26 +139,37 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     return out
 
 
-def _pump(eng: Any, camera: str | None, imgs: list[np.ndarray], rounds: int, until: float, done: list[Any]) -> None:
-    """One camera's frames, one in flight: submit, wait for every head, ``rounds`` times and until ``until``; the
-    count (or the error that ended it) is appended to ``done``."""
+def _pump(
+    eng: Any, camera: str | None, imgs: list[np.ndarray], rounds: int, until: float, in_flight: int, done: list[Any]
+) -> None:
+    """One camera's frames, ``in_flight`` at most submitted and not yet answered by every head, ``rounds`` frames
+    and until ``until``; the count (or the error that ended it) is appended to ``done``."""
     k = 0
+    pending: collections.deque[int] = collections.deque()
     try:
         while k < rounds or time.monotonic() < until:
-            eng.wait(eng.submit(imgs[k % len(imgs)], camera=camera), timeout=120)
+            if len(pending) == in_flight:
+                eng.wait(pending.popleft(), timeout=120)
+            pending.append(eng.submit(imgs[k % len(imgs)], camera=camera))
             k += 1
+        while pending:
+            eng.wait(pending.popleft(), timeout=120)
     except Exception as e:
         done.append(e)
     else:
         done.append(k)
 
 
-def _all_cameras(pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], rounds: int, seconds: float) -> float:
+def _all_cameras(
+    pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], rounds: int, seconds: float, in_flight: int
+) -> float:
     """Every camera pumped by its own thread, as each camera's driver would, ``rounds`` frames each and ``seconds``
     at least; frames per second over them all."""
     done: list[Any] = []
     t = time.monotonic()
-    threads = [threading.Thread(target=_pump, args=(e, c, imgs, rounds, t + seconds, done)) for e, c in pairs]
+    threads = [
+        threading.Thread(target=_pump, args=(e, c, imgs, rounds, t + seconds, in_flight, done)) for e, c in pairs
+    ]
     for th in threads:
         th.start()
     for th in threads:
@@ -169,19 +183,31 @@ def _all_cameras(pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], ro
 
 
 def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: float = 0.0) -> dict[str, Any]:
-    """Frames per second through every head with a thread per camera, each with one frame in flight: one engine
-    with ``n`` cameras (batched) against ``n`` one-camera engines side by side, each point ``seconds`` at least."""
+    """Frames per second through every head with a thread per camera, each keeping a file run's frames in flight
+    (Note [Frames in flight]): one engine with ``n`` cameras (batched) against ``n`` one-camera engines side by
+    side, each point ``seconds`` at least."""
     from vpengine.bench.paper.harness import engines, log
+    from vpengine.pipeline.pacing import pipelined
 
-    with engines([_config(base, n)]) as (eng,):
+    one, in_flight = pipelined(_config(base, n))
+    with engines([one]) as (eng,):
         cams = eng.cameras if n > 1 else [None]
-        _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0)
-        batched = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds)
-    with engines([_config(base, 1) for _ in range(n)]) as es:
-        _all_cameras([(e, None) for e in es], imgs, 5, 0.0)
-        separate = _all_cameras([(e, None) for e in es], imgs, rounds, seconds)
-    log(f"throughput, {n} cameras: one engine {batched:.1f} frames/s, {n} engines {separate:.1f} frames/s")
-    return {"cameras": n, "batched_fps": batched, "separate_fps": separate, "ratio": batched / separate}
+        _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight)
+        batched = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds, in_flight)
+    with engines([pipelined(_config(base, 1))[0] for _ in range(n)]) as es:
+        _all_cameras([(e, None) for e in es], imgs, 5, 0.0, in_flight)
+        separate = _all_cameras([(e, None) for e in es], imgs, rounds, seconds, in_flight)
+    log(
+        f"throughput, {n} cameras, {in_flight} frames a camera in flight: one engine {batched:.1f} frames/s, "
+        f"{n} engines {separate:.1f} frames/s"
+    )
+    return {
+        "cameras": n,
+        "in_flight": in_flight,
+        "batched_fps": batched,
+        "separate_fps": separate,
+        "ratio": batched / separate,
+    }
 
 
 def main(args: argparse.Namespace) -> int:

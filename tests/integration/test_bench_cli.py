@@ -169,6 +169,7 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert [t["cameras"] for t in res["throughput"]] == [1, 2]
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     assert all(t["in_flight"] == 3 for t in res["throughput"])  # a file run's (Note [Frames in flight])
+    assert all(set(t["frames_missing_a_head"]) == {"batched", "separate"} for t in res["throughput"])
     bad = cli("bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--heads", "nope", "--out", str(tmp_path))
     assert bad.returncode != 0 and "--heads 'nope': the config's heads are depth, seg, det" in bad.stderr
 

@@ -9,12 +9,14 @@ import pytest
 
 from vpengine.bench.cameras import _all_cameras
 
+HEADS = {"depth", "seg"}
+
 
 class Engine:
     """submit/wait of an engine whose every frame takes ``step`` seconds; ``fail_at`` frames in, wait raises."""
 
-    def __init__(self, step: float, fail_at: int | None = None) -> None:
-        self.step, self.fail_at, self.n = step, fail_at, 0
+    def __init__(self, step: float, fail_at: int | None = None, torn_at: int | None = None) -> None:
+        self.step, self.fail_at, self.torn_at, self.n = step, fail_at, torn_at, 0
         self.open: list[int] = []  # submitted, not yet waited for
         self.most_open = 0
 
@@ -29,26 +31,37 @@ class Engine:
         if fid == self.fail_at:
             raise TimeoutError(f"frame {fid}: no result")
         time.sleep(self.step)
+        return {"depth": 0} if fid == self.torn_at else {"depth": 0, "seg": 1}  # torn: seg's was overwritten
 
 
 def test_a_point_runs_its_rounds_and_at_least_its_seconds():
     engines = [Engine(0.01), Engine(0.01)]
     t = time.monotonic()
-    fps = _all_cameras([(e, None) for e in engines], [None], rounds=3, seconds=0.3, in_flight=1)
+    fps, _, torn = _all_cameras([(e, None) for e in engines], [None], rounds=3, seconds=0.3, in_flight=1, heads=HEADS)
     took = time.monotonic() - t
     assert took >= 0.3 and all(e.n > 3 for e in engines)
-    assert fps == pytest.approx(sum(e.n for e in engines) / took, rel=0.05)
+    assert fps == pytest.approx(sum(e.n for e in engines) / took, rel=0.05) and torn == 0
     quick = [Engine(0.0), Engine(0.0)]
-    _all_cameras([(e, None) for e in quick], [None], rounds=5, seconds=0.0, in_flight=1)
+    _all_cameras([(e, None) for e in quick], [None], rounds=5, seconds=0.0, in_flight=1, heads=HEADS)
     assert [e.n for e in quick] == [5, 5]
 
 
 def test_a_pump_that_fails_fails_the_point():
     with pytest.raises(RuntimeError, match="1 of 2 cameras' pumps failed: TimeoutError: frame 2: no result"):
-        _all_cameras([(Engine(0.0), None), (Engine(0.0, fail_at=2), None)], [None], rounds=5, seconds=0.0, in_flight=1)
+        _all_cameras(
+            [(Engine(0.0), None), (Engine(0.0, fail_at=2), None)],
+            [None],
+            rounds=5,
+            seconds=0.0,
+            in_flight=1,
+            heads=HEADS,
+        )
 
 
-def test_a_pump_keeps_its_frames_in_flight_and_waits_for_every_one():
-    engines = [Engine(0.0), Engine(0.0)]
-    _all_cameras([(e, None) for e in engines], [None], rounds=10, seconds=0.0, in_flight=3)
+def test_a_pump_keeps_its_frames_in_flight_waits_for_every_one_and_counts_only_whole_frames():
+    engines = [Engine(0.0), Engine(0.0, torn_at=4)]
+    _, whole, torn = _all_cameras(
+        [(e, None) for e in engines], [None], rounds=10, seconds=0.0, in_flight=3, heads=HEADS
+    )
     assert [(e.n, e.most_open, e.open) for e in engines] == [(10, 3, []), (10, 3, [])]
+    assert (whole, torn) == (19, 1)  # the frame without seg's output is not counted through every head

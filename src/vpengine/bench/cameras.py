@@ -12,7 +12,7 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
   frames a camera and for ``--point-seconds`` at least: one engine with N cameras (batched) against N engines of one
   camera each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching
-  buys. With one frame in flight a camera's next frame waited for its last one's every result, so one engine ran
+  buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``). With one frame in flight a camera's next frame waited for its last one's every result, so one engine ran
   its stages one batch after the other while N engines overlapped theirs: that measured latency, not throughput.
 
 ::
@@ -139,47 +139,63 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     return out
 
 
-def _pump(
-    eng: Any, camera: str | None, imgs: list[np.ndarray], rounds: int, until: float, in_flight: int, done: list[Any]
-) -> None:
-    """One camera's frames, ``in_flight`` at most submitted and not yet answered by every head, ``rounds`` frames
-    and until ``until``; the count (or the error that ended it) is appended to ``done``."""
-    k = 0
-    pending: collections.deque[int] = collections.deque()
-    try:
-        while k < rounds or time.monotonic() < until:
-            if len(pending) == in_flight:
-                eng.wait(pending.popleft(), timeout=120)
-            pending.append(eng.submit(imgs[k % len(imgs)], camera=camera))
-            k += 1
-        while pending:
-            eng.wait(pending.popleft(), timeout=120)
-    except Exception as e:
-        done.append(e)
-    else:
-        done.append(k)
+class _Pump:
+    """One camera's frames, ``in_flight`` at most submitted and not yet answered, ``rounds`` frames and until
+    ``until``: how many came back from every one of ``heads`` (``whole``), how many without some head's output
+    (``torn``: overwritten before it was read, which a pump that ran far ahead of another camera's can cause), or
+    the error that ended it."""
+
+    def __init__(self, eng: Any, camera: str | None, heads: set[str], in_flight: int) -> None:
+        self.eng, self.camera, self.heads, self.in_flight = eng, camera, heads, in_flight
+        self.whole = self.torn = 0
+        self.error: Exception | None = None
+
+    def _answer(self, fid: int) -> None:
+        if set(self.eng.wait(fid, timeout=120)) >= self.heads:
+            self.whole += 1
+        else:
+            self.torn += 1
+
+    def run(self, imgs: list[np.ndarray], rounds: int, until: float) -> None:
+        k = 0
+        pending: collections.deque[int] = collections.deque()
+        try:
+            while k < rounds or time.monotonic() < until:
+                if len(pending) == self.in_flight:
+                    self._answer(pending.popleft())
+                pending.append(self.eng.submit(imgs[k % len(imgs)], camera=self.camera))
+                k += 1
+            while pending:
+                self._answer(pending.popleft())
+        except Exception as e:
+            self.error = e
 
 
 def _all_cameras(
-    pairs: list[tuple[Any, str | None]], imgs: list[np.ndarray], rounds: int, seconds: float, in_flight: int
-) -> float:
+    pairs: list[tuple[Any, str | None]],
+    imgs: list[np.ndarray],
+    rounds: int,
+    seconds: float,
+    in_flight: int,
+    heads: set[str],
+) -> tuple[float, int, int]:
     """Every camera pumped by its own thread, as each camera's driver would, ``rounds`` frames each and ``seconds``
-    at least; frames per second over them all."""
-    done: list[Any] = []
+    at least: frames per second through every head over them all, how many frames that is, and how many missed some
+    head."""
+    pumps = [_Pump(e, c, heads, in_flight) for e, c in pairs]
     t = time.monotonic()
-    threads = [
-        threading.Thread(target=_pump, args=(e, c, imgs, rounds, t + seconds, in_flight, done)) for e, c in pairs
-    ]
+    threads = [threading.Thread(target=p.run, args=(imgs, rounds, t + seconds)) for p in pumps]
     for th in threads:
         th.start()
     for th in threads:
         th.join()
-    errors = [x for x in done if isinstance(x, Exception)]
+    errors = [p.error for p in pumps if p.error is not None]
     if errors:
         raise RuntimeError(
             f"{len(errors)} of {len(pairs)} cameras' pumps failed: {type(errors[0]).__name__}: {errors[0]}"
         ) from errors[0]
-    return sum(done) / (time.monotonic() - t)
+    whole = sum(p.whole for p in pumps)
+    return whole / (time.monotonic() - t), whole, sum(p.torn for p in pumps)
 
 
 def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: float = 0.0) -> dict[str, Any]:
@@ -190,16 +206,22 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
     from vpengine.pipeline.pacing import pipelined
 
     one, in_flight = pipelined(_config(base, n))
+    heads = {h.name for h in base.heads}
     with engines([one]) as (eng,):
         cams = eng.cameras if n > 1 else [None]
-        _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight)
-        batched = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds, in_flight)
+        _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight, heads)
+        batched, _, batched_torn = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds, in_flight, heads)
     with engines([pipelined(_config(base, 1))[0] for _ in range(n)]) as es:
-        _all_cameras([(e, None) for e in es], imgs, 5, 0.0, in_flight)
-        separate = _all_cameras([(e, None) for e in es], imgs, rounds, seconds, in_flight)
+        _all_cameras([(e, None) for e in es], imgs, 5, 0.0, in_flight, heads)
+        separate, _, separate_torn = _all_cameras([(e, None) for e in es], imgs, rounds, seconds, in_flight, heads)
+    torn = (
+        f"; frames some head's output missed: {batched_torn} and {separate_torn}"
+        if batched_torn + separate_torn
+        else ""
+    )
     log(
         f"throughput, {n} cameras, {in_flight} frames a camera in flight: one engine {batched:.1f} frames/s, "
-        f"{n} engines {separate:.1f} frames/s"
+        f"{n} engines {separate:.1f} frames/s{torn}"
     )
     return {
         "cameras": n,
@@ -207,6 +229,7 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         "batched_fps": batched,
         "separate_fps": separate,
         "ratio": batched / separate,
+        "frames_missing_a_head": {"batched": batched_torn, "separate": separate_torn},
     }
 
 

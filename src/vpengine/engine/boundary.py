@@ -110,17 +110,21 @@ class Placement:
             return self.boxes_to_frame(value)
         return self.map_to_frame(value, labels=kind == "labels")
 
-    def _area(self, fw: int) -> bool:
-        """Whether a map shrunk to ``fw`` wide is area-averaged (else bilinear; Note [Frame grid])."""
-        return self.w >= AREA_SHRINK * fw
+    @property
+    def area_averaged(self) -> bool:
+        """Whether maps are area-averaged into the frame, shrunk by AREA_SHRINK or more on both axes (else
+        bilinear; Note [Frame grid])."""
+        fh, fw = self.frame_hw
+        return min(self.w / fw, self.h / fh) >= AREA_SHRINK
 
     def map_to_frame(self, m: Any, labels: bool) -> Any:
         """A map ``[H, W, ...]`` in the canvas -> ``[h, w, ...]`` at the frame's size: the frame's region cut out
-        and resized, bilinear for values (``labels`` False) or nearest for class ids. Numpy arrays or tensors."""
+        and resized, values (``labels`` False) bilinear or area-averaged (Note [Frame grid]), class ids nearest.
+        Numpy arrays or tensors."""
         region = m[self.y0 : self.y0 + self.h, self.x0 : self.x0 + self.w]
         fh, fw = self.frame_hw
         if isinstance(m, torch.Tensor):
-            return _resize_tensor(region, (fh, fw), labels, shrink=self._area(fw))
+            return _resize_tensor(region, (fh, fw), labels, shrink=self.area_averaged)
         import cv2
 
         if labels:
@@ -129,7 +133,7 @@ class Placement:
             rows = np.minimum(((np.arange(fh) + 0.5) * (self.h / fh)).astype(np.intp), self.h - 1)
             cols = np.minimum(((np.arange(fw) + 0.5) * (self.w / fw)).astype(np.intp), self.w - 1)
             return region[rows][:, cols]
-        filt = cv2.INTER_AREA if self._area(fw) else cv2.INTER_LINEAR
+        filt = cv2.INTER_AREA if self.area_averaged else cv2.INTER_LINEAR
         if region.dtype in _CV_LINEAR:
             return cv2.resize(region, (fw, fh), interpolation=filt)
         return cv2.resize(region.astype(np.float32), (fw, fh), interpolation=filt).astype(m.dtype)

@@ -264,7 +264,9 @@ class ProcessRunner(Runner):
 
     def _members(self, name: str) -> tuple[str, ...]:
         """The models that share ``name``'s process, in the engine's order (Note [Process groups])."""
-        return tuple(self.cfg.process_mates(name))
+        # the runner's config keeps heads removed or failed at run time; they ran alone (add and remove refuse a
+        # shared process), but only the models it runs are members
+        return tuple(n for n in self.cfg.process_mates(name) if n in self.specs)
 
     def _launch(self, name: str) -> None:
         names = self._members(name)

@@ -165,6 +165,7 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert res["mode"] == "thread" and res["heads"] == ["depth", "seg"]
     assert set(s["counted"]) == {"foundation", "depth", "seg"}
     assert s["cameras"] == 2 and 0 < s["frames_all_heads"] <= s["frames_submitted"] and s["workers_on_mps"] == 0
+    assert s["memory_report"]["mailbox_host_bytes"] > 0 and "out.depth" in s["memory_report"]["mailboxes"]
     assert s["counted"]["foundation"]["batched"] > 0  # two synchronised cameras: the backbone ran them together
     assert [t["cameras"] for t in res["throughput"]] == [1, 2]
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])

@@ -6,7 +6,7 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
 * ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
   synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
   the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
-  and the device memory in use (NVML, else PyTorch's reserved bytes).
+  and the device memory in use (NVML, else PyTorch's reserved bytes) with the engine's memory report.
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
@@ -125,6 +125,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "frames_not_all_heads": submitted - len(whole),
         "latency_all_heads_ms": pct(whole),
         "device_memory_bytes": memory,
+        "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
         "counted": {
             m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")}

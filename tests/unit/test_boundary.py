@@ -107,7 +107,7 @@ def test_frames_of_every_shape_are_written_into_the_slot_whole_between_bands_of_
         frame = rng.integers(0, 256, (h, w, 3), np.uint8)
         dst = np.full((120, 160, 3), 7, np.uint8)  # what an earlier frame left in the slot
         p = b.write(frame, dst)
-        filt = cv2.INTER_AREA if p.w < w else cv2.INTER_LINEAR
+        filt = cv2.INTER_AREA if min(w / p.w, h / p.h) >= 2 else cv2.INTER_LINEAR  # Note [Frame grid]
         inside = dst[p.y0 : p.y0 + p.h, p.x0 : p.x0 + p.w]
         np.testing.assert_array_equal(inside, cv2.resize(frame, (p.w, p.h), interpolation=filt))
         band = np.ones((120, 160), bool)

@@ -8,16 +8,17 @@ Note [Frame grid]
 ~~~~~~~~~~~~~~~~~
 The models are built, compiled and captured for one input size, the config's ``input.height`` x ``input.width``
 (the *canvas*): the mailboxes, CUDA graphs and full-resolution outputs all have that size, allocated once at start.
-A frame of any other size (up to ``input.max_frame_side``) is scaled to fit the canvas with its aspect ratio kept
-(never stretched) and centred; the band around it is filled with the normalisation mean, which is zero once
-normalised. Its outputs come back in the frame's own pixel grid: dense maps are cut out of the canvas and resized
-to the frame's size (values bilinear, or area-averaged when shrunk to half or less; class ids nearest), boxes are
-shifted and scaled into its pixels and clipped to it. Area averaging keeps a fine pattern from aliasing, but at a
-factor that is not a whole number OpenCV's costs about ten times bilinear's, on the one thread that hands out every
-result, which then sets the pace of a GPU run; shrunk by less than half, bilinear still weighs in every canvas
-pixel. A frame of the canvas size passes through untouched and costs nothing here. So the same frame gives the same
-outputs through every door, and a camera of another size gives outputs at its own size; setting
-input.height/width to the camera's size spares the two host resizes.
+A frame of any other size (up to ``input.max_frame_side``) is scaled to fit the canvas with its aspect ratio kept (never
+stretched; area-averaged when shrunk to half or less, else bilinear, as below) and centred; the band around it is filled
+with the normalisation mean, which is zero once normalised. Its outputs come back in the frame's own pixel grid: dense
+maps are cut out of the canvas and resized to the frame's size (values bilinear, or area-averaged when shrunk to half or
+less; class ids nearest), boxes are shifted and scaled into its pixels and clipped to it. Area averaging keeps a fine
+pattern from aliasing, but at a factor that is not a whole number OpenCV's costs about ten times bilinear's, on the one
+thread that hands out every result, which then sets the pace of a GPU run (and on the submitting thread, a 1080p
+camera's frame into a 720p canvas cost five times a bilinear resize); shrunk by less than half, bilinear still weighs in
+every pixel. A frame of the canvas size passes through untouched and costs nothing here. So the same frame gives the
+same outputs through every door, and a camera of another size gives outputs at its own size; setting input.height/width
+to the camera's size spares the two host resizes.
 
 A head's ``output.grid: native`` keeps its outputs in the canvas grid instead (``Result.grid`` says which, and
 ``Result.placement`` maps them). Which outputs are maps, class maps or boxes, a head says in ``meta["output_grid"]``
@@ -111,11 +112,17 @@ class Placement:
         return self.map_to_frame(value, labels=kind == "labels")
 
     @property
-    def area_averaged(self) -> bool:
-        """Whether maps are area-averaged into the frame, shrunk by AREA_SHRINK or more on both axes (else
-        bilinear; Note [Frame grid])."""
+    def area_to_frame(self) -> bool:
+        """Whether maps are area-averaged into the frame: shrunk by AREA_SHRINK or more on both axes (else bilinear;
+        Note [Frame grid])."""
         fh, fw = self.frame_hw
         return min(self.w / fw, self.h / fh) >= AREA_SHRINK
+
+    @property
+    def area_to_canvas(self) -> bool:
+        """Whether the frame is area-averaged into the canvas, by the same rule."""
+        fh, fw = self.frame_hw
+        return min(fw / self.w, fh / self.h) >= AREA_SHRINK
 
     def map_to_frame(self, m: Any, labels: bool) -> Any:
         """A map ``[H, W, ...]`` in the canvas -> ``[h, w, ...]`` at the frame's size: the frame's region cut out
@@ -124,7 +131,7 @@ class Placement:
         region = m[self.y0 : self.y0 + self.h, self.x0 : self.x0 + self.w]
         fh, fw = self.frame_hw
         if isinstance(m, torch.Tensor):
-            return _resize_tensor(region, (fh, fw), labels, shrink=self.area_averaged)
+            return _resize_tensor(region, (fh, fw), labels, shrink=self.area_to_frame)
         import cv2
 
         if labels:
@@ -133,7 +140,7 @@ class Placement:
             rows = np.minimum(((np.arange(fh) + 0.5) * (self.h / fh)).astype(np.intp), self.h - 1)
             cols = np.minimum(((np.arange(fw) + 0.5) * (self.w / fw)).astype(np.intp), self.w - 1)
             return region[rows][:, cols]
-        filt = cv2.INTER_AREA if self.area_averaged else cv2.INTER_LINEAR
+        filt = cv2.INTER_AREA if self.area_to_frame else cv2.INTER_LINEAR
         if region.dtype in _CV_LINEAR:
             return cv2.resize(region, (fw, fh), interpolation=filt)
         return cv2.resize(region.astype(np.float32), (fw, fh), interpolation=filt).astype(m.dtype)
@@ -350,7 +357,7 @@ class Boundary:
             np.ascontiguousarray(frame),
             (p.w, p.h),
             dst=region,
-            interpolation=cv2.INTER_AREA if p.w < frame.shape[1] else cv2.INTER_LINEAR,
+            interpolation=cv2.INTER_AREA if p.area_to_canvas else cv2.INTER_LINEAR,
         )
         if out is not region:  # pragma: no cover - an OpenCV that would not write into the view
             region[...] = out

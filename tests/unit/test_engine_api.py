@@ -128,6 +128,25 @@ def test_stats_report_counters_and_memory(engine):
     assert all(boxes[f"out.{h}"]["slots"] == 4 + 2 for h in ("depth", "seg", "det"))
 
 
+def test_recent_runs_are_each_lanes_runs_in_order_with_their_latencies():
+    with Engine(tiny("thread", "cameras=[{name: front}, {name: rear}]")) as e:
+        t0 = time.monotonic()
+        for i in range(4):
+            for cam in ("front", "rear"):
+                assert "depth" in e.wait(e.submit(frame(i), camera=cam), timeout=10)
+        starts, e2e = e.recent_runs("depth", since=t0)
+        assert len(starts) == len(e2e) == 8 and np.all(np.diff(starts) >= 0) and starts[0] >= t0
+        assert np.all((e2e > 0) & (e2e < 10))
+        front_starts, _ = e.recent_runs("depth", camera="front", since=t0)
+        assert len(front_starts) == 4 and set(front_starts) <= set(starts)
+        assert len(e.recent_runs("depth", since=time.monotonic() + 1)[0]) == 0
+        assert len(e.recent_runs("foundation", since=t0)[0]) >= 1  # batched frames: a run can take both cameras
+        with pytest.raises(KeyError):
+            e.recent_runs("nope")
+        with pytest.raises(ValueError, match="serves cameras"):
+            e.recent_runs("depth", camera="side")
+
+
 def test_wait_on_unknown_frame_and_timeout():
     slow = ["heads.seg.model=helpers.faulty:FaultyHead", "heads.seg.options={sleep_ms: 2000}"]
     with Engine(tiny("thread", *slow)) as e:

@@ -6,8 +6,9 @@ their frames submitted together as synchronised cameras deliver them (a tick the
 and counted, never made up for in a burst), more than the device serves. Three phases:
 
 * ``equal``: every priority equal (the default), ``--seconds`` long. Per lane (head, camera), as the engine counted
-  it (``stats()``): runs per second, runs skipped by reason (rate, priority, overload), deadline misses and the
-  throttle cap; as the stream took its outputs: their rate and latency from submit to the host (p50, p99), by when
+  it (``stats()``, ``Engine.recent_runs``): runs per second, runs skipped by reason (rate, priority, overload),
+  deadline misses, the throttle cap and the end-to-end latency of every run (p50, p99); as the stream took its
+  outputs: their rate and latency from submit to the host (p50, p99), by when
   each was published, so a stream that took them late (a thousand mapped outputs a second on one thread) does not
   count its own lag. Per head: the outputs the stream missed.
 * ``priority``: ``--head`` on the first camera raised to ``--priority`` (``Engine.set_priority``), measured the same
@@ -155,8 +156,12 @@ def _lanes(stats: dict[str, Any], heads: Any) -> dict[tuple[str, str], dict[str,
 
 
 def _phase(eng: Any, seconds: float) -> tuple[dict[str, Any], tuple[float, float]]:
-    """Each lane over ``seconds`` from now as the engine counted it, and the span: what the stream took of the
-    outputs is added later (:func:`_seen`), once it has caught up with them."""
+    """Each lane over ``seconds`` from now as the engine counted it (runs, skips, deadline misses, and the
+    end-to-end latency of every run that started in the span, as the engine recorded it: whole whether or not the
+    stream keeps up), and the span: what the stream took of the outputs is added later (:func:`_seen`), once it has
+    caught up with them."""
+    from vpengine.bench.paper.harness import pct
+
     s0, t0 = eng.stats(), time.monotonic()
     time.sleep(seconds)
     s1, t1 = eng.stats(), time.monotonic()
@@ -168,6 +173,8 @@ def _phase(eng: Any, seconds: float) -> tuple[dict[str, Any], tuple[float, float
         row |= {"runs_hz": (a["runs"] - b["runs"]) / (t1 - t0)}
         row |= {"skipped_by": {k: v - b["skipped_by"][k] for k, v in a["skipped_by"].items()}}
         row |= {"deadline_misses": a["deadline_misses"] - b["deadline_misses"]}
+        starts, e2e = eng.recent_runs(head, cam, since=t0)
+        row |= {"engine_latency_ms": pct(e2e[starts < t1])}
         lanes.append(row)
     missed = {h: r["missed"] - s0["results"].get(h, {}).get("missed", 0) for h, r in s1["results"].items()}
     return {"lanes": lanes, "results_missed": missed}, (t0, t1)
@@ -186,7 +193,8 @@ def _summary(phase: dict[str, Any], head: str, camera: str) -> str:
     others = [r for r in rows if r is not lane]
     held_back = sum(sum(r["skipped_by"].values()) for r in others)
     return (
-        f"{head}@{camera} {lane['runs_hz']:.1f} Hz, {lane['deadline_misses']} deadline misses; the other lanes "
+        f"{head}@{camera} {lane['runs_hz']:.1f} Hz, {lane['deadline_misses']} deadline misses, p99 "
+        f"{lane['engine_latency_ms']['p99']:.1f} ms; the other lanes "
         f"{np.mean([r['runs_hz'] for r in others]):.1f} Hz on average, {held_back} runs skipped"
     )
 

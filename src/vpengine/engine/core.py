@@ -524,6 +524,18 @@ class Engine:
         return self._model_control(model).target(self._entries(model, camera)[0])
 
     @_fenced
+    def recent_runs(self, model: str, camera: str | None = None, since: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """When ``model``'s recent runs started (``time.monotonic()``, in order) and their end-to-end latencies in
+        seconds (frame submitted to output done), for runs started at ``since`` or later: the last 512 runs of each
+        camera's lane at most, as the engine recorded them, for a window of your own (``stats()`` sums up the last
+        ones). ``camera``: that camera's runs (None: every camera's)."""
+        ctl = self._model_control(model)
+        runs = [ctl.recent_runs(entry, since) for entry in self._entries(model, camera)]
+        starts, e2e = np.concatenate([s for s, _ in runs]), np.concatenate([e for _, e in runs])
+        order = np.argsort(starts, kind="stable")
+        return starts[order], e2e[order]
+
+    @_fenced
     def set_priority(self, head: str | None, priority: int, camera: str | None = None) -> None:
         """Change a head's priority now (higher: more important, checks.MIN_PRIORITY to MAX_PRIORITY): lower lanes
         give way when the device cannot serve every rate (Note [Give way] in runtime/governor.py). ``camera``: that

@@ -211,6 +211,7 @@ def test_steer_bench_measures_lanes_under_each_priority_and_a_change_through_eve
         assert rows[("depth", "cam0")]["runs_hz"] > 0 and rows[("depth", "cam0")]["latency_ms"] is not None
         engine_side = rows[("depth", "cam0")]["engine_latency_ms"]  # every run of the phase, as the engine saw it
         assert engine_side["n"] > 0 and 0 < engine_side["p50"] <= engine_side["p99"]
+        assert rows[("depth", "cam0")]["engine_latency_whole"]  # runs before the phase still kept: none lost
     # nothing is throttled while every priority is equal (Note [Give way]): every lane ran, none was capped
     assert all(r["runs_hz"] > 0 for r in res["equal"]["lanes"]), res["equal"]
     assert all(r["skipped_by"]["priority"] == 0 and r["cap_hz"] is None for r in res["equal"]["lanes"])

@@ -526,9 +526,10 @@ class Engine:
     @_fenced
     def recent_runs(self, model: str, camera: str | None = None, since: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
         """When ``model``'s recent runs started (``time.monotonic()``, in order) and their end-to-end latencies in
-        seconds (frame submitted to output done), for runs started at ``since`` or later: the last 512 runs of each
-        camera's lane at most, as the engine recorded them, for a window of your own (``stats()`` sums up the last
-        ones). ``camera``: that camera's runs (None: every camera's)."""
+        seconds (frame submitted to output done; a run whose device work is still going shows the time so far),
+        for runs started at ``since`` or later: the last 512 runs of each camera's lane at most, as the engine
+        recorded them, for a window of your own (``stats()`` sums up the last ones). ``camera``: that camera's runs
+        (None: every camera's; a batch of several cameras' frames is a run of each)."""
         ctl = self._model_control(model)
         runs = [ctl.recent_runs(entry, since) for entry in self._entries(model, camera)]
         starts, e2e = np.concatenate([s for s, _ in runs]), np.concatenate([e for _, e in runs])

@@ -385,15 +385,14 @@ class ControlBlock:
         }
 
     def _samples(self, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """An entry's recent compute latencies, end-to-end latencies and run start times (copies)."""
+        """An entry's recent compute latencies, end-to-end latencies and run start times (copies). The starts are
+        read first: a run's times are written before its start, so a new start read comes with its own times, and a
+        slot rewritten between the reads pairs an old start (older than any window asked for) with newer times."""
         i = self.index[name]
         n = min(self._get(i, "lat_count"), LAT_N)
         b = self._lat_base(i)
-        return (
-            np.array(self._d[b : b + n]),
-            np.array(self._d[b + LAT_N : b + LAT_N + n]),
-            np.array(self._d[b + 2 * LAT_N : b + 2 * LAT_N + n]),
-        )
+        starts = np.array(self._d[b + 2 * LAT_N : b + 2 * LAT_N + n])
+        return np.array(self._d[b : b + n]), np.array(self._d[b + LAT_N : b + LAT_N + n]), starts
 
     def recent_runs(self, name: str, since: float) -> tuple[np.ndarray, np.ndarray]:
         """Start times (sorted) and end-to-end latencies of ``name``'s recorded runs that started at or after

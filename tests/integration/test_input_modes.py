@@ -23,6 +23,7 @@ def test_a_fifo_head_catches_up_on_every_frame_where_a_latest_head_skips(mode):
         f"heads.seg.model={FAULTY}",
         f"heads.seg.options={stall}",
         "heads.seg.input_mode=fifo",
+        "foundation_model.input_mode=fifo",  # every frame's features, however busy the machine: what seg needs
         f"heads.depth.model={FAULTY}",
         f"heads.depth.options={stall}",
         "heads.seg.output.slots=128",

@@ -174,12 +174,11 @@ def _phase(eng: Any, seconds: float) -> tuple[dict[str, Any], tuple[float, float
         row |= {"runs_hz": (a["runs"] - b["runs"]) / (t1 - t0)}
         row |= {"skipped_by": {k: v - b["skipped_by"][k] for k, v in a["skipped_by"].items()}}
         row |= {"deadline_misses": a["deadline_misses"] - b["deadline_misses"]}
-        kept, _ = eng.recent_runs(head, cam)
-        starts, e2e = eng.recent_runs(head, cam, since=t0)
-        in_span = e2e[starts < t1]
+        starts, e2e = eng.recent_runs(head, cam)
+        in_span = e2e[(starts >= t0) & (starts < t1)]
         # the engine keeps a lane's last 512 runs: whole if it still holds one from before the span
         row |= {"engine_latency_ms": pct(in_span) if len(in_span) else None}
-        row |= {"engine_latency_whole": bool(len(kept) and kept[0] < t0)}
+        row |= {"engine_latency_whole": bool(len(starts) and starts[0] < t0)}
         lanes.append(row)
     missed = {h: r["missed"] - s0["results"].get(h, {}).get("missed", 0) for h, r in s1["results"].items()}
     return {"lanes": lanes, "results_missed": missed}, (t0, t1)

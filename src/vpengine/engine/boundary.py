@@ -113,16 +113,13 @@ class Placement:
 
     @property
     def area_to_frame(self) -> bool:
-        """Whether maps are area-averaged into the frame: shrunk by AREA_SHRINK or more on both axes (else bilinear;
-        Note [Frame grid])."""
-        fh, fw = self.frame_hw
-        return min(self.w / fw, self.h / fh) >= AREA_SHRINK
+        """Whether maps are area-averaged into the frame (else bilinear; Note [Frame grid])."""
+        return _area_averaged((self.h, self.w), self.frame_hw)
 
     @property
     def area_to_canvas(self) -> bool:
         """Whether the frame is area-averaged into the canvas, by the same rule."""
-        fh, fw = self.frame_hw
-        return min(fw / self.w, fh / self.h) >= AREA_SHRINK
+        return _area_averaged(self.frame_hw, (self.h, self.w))
 
     def map_to_frame(self, m: Any, labels: bool) -> Any:
         """A map ``[H, W, ...]`` in the canvas -> ``[h, w, ...]`` at the frame's size: the frame's region cut out
@@ -164,6 +161,13 @@ def buffer_for(cache: dict[tuple[int, int], np.ndarray], size: tuple[int, int], 
 
 #: Maps shrunk by this factor or more are area-averaged, by less bilinear (Note [Frame grid]).
 AREA_SHRINK = 2
+
+
+def _area_averaged(src_hw: tuple[int, int], dst_hw: tuple[int, int]) -> bool:
+    """Whether resizing ``src_hw`` to ``dst_hw`` shrinks by AREA_SHRINK or more on both axes."""
+    return min(s / d for s, d in zip(src_hw, dst_hw)) >= AREA_SHRINK
+
+
 _CV_NEAREST = {np.dtype(t) for t in ("uint8", "int8", "uint16", "int16", "float32", "float64")}
 _CV_LINEAR = {np.dtype(t) for t in ("uint8", "uint16", "int16", "float32", "float64")}
 

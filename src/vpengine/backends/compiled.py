@@ -50,6 +50,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import torch
@@ -64,6 +65,49 @@ log = logging.getLogger("vpengine.backends")
 
 # One CUDA graph capture at a time per process (thread mode warms several models up concurrently).
 _CAPTURE_LOCK = threading.Lock()
+
+
+# Note [Compile workers]
+# ~~~~~~~~~~~~~~~~~~~~~~
+# Inductor compiles Triton kernels in a pool of worker processes, but only once the pool has answered a first
+# job; until then (and without a pool) it compiles them in the calling thread, where Triton's LLVM passes hold the
+# interpreter lock for tens of milliseconds a kernel (56-73 ms seen on an H200, for kernels of a compiled detection
+# head loaded from a warm FX-graph cache). In thread mode every serving worker stops meanwhile (Note [Building
+# beside serving threads] in runtime/threads.py). So a compiled model built beside serving threads first waits for
+# the pool (``compile_workers_ready``): its kernels then compile, or load from Triton's cache, in the workers. Only
+# there: a start with nothing serving needs no pool when everything comes from the cache, and each process-mode
+# worker would start a pool of its own (a process per core, each importing torch).
+COMPILE_WORKERS_WAIT_S = 60.0
+
+
+def compile_workers_ready(
+    timeout_s: float = COMPILE_WORKERS_WAIT_S, cancelled: Callable[[], bool] | None = None
+) -> bool:
+    """Start inductor's compile worker pool if it is not running and wait up to ``timeout_s``, and not once
+    ``cancelled()``, until it takes jobs (Note [Compile workers]). False where it will not be used: one compile
+    thread, a torch without the pool, a pool not ready in time (inductor then compiles in this thread, as before)."""
+    try:
+        from torch._inductor.async_compile import AsyncCompile
+    except ImportError:
+        return False
+    if AsyncCompile.use_process_pool():  # also submits the pool's first job, which starts it
+        return True
+    ready = getattr(AsyncCompile, "_ready_future", None)  # None: no pool (one compile thread, or not allowed)
+    if ready is None:
+        return False
+    deadline = time.monotonic() + timeout_s
+    while not (cancelled is not None and cancelled()):
+        try:
+            ready.result(timeout=min(0.25, max(0.0, deadline - time.monotonic())))
+            return bool(AsyncCompile.use_process_pool())
+        except TimeoutError:
+            if time.monotonic() >= deadline:
+                log.warning("inductor's compile workers not ready after %.0f s; compiling in this thread", timeout_s)
+                return False
+        except Exception as e:  # a pool that failed to start: inductor compiles here, as before
+            log.warning("inductor's compile workers did not start (%s); compiling in this thread", _short(e))
+            return False
+    return False
 
 
 def _short(exc: BaseException, limit: int = 600) -> str:

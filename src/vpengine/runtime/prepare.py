@@ -46,11 +46,13 @@ def prepare_worker(
     own_process: bool,
     handoff: WorkerHandoff | None = None,
     cancelled: Callable[[], bool] | None = None,
+    beside_serving: bool = False,
 ) -> WorkerCore:
     """Build the model on its device, warm it up (allocations happen here, before READY), return its loop.
 
     ``cancelled``: whether the build is still wanted (a thread-mode engine that stopped, a head removed): checked while
     waiting for the build lock, and again when the warm-up's turn under it comes (Note [One build at a time]).
+    ``beside_serving``: other workers of this process serve meanwhile (thread mode: a head added, a restart).
     """
     from vpengine.backends import make_executor
     from vpengine.runtime.control import LOADING, READY
@@ -73,6 +75,10 @@ def prepare_worker(
             control.set(spec.name, "mps_active", int(mps_enabled(device.index or 0)))
         except Exception:  # the bindings are optional in thread mode; MPS status is informational
             control.set(spec.name, "mps_active", 0)
+    if beside_serving and dev.cuda and mcfg.backend == "compile":
+        from vpengine.backends.compiled import compile_workers_ready
+
+        compile_workers_ready(cancelled=cancelled)  # Note [Compile workers]
     with dev.active():
         model = build_model(
             cfg, spec.name, spec.role, spec.upstream, spec.upstream_meta, device, plan_only=False, cancelled=cancelled

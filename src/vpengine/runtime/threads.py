@@ -16,7 +16,7 @@ Note [Building beside serving threads]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
 A model built while others serve (a head added at run time, a restart) runs seconds of Python in its thread:
 dynamo's tracing, inductor's lowering and code generation (sympy), cache and kernel loads. It stalls the serving
-threads in two ways, both seen on an H200 in thread mode while the first compiled detection head was added to the
+threads in three ways, all seen on an H200 in thread mode while the first compiled detection head was added to the
 shipped bench config (process mode: no stall):
 
 * The switch interval. A serving worker gives up Python's interpreter lock many times a frame (every wait on its
@@ -40,7 +40,13 @@ shipped bench config (process mode: no stall):
   (3.14.0 to 3.14.4) ignores the threshold that holds full collections off; its collections walk a part of the old
   generation at a time instead. A free-threaded Python walks the whole heap in every collection.
 
-Both are process-wide, so they are set by the first of the threads that build at once and undone after the last
+* Compiles in this thread. Inductor compiles Triton kernels in its worker processes only once their pool is up;
+  before that, Triton's LLVM passes ran in the builder and held the lock 56-73 ms a kernel, even with a warm compile
+  cache. A compiled model built beside serving threads waits for the pool first (Note [Compile workers] in
+  backends/compiled.py). What still holds the lock for tens of milliseconds at once (dynamo building a model's
+  guards, a generated module's byte-compile) is torch's and stays.
+
+The first two are process-wide, so they are set by the first of the threads that build at once and undone after the last
 (a build that never returns, Note [Hung threads], leaves them set: no full collection runs until it returns).
 They cover the whole of ``Engine.add_head`` (``Runner.beside_serving``): its planning builds the head on the meta
 device in the caller's thread, which on a first add imports much of torch's compiler stack. Building at start needs
@@ -197,6 +203,7 @@ class ThreadRunner(Runner):
                     own_process=False,
                     handoff=self.handoffs.for_worker(name),
                     cancelled=lambda: self._should_stop(name, gen),
+                    beside_serving=serving,
                 )
         except BaseException as e:
             self._events.put((name, "error", describe_exception(name, e), gen))

@@ -448,12 +448,23 @@ def test_a_head_is_built_with_a_short_switch_interval_and_no_full_collection_the
     """Note [Building beside serving threads]: the serving threads get the interpreter lock back often, and the
     garbage collector runs no full collection, while a head builds beside them; after the add the interval and the
     collector's thresholds are as they were and the heap stays frozen until the engine stops. The engine's start
-    (nothing serves) changes nothing."""
+    (nothing serves) changes nothing. Only the added head's worker is prepared as one built beside serving threads
+    (Note [Compile workers]: on CUDA a compiled one waits for inductor's compile workers)."""
     import sys
 
     import vpengine.runtime.plan
     import vpengine.runtime.prepare
+    import vpengine.runtime.threads
     from vpengine.runtime.threads import BUILD_SWITCH_INTERVAL_S, _builders
+
+    prepared_beside: dict[str, bool] = {}
+    prepare_worker = vpengine.runtime.threads.prepare_worker
+
+    def prepare_spy(spec, *args, beside_serving=False, **kw):
+        prepared_beside[spec.name] = beside_serving
+        return prepare_worker(spec, *args, beside_serving=beside_serving, **kw)
+
+    monkeypatch.setattr(vpengine.runtime.threads, "prepare_worker", prepare_spy)
 
     seen: dict[str, list[tuple[float, bool, bool]]] = {}
     build_model = vpengine.runtime.prepare.build_model
@@ -478,3 +489,4 @@ def test_a_head_is_built_with_a_short_switch_interval_and_no_full_collection_the
     assert seen["foundation"] == seen["depth"] == seen["seg"] == [at_start]
     assert seen["foundation on meta"][0] == at_start and seen["foundation on meta"][-1] == beside  # start, add
     assert seen["det2 on meta"] == seen["det2"] == [beside]
+    assert prepared_beside == {"foundation": False, "depth": False, "seg": False, "det2": True}

@@ -13,11 +13,17 @@ from vpengine.backends.compiled import compile_workers_ready
 async_compile = pytest.importorskip("torch._inductor.async_compile")
 
 
+def test_inductor_still_has_what_the_wait_reads():
+    """The wait reads torch's private pool state: a torch that renamed it fails here, not silently on a GPU."""
+    assert callable(async_compile.AsyncCompile.use_process_pool)
+    assert "_ready_future" in vars(async_compile.AsyncCompile)
+
+
 @pytest.fixture
 def pool(monkeypatch):
     """Inductor's pool as a future: ready once the future is done."""
     fut: Future = Future()
-    monkeypatch.setattr(async_compile.AsyncCompile, "_ready_future", fut, raising=False)
+    monkeypatch.setattr(async_compile.AsyncCompile, "_ready_future", fut)
     monkeypatch.setattr(async_compile.AsyncCompile, "use_process_pool", classmethod(lambda cls: fut.done()))
     return fut
 
@@ -38,7 +44,7 @@ def test_a_ready_pool_answers_at_once(pool):
 
 def test_no_pool_is_no_wait(monkeypatch):
     """One compile thread (or no pool allowed): inductor never submits the pool's first job."""
-    monkeypatch.setattr(async_compile.AsyncCompile, "_ready_future", None, raising=False)
+    monkeypatch.setattr(async_compile.AsyncCompile, "_ready_future", None)
     monkeypatch.setattr(async_compile.AsyncCompile, "use_process_pool", classmethod(lambda cls: False))
     t0 = time.monotonic()
     assert not compile_workers_ready(timeout_s=10.0)
@@ -64,3 +70,13 @@ def test_a_pool_that_fails_while_waited_for_is_given_up_on(pool, caplog):
     with caplog.at_level(logging.WARNING, logger="vpengine.backends"):
         assert not compile_workers_ready(timeout_s=10.0)
     assert "worker died" in caplog.text
+
+
+def test_a_pool_that_cannot_start_is_given_up_on(monkeypatch, caplog):
+    def refuse(cls):
+        raise OSError("no more processes")
+
+    monkeypatch.setattr(async_compile.AsyncCompile, "use_process_pool", classmethod(refuse))
+    with caplog.at_level(logging.WARNING, logger="vpengine.backends"):
+        assert not compile_workers_ready(timeout_s=10.0)
+    assert "no more processes" in caplog.text

@@ -51,6 +51,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import TimeoutError as FuturesTimeout  # not the builtin before Python 3.11
 from typing import Any
 
 import torch
@@ -74,9 +75,9 @@ _CAPTURE_LOCK = threading.Lock()
 # interpreter lock for tens of milliseconds a kernel (56-73 ms seen on an H200, for kernels of a compiled detection
 # head loaded from a warm FX-graph cache). In thread mode every serving worker stops meanwhile (Note [Building
 # beside serving threads] in runtime/threads.py). So a compiled model built beside serving threads first waits for
-# the pool (``compile_workers_ready``): its kernels then compile, or load from Triton's cache, in the workers. Only
-# there: a start with nothing serving needs no pool when everything comes from the cache, and each process-mode
-# worker would start a pool of its own (a process per core, each importing torch).
+# the pool (``compile_workers_ready``): its kernels then compile, or load from Triton's cache, in the workers. At an
+# add with a warm compile cache the pool was not yet ready (its first job had not answered 30 s after the engine's
+# start). Only there: a start has nothing serving to stall, and waiting would only make it later.
 COMPILE_WORKERS_WAIT_S = 60.0
 
 
@@ -88,19 +89,23 @@ def compile_workers_ready(
     thread, a torch without the pool, a pool not ready in time (inductor then compiles in this thread, as before)."""
     try:
         from torch._inductor.async_compile import AsyncCompile
-    except ImportError:
+
+        if AsyncCompile.use_process_pool():  # also submits the pool's first job, which starts it
+            return True
+    except Exception as e:  # no such API in this torch, or the pool cannot start: inductor compiles here
+        log.warning("inductor's compile workers unavailable (%s); compiling in this thread", _short(e))
         return False
-    if AsyncCompile.use_process_pool():  # also submits the pool's first job, which starts it
-        return True
     ready = getattr(AsyncCompile, "_ready_future", None)  # None: no pool (one compile thread, or not allowed)
     if ready is None:
         return False
-    deadline = time.monotonic() + timeout_s
+    start = time.monotonic()
+    deadline = start + timeout_s
     while not (cancelled is not None and cancelled()):
         try:
             ready.result(timeout=min(0.25, max(0.0, deadline - time.monotonic())))
+            log.info("waited %.1f s for inductor's compile workers", time.monotonic() - start)
             return bool(AsyncCompile.use_process_pool())
-        except TimeoutError:
+        except FuturesTimeout:
             if time.monotonic() >= deadline:
                 log.warning("inductor's compile workers not ready after %.0f s; compiling in this thread", timeout_s)
                 return False

@@ -12,7 +12,7 @@ import psutil
 import pytest
 
 from helpers.leaks import shm_held_by
-from tests_paths import ROOT
+from tests_paths import DEVICE, ROOT
 
 
 def _children() -> set[int]:
@@ -64,6 +64,18 @@ def grouped_as_marked(request):
             "extras' pytest",
             pytrace=False,
         )
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_intra_op_thread():
+    """In a pytest-xdist worker on the CPU: one PyTorch intra-op thread in this process, as in an engine's workers
+    (cpu_threads: 1) and as the first thread-mode engine leaves it anyway. Workers of two threads each would
+    oversubscribe the CI machine's two cores (an idle OpenMP thread spins before it sleeps). Tests that need their
+    own count set it."""
+    if "PYTEST_XDIST_WORKER" in os.environ and DEVICE == "cpu":
+        import torch
+
+        torch.set_num_threads(1)
 
 
 @pytest.fixture(autouse=True)

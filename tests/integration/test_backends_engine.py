@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from helpers.frames import frame
+from helpers.groups import INDUCTOR
 from tests_paths import tiny
 from vpengine.engine import Engine, EngineStartError
 
@@ -50,6 +51,7 @@ def all_eager():
     return run_lockstep(tiny("thread", EXACT), N_FRAMES)
 
 
+@INDUCTOR
 @pytest.mark.parametrize("mode", ["thread", "process"])
 def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, all_eager, tmp_path, monkeypatch):
     want = all_eager

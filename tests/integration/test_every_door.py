@@ -17,7 +17,8 @@ from vpengine.engine import Engine
 from vpengine.io.sinks import load_depth
 from vpengine.io.sources import sample as sample_path
 
-pytestmark = pytest.mark.timeout(600)
+# one worker runs them all: the module's engine (the API's answer) starts once
+pytestmark = [pytest.mark.timeout(600), pytest.mark.xdist_group("every_door")]
 
 
 @pytest.fixture(scope="module")

@@ -16,6 +16,7 @@ import pytest
 from helpers import faulty
 from helpers.builds import full_collections_can_be_held_off, held_elsewhere
 from helpers.frames import frame
+from helpers.groups import INDUCTOR
 from tests_paths import tiny
 from vpengine.config import ConfigError
 from vpengine.engine import Engine, EngineDeadError, EngineStartError
@@ -381,7 +382,7 @@ def tensors_and_modules() -> tuple[int, int]:
     return sum(issubclass(k, torch.Tensor) for k in kinds), sum(issubclass(k, torch.nn.Module) for k in kinds)
 
 
-@pytest.mark.parametrize("backend", ["eager", "compile"])
+@pytest.mark.parametrize("backend", ["eager", pytest.param("compile", marks=INDUCTOR)])
 def test_a_removed_thread_mode_head_frees_its_model_and_backend_and_cycles_leave_nothing(backend, monkeypatch):
     """Thread mode: once removed, a head's model, executor and device context (its CUDA streams: Note [Reused
     streams] in backends/streams.py) are garbage, with no collection, and cycles leave no tensor or module behind

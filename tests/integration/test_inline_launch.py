@@ -136,11 +136,15 @@ def test_rate_changes_while_frames_stream_in_leave_every_frame_run_or_counted():
 
         t = threading.Thread(target=change_rates)
         t.start()
-        n, t0 = 0, time.monotonic()
+        # 3 s of frames, longer (up to 30 s) until one was launched by submit: a loaded machine can keep the
+        # worker from re-arming for a while, and a run without an inline launch tests nothing of it
+        n, t0, launched, look = 0, time.monotonic(), 0, 0.0
         try:
-            while time.monotonic() - t0 < 3.0:
+            while (elapsed := time.monotonic() - t0) < 3.0 or (not launched and elapsed < 30.0):
                 e.submit(imgs[n % 4])
                 n += 1
+                if elapsed >= look:
+                    launched, look = e.stats()["engine"]["launched_by_submit"], elapsed + 0.25
         finally:
             done.set()
             t.join()

@@ -42,7 +42,11 @@ def test_models_naming_one_process_share_it_and_serve_every_frame(together):
         assert len(names) == len(set(p.values())) + 1
 
 
-def test_a_crash_restarts_every_model_of_the_process_once(restart_backoff):
+def test_a_crash_restarts_every_model_of_the_process_once_and_it_is_neither_joined_nor_left_at_run_time(
+    restart_backoff,
+):
+    # one engine for both (a process-mode start takes seconds): the crash first, then the changes refused and
+    # allowed, on the engine as the restart left it
     restart_backoff(0.2)
     with Engine(tiny("process", "heads.depth.process=heads", "heads.seg.process=heads")) as e:
         every_head(e, 3)
@@ -60,6 +64,16 @@ def test_a_crash_restarts_every_model_of_the_process_once(restart_backoff):
         assert [models[m]["crashes"] for m in ("depth", "seg", "det")] == [1, 1, 0]
         assert [models[m]["restarts"] for m in ("depth", "seg", "det")] == [1, 1, 0]
         every_head(e, 3, start=3)
+
+        with pytest.raises(ValueError, match=r"process 'heads' is the running process of \['depth', 'seg'\]"):
+            e.add_head({"name": "det2", "model": "tiny_det", "process": "heads"})
+        with pytest.raises(ValueError, match=r"'seg' shares process 'heads' with \['depth'\]"):
+            e.remove_head("seg")
+        e.add_head({"name": "det2", "model": "tiny_det", "process": "spare"})  # a new name: a process of its own
+        assert len(set(pids(e).values())) == 4
+        e.remove_head("det2")
+        e.remove_head("det")
+        assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"depth", "seg"}
 
 
 def test_a_model_that_hangs_takes_its_process_down_and_both_come_back(restart_backoff):
@@ -127,19 +141,6 @@ def test_a_restart_that_cannot_launch_the_process_fails_every_model_in_it(restar
         assert [models[m]["state"] for m in ("depth", "seg", "det")] == ["failed", "failed", "running"]
         assert [(models[m]["restarts"], models[m]["crashes"]) for m in ("depth", "seg")] == [(1, 2), (1, 2)]
         assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"det"}
-
-
-def test_a_shared_process_is_neither_joined_nor_left_at_run_time():
-    with Engine(tiny("process", "heads.depth.process=heads", "heads.seg.process=heads")) as e:
-        with pytest.raises(ValueError, match=r"process 'heads' is the running process of \['depth', 'seg'\]"):
-            e.add_head({"name": "det2", "model": "tiny_det", "process": "heads"})
-        with pytest.raises(ValueError, match=r"'seg' shares process 'heads' with \['depth'\]"):
-            e.remove_head("seg")
-        e.add_head({"name": "det2", "model": "tiny_det", "process": "spare"})  # a new name: a process of its own
-        assert len(set(pids(e).values())) == 4
-        e.remove_head("det2")
-        e.remove_head("det")
-        assert set(e.wait(e.submit(frame(0)), timeout=20)) == {"depth", "seg"}
 
 
 def test_thread_mode_ignores_processes():

@@ -332,13 +332,16 @@ def test_rate_change_over_dds_changes_the_achieved_rate_and_diagnostics_show_it(
             i += 1
             time.sleep(max(0.0, t0 + i / 20.0 - time.monotonic()))  # 20 Hz
 
-    def hz(reader, seconds: float) -> float:
-        reader.take_raw(256)
-        n, end = 0, time.monotonic() + seconds
-        while time.monotonic() < end:  # take often: the reader keeps only the last 10 samples
+    def hz(*readers, seconds: float) -> list[float]:
+        """Each reader's samples per second over the same ``seconds``."""
+        for r in readers:
+            r.take_raw(256)
+        n, end = [0] * len(readers), time.monotonic() + seconds
+        while time.monotonic() < end:  # take often: each reader keeps only the last 10 samples
             time.sleep(0.05)
-            n += len(reader.take_raw(256))
-        return n / seconds
+            for i, r in enumerate(readers):
+                n[i] += len(r.take_raw(256))
+        return [k / seconds for k in n]
 
     def status(name: str) -> Any:
         deadline = time.monotonic() + 5
@@ -367,18 +370,18 @@ def test_rate_change_over_dds_changes_the_achieved_rate_and_diagnostics_show_it(
     th.start()
     try:
         time.sleep(1.0)
-        before_depth, before_seg = hz(depth, 2.0), hz(seg, 2.0)
+        before_depth, before_seg = hz(depth, seg, seconds=2.0)
         assert before_depth > 12 and before_seg > 12, (before_depth, before_seg)
 
         command("depth", "4")
-        after_depth, after_seg = hz(depth, 3.0), hz(seg, 2.0)
+        after_depth, after_seg = hz(depth, seg, seconds=3.0)  # seg: the same window, not a later one
         assert 2.7 <= after_depth <= 5.4, after_depth
         assert after_seg > 12, after_seg  # only depth changed
         st, v = status("vpengine: depth")
         assert st.level == 0 and v["target_hz"] == "4.00" and 2.5 <= float(v["achieved_hz"]) <= 5.5, v
 
         command("depth", "0")
-        assert hz(depth, 1.5) <= 1.0
+        assert hz(depth, seconds=1.5)[0] <= 1.0
         st, v = status("vpengine: depth")
         assert st.level == 1 and st.message == "paused (rate 0)" and v["target_hz"] == "0.00"
 
@@ -387,7 +390,7 @@ def test_rate_change_over_dds_changes_the_achieved_rate_and_diagnostics_show_it(
         assert int(v["rate_commands_rejected"]) >= 1
 
         command("depth", "max")
-        assert hz(depth, 2.0) > 12
+        assert hz(depth, seconds=2.0)[0] > 12
         st, v = status("vpengine: depth")
         assert st.level == 0 and v["target_hz"] == "unlimited"
     finally:

@@ -57,24 +57,6 @@ def serves_every_head(e: Engine, i: int) -> None:
     assert set(got) == set(HEADS) and all(r.frame_id == fid for r in got.values())
 
 
-def test_the_workers_of_an_engine_are_forks_of_one_zygote_that_imported_torch():
-    with Engine(tiny("process")) as e:
-        (zygote,) = zygotes()
-        pids = worker_pids(e)
-        assert len(pids) == 4
-        for pid in pids.values():
-            worker = psutil.Process(pid)
-            assert worker.ppid() == zygote.pid
-            # forked, never exec'd: a worker started as its own interpreter would show its own command line
-            assert worker.cmdline() == zygote.cmdline()
-            assert worker.pid != worker.ppid() and os.getsid(pid) == pid  # a session of its own, as before
-        maps = Path(f"/proc/{zygote.pid}/maps").read_text()
-        assert "libtorch" in maps  # preloaded: the forks found it imported
-        serves_every_head(e, 0)
-    assert not alive([zygote.pid, *pids.values()])
-    assert not [t.name for t in threading.enumerate() if t.name == "vpengine-zygote"]
-
-
 @pytest.mark.parametrize(
     "fault,expected",
     [("sigsegv", "killed by signal 11"), ("raise", "exit code 1: RuntimeError: CUDA error: injected failure at run 2")],
@@ -112,12 +94,26 @@ def test_a_crashed_worker_restarts_from_the_zygote_and_its_exit_reaches_stats_an
         serves_every_head(e, 10)
 
 
-def test_sigkill_of_the_zygote_kills_its_workers_and_they_come_back_from_a_new_one(restart_backoff, caplog):
+def test_the_workers_are_forks_of_one_zygote_and_when_it_is_sigkilled_they_die_and_come_back_from_a_new_one(
+    restart_backoff, caplog
+):
+    # one engine for both (a process-mode start takes seconds): the workers as the start made them, then the kill
     restart_backoff(0.1)
     caplog.set_level(logging.WARNING, logger="vpengine")
     with Engine(tiny("process")) as e:
         (old,) = zygotes()
         before = worker_pids(e)
+        assert len(before) == 4
+        for pid in before.values():
+            worker = psutil.Process(pid)
+            assert worker.ppid() == old.pid
+            # forked, never exec'd: a worker started as its own interpreter would show its own command line
+            assert worker.cmdline() == old.cmdline()
+            assert worker.pid != worker.ppid() and os.getsid(pid) == pid  # a session of its own, as before
+        maps = Path(f"/proc/{old.pid}/maps").read_text()
+        assert "libtorch" in maps  # preloaded: the forks found it imported
+        serves_every_head(e, 0)
+
         old.kill()
         wait_for(lambda: not alive(before.values()), timeout=10, what="the old workers gone")
         wait_for(lambda: all_running(e, 1), timeout=90, what="every worker restarted", show=lambda: e.stats())
@@ -130,6 +126,7 @@ def test_sigkill_of_the_zygote_kills_its_workers_and_they_come_back_from_a_new_o
         assert "killed by signal 9" in caplog.text
         serves_every_head(e, 0)
     assert not alive([new.pid, *after.values()])
+    assert not [t.name for t in threading.enumerate() if t.name == "vpengine-zygote"]
 
 
 ENGINE = """

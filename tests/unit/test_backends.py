@@ -17,6 +17,7 @@ import pytest
 import torch
 
 from helpers.frames import frame
+from helpers.groups import INDUCTOR
 from helpers.models import SmallHead
 from tests_paths import TINY, tiny
 from vpengine.backends import BackendError, make_executor
@@ -177,6 +178,7 @@ class _GraphBreak(SmallHead):
         return {"y": torch.relu(x) + 1}
 
 
+@INDUCTOR
 def test_compile_fullgraph_refuses_graph_breaks_and_false_runs_them():
     with pytest.raises(BackendError, match=r"(?s)user: torch.compile .* failed at warm-up.*fullgraph: false"):
         make_executor(_GraphBreak(), "compile", CPU, "user")
@@ -239,7 +241,7 @@ def test_backend_options_is_a_strict_config_field():
 
 
 # ------------------------------------------------------------------------------------------ input checks
-@pytest.mark.parametrize("backend", ["onnx", "compile"])
+@pytest.mark.parametrize("backend", ["onnx", pytest.param("compile", marks=INDUCTOR)])
 def test_static_buffer_backends_check_input_shapes_and_accept_strided_views(backend, tmp_path):
     cfg = tiny("thread")
     ex = make_executor(build(cfg, "depth"), backend, CPU, "depth", cache_dir=tmp_path)
@@ -281,8 +283,8 @@ def test_onnx_outputs_are_static_buffers_valid_until_the_next_call(tmp_path):
         ("eager", "foundation", "fp16"),
         ("eager", "foundation", "bf16"),
         ("onnx", "foundation", "fp16"),
-        ("compile", "depth", "fp16"),
-        ("compile", "depth", "bf16"),
+        pytest.param("compile", "depth", "fp16", marks=INDUCTOR),
+        pytest.param("compile", "depth", "bf16", marks=INDUCTOR),
     ],
 )
 def test_backends_compute_at_the_configured_precision(backend, name, precision, tmp_path):

@@ -16,6 +16,7 @@ import pytest
 import torch
 
 from helpers.frames import frame
+from helpers.groups import INDUCTOR
 from tests_paths import tiny
 from vpengine.backends import BackendError, make_executor
 from vpengine.config import PreprocessConfig, load_config
@@ -187,7 +188,7 @@ def tiny_inputs(cfg, name: str, model: Model, n: int = B) -> list[dict[str, torc
     return frames_of(cfg, n) if name == "foundation" else features_of(cfg, model, n)
 
 
-@pytest.mark.parametrize("backend", ["eager", "compile", "onnx"])
+@pytest.mark.parametrize("backend", ["eager", pytest.param("compile", marks=INDUCTOR), "onnx"])
 @pytest.mark.parametrize("name", [pytest.param("foundation", marks=pytest.mark.slow), "depth", "seg", "det"])
 def test_backends_run_a_batch_as_its_frames_alone(backend, name, tmp_path):
     # Inductor compiles the foundation model (preprocessing and ViT in C++) once per batch size, the longest compile
@@ -223,7 +224,7 @@ def test_backends_run_a_batch_as_its_frames_alone(backend, name, tmp_path):
                                    1e-4, f"{name} on {backend} vs eager")  # fmt: skip
 
 
-@pytest.mark.parametrize("backend", ["compile", "onnx"])
+@pytest.mark.parametrize("backend", [pytest.param("compile", marks=INDUCTOR), "onnx"])
 def test_static_buffer_backends_refuse_batches_they_were_not_set_up_for(backend, tmp_path):
     cfg = tiny("thread")
     model = build(cfg, "depth")

@@ -13,6 +13,8 @@ from tests_paths import tiny
 from vpengine.engine import Engine
 
 CAMERAS = ["cameras=[{name: front}, {name: rear, height: 90, width: 200}]", "heads.seg.cameras=[rear]"]
+# one worker runs them all: the module's engines start once a mode
+pytestmark = pytest.mark.xdist_group("cameras")
 
 
 @pytest.fixture(scope="module", params=["thread", "process"])

@@ -87,6 +87,16 @@ class ThreadNotingViT(TinyViT):
         return super().forward(inputs)
 
 
+class StreamNotingDepth(TinyDepthHead):
+    """tiny_depth that notes the priority of the CUDA stream each of its runs is queued on (eager, CUDA)."""
+
+    priorities: ClassVar[list[int]] = []
+
+    def forward(self, inputs):  # type: ignore[no-untyped-def]
+        StreamNotingDepth.priorities.append(torch.cuda.current_stream().priority)
+        return super().forward(inputs)
+
+
 class EdgeBoxesDet(TinyDetHead):
     """tiny_det that finds, on every frame, one box of zero width on the left edge and one real box: a head's own
     empty box (Note [Empty boxes] in engine/boundary.py), not one made by mapping to a smaller frame."""

@@ -297,6 +297,33 @@ def test_stream_and_mps_priority_follow_the_config_and_stay_default_when_equal()
     assert [mps_below_normal(cfg, m) for m in cfg.model_names()] == [False, False, True, False]  # det: its own say
 
 
+def test_the_governor_writes_each_models_stream_level_and_a_priority_change_moves_it():
+    """Note [Stream priority at run time] in runtime/device.py: the level a worker's stream should have, from the
+    current priorities, in every lane of its model."""
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", "heads.det.priority=3")
+    lanes = make_lanes(cfg)
+    control = ControlBlock.create(lanes.control_names())
+    try:
+        gov = Governor(control, cfg, lanes)
+
+        def levels() -> dict[str, set[int]]:
+            return {
+                m: {int(control.get(lane.entry, "stream_level")) for lane in of} for m, of in lanes.by_model.items()
+            }
+
+        assert levels() == {"foundation": {1}, "depth": {0}, "seg": {0}, "det": {1}}  # as the config says
+        assert {m: stream_level(cfg, m) for m in cfg.model_names()} == {m: min(v) for m, v in levels().items()}
+        gov.set_priority("seg", 9, camera="rear")  # one lane raised: its model's stream goes up for every camera
+        assert levels() == {"foundation": {2}, "depth": {0}, "seg": {2}, "det": {1}}
+        gov.set_priority("det", 0)
+        gov.set_priority("seg", 0, camera="rear")
+        assert levels() == {"foundation": {0}, "depth": {0}, "seg": {0}, "det": {0}}  # equal: all at the default
+        gov.set_priority(None, 7, camera="rear")  # a camera's priority ranks lanes, not streams
+        assert levels() == {"foundation": {0}, "depth": {0}, "seg": {0}, "det": {0}}
+    finally:
+        control.close()
+
+
 def test_the_governor_thread_sleeps_while_priorities_are_equal_and_set_priority_wakes_it():
     cfg = tiny("thread")
     lanes = make_lanes(cfg)

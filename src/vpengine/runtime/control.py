@@ -66,6 +66,9 @@ _FIELDS = [
     # reason (they sum to ``skipped``) and the outputs later than the lane's deadline (1 / target rate)
     ("priority", "q"),
     ("camera_priority", "q"),
+    # runtime/priority.py: the CUDA stream priority the model's worker runs at, steps above the default
+    # (governor-written, the same in every lane of a model)
+    ("stream_level", "q"),
     ("cap_hz", "d"),
     ("skipped_rate", "q"),
     ("skipped_priority", "q"),

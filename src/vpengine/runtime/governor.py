@@ -55,6 +55,7 @@ from vpengine import checks
 from vpengine.config import EngineConfig
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.lanes import Lane, Lanes
+from vpengine.runtime.priority import stream_levels
 
 log = logging.getLogger("vpengine.governor")
 
@@ -390,7 +391,15 @@ class Governor:
         return [lane.entry for lane in self._heads if lane.camera == camera] + [self._foundation[camera]]
 
     def _refresh_foundation(self) -> None:
-        """The foundation model's lane of a camera shows the priority of its most important head lane there."""
+        """The foundation model's lane of a camera shows the priority of its most important head lane there; every
+        lane shows its model's CUDA stream level (runtime/priority.py)."""
         for cam, entry in self._foundation.items():
             mine = [self.control.get(lane.entry, "priority") for lane in self._heads if lane.camera == cam]
             self.control.set(entry, "priority", max(mine, default=0))
+        by_model = self.lanes.by_model
+        levels = stream_levels(
+            {m: max(int(self.control.get(lane.entry, "priority")) for lane in of) for m, of in by_model.items() if of}
+        )
+        for m, level in levels.items():
+            for lane in by_model[m]:
+                self.control.set(lane.entry, "stream_level", level)

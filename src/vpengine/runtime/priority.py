@@ -7,13 +7,18 @@ changes them, so the governor and every worker, in any process, read the current
 every head: its lane of a camera ranks with the most important head lane of that camera, and is throttled only as
 far as that lane allows (``Governor``).
 
-The device learns of them too, at a worker's (re)start: a model's CUDA stream gets a higher stream priority the more
-important the model (thread mode, where the models share one context), and in process mode a head less important
-than the engine's most important one is an MPS client of below-normal priority, unless its ``mps_priority`` says
-otherwise. Those follow the config, not later ``set_priority`` calls (neither can change under a running context).
+The device learns of them too. A model's CUDA stream runs at a higher stream priority the more important the model
+(``stream_levels``): that counts where models share a context (thread mode, process groups, MPS clients). The
+governor writes each model's level into the control block whenever priorities change, and a worker moves to a
+stream of that priority between runs (Note [Stream priority at run time] in device.py), so ``set_priority`` reaches
+the GPU within a fraction of a second. In process mode a head less important than the engine's most important one is
+an MPS client of below-normal priority, unless its ``mps_priority`` says otherwise; that follows the config, not later
+``set_priority`` calls (a client's priority cannot change under a running context).
 """
 
 from __future__ import annotations
+
+from collections.abc import Mapping
 
 from vpengine.config import EngineConfig
 
@@ -26,10 +31,17 @@ def _model_priority(cfg: EngineConfig, model: str) -> int:
 
 
 def stream_level(cfg: EngineConfig, model: str) -> int:
-    """How many steps above the default CUDA stream priority ``model``'s stream runs: the number of distinct head
-    priorities below its own, so equal priorities (the default) leave every stream at the default."""
-    mine = _model_priority(cfg, model)
-    return len({h.priority for h in cfg.heads if h.priority < mine})
+    """How many steps above the default CUDA stream priority ``model``'s stream runs, by the config's priorities
+    (``stream_levels``)."""
+    return stream_levels({m: _model_priority(cfg, m) for m in cfg.model_names()})[model]
+
+
+def stream_levels(priorities: Mapping[str, int]) -> dict[str, int]:
+    """Each model's stream level from its priority (``priorities``: model -> priority, the foundation model's its
+    most important head's): the number of distinct priorities below its own, so equal priorities (the default)
+    leave every stream at the default and the most important models run at the highest level."""
+    values = set(priorities.values())
+    return {m: sum(v < p for v in values) for m, p in priorities.items()}
 
 
 def mps_below_normal(cfg: EngineConfig, model: str) -> bool:

@@ -79,7 +79,7 @@ import torch
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.base import Role, check_outputs
 from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
-from vpengine.runtime.device import DeviceContext
+from vpengine.runtime.device import RESTREAM_S, DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff
 from vpengine.runtime.lanes import Lane
 from vpengine.runtime.rate import RateGate
@@ -172,6 +172,7 @@ class WorkerCore:
         self.writer = out_ring.writer()
         self.control = control
         self.dev = device
+        self._restream_at = 0.0  # Note [Stream priority at run time] in device.py
         self.poll_s = poll_s
         self._checked: set[int] = set()  # batch sizes whose outputs were checked against the model's spec
         self._reasons: set[tuple[str, str, int]] = set()  # errors logged (Note [Frame errors])
@@ -208,17 +209,33 @@ class WorkerCore:
         self._thread = threading.get_ident()
         ctl.set_state(name, RUNNING)
         try:
-            # Entered once for the whole loop, not per run (Note [Launch path] in handoff.py)
-            with self.dev.active(), torch.inference_mode():
+            # Entered once for the whole loop, not per run (Note [Launch path] in handoff.py); the stream again
+            # only when the worker moves to another (Note [Stream priority at run time] in device.py)
+            with torch.inference_mode():
                 while not should_stop():
-                    ctl.heartbeat(name)
-                    self._take()
+                    with self.dev.active():
+                        while not should_stop():
+                            ctl.heartbeat(name)
+                            self._take()
+                            if self._restream():
+                                break
         finally:
             try:
                 self._drop_spare()
             finally:  # whatever the spare did, the held frames are answered
                 for tag in list(self._held):
                     self._drop_held(tag)
+
+    def _restream(self) -> bool:
+        """At most every ``RESTREAM_S``, move to a stream of the level the governor wrote for this model (Note
+        [Stream priority at run time] in device.py); whether it moved (the loop then makes the new one current)."""
+        if not self.dev.cuda:
+            return False
+        now = time.monotonic()
+        if now < self._restream_at:
+            return False
+        self._restream_at = now + RESTREAM_S
+        return self.dev.use_level(int(self.control.get(self.lanes[0].entry, "stream_level")))
 
     def _take(self) -> None:
         """One turn of the loop: the frames of the lanes whose gates are open, run as one batch (one camera: a

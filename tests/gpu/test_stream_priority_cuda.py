@@ -1,0 +1,64 @@
+"""Note [Stream priority at run time] (runtime/device.py) on CUDA: a priority changed at run time moves a worker's
+runs to a stream of that priority, ordered after what it queued before. Run on the GPU machine: ``pytest -m gpu
+tests/gpu``."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import torch
+
+from helpers.frames import frame
+from helpers.models import StreamNotingDepth
+from tests_paths import tiny
+from vpengine.engine import Engine
+from vpengine.runtime.device import DeviceContext
+
+pytestmark = [pytest.mark.gpu, pytest.mark.timeout(300), pytest.mark.usefixtures("require_cuda")]
+
+
+def test_a_device_context_moved_to_another_level_runs_after_what_it_queued_and_keeps_each_stream():
+    dev = DeviceContext("cuda", priority=0)
+    x = torch.zeros(1 << 20, device="cuda")
+    with dev.active():
+        torch.cuda._sleep(300_000_000)  # ~0.15 s of the old stream busy before the write
+        x.fill_(1.0)
+    old = dev.stream
+    assert old is not None
+    assert dev.use_level(1)
+    assert dev.stream is not old and dev.stream.priority < old.priority  # CUDA: lower is more urgent
+    with dev.active():
+        y = x.clone()  # queued on the new stream: must see the old stream's write
+    dev.complete()
+    assert bool((y == 1).all())
+    assert not dev.use_level(1)  # already there
+    assert dev.use_level(0) and dev.stream is old  # kept for a return
+
+
+def test_set_priority_moves_a_thread_mode_heads_runs_to_a_stream_of_higher_priority_and_back():
+    cfg = tiny("thread", "device=cuda", "heads.depth.model=helpers.models:StreamNotingDepth")
+    with Engine(cfg) as e:
+        fid = 0
+
+        def runs_until(pred) -> bool:  # type: ignore[no-untyped-def]
+            nonlocal fid
+            deadline = time.monotonic() + 10
+            while time.monotonic() < deadline:
+                res = e.wait(e.submit(frame(fid)), timeout=30)
+                fid += 1
+                assert set(res) == {"depth", "seg", "det"}
+                if pred(StreamNotingDepth.priorities[-1]):
+                    return True
+            return False
+
+        runs_until(lambda p: True)
+        base = StreamNotingDepth.priorities[-1]
+        e.set_priority("depth", 5)
+        assert runs_until(lambda p: p < base), StreamNotingDepth.priorities[-5:]
+        higher = StreamNotingDepth.priorities[-1]
+        e.set_priority("depth", 0)
+        assert runs_until(lambda p: p == base), StreamNotingDepth.priorities[-5:]
+        e.set_priority("depth", 5)
+        assert runs_until(lambda p: p == higher)
+        assert all(m["errors"] == 0 for m in e.stats()["models"].values())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import signal
 import socket
@@ -223,3 +224,25 @@ def test_results_keep_coming_when_the_mps_daemon_is_killed(tmp_path, monkeypatch
         for p in _mps_processes():
             if p.pid not in before:
                 p.kill()
+
+
+def test_thread_mode_gives_each_model_the_device_memory_it_holds_alone():
+    """stats()' device_mem_bytes in thread mode (docs/config.md, modes): a model's weights, and for a compiled one its
+    static inputs and CUDA graphs' pool; together less than the process reserved, each a real share."""
+    compiled = ["foundation_model.backend=compile", "heads.depth.backend=compile"]
+    with Engine(tiny("thread", "device=cuda", *compiled)) as e:
+        e.wait(e.submit(frame(0)), timeout=120)
+        held = {n: m["device_mem_bytes"] for n, m in e.stats()["models"].items()}
+        assert held == e.stats()["memory"]["models_device_bytes"]
+        reserved = torch.cuda.memory_reserved()
+        assert 0 < sum(held.values()) < reserved, (held, reserved)
+        from vpengine.backends.compiled import CompiledExecutor
+
+        weights = {}
+        for o in gc.get_objects():
+            if type(o) is CompiledExecutor and o.device.type == "cuda":
+                weights[o.name] = sum(p.numel() * p.element_size() for p in o.model.parameters())
+        assert set(weights) >= {"foundation", "depth"}
+        for name in ("foundation", "depth"):  # a graph pool of its own on top of the weights
+            assert held[name] > weights[name] + 2**20, (name, held[name], weights[name])
+        assert held["seg"] > 0 and held["det"] > 0  # eager: weights only

@@ -56,6 +56,12 @@ def test_latest_of_a_camera_is_its_own_newest_not_the_newest_of_any_cameras(engi
         engine.latest("depth", camera="side")
 
 
+def test_the_memory_report_names_each_model_once_not_its_lanes(engine):
+    mem = engine.stats()["memory"]
+    assert set(mem["models_device_bytes"]) == {"foundation", "depth", "seg", "det"}  # no per-camera entries
+    assert all(v == 0 for v in mem["models_device_bytes"].values())  # on the CPU: no device memory
+
+
 def test_a_camera_must_be_named_and_known():
     with Engine(tiny("thread", *CAMERAS)) as e:
         with pytest.raises(ValueError, match=r"this engine has cameras \['front', 'rear'\]: say which one"):

@@ -41,7 +41,7 @@ whatever autocast chose inside. Recipes that cast themselves to ``ctx.dtype`` lo
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -172,6 +172,16 @@ class Executor(abc.ABC):
         with torch.cuda.stream(stream):
             self.run_bound(in_index, out_index)
 
+    def held_bytes(self) -> int:
+        """Device memory this executor holds alone through PyTorch's allocator, 0 off CUDA: its model's weights and
+        buffers, and what its backend keeps besides (``CompiledExecutor``: its CUDA graphs' pool and static inputs).
+        Not what it borrows while it runs (an eager model's activations come from its process's cache and go back
+        there) nor ONNX Runtime's own allocations."""
+        if self.device.type != "cuda":
+            return 0
+        model = getattr(self, "model", None)
+        return tensor_bytes([*model.parameters(), *model.buffers()]) if isinstance(model, torch.nn.Module) else 0
+
     def describe(self) -> dict[str, Any]:
         """Facts for logs and stats (backend, precision, and what the backend chose)."""
         return {
@@ -213,3 +223,13 @@ class Executor(abc.ABC):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.name!r}, {', '.join(f'{k}={v}' for k, v in self.describe().items())})"
+
+
+def tensor_bytes(tensors: Iterable[torch.Tensor]) -> int:
+    """The bytes of the distinct CUDA storages under ``tensors`` (views of one storage count once)."""
+    seen: dict[int, int] = {}
+    for t in tensors:
+        if t.is_cuda:
+            storage = t.untyped_storage()
+            seen[storage.data_ptr()] = storage.nbytes()
+    return sum(seen.values())

@@ -56,7 +56,7 @@ from typing import Any
 
 import torch
 
-from vpengine.backends.base import Executor, PrecisionRunner, cast_model_
+from vpengine.backends.base import Executor, PrecisionRunner, cast_model_, tensor_bytes
 from vpengine.backends.compile_cache import use_compile_cache
 from vpengine.backends.options import BackendError, CompileOptions
 from vpengine.backends.streams import lend
@@ -237,6 +237,23 @@ class CompiledExecutor(Executor):
         # The graphs read the weights (self.model), the static inputs and workspaces set up for the side stream in
         # place, and write the outputs into their pool: all of them must live as long as the graphs do.
         self._graphs, self._graph_out, self._side = graphs, outs, side
+
+    def held_bytes(self) -> int:
+        """The model's weights, the static inputs and the memory pool of its CUDA graphs (Note [CUDA graphs]): the
+        outputs of every batch size and the room the largest one's intermediates take, reserved for good."""
+        held = super().held_bytes()
+        if self.device.type != "cuda":
+            return held
+        held += tensor_bytes(self._static[self.max_batch].values())
+        if self._graphs:
+            pool = tuple(self._graphs[min(self._graphs)].pool())
+            segments = torch.cuda.memory_snapshot()
+            held += sum(
+                s["total_size"]
+                for s in segments
+                if s["device"] == self.device.index and tuple(s.get("segment_pool_id", ())) == pool
+            )
+        return held
 
     def __call__(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         b = self._batch(inputs, self._keys)

@@ -78,7 +78,7 @@ def measure(
         names = processes({n: m["pid"] for n, m in models.items()})  # a shared process once (Note [Process groups])
         per = process_memory(0)
         out["per_process_mb"] = {name: per[p] / 2**20 for p, name in names.items() if p in per}
-        out["per_model_torch_reserved_mb"] = {n: m["device_mem_bytes"] / 2**20 for n, m in models.items()}
+        out["per_model_device_mb"] = {n: m["device_mem_bytes"] / 2**20 for n, m in models.items()}
         if cpu:
             procs = [psutil.Process(p) for p in names]
             time.sleep(1.0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -45,9 +45,12 @@ def model_stats(
     return models, per_camera
 
 
-def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, device: torch.device) -> dict[str, Any]:
-    """The mailboxes' sizes and where they live, each worker's reserved device memory, and on CUDA what the driver
-    says each process holds (contexts included)."""
+def memory_report(
+    rings: Mapping[str, SlotRing], ctl: ControlBlock | None, device: torch.device, models: Iterable[str]
+) -> dict[str, Any]:
+    """The mailboxes' sizes and where they live, each model's device memory (its process's reserved bytes when it
+    has one to itself, else what it holds alone: ``Executor.held_bytes``), and on CUDA what the driver says each
+    process holds (contexts included)."""
     per: dict[str, dict[str, Any]] = {
         n: {
             "bytes": r.layout.total_bytes,
@@ -59,12 +62,12 @@ def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, devic
     }
     host = sum(v["bytes"] for v in per.values() if v["location"] == "cpu")
     dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
-    workers = {n: ctl.get(n, "device_mem_bytes") for n in ctl.names} if ctl else {}
+    held = {n: int(ctl.get(n, "device_mem_bytes")) for n in models} if ctl else {}
     report: dict[str, Any] = {
         "mailboxes": per,
         "mailbox_host_bytes": host,
         "mailbox_device_bytes": dev,
-        "workers_torch_reserved_bytes": workers,
+        "models_device_bytes": held,
     }
     if device.type == "cuda" and ctl is not None:
         from vpengine.runtime.gpu import process_memory

@@ -91,7 +91,8 @@ def main(fd: int, parent_pid: int) -> None:
             trim_thread_stack(int(device.partition(":")[2] or 0))
         for spec in specs:
             building = spec.name
-            cores.append(prepare_worker(spec, rings[spec.in_ring.name], rings[spec.out_ring.name], control, True))
+            ring_in, ring_out = rings[spec.in_ring.name], rings[spec.out_ring.name]
+            cores.append(prepare_worker(spec, ring_in, ring_out, control, True, alone=len(specs) == 1))
         if len(cores) > 1:  # one pool a process: the largest any of its models asks for
             import torch
 

@@ -47,12 +47,14 @@ def prepare_worker(
     handoff: WorkerHandoff | None = None,
     cancelled: Callable[[], bool] | None = None,
     beside_serving: bool = False,
+    alone: bool = True,
 ) -> WorkerCore:
     """Build the model on its device, warm it up (allocations happen here, before READY), return its loop.
 
     ``cancelled``: whether the build is still wanted (a thread-mode engine that stopped, a head removed): checked while
     waiting for the build lock, and again when the warm-up's turn under it comes (Note [One build at a time]).
     ``beside_serving``: other workers of this process serve meanwhile (thread mode: a head added, a restart).
+    ``alone``: no other model runs in this process (with ``own_process``; Note [Process groups] in process.py).
     """
     from vpengine.backends import make_executor
     from vpengine.runtime.control import LOADING, READY
@@ -103,7 +105,8 @@ def prepare_worker(
                 keys = input_keys(spec, in_ring)
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
-    control.set(spec.name, "device_mem_bytes", dev.memory_bytes())
+    # a process of its own: all it reserved is the model's; beside other models, what it holds alone
+    control.set(spec.name, "device_mem_bytes", dev.memory_bytes() if own_process and alone else executor.held_bytes())
     control.set(spec.name, "started_at", time.monotonic())
     if handoff is not None and not inline_wanted(dev.cuda, bound):
         handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]

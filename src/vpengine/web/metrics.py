@@ -64,7 +64,10 @@ class EngineCollector:
                 "Rate limit: +Inf unlimited, 0 paused.",
                 lambda m: math.inf if m["target_hz"] is None else m["target_hz"],
             ),
-            "device_memory_bytes": ("Device memory the worker reserved.", lambda m: m["device_mem_bytes"]),
+            "device_memory_bytes": (
+                "Device memory of the model (its process's when it has one to itself).",
+                lambda m: m["device_mem_bytes"],
+            ),
         }
         for field, (doc, get) in gauges.items():
             g = GaugeMetricFamily(f"vpengine_{field}", doc, labels=["model"])

@@ -36,8 +36,15 @@ def test_a_device_context_moved_to_another_level_runs_after_what_it_queued_and_k
     assert dev.use_level(0) and dev.stream is old  # kept for a return
 
 
-def test_set_priority_moves_a_thread_mode_heads_runs_to_a_stream_of_higher_priority_and_back():
-    cfg = tiny("thread", "device=cuda", "heads.depth.model=helpers.models:StreamNotingDepth")
+@pytest.mark.parametrize("foundation", ["eager", "compile"])  # compile: slot-bound, launched by submit
+def test_set_priority_moves_a_thread_mode_heads_runs_to_a_stream_of_higher_priority_and_back(foundation):
+    cfg = tiny(
+        "thread",
+        "device=cuda",
+        "heads.depth.model=helpers.models:StreamNotingDepth",
+        f"foundation_model.backend={foundation}",
+    )
+    StreamNotingDepth.priorities.clear()
     with Engine(cfg) as e:
         fid = 0
 
@@ -47,7 +54,7 @@ def test_set_priority_moves_a_thread_mode_heads_runs_to_a_stream_of_higher_prior
             while time.monotonic() < deadline:
                 res = e.wait(e.submit(frame(fid)), timeout=30)
                 fid += 1
-                assert set(res) == {"depth", "seg", "det"}
+                assert "depth" in res  # (the others may give way while depth is raised)
                 if pred(StreamNotingDepth.priorities[-1]):
                     return True
             return False
@@ -62,3 +69,5 @@ def test_set_priority_moves_a_thread_mode_heads_runs_to_a_stream_of_higher_prior
         e.set_priority("depth", 5)
         assert runs_until(lambda p: p == higher)
         assert all(m["errors"] == 0 for m in e.stats()["models"].values())
+        if foundation == "compile":
+            assert e.stats()["engine"]["launched_by_submit"] > 0  # moves beside the inline launch

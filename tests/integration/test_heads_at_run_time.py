@@ -6,6 +6,7 @@ from __future__ import annotations
 import gc
 import json
 import os
+import sys
 import threading
 import time
 import urllib.error
@@ -178,6 +179,39 @@ def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():
         eng.set_priority("seg", 5)  # the doors know the added head
         assert eng.stats()["models"]["seg"]["priority"] == 5
         assert set(eng.wait(eng.submit(frame(1)), timeout=30)) == {"depth", "seg"}
+
+
+def test_an_added_heads_worker_starts_at_its_stream_level_and_a_failed_add_puts_the_others_back(monkeypatch):
+    """Note [Stream priority at run time] in runtime/device.py: the governor writes an added head's stream level
+    (and the others', which it may raise) before the head's worker reads it, and puts them back if the add fails."""
+    import vpengine.runtime.prepare as prepare
+
+    started: dict[str, list[int]] = {}
+    real = prepare.DeviceContext
+
+    def noting(device, priority=0):  # type: ignore[no-untyped-def]
+        started.setdefault(sys._getframe(1).f_locals["spec"].name, []).append(priority)
+        return real(device, priority)
+
+    monkeypatch.setattr(prepare, "DeviceContext", noting)
+    with Engine(two_heads("thread", "runtime.spare_heads=2")) as eng:
+        ctl = eng._res.control
+        assert ctl is not None
+
+        def level(model: str) -> set[int]:
+            return {int(ctl.get(lane.entry, "stream_level")) for lane in eng.lanes.of(model)}
+
+        assert started == {"foundation": [0], "depth": [0], "seg": [0]}
+        eng.add_head({**DET2, "priority": 5})
+        assert started["det2"] == [1]  # its level from the start, not the default and a move later
+        assert (level("foundation"), level("det2"), level("depth"), level("seg")) == ({1}, {1}, {0}, {0})
+        with pytest.raises(EngineStartError, match="injected build failure"):
+            eng.add_head(
+                {"name": "bad", "model": "helpers.faulty:FaultyHead", "options": {"fail_build": True}, "priority": 9}
+            )
+        assert started["bad"] == [2]  # above det2, and the foundation model with it while it was added
+        assert (level("foundation"), level("det2"), level("depth")) == ({1}, {1}, {0})  # as they were
+        assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg", "det2"}
 
 
 def test_no_seat_left_says_how_to_get_one():

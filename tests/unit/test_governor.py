@@ -14,7 +14,7 @@ from vpengine.config import ConfigError
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.governor import FLOOR_HZ, HOLD_S, SETTLE_S, Governor, LaneView, Policy
 from vpengine.runtime.lanes import make_lanes
-from vpengine.runtime.priority import mps_below_normal, stream_level
+from vpengine.runtime.priority import mps_below_normal, stream_levels
 
 
 def view(entry, key, achieved, claim=30.0, p99=0.01, deadline=math.nan, span=1.0):
@@ -287,14 +287,31 @@ def test_priorities_in_the_config_are_bounded_and_overridable():
         tiny("thread", "heads.depth.priority=101")
 
 
+def written_levels(cfg) -> dict[str, int]:
+    """The stream level the governor writes for each model at start (the same in all of a model's lanes)."""
+    lanes = make_lanes(cfg)
+    control = ControlBlock.create(lanes.control_names())
+    try:
+        Governor(control, cfg, lanes)
+        return {m: int(control.get(of[0].entry, "stream_level")) for m, of in lanes.by_model.items()}
+    finally:
+        control.close()
+
+
 def test_stream_and_mps_priority_follow_the_config_and_stay_default_when_equal():
     equal = tiny("process")
-    assert {stream_level(equal, m) for m in equal.model_names()} == {0}
+    assert set(written_levels(equal).values()) == {0}
     assert not any(mps_below_normal(equal, m) for m in equal.model_names())
     cfg = tiny("process", "heads.depth.priority=10", "heads.seg.priority=5", "heads.det.mps_priority=normal")
-    levels = {m: stream_level(cfg, m) for m in cfg.model_names()}
-    assert levels == {"foundation": 2, "depth": 2, "seg": 1, "det": 0}
+    assert written_levels(cfg) == {"foundation": 2, "depth": 2, "seg": 1, "det": 0}
     assert [mps_below_normal(cfg, m) for m in cfg.model_names()] == [False, False, True, False]  # det: its own say
+
+
+def test_more_distinct_priorities_than_stream_levels_keep_the_most_important_apart():
+    few = stream_levels({"a": -5, "b": 0, "c": 7})
+    assert few == {"a": 0, "b": 1, "c": 2}  # counted from the default up
+    many = stream_levels({f"m{p}": p for p in range(6)}, top=3)
+    assert many == {"m5": 3, "m4": 2, "m3": 1, "m2": 0, "m1": 0, "m0": 0}  # the least important share the default
 
 
 def test_the_governor_writes_each_models_stream_level_and_a_priority_change_moves_it():
@@ -312,7 +329,7 @@ def test_the_governor_writes_each_models_stream_level_and_a_priority_change_move
             }
 
         assert levels() == {"foundation": {1}, "depth": {0}, "seg": {0}, "det": {1}}  # as the config says
-        assert {m: stream_level(cfg, m) for m in cfg.model_names()} == {m: min(v) for m, v in levels().items()}
+        assert written_levels(cfg) == {m: min(v) for m, v in levels().items()}
         gov.set_priority("seg", 9, camera="rear")  # one lane raised: its model's stream goes up for every camera
         assert levels() == {"foundation": {2}, "depth": {0}, "seg": {2}, "det": {1}}
         gov.set_priority("det", 0)

@@ -125,6 +125,7 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             _rename(engine, renames, clear=False)
             for lane in lanes.of(h.name):
                 control.set_rate(lane.entry, lane.rate_hz)
+            governor.seat(cfg, lanes)  # its priorities and stream level before its worker reads them
             res.rings[ring.name] = ring
             engine._handoffs.add_head(h.name, ring)
             engine.boundary.add_head(h.name, model.meta, model.output_spec, h.output.grid == "native")
@@ -137,6 +138,7 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             engine.boundary.remove_head(h.name)
             engine._handoffs.remove_head(h.name)
             _give_back(engine, {new: old for old, new in renames.items()}, h.name, ring, left)
+            governor.seat(engine.config, governor.lanes)  # the others' stream levels as they were
             raise
         engine._seats[h.name] = seats[0]
         engine.config, engine.plan = cfg, plan

@@ -15,15 +15,19 @@ Note [Stream priority at run time]
 A worker's stream has a CUDA priority by its model's priority (runtime/priority.py ``stream_levels``), which the
 device uses to pick between the queued work of models that share a context. A stream's priority is fixed when it is
 made, so a priority changed at run time (``Engine.set_priority``) cannot change it; the worker moves instead. The
-governor writes each model's level into the control block on every change, and the worker looks at most every
-``RESTREAM_S`` between runs (never while the submitting thread may launch for it, Note [Inline launch] in
-worker.py): at a new level it takes a stream of that priority (lent, Note [Reused streams] in backends/streams.py;
-kept for a return to that level), orders it after everything queued on the old one, on the device, and makes it
-current for the next runs. CUDA graphs replay on any stream; events mark and wait on whichever is current. An eager
-model's first runs on the new stream allocate its activations afresh (the caching allocator keeps blocks per stream),
-once per level it visits. ONNX Runtime keeps the stream it was created with (ordered with the current one by its
-executor). Measured (H200, thread mode, 12 cameras over what the GPU serves): the raised model's latency tail is
-shorter and the lanes below give up less rate (docs/benchmarks.md).
+governor writes each model's level into the control block at start, on every change and before an added head's
+worker starts, so a worker starts at its level (a restart too, after changes). Before each run, at most every
+``RESTREAM_S``, the worker reads its level; at a new one it takes a stream of that priority (lent, Note [Reused
+streams] in backends/streams.py; kept for a return to that level), orders it after everything queued on the old one,
+on the device, and makes it current. Never while the submitting thread may launch for it: it launches on
+``stream`` only while the worker is armed (Note [Inline launch] in handoff.py), and the worker moves only in its own
+thread, unarmed. CUDA graphs replay on any stream; events mark and wait on whichever is current. A model with a
+context to itself (a process of its own, no MPS) never moves: there its stream's priority ranks it against nothing.
+What a move costs: an eager model's first runs on the new stream allocate its activations afresh (the caching
+allocator keeps blocks per stream) and cuBLAS a workspace for the stream (32 MiB on Hopper), once per level it
+visits. ONNX Runtime keeps the stream it was created with (its executor orders it with the current one). Measured
+(H200, thread mode, 12 cameras over what the GPU serves): the raised model's latency tail is shorter
+(docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -40,8 +44,8 @@ RESTREAM_S = 0.05  # how often a worker looks at its stream level: a priority ch
 
 class DeviceContext:
     def __init__(self, device: torch.device | str, priority: int = 0) -> None:
-        """``priority``: steps above the default CUDA stream priority (more urgent; clamped to what the device
-        has; runtime/priority.py ``stream_level``)."""
+        """``priority``: steps above the default CUDA stream priority (more urgent; torch clamps it to the
+        priorities its stream pools have; runtime/priority.py ``stream_levels``)."""
         self.device = torch.device(device)
         self.cuda = self.device.type == "cuda"
         if self.cuda:
@@ -56,12 +60,13 @@ class DeviceContext:
             self.stream = None
             self.event = None
         self.level = priority
+        self.moves = True  # whether ``use_level`` moves (Note [Stream priority at run time])
 
     def use_level(self, level: int) -> bool:
         """Run later work on a stream ``level`` steps above the default priority (Note [Stream priority at run
-        time]), ordered after all work queued so far on the current one; whether the stream changed. Only
-        between runs, by the thread that launches this worker's work."""
-        if self.stream is None or level == self.level:
+        time]), ordered after all work queued so far on the current one; whether the stream changed (the caller
+        makes it current). Only between runs, by the worker's own thread."""
+        if self.stream is None or not self.moves or level == self.level:
             return False
         stream = self._streams.get(level)
         if stream is None:

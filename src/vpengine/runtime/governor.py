@@ -214,9 +214,7 @@ class Governor:
         self.control = control
         self.lanes = lanes
         # the lanes priorities apply to: every head's, and the foundation model's entry for each camera
-        self._heads: tuple[Lane, ...] = tuple(
-            lane for model, of_model in lanes.by_model.items() if model != "foundation" for lane in of_model
-        )
+        self._heads = _head_lanes(lanes)
         self._foundation = {lane.camera: lane.entry for lane in lanes.of("foundation")}
         self.policy = Policy()
         self._clock = clock
@@ -234,17 +232,25 @@ class Governor:
                 control.set(entry, "camera_priority", cam.priority)
         self._refresh_foundation()
 
-    def relane(self, cfg: EngineConfig, lanes: Lanes) -> None:
-        """A head was added or removed (Note [Heads at run time] in lanes.py): the lanes to govern are ``lanes``;
-        an added head's lanes start with its configured priority and their cameras'."""
-        heads = tuple(lane for model, of in lanes.by_model.items() if model != "foundation" for lane in of)
+    def seat(self, cfg: EngineConfig, lanes: Lanes) -> None:
+        """Before an added head's worker starts (Note [Heads at run time] in lanes.py): its lanes in ``lanes`` take
+        its configured priority and their cameras', and every model of ``lanes`` its stream level, so the worker
+        starts on the stream it keeps; the lanes governed stay the old ones until ``relane``. After a failed add,
+        ``seat(cfg, governor.lanes)`` puts the levels back."""
         cameras = {cam.name: cam.priority for cam in cfg.cameras}
         with self._lock:
-            for lane in heads:
+            for lane in _head_lanes(lanes):
                 if lane not in self._heads:
                     self.control.set(lane.entry, "priority", cfg.head(lane.model).priority)
                     self.control.set(lane.entry, "camera_priority", cameras.get(lane.camera, 0))
-            self.lanes, self._heads = lanes, heads
+            self._write_levels(lanes)
+
+    def relane(self, cfg: EngineConfig, lanes: Lanes) -> None:
+        """A head was added or removed (Note [Heads at run time] in lanes.py): the lanes to govern are ``lanes``;
+        an added head's lanes start with its configured priority and their cameras' (``seat``)."""
+        self.seat(cfg, lanes)
+        with self._lock:
+            self.lanes, self._heads = lanes, _head_lanes(lanes)
             self._refresh_foundation()
         self.wake()
 
@@ -392,14 +398,25 @@ class Governor:
 
     def _refresh_foundation(self) -> None:
         """The foundation model's lane of a camera shows the priority of its most important head lane there; every
-        lane shows its model's CUDA stream level (runtime/priority.py)."""
+        lane shows its model's CUDA stream level."""
         for cam, entry in self._foundation.items():
             mine = [self.control.get(lane.entry, "priority") for lane in self._heads if lane.camera == cam]
             self.control.set(entry, "priority", max(mine, default=0))
-        by_model = self.lanes.by_model
-        levels = stream_levels(
-            {m: max(int(self.control.get(lane.entry, "priority")) for lane in of) for m, of in by_model.items() if of}
-        )
-        for m, level in levels.items():
-            for lane in by_model[m]:
-                self.control.set(lane.entry, "stream_level", level)
+        self._write_levels(self.lanes)
+
+    def _write_levels(self, lanes: Lanes) -> None:
+        """Each model's CUDA stream level (runtime/priority.py) into every lane of it: a head's from its most
+        important lane, the foundation model's from the most important head lane of all."""
+        heads = {
+            m: max(int(self.control.get(lane.entry, "priority")) for lane in of)
+            for m, of in lanes.by_model.items()
+            if m != "foundation" and of
+        }
+        levels = stream_levels({**heads, "foundation": max(heads.values(), default=0)})
+        for m, of in lanes.by_model.items():
+            for lane in of:
+                self.control.set(lane.entry, "stream_level", levels[m])
+
+
+def _head_lanes(lanes: Lanes) -> tuple[Lane, ...]:
+    return tuple(lane for model, of in lanes.by_model.items() if model != "foundation" for lane in of)

@@ -50,7 +50,8 @@ stores the rate, then takes the lock, so no frame submitted after it returns run
 Note [Launch path]
 ~~~~~~~~~~~~~~~~~~
 Host code runs several times slower right after its thread waited, and every run begins that way. So a worker's
-loop makes its stream current and turns inference mode on once for its whole life, and a slot-bound executor
+loop makes its stream current and turns inference mode on once for its whole life (the stream again only when a
+priority change moves it, Note [Stream priority at run time] in device.py), and a slot-bound executor
 launched from the submitting thread launches its graphs with ``cudaGraphLaunch`` straight onto the worker's stream
 (``run_bound_on``), needing no stream switch and no inference mode.
 """

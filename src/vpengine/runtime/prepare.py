@@ -17,7 +17,6 @@ from vpengine.models.build import build_lock, build_model
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
-from vpengine.runtime.priority import stream_level
 from vpengine.runtime.worker import WorkerCore, WorkerSpec, input_keys
 from vpengine.transport.ring import SlotRing
 
@@ -68,7 +67,8 @@ def prepare_worker(
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
-    dev = DeviceContext(device, priority=stream_level(cfg, spec.name))  # Note [Give way] in governor.py
+    # the governor wrote it before any worker starts (Note [Stream priority at run time] in device.py)
+    dev = DeviceContext(device, priority=int(control.get(spec.lanes[0].entry, "stream_level")))
     if dev.cuda:
         _register_host_rings(in_ring, out_ring)
         from vpengine.transport.cuda_vmm import mps_enabled
@@ -77,6 +77,8 @@ def prepare_worker(
             control.set(spec.name, "mps_active", int(mps_enabled(device.index or 0)))
         except Exception:  # the bindings are optional in thread mode; MPS status is informational
             control.set(spec.name, "mps_active", 0)
+        # alone in a context of its own, its stream's priority ranks it against nothing: it never moves
+        dev.moves = not (own_process and alone) or bool(control.get(spec.name, "mps_active"))
     if beside_serving and dev.cuda and mcfg.backend == "compile":
         from vpengine.backends.compiled import compile_workers_ready
 

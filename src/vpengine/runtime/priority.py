@@ -9,9 +9,9 @@ far as that lane allows (``Governor``).
 
 The device learns of them too. A model's CUDA stream runs at a higher stream priority the more important the model
 (``stream_levels``): that counts where models share a context (thread mode, process groups, MPS clients). The
-governor writes each model's level into the control block whenever priorities change, and a worker moves to a
-stream of that priority between runs (Note [Stream priority at run time] in device.py), so ``set_priority`` reaches
-the GPU within a fraction of a second. In process mode a head less important than the engine's most important one is
+governor writes each model's level into the control block at start and whenever priorities or heads change, a worker
+starts on a stream of that level and moves to another before a run when it changed (Note [Stream priority at run
+time] in device.py), so ``set_priority`` reaches the GPU within a fraction of a second. In process mode a head less important than the engine's most important one is
 an MPS client of below-normal priority, unless its ``mps_priority`` says otherwise; that follows the config, not later
 ``set_priority`` calls (a client's priority cannot change under a running context).
 """
@@ -30,18 +30,18 @@ def _model_priority(cfg: EngineConfig, model: str) -> int:
     return max((h.priority for h in cfg.heads), default=0)
 
 
-def stream_level(cfg: EngineConfig, model: str) -> int:
-    """How many steps above the default CUDA stream priority ``model``'s stream runs, by the config's priorities
-    (``stream_levels``)."""
-    return stream_levels({m: _model_priority(cfg, m) for m in cfg.model_names()})[model]
+#: Stream levels above the default that torch's stream pools have (priorities 0 to -3): more distinct priorities
+#: than levels share the lowest.
+TOP_LEVEL = 3
 
 
-def stream_levels(priorities: Mapping[str, int]) -> dict[str, int]:
+def stream_levels(priorities: Mapping[str, int], top: int = TOP_LEVEL) -> dict[str, int]:
     """Each model's stream level from its priority (``priorities``: model -> priority, the foundation model's its
     most important head's): the number of distinct priorities below its own, so equal priorities (the default)
-    leave every stream at the default and the most important models run at the highest level."""
+    leave every stream at the default; with more distinct priorities than ``top`` + 1 the most important keep their
+    own levels down from ``top`` and the least important share the default."""
     values = set(priorities.values())
-    return {m: sum(v < p for v in values) for m, p in priorities.items()}
+    return {m: max(0, min(sum(v < p for v in values), top - sum(v > p for v in values))) for m, p in priorities.items()}
 
 
 def mps_below_normal(cfg: EngineConfig, model: str) -> bool:

@@ -209,16 +209,11 @@ class WorkerCore:
         self._thread = threading.get_ident()
         ctl.set_state(name, RUNNING)
         try:
-            # Entered once for the whole loop, not per run (Note [Launch path] in handoff.py); the stream again
-            # only when the worker moves to another (Note [Stream priority at run time] in device.py)
-            with torch.inference_mode():
+            # Entered once for the whole loop, not per run (Note [Launch path] in handoff.py)
+            with self.dev.active(), torch.inference_mode():
                 while not should_stop():
-                    with self.dev.active():
-                        while not should_stop():
-                            ctl.heartbeat(name)
-                            self._take()
-                            if self._restream():
-                                break
+                    ctl.heartbeat(name)
+                    self._take()
         finally:
             try:
                 self._drop_spare()
@@ -226,16 +221,19 @@ class WorkerCore:
                 for tag in list(self._held):
                     self._drop_held(tag)
 
-    def _restream(self) -> bool:
-        """At most every ``RESTREAM_S``, move to a stream of the level the governor wrote for this model (Note
-        [Stream priority at run time] in device.py); whether it moved (the loop then makes the new one current)."""
+    def _restream(self) -> None:
+        """Before a run, at most every ``RESTREAM_S``: on a stream of the level the governor wrote for this model
+        (Note [Stream priority at run time] in device.py). The worker's thread only, unarmed; leaving the loop's
+        ``dev.active()`` puts back the stream that was current before it."""
         if not self.dev.cuda:
-            return False
+            return
         now = time.monotonic()
         if now < self._restream_at:
-            return False
+            return
         self._restream_at = now + RESTREAM_S
-        return self.dev.use_level(int(self.control.get(self.lanes[0].entry, "stream_level")))
+        if self.dev.use_level(int(self.control.get(self.lanes[0].entry, "stream_level"))):
+            assert self.dev.stream is not None
+            torch.cuda.set_stream(self.dev.stream)
 
     def _take(self) -> None:
         """One turn of the loop: the frames of the lanes whose gates are open, run as one batch (one camera: a
@@ -370,6 +368,7 @@ class WorkerCore:
         """One model call on pinned, admitted frames (at most one per lane), each into its own output slot: ``out``
         (one frame, a slot already acquired) or one acquired here (none free: that frame is dropped, counted and
         answered), published with its camera's tag. A run that fails answers every frame (Note [Frame errors])."""
+        self._restream()
         t_start = time.monotonic()
         pairs: list[tuple[SlotInfo, SlotInfo]] = []
         for slot in slots:
@@ -526,6 +525,7 @@ class WorkerCore:
                     ctl.add(lane.entry, "dropped")
                 return
         done = None
+        self._restream()  # not armed yet: the submitting thread launches on the stream it finds once armed
         with offer.cond:  # not armed before this: no launch can be waiting here
             if ctl.rate(lane.entry) is not None:
                 return  # a pause or limit set since the loop read the rate: no frame submitted since may run

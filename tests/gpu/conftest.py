@@ -65,6 +65,9 @@ class SlowOnDevice:
     def bind(self, inputs, outputs) -> bool:  # type: ignore[no-untyped-def]
         return False
 
+    def held_bytes(self) -> int:
+        return self.inner.held_bytes()
+
 
 def _slow(monkeypatch, slow, cycles: int = SLEEP_CYCLES) -> None:  # type: ignore[no-untyped-def]
     import vpengine.backends as backends

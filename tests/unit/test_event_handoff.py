@@ -41,6 +41,7 @@ class Dev:
     """A stand-in DeviceContext: logs marks, waits and completions, and what the rings looked like at each."""
 
     device = torch.device("cpu")
+    cuda = False  # no stream to move (Note [Stream priority at run time])
 
     def __init__(self, name: str, log: list[tuple], rings: dict[str, SlotRing], work_s: float = 0.0) -> None:
         self.name, self.log, self.rings, self.work_s = name, log, rings, work_s

@@ -31,6 +31,9 @@ class Binding:
     def __call__(self, inputs):  # type: ignore[no-untyped-def]
         return self.inner(inputs)
 
+    def held_bytes(self) -> int:
+        return self.inner.held_bytes()
+
     def bind(self, inputs, outputs) -> bool:  # type: ignore[no-untyped-def]
         self.inputs, self.outputs = inputs, outputs
         return True

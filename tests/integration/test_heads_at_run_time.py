@@ -212,6 +212,17 @@ def test_an_added_heads_worker_starts_at_its_stream_level_and_a_failed_add_puts_
         assert started["bad"] == [2]  # above det2, and the foundation model with it while it was added
         assert (level("foundation"), level("det2"), level("depth")) == ({1}, {1}, {0})  # as they were
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg", "det2"}
+        # the memory report's models as they are now, not as they were at the start
+        assert set(eng.stats()["memory"]["models_device_bytes"]) == {"foundation", "depth", "seg", "det2"}
+
+
+def test_an_added_head_takes_its_cameras_priorities_as_they_are_now():
+    cams = "cameras=[{name: front}, {name: rear}]"
+    with Engine(two_heads("thread", cams)) as eng:
+        eng.set_priority(None, 7, camera="rear")
+        eng.add_head(DET2)
+        per = eng.stats()["cameras"]
+        assert per["rear"]["det2"]["camera_priority"] == 7 and per["front"]["det2"]["camera_priority"] == 0
 
 
 def test_no_seat_left_says_how_to_get_one():

@@ -247,7 +247,10 @@ class CompiledExecutor(Executor):
         held += tensor_bytes(self._static[self.max_batch].values())
         if self._graphs:
             pool = tuple(self._graphs[min(self._graphs)].pool())
-            segments = torch.cuda.memory_snapshot()
+            try:  # its own pool only, where this torch can say (the whole allocator's snapshot, else)
+                segments = torch.cuda.memory_snapshot(mempool_id=pool, include_traces=False)
+            except TypeError:
+                segments = torch.cuda.memory_snapshot()
             held += sum(
                 s["total_size"]
                 for s in segments

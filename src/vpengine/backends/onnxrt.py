@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from vpengine.backends.base import Executor
+from vpengine.backends.base import Executor, tensor_bytes
 from vpengine.backends.onnx_export import OnnxArtifact, OnnxCache, check_onnx_precision
 from vpengine.backends.options import BackendError, OnnxOptions
 from vpengine.models.base import Model
@@ -227,6 +227,11 @@ class OnnxExecutor(Executor):
             for i in range(b):
                 self.session.run_with_iobinding(self._bindings[i])
         return {k: t[:b] for k, t in self._out.items()}
+
+    def held_bytes(self) -> int:
+        """The staging and output buffers; the weights and workspaces are ONNX Runtime's, which PyTorch does not
+        see."""
+        return tensor_bytes([*self._staging.values(), *self._out.values()])
 
     def describe(self) -> dict[str, Any]:
         return {

@@ -116,5 +116,6 @@ def engine_stats(engine: Engine) -> dict[str, Any]:
         "cameras": per_camera,
         "results": engine._outbox.stats(),
         "mailboxes": {n: r.stats() for n, r in list(rings.items())},
-        "memory": engine.memory_report,
+        # the models' figures as they are now (heads added, removed, restarted since the start's report)
+        "memory": engine.memory_report | {"models_device_bytes": {n: m["device_mem_bytes"] for n, m in models.items()}},
     }

@@ -64,8 +64,9 @@ class DeviceContext:
 
     def use_level(self, level: int) -> bool:
         """Run later work on a stream ``level`` steps above the default priority (Note [Stream priority at run
-        time]), ordered after all work queued so far on the current one; whether the stream changed (the caller
-        makes it current). Only between runs, by the worker's own thread."""
+        time]), ordered after all work queued so far on the current one, and current from now on; whether the
+        stream changed. Only between runs, by the worker's own thread, inside ``active()`` (which puts back, when it
+        ends, the stream that was current before it)."""
         if self.stream is None or not self.moves or level == self.level:
             return False
         stream = self._streams.get(level)
@@ -73,6 +74,7 @@ class DeviceContext:
             stream = self._streams[level] = lend(self, self.device, -level)
         stream.wait_stream(self.stream)  # on the device: no host wait
         self.stream, self.level = stream, level
+        torch.cuda.set_stream(stream)
         return True
 
     @contextlib.contextmanager

@@ -237,8 +237,10 @@ class Governor:
         its configured priority and their cameras', and every model of ``lanes`` its stream level, so the worker
         starts on the stream it keeps; the lanes governed stay the old ones until ``relane``. After a failed add,
         ``seat(cfg, governor.lanes)`` puts the levels back."""
-        cameras = {cam.name: cam.priority for cam in cfg.cameras}
         with self._lock:
+            # a camera's priority as it is now (set_priority may have changed it), else as configured
+            cameras = {cam.name: cam.priority for cam in cfg.cameras}
+            cameras |= {cam: int(self.control.get(e, "camera_priority")) for cam, e in self._foundation.items()}
             for lane in _head_lanes(lanes):
                 if lane not in self._heads:
                     self.control.set(lane.entry, "priority", cfg.head(lane.model).priority)

@@ -5,6 +5,7 @@ Runs in the worker's thread (thread mode) or child process (process mode), so th
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 import time
@@ -19,6 +20,8 @@ from vpengine.runtime.device import DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff, inline_wanted
 from vpengine.runtime.worker import WorkerCore, WorkerSpec, input_keys
 from vpengine.transport.ring import SlotRing
+
+log = logging.getLogger("vpengine.worker")
 
 _register_lock = threading.Lock()
 
@@ -75,10 +78,12 @@ def prepare_worker(
 
         try:
             control.set(spec.name, "mps_active", int(mps_enabled(device.index or 0)))
+            mps: bool | None = bool(control.get(spec.name, "mps_active"))
         except Exception:  # the bindings are optional in thread mode; MPS status is informational
             control.set(spec.name, "mps_active", 0)
+            mps = None  # not known: it may share the device
         # alone in a context of its own, its stream's priority ranks it against nothing: it never moves
-        dev.moves = not (own_process and alone) or bool(control.get(spec.name, "mps_active"))
+        dev.moves = not (own_process and alone) or mps is not False
     if beside_serving and dev.cuda and mcfg.backend == "compile":
         from vpengine.backends.compiled import compile_workers_ready
 
@@ -107,12 +112,17 @@ def prepare_worker(
                 keys = input_keys(spec, in_ring)
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
         dev.complete()
-    # a process of its own: all it reserved is the model's; beside other models, what it holds alone
-    control.set(spec.name, "device_mem_bytes", dev.memory_bytes() if own_process and alone else executor.held_bytes())
-    control.set(spec.name, "started_at", time.monotonic())
     if handoff is not None and not inline_wanted(dev.cuda, bound):
         handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]
     core = WorkerCore(spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff)
+    # a process of its own: all it reserved is the model's; beside other models, what it holds alone
+    try:
+        held = dev.memory_bytes() if own_process and alone else executor.held_bytes() + core.buffer_bytes()
+    except Exception as e:  # a statistic: never a reason to fail a start
+        log.warning("%s: its device memory could not be counted (%s); stats() shows 0", spec.name, e)
+        held = 0
+    control.set(spec.name, "device_mem_bytes", held)
+    control.set(spec.name, "started_at", time.monotonic())
     control.heartbeat(spec.name)
     control.set_state(spec.name, READY)
     return core

@@ -11,9 +11,10 @@ The device learns of them too. A model's CUDA stream runs at a higher stream pri
 (``stream_levels``): that counts where models share a context (thread mode, process groups, MPS clients). The
 governor writes each model's level into the control block at start and whenever priorities or heads change, a worker
 starts on a stream of that level and moves to another before a run when it changed (Note [Stream priority at run
-time] in device.py), so ``set_priority`` reaches the GPU within a fraction of a second. In process mode a head less important than the engine's most important one is
-an MPS client of below-normal priority, unless its ``mps_priority`` says otherwise; that follows the config, not later
-``set_priority`` calls (a client's priority cannot change under a running context).
+time] in device.py), so ``set_priority`` reaches the GPU within a fraction of a second. In process mode a head less
+important than the engine's most important one is an MPS client of below-normal priority, unless its
+``mps_priority`` says otherwise; that follows the config, not later ``set_priority`` calls (a client's priority
+cannot change under a running context).
 """
 
 from __future__ import annotations

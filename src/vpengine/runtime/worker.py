@@ -76,6 +76,7 @@ from typing import Any
 
 import torch
 
+from vpengine.backends.base import tensor_bytes
 from vpengine.config import EngineConfig, load_config
 from vpengine.models.base import Role, check_outputs
 from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
@@ -203,6 +204,10 @@ class WorkerCore:
                 k: views[k].new_empty((len(self.lanes), *views[k].shape), device=device.device) for k in self._keys
             }
 
+    def buffer_bytes(self) -> int:
+        """Device memory of the batch buffers this worker keeps (Note [Cameras]); 0 on the CPU."""
+        return tensor_bytes(self._copies.values()) if self._copies else 0
+
     def run(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
         self._should_stop = should_stop
@@ -223,17 +228,12 @@ class WorkerCore:
 
     def _restream(self) -> None:
         """Before a run, at most every ``RESTREAM_S``: on a stream of the level the governor wrote for this model
-        (Note [Stream priority at run time] in device.py). The worker's thread only, unarmed; leaving the loop's
-        ``dev.active()`` puts back the stream that was current before it."""
-        if not self.dev.cuda:
-            return
+        (Note [Stream priority at run time] in device.py). The worker's own thread only, unarmed."""
         now = time.monotonic()
-        if now < self._restream_at:
+        if not self.dev.cuda or now < self._restream_at:
             return
         self._restream_at = now + RESTREAM_S
-        if self.dev.use_level(int(self.control.get(self.lanes[0].entry, "stream_level"))):
-            assert self.dev.stream is not None
-            torch.cuda.set_stream(self.dev.stream)
+        self.dev.use_level(int(self.control.get(self.lanes[0].entry, "stream_level")))
 
     def _take(self) -> None:
         """One turn of the loop: the frames of the lanes whose gates are open, run as one batch (one camera: a

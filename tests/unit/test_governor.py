@@ -341,6 +341,31 @@ def test_the_governor_writes_each_models_stream_level_and_a_priority_change_move
         control.close()
 
 
+def test_a_priority_change_while_a_head_is_seated_counts_it_in_the_levels_and_unseat_drops_it():
+    cfg = tiny("thread")
+    added = tiny("thread", "heads=[{name: depth, model: tiny_depth}, {name: seg, model: tiny_seg}, "
+                 "{name: det, model: tiny_det}, {name: det2, model: tiny_det, priority: 5}]")  # fmt: skip
+    lanes, more = make_lanes(cfg), make_lanes(added, ())
+    control = ControlBlock.create(more.control_names())
+    try:
+        gov = Governor(control, cfg, lanes)
+
+        def level(m: str) -> int:
+            return int(control.get(more.of(m)[0].entry, "stream_level"))
+
+        gov.seat(added, more)
+        assert (level("det2"), level("foundation"), level("depth")) == (1, 1, 0)
+        gov.set_priority("depth", 0)  # any change rewrites the levels: the seated head still counts
+        assert (level("det2"), level("foundation")) == (1, 1)
+        gov.unseat()  # the add failed
+        assert level("foundation") == 0
+        gov.relane(added, more)  # or it succeeded
+        gov.set_priority("seg", 0)
+        assert (level("det2"), level("foundation"), level("seg")) == (1, 1, 0)
+    finally:
+        control.close()
+
+
 def test_the_governor_thread_sleeps_while_priorities_are_equal_and_set_priority_wakes_it():
     cfg = tiny("thread")
     lanes = make_lanes(cfg)

@@ -138,7 +138,7 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             engine.boundary.remove_head(h.name)
             engine._handoffs.remove_head(h.name)
             _give_back(engine, {new: old for old, new in renames.items()}, h.name, ring, left)
-            governor.seat(engine.config, governor.lanes)  # the others' stream levels as they were
+            governor.unseat()  # the others' stream levels as they were
             raise
         engine._seats[h.name] = seats[0]
         engine.config, engine.plan = cfg, plan

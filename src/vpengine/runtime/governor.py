@@ -215,6 +215,7 @@ class Governor:
         self.lanes = lanes
         # the lanes priorities apply to: every head's, and the foundation model's entry for each camera
         self._heads = _head_lanes(lanes)
+        self._seated: Lanes | None = None  # the lanes of a head being added (``seat``), until ``relane``
         self._foundation = {lane.camera: lane.entry for lane in lanes.of("foundation")}
         self.policy = Policy()
         self._clock = clock
@@ -235,8 +236,8 @@ class Governor:
     def seat(self, cfg: EngineConfig, lanes: Lanes) -> None:
         """Before an added head's worker starts (Note [Heads at run time] in lanes.py): its lanes in ``lanes`` take
         its configured priority and their cameras', and every model of ``lanes`` its stream level, so the worker
-        starts on the stream it keeps; the lanes governed stay the old ones until ``relane``. After a failed add,
-        ``seat(cfg, governor.lanes)`` puts the levels back."""
+        starts on the stream it keeps; the lanes governed stay the old ones until ``relane``, and priority changes
+        meanwhile count the seated head in the levels. After a failed add, ``unseat`` puts the levels back."""
         with self._lock:
             # a camera's priority as it is now (set_priority may have changed it), else as configured
             cameras = {cam.name: cam.priority for cam in cfg.cameras}
@@ -245,14 +246,21 @@ class Governor:
                 if lane not in self._heads:
                     self.control.set(lane.entry, "priority", cfg.head(lane.model).priority)
                     self.control.set(lane.entry, "camera_priority", cameras.get(lane.camera, 0))
+            self._seated = lanes
             self._write_levels(lanes)
+
+    def unseat(self) -> None:
+        """An add that ``seat`` began failed: the levels of the lanes governed, as before it."""
+        with self._lock:
+            self._seated = None
+            self._write_levels(self.lanes)
 
     def relane(self, cfg: EngineConfig, lanes: Lanes) -> None:
         """A head was added or removed (Note [Heads at run time] in lanes.py): the lanes to govern are ``lanes``;
         an added head's lanes start with its configured priority and their cameras' (``seat``)."""
         self.seat(cfg, lanes)
         with self._lock:
-            self.lanes, self._heads = lanes, _head_lanes(lanes)
+            self.lanes, self._heads, self._seated = lanes, _head_lanes(lanes), None
             self._refresh_foundation()
         self.wake()
 
@@ -404,7 +412,7 @@ class Governor:
         for cam, entry in self._foundation.items():
             mine = [self.control.get(lane.entry, "priority") for lane in self._heads if lane.camera == cam]
             self.control.set(entry, "priority", max(mine, default=0))
-        self._write_levels(self.lanes)
+        self._write_levels(self._seated or self.lanes)
 
     def _write_levels(self, lanes: Lanes) -> None:
         """Each model's CUDA stream level (runtime/priority.py) into every lane of it: a head's from its most

@@ -227,7 +227,7 @@ class Engine:
         )
         self._t_start = time.monotonic()
         self._state = "running"
-        self.memory_report = memory_report(res.rings, res.control, device, self.lanes.by_model)
+        self.memory_report = memory_report(res.rings, res.control, device)
         log.info(
             "engine %r running: %s mode on %s, foundation %s + heads %s; mailboxes %.1f MB host, %.1f MB device",
             cfg.name,

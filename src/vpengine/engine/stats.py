@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -45,12 +45,9 @@ def model_stats(
     return models, per_camera
 
 
-def memory_report(
-    rings: Mapping[str, SlotRing], ctl: ControlBlock | None, device: torch.device, models: Iterable[str]
-) -> dict[str, Any]:
-    """The mailboxes' sizes and where they live, each model's device memory (its process's reserved bytes when it
-    has one to itself, else what it holds alone: ``Executor.held_bytes``), and on CUDA what the driver says each
-    process holds (contexts included)."""
+def memory_report(rings: Mapping[str, SlotRing], ctl: ControlBlock | None, device: torch.device) -> dict[str, Any]:
+    """The mailboxes' sizes and where they live, and on CUDA what the driver says each process holds (contexts
+    included); ``stats()`` adds each model's device memory as it is then (``models_device_bytes``)."""
     per: dict[str, dict[str, Any]] = {
         n: {
             "bytes": r.layout.total_bytes,
@@ -62,12 +59,10 @@ def memory_report(
     }
     host = sum(v["bytes"] for v in per.values() if v["location"] == "cpu")
     dev = sum(v["bytes"] for v in per.values() if v["location"] != "cpu")
-    held = {n: int(ctl.get(n, "device_mem_bytes")) for n in models} if ctl else {}
     report: dict[str, Any] = {
         "mailboxes": per,
         "mailbox_host_bytes": host,
         "mailbox_device_bytes": dev,
-        "models_device_bytes": held,
     }
     if device.type == "cuda" and ctl is not None:
         from vpengine.runtime.gpu import process_memory
@@ -116,6 +111,7 @@ def engine_stats(engine: Engine) -> dict[str, Any]:
         "cameras": per_camera,
         "results": engine._outbox.stats(),
         "mailboxes": {n: r.stats() for n, r in list(rings.items())},
-        # the models' figures as they are now (heads added, removed, restarted since the start's report)
+        # each model's device memory (its process's reserved bytes when it has one to itself, else what it holds
+        # alone: Executor.held_bytes) as it is now: heads added, removed or restarted since the start
         "memory": engine.memory_report | {"models_device_bytes": {n: m["device_mem_bytes"] for n, m in models.items()}},
     }

@@ -239,9 +239,8 @@ class Governor:
         starts on the stream it keeps; the lanes governed stay the old ones until ``relane``, and priority changes
         meanwhile count the seated head in the levels. After a failed add, ``unseat`` puts the levels back."""
         with self._lock:
-            # a camera's priority as it is now (set_priority may have changed it), else as configured
-            cameras = {cam.name: cam.priority for cam in cfg.cameras}
-            cameras |= {cam: int(self.control.get(e, "camera_priority")) for cam, e in self._foundation.items()}
+            # a camera's priority as it is now (set_priority may have changed it): its foundation lane shows it
+            cameras = {cam: int(self.control.get(e, "camera_priority")) for cam, e in self._foundation.items()}
             for lane in _head_lanes(lanes):
                 if lane not in self._heads:
                     self.control.set(lane.entry, "priority", cfg.head(lane.model).priority)
@@ -412,7 +411,7 @@ class Governor:
         for cam, entry in self._foundation.items():
             mine = [self.control.get(lane.entry, "priority") for lane in self._heads if lane.camera == cam]
             self.control.set(entry, "priority", max(mine, default=0))
-        self._write_levels(self._seated or self.lanes)
+        self._write_levels(self.lanes if self._seated is None else self._seated)
 
     def _write_levels(self, lanes: Lanes) -> None:
         """Each model's CUDA stream level (runtime/priority.py) into every lane of it: a head's from its most

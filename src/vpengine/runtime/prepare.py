@@ -77,11 +77,10 @@ def prepare_worker(
         from vpengine.transport.cuda_vmm import mps_enabled
 
         try:
-            control.set(spec.name, "mps_active", int(mps_enabled(device.index or 0)))
-            mps: bool | None = bool(control.get(spec.name, "mps_active"))
+            mps: bool | None = bool(mps_enabled(device.index or 0))
         except Exception:  # the bindings are optional in thread mode; MPS status is informational
-            control.set(spec.name, "mps_active", 0)
             mps = None  # not known: it may share the device
+        control.set(spec.name, "mps_active", int(bool(mps)))
         # alone in a context of its own, its stream's priority ranks it against nothing: it never moves
         dev.moves = not (own_process and alone) or mps is not False
     if beside_serving and dev.cuda and mcfg.backend == "compile":

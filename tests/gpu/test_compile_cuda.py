@@ -176,6 +176,34 @@ def test_replays_allocate_no_device_memory():
     assert torch.cuda.memory_reserved() == reserved
 
 
+def test_the_graphs_of_every_batch_size_take_about_the_largest_ones_pool():
+    """Note [CUDA graphs]: the graphs of batches 1..4 of the depth head at 1080p (the shipped GPU config's, fp16)
+    share a pool about as big as the batch of 4 alone needs, and held_bytes counts it. Captured smallest first they
+    took 1.5 times that."""
+    from helpers import heads
+
+    cfg = heads.head_config((1080, 1920), {"name": "depth", "model": "dav2_depth_s"}, device="cuda")
+    ex = make_executor(
+        heads.build_head(cfg, (37, 66), 384, "cuda", "float16"), "compile", CUDA, "depth", precision="fp16", max_batch=4
+    )
+    pools = {tuple(g.pool()) for g in ex._graphs.values()}
+    assert len(pools) == 1  # one pool for every batch size
+    weights = sum(t.numel() * t.element_size() for t in [*ex.model.parameters(), *ex.model.buffers()])
+    static = sum(t.numel() * t.element_size() for t in ex._static[4].values())
+    shared = ex.held_bytes() - weights - static
+    torch.cuda.synchronize()
+    torch.cuda.empty_cache()
+    before = torch.cuda.memory_reserved()
+    alone = torch.cuda.CUDAGraph()
+    with torch.inference_mode(), torch.cuda.graph(alone):
+        ex._run(ex._static[4])
+    largest = torch.cuda.memory_reserved() - before  # a capture's pool takes new segments only
+    print(
+        f"depth head, 1080p, fp16: batches 1-4 {shared / 2**20:.0f} MiB, the batch of 4 alone {largest / 2**20:.0f} MiB"
+    )
+    assert 0.9 * largest <= shared <= 1.1 * largest
+
+
 def test_copied_outputs_survive_the_next_replay():
     """Note [Executor contract]: a copy taken after frame A is intact after frame B replays into the same buffers."""
     cfg = tiny("thread", "device=cuda")

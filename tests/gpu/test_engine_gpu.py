@@ -246,3 +246,27 @@ def test_thread_mode_gives_each_model_the_device_memory_it_holds_alone():
         for name in ("foundation", "depth"):  # a graph pool of its own on top of the weights
             assert held[name] > weights[name] + 2**20, (name, held[name], weights[name])
         assert held["seg"] > 0 and held["det"] > 0  # eager: weights only
+
+
+def test_bench_cameras_in_thread_mode_runs_its_engines_one_after_another_in_one_process(tmp_path):
+    """``vpengine bench cameras`` in thread mode, 4 cameras (compiled models at batches 1-4): its stream run's
+    engine, then the throughput run's engines (one of 4 cameras, then four of one, started side by side), all in one
+    process. Counting each model's graph pool for stats() once crashed that process at the second engine's start
+    (torch 2.11's memory_snapshot of one pool: three runs of three; an engine after another with nothing else did
+    not crash). In a child process, so a crash fails this test rather than ending the run."""
+    from vpengine.runtime.process import package_env
+
+    args = ["--set", "mode=thread", "--stream-cameras", "4", "--seconds", "3", "--cameras", "4"]
+    args += ["--point-seconds", "2", "--rounds", "10", "--out", str(tmp_path), "--name", "cams"]
+    out = subprocess.run(
+        [sys.executable, "-m", "vpengine.cli.main", "bench", "cameras", *args],
+        capture_output=True,
+        text=True,
+        timeout=500,
+        env=package_env(),
+    )
+    assert out.returncode == 0, (out.returncode, out.stderr[-3000:])
+    import json
+
+    result = json.loads((tmp_path / "cams.json").read_text())
+    assert result["stream"] and result["throughput"], result

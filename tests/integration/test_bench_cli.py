@@ -27,7 +27,7 @@ def test_paper_runs_every_cpu_experiment_and_the_report_reads_them(tmp_path, cli
     p = vpengine(
         "bench", "paper", "--config", "configs/tiny.yaml", "--set", "mode=thread", "--experiments", "E1,E2,E4,E5,floor",
         "--heads", "1,2", "--frames", "5", "--e4-seconds", "3", "--e5-frames", "60", "--floor-heads", "depth,seg",
-        "--tag", "smoke", "--out", str(tmp_path),
+        "--floor-batches", "1,2", "--tag", "smoke", "--out", str(tmp_path),
         timeout=400,
     )  # fmt: skip
     assert p.returncode == 0, p.stdout[-2000:] + p.stderr[-3000:]
@@ -56,6 +56,7 @@ def test_paper_runs_every_cpu_experiment_and_the_report_reads_them(tmp_path, cli
     assert res["setup"]["frame_size"] == [160, 120]  # the config's input size
     floor = res["floor"]
     assert floor["heads"] == ["depth", "seg"] and floor["device_ms"] == {} and "floor_sum_ms" not in floor
+    assert "by_batch" not in floor  # device times by batch size: CUDA only
     for key in ("thread", "process", "thread_frame_slot", "process_frame_slot"):
         assert floor[key]["n"] == 5, key
 

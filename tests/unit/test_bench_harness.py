@@ -97,6 +97,8 @@ def test_set_is_the_way_in_as_in_vpengine_run():
         (["--heads", "2,x"], "--heads '2,x': expected head counts"),
         (["--heads", "0"], "at least 1"),
         (["--floor-heads", "depth,sky"], r"floor heads \['depth', 'sky'\]: accepted are depth, seg, det"),
+        (["--floor-batches", "1,four"], "--floor-batches '1,four': expected frame counts like"),
+        (["--floor-batches", "4,0"], "--floor-batches '4,0': expected frame counts of at least 1"),
         (["--experiments", "E1,E3"], "E3 compares CUDA MPS off and on: it needs device cuda"),
         (["--experiments", "E1,E2", "--set", "heads.det.name=boxes"], "needs a head named 'det'"),
     ],

@@ -234,13 +234,21 @@ def _memory(flat: bool | None) -> str:
 
 def _floor_row(f: dict[str, Any]) -> str:
     """A floor run: the engine's mean frame in each mode, submitted and written in place, and where the device times
-    were measured (CUDA) the three floors and how far over the summed one each mean is."""
+    were measured (CUDA) the three floors and how far over the summed one each mean is, and a frame's share of a
+    batch's back-to-back device time for each batch size measured."""
     heads = "+".join(f.get("heads") or [k for k in f["device_ms"] if k != "foundation"])
     if "floor_sum_ms" in f:
         floors = (
             f"floor {f['floor_sum_ms']:.2f} ms summed, {f['floor_with_transfers_ms']:.2f} ms with the frame's upload "
             f"and the results' download, {f['chained_ms']['compute']:.2f} ms back to back on one stream; "
         )
+        batches = sorted(f.get("by_batch", {}).items(), key=lambda kv: int(kv[0]))
+        if batches:
+            floors += (
+                "a frame back to back in a batch of "
+                + ", ".join(f"{n}: {b['chained_ms_a_frame']:.2f} ms" for n, b in batches)
+                + "; "
+            )
     else:
         floors = "no device times off CUDA; "
 

@@ -47,6 +47,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "--floor-heads", default="depth,seg,det", help="heads of the floor experiment (default: %(default)s)"
     )
     p.add_argument(
+        "--floor-batches",
+        default="1",
+        help="batch sizes (frames of as many cameras) the floor's device times are also taken at, e.g. 1,4,8 "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
         "--results",
         default="copy",
         choices=["copy", "borrow"],
@@ -63,13 +69,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tag", default="", help="suffix of the results file name")
 
 
-def _counts(text: str, flag: str = "--heads") -> list[int]:
+def _counts(text: str, flag: str = "--heads", what: str = "head counts") -> list[int]:
     try:
         ns = [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
-        raise ValueError(f"{flag} {text!r}: expected head counts like 1,2,4,8") from None
+        raise ValueError(f"{flag} {text!r}: expected {what} like 1,2,4,8") from None
     if not ns or min(ns) < 1:
-        raise ValueError(f"{flag} {text!r}: expected head counts of at least 1, like 1,2,4,8")
+        raise ValueError(f"{flag} {text!r}: expected {what} of at least 1, like 1,2,4,8")
     return ns
 
 
@@ -101,6 +107,7 @@ def main(args: argparse.Namespace) -> int:
     ns = _counts(args.heads)
     e3_ns = tuple(_counts(args.e3_heads, "--e3-heads"))
     kinds = floor.check_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
+    floor_batches = floor.check_batches(tuple(_counts(args.floor_batches, "--floor-batches", "frame counts")))
     b = Bench.load(args.config, args.overrides, args.frames, args.results == "copy")
     # what each experiment needs, checked before anything starts: a late refusal would waste the runs before it
     needs = {
@@ -121,7 +128,7 @@ def main(args: argparse.Namespace) -> int:
         "E3": lambda imgs: e3_mps.run(b, imgs, e3_ns),
         "E4": lambda imgs: e4_rates.run(b, imgs, args.e4_seconds),
         "E5": lambda imgs: e5_stream.run(b, imgs, args.e5_frames),
-        "floor": lambda imgs: floor.run(b, imgs, kinds),
+        "floor": lambda imgs: floor.run(b, imgs, kinds, floor_batches),
     }
     imgs = b.images(size=_frame_size(args.frame_size))
     name = f"paper_{b.device.split(':')[0]}{'_' + args.tag if args.tag else ''}"

@@ -6,6 +6,11 @@ Three floors: the models each timed alone and summed; the same plus the frame's 
 (which any program that wants results on the host pays); the models back to back on one stream, timed as one. A
 model that cannot be graph-captured (Faster R-CNN: NMS has data-dependent shapes) is timed eager, launch gaps
 included, so a floor with it is generous. Off CUDA there are no device times: only the engine's latencies.
+
+With ``--floor-batches`` (say 1,4,8) the same device times are also taken for batches of that many frames, as an
+engine of that many cameras runs them (Note [Cameras] in runtime/worker.py): each model alone and all back to back,
+and what a frame costs at that size. Against ``vpengine bench cameras``' frames per second they say how far a
+batched engine is from its device time, and what batching can buy at most.
 """
 
 from __future__ import annotations
@@ -24,14 +29,35 @@ def check_kinds(kinds: tuple[str, ...]) -> tuple[str, ...]:
     return kinds
 
 
-def run(b: Bench, imgs: list[np.ndarray], kinds: tuple[str, ...] = KINDS) -> dict[str, Any]:
+def check_batches(batches: tuple[int, ...]) -> tuple[int, ...]:
+    if not batches or min(batches) < 1:
+        raise ValueError(f"floor batches {list(batches)}: expected frame counts of at least 1, like 1,4,8")
+    return tuple(sorted(set(batches)))
+
+
+def run(
+    b: Bench, imgs: list[np.ndarray], kinds: tuple[str, ...] = KINDS, batches: tuple[int, ...] = (1,)
+) -> dict[str, Any]:
     heads = [b.head(k, k) for k in check_kinds(kinds)]
-    seq = InProcess(b, heads)
+    batches = check_batches(batches)
+    seq = InProcess(b, heads, max_batch=max(batches))
     dt = seq.device_times(imgs[0])
     xfer = seq.transfer_times(imgs[0])
     chained = seq.chained_times(imgs[0])
+    by_batch: dict[str, Any] = {}
+    for n in batches if dt else ():
+        times = seq.device_times(imgs[0], batch=n)
+        back_to_back = seq.chained_times(imgs[0], batch=n)["compute"]
+        by_batch[str(n)] = {"device_ms": times, "chained_ms": back_to_back, "chained_ms_a_frame": back_to_back / n}
+        log(
+            f"floor, a batch of {n}: "
+            + ", ".join(f"{k} {v:.2f}" for k, v in times.items())
+            + f" ms; back to back {back_to_back:.2f} ms, {back_to_back / n:.2f} ms a frame"
+        )
     del seq  # its models' memory goes before the engines start
     out: dict[str, Any] = {"heads": list(kinds), "device_ms": dt, "transfer_ms": xfer, "chained_ms": chained}
+    if by_batch:
+        out["by_batch"] = by_batch
     if dt:
         out["floor_sum_ms"] = sum(dt.values())
         out["floor_with_transfers_ms"] = out["floor_sum_ms"] + sum(xfer.values())

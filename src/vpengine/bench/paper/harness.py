@@ -257,7 +257,9 @@ def engines(cfgs: list[Any]) -> Iterator[list[Any]]:
 class InProcess:
     """The same models built in this process with no engine: the sequential baseline and the device-time floor."""
 
-    def __init__(self, b: Bench, heads: list[dict[str, Any]]) -> None:
+    def __init__(self, b: Bench, heads: list[dict[str, Any]], max_batch: int = 1) -> None:
+        """``max_batch``: the largest batch of frames the models are built (and graph-captured) for, as an engine
+        of that many cameras builds them (Note [Cameras] in runtime/worker.py)."""
         import torch
 
         from vpengine.backends import make_executor
@@ -276,6 +278,7 @@ class InProcess:
                 name,
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
+                max_batch=max_batch,
             )
 
         fm = build_model(cfg, "foundation", "foundation", plan.frame_spec, {}, self.device, False)
@@ -287,7 +290,7 @@ class InProcess:
             self.heads[h.name] = (executor(m, h, h.name), list(m.input_spec))
             self.graphed[h.name] = h.backend == "compile"
         self.torch = torch
-        self._frame_runs: dict[str, Any] | None = None
+        self._frame_runs: dict[int, dict[str, Any]] = {}
 
     def run(self, img: np.ndarray) -> dict[str, Any]:
         """Backbone once, then every head one after another, outputs copied to the host with ``.cpu()`` (pageable
@@ -305,12 +308,12 @@ class InProcess:
     def latency(self, imgs: list[np.ndarray], n: int, warmup: int = 10) -> dict[str, float]:
         return timed(lambda i: self.run(imgs[i % len(imgs)]), n, warmup)
 
-    def device_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
-        """Median device time (ms) of the backbone and of each head, each timed alone, with CUDA graphs where they
-        capture (empty off CUDA)."""
+    def device_times(self, img: np.ndarray, n: int = 50, batch: int = 1) -> dict[str, float]:
+        """Median device time (ms) of the backbone and of each head on a batch of ``batch`` copies of ``img``, each
+        timed alone, with CUDA graphs where they capture (empty off CUDA)."""
         if self.device.type != "cuda":
             return {}
-        parts = self._frame(img)["parts"]
+        parts = self._frame(img, batch)["parts"]
         with self.torch.inference_mode():
             return {name: event_ms(run, n) for name, run in parts.items()}
 
@@ -323,13 +326,13 @@ class InProcess:
         with self.torch.inference_mode():
             return {name: event_ms(f[name], n) for name in ("upload", "download")}
 
-    def chained_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
-        """Median device time (ms) of one frame's models run back to back on one stream and timed as one, without
-        and with the frame's upload and the results' download (empty off CUDA). Unlike the sum of the models timed
+    def chained_times(self, img: np.ndarray, n: int = 50, batch: int = 1) -> dict[str, float]:
+        """Median device time (ms) of one batch's models run back to back on one stream and timed as one, without
+        and with the frames' upload and the results' download (empty off CUDA). Unlike the sum of the models timed
         alone, each model here finds the caches as the one before it left them, as it does in the engine."""
         if self.device.type != "cuda":
             return {}
-        f = self._frame(img)
+        f = self._frame(img, batch)
         runs = list(f["parts"].values())
 
         def compute() -> None:
@@ -344,14 +347,15 @@ class InProcess:
         with self.torch.inference_mode():
             return {"compute": event_ms(compute, n), "with_transfers": event_ms(whole, n)}
 
-    def _frame(self, img: np.ndarray) -> dict[str, Any]:
-        """What the timings above replay, built once: ``parts`` (backbone, then each head: compiled executors replay
-        their CUDA graphs, eager ones are captured here if they can be), ``upload`` and ``download``."""
-        if self._frame_runs is not None:
-            return self._frame_runs
+    def _frame(self, img: np.ndarray, batch: int = 1) -> dict[str, Any]:
+        """What the timings above replay on a batch of ``batch`` copies of ``img``, built once a size: ``parts``
+        (backbone, then each head: compiled executors replay their CUDA graphs, eager ones are captured here if they
+        can be), ``upload`` and ``download``."""
+        if batch in self._frame_runs:
+            return self._frame_runs[batch]
         torch = self.torch
         with torch.inference_mode():
-            host = torch.from_numpy(img)[None].pin_memory()  # a batch of one frame
+            host = torch.from_numpy(np.stack([img] * batch)).pin_memory()
             x = torch.empty_like(host, device=self.device)
             x.copy_(host)
             feats = self.fm({"frame": x})
@@ -367,12 +371,12 @@ class InProcess:
                 if name != "foundation":
                     outs += [t for t in fn(inputs).values() if t.device.type == "cuda"]
             down = [torch.empty_like(t, device="cpu", pin_memory=True) for t in outs]
-        self._frame_runs = {
+        self._frame_runs[batch] = {
             "parts": parts,
             "upload": lambda: x.copy_(host, non_blocking=True),
             "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
         }
-        return self._frame_runs
+        return self._frame_runs[batch]
 
 
 def _graphed(fn: Any, inputs: dict[str, Any], torch: Any) -> Any:

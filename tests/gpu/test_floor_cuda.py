@@ -1,0 +1,50 @@
+"""The floor experiment's device times by batch size (``bench paper --experiments floor --floor-batches``) on CUDA:
+each model's device time and the models back to back, for batches of as many frames as an engine of that many
+cameras runs. Run on the GPU machine: ``pytest -m gpu tests/gpu/test_floor_cuda.py``."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from tests_paths import TINY
+from vpengine.bench.paper import floor
+from vpengine.bench.paper.harness import Bench, InProcess
+
+pytestmark = [
+    pytest.mark.gpu,
+    pytest.mark.timeout(600),
+    pytest.mark.usefixtures("require_cuda", "inductor_in_process"),
+]
+
+OVERRIDES = ["mode=thread", "device=cuda", "foundation_model.backend=compile", "heads.depth.backend=compile"]
+
+
+def test_the_floor_gives_each_batch_sizes_device_times_and_a_frames_share():
+    b = Bench.load(TINY, OVERRIDES, frames=5)
+    out = floor.run(b, b.images(2), ("depth", "seg"), (4, 1, 4))
+    assert sorted(out["by_batch"]) == ["1", "4"]  # each size once
+    for n, got in out["by_batch"].items():
+        assert set(got["device_ms"]) == {"foundation", "depth", "seg"}
+        assert all(v > 0 for v in got["device_ms"].values()), got
+        assert math.isclose(got["chained_ms_a_frame"], got["chained_ms"] / int(n))
+    assert out["floor_sum_ms"] > 0 and out["thread"]["n"] == 5  # the batch-of-one floor and the engines as before
+
+
+def test_a_batch_runs_each_frame_as_a_batch_of_one_does():
+    """The batch the floor times is the frame copied: the compiled foundation model's graph of 3 gives each copy
+    the features its graph of 1 gives the frame (what is timed is the models' real work at that size)."""
+    import torch
+
+    b = Bench.load(TINY, OVERRIDES, frames=1)
+    seq = InProcess(b, [b.head("depth", "depth")], max_batch=3)
+    img = b.images(1)[0]
+    with torch.inference_mode():
+        one = torch.from_numpy(img)[None].cuda()
+        alone = {k: v.clone() for k, v in seq.fm({"frame": one}).items()}
+        three = seq.fm({"frame": one.expand(3, *one.shape[1:]).contiguous()})
+    for k, v in alone.items():
+        for i in range(3):
+            assert torch.allclose(three[k][i : i + 1], v, rtol=1e-3, atol=1e-3), k
+    assert seq.device_times(img, n=5, batch=3)["foundation"] > 0

@@ -375,6 +375,27 @@ def test_a_model_that_cannot_be_captured_fails_at_warm_up_with_the_fix():
     torch.testing.assert_close(ex(x)["y"], x["x"] * 2 + (x["x"] * 2).max())
 
 
+def test_a_capture_out_of_device_memory_says_so_and_names_the_batch(monkeypatch):
+    """The largest batch is captured first, so it is where a full device shows: the error names that batch and
+    what to change, not a host sync."""
+
+    class _Full:
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            pass
+
+        def __enter__(self) -> None:
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
+
+        def __exit__(self, *exc: object) -> None:
+            return None
+
+    monkeypatch.setattr(torch.cuda, "graph", _Full)
+    with pytest.raises(
+        BackendError, match=r"(?s)capture \(batch of 3\) failed.*too little free memory for a batch of 3"
+    ):
+        make_executor(SmallHead().to(CUDA), "compile", CUDA, "user", max_batch=3)
+
+
 # ------------------------------------------------------------------------------------------ ONNX on CUDA
 def test_onnx_on_cuda_runs_on_the_cuda_provider_or_says_what_is_missing(tmp_path):
     import onnxruntime as ort

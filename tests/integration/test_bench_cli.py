@@ -172,6 +172,10 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     assert all(t["in_flight"] == 3 for t in res["throughput"])  # a file run's (Note [Frames in flight])
     assert all(set(t["frames_missing_a_head"]) == {"batched", "separate"} for t in res["throughput"])
+    for t in res["throughput"]:  # the batched engine's counts over the timed frames: every frame of every camera ran
+        counted = t["batched_engine_counted"]
+        assert set(counted) == {"foundation", "depth", "seg"}
+        assert counted["foundation"]["runs"] >= 3 * t["cameras"] and counted["foundation"]["skipped"] == 0, counted
     bad = cli("bench", "cameras", "-c", "tiny", "--set", "device=cpu", "--heads", "nope", "--out", str(tmp_path))
     assert bad.returncode != 0 and "--heads 'nope': the config's heads are depth, seg, det" in bad.stderr
 

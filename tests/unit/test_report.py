@@ -161,14 +161,14 @@ def test_a_floor_row_gives_the_three_floors_and_each_mode_over_the_summed_one(tm
 def test_a_floor_row_gives_a_frames_share_of_each_batch_size_measured(tmp_path):
     f = _floor()
     f["by_batch"] = {
-        "8": {"device_ms": {}, "chained_ms": 8.0, "chained_ms_a_frame": 1.0},
+        "16": {"device_ms": {}, "chained_ms": 16.0, "chained_ms_a_frame": 1.0},
         "1": {"device_ms": {}, "chained_ms": 1.8, "chained_ms_a_frame": 1.8},
-        "4": {"device_ms": {}, "chained_ms": 4.8, "chained_ms_a_frame": 1.2},
+        "2": {"device_ms": {}, "chained_ms": 2.4, "chained_ms_a_frame": 1.2},
     }
     _write(tmp_path, "paper_cuda_floor", "2026-01-01T00:00:00", floor=f)
     (row,) = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
     assert (
-        "1.80 ms back to back on one stream; a frame back to back in a batch of 1: 1.80 ms, 4: 1.20 ms, 8: 1.00 ms; "
+        "1.80 ms back to back on one stream; a frame back to back in a batch of 1: 1.80 ms, 2: 1.20 ms, 16: 1.00 ms; "
         "thread mode 3.00 ms submitted" in row
     )
 

@@ -22,7 +22,8 @@ robot process runs for days and must behave the same on frame 10 and frame 10 mi
   takes its outputs and intermediates out of the room the larger one's intermediates freed, so the pool holds about
   what the largest batch needs, not the sum over all sizes. (Captured smallest first, each graph's outputs, alive
   for good, split the pool where the next and larger one's intermediates had to go: on an H200 at 1080p, batches
-  1-4, the backbone's pool took 502 MB and the depth head's 718 MB, with one frame's peak 70 and 104 MB.)
+  1-4, the backbone's pool took 502 MiB and the depth head's 718 MiB, the depth head's batch of 4 alone 490 MiB.)
+  So a replay of the largest batch overwrites the outputs of every smaller one, which the contract allows.
 * No thread affinity. Graph trees keep per-thread state and assert when a graph recorded in one thread is replayed
   from another (pytorch/pytorch#123177); thread mode runs every model in its own thread. A CUDAGraph object can be
   replayed from any thread.
@@ -221,9 +222,8 @@ class CompiledExecutor(Executor):
         outs: dict[int, dict[str, torch.Tensor]] = {}
         first: torch.cuda.CUDAGraph | None = None
         with _CAPTURE_LOCK:
-            # What the pool takes: the segments reserved across the captures. A capture's pool only ever takes new
-            # segments, the warm-up's leftovers go back first (as each capture does), and nothing else allocates
-            # meanwhile (one build at a time, and serving workers allocate nothing: Invariant: constant memory).
+            # What the pool takes: the segments reserved across the captures (held_bytes). A capture's pool only
+            # ever takes new segments, and the warm-up's leftovers go back first (as each capture does).
             torch.cuda.empty_cache()
             before = torch.cuda.memory_reserved(self.device)
             # Largest batch first: the smaller graphs then fit in what its intermediates freed (Note [CUDA graphs]).
@@ -239,15 +239,26 @@ class CompiledExecutor(Executor):
                         outs[b] = self._run(static)
                 except Exception as e:
                     _reset_capture_state(self.device)
+                    if isinstance(e, torch.cuda.OutOfMemoryError):
+                        fix = (
+                            f"the device has too little free memory for a batch of {b} (one frame of each camera "
+                            "the model serves): fewer cameras, a smaller model or a lower precision"
+                        )
+                    else:
+                        fix = (
+                            "the model synchronises with the host or has data-dependent shapes (e.g. .item(), "
+                            "nonzero, NMS); set backend_options.cudagraphs: false to run it compiled without a graph"
+                        )
                     raise BackendError(
-                        f"{self.name}: CUDA graph capture (batch of {b}) failed: {_short(e)}. The model "
-                        "synchronises with the host or has data-dependent shapes (e.g. .item(), nonzero, NMS); set "
-                        "backend_options.cudagraphs: false to run it compiled without a graph"
+                        f"{self.name}: CUDA graph capture (batch of {b}) failed: {_short(e)}. {fix[0].upper()}{fix[1:]}"
                     ) from e
                 graphs[b] = graph
                 if first is None:
                     first = graph
-            self._pool_bytes = max(0, torch.cuda.memory_reserved(self.device) - before)
+            self._pool_bytes = torch.cuda.memory_reserved(self.device) - before
+            if self._pool_bytes < 0:  # another thread gave memory back meanwhile: no figure rather than a wrong one
+                log.warning("%s: its CUDA graphs' pool could not be measured; stats() leaves it out", self.name)
+                self._pool_bytes = 0
         cur.wait_stream(side)
         # The graphs read the weights (self.model), the static inputs and workspaces set up for the side stream in
         # place, and write the outputs into their pool: all of them must live as long as the graphs do.
@@ -255,9 +266,15 @@ class CompiledExecutor(Executor):
 
     def held_bytes(self) -> int:
         """The model's weights, the static inputs and the memory pool of its CUDA graphs (Note [CUDA graphs]): the
-        outputs of every batch size and the room the largest one's intermediates take, reserved for good. The pool
-        is measured when it is captured, not read from ``torch.cuda.memory_snapshot(mempool_id=...)``: in torch 2.11
-        that call crashed the process (a segmentation fault) once an earlier engine's graphs had been freed."""
+        outputs of every batch size and the room the largest one's intermediates take, reserved for good.
+
+        The pool is what the device's allocator reserved while the graphs were captured. Builds take turns (Note
+        [One build at a time]) and serving workers allocate nothing (Invariant: constant memory), so that is the
+        pool's alone, but for what another thread reserves meanwhile without the build lock: an eager model beside
+        it re-reserving the activations a capture's ``empty_cache`` gave back, another engine started side by
+        side. Then the figure is an upper bound. (``torch.cuda.memory_snapshot(mempool_id=...)`` would read the
+        pool exactly, but in torch 2.11 it crashed the process, a segmentation fault, as engines were started
+        after an earlier one's graphs were freed.)"""
         held = super().held_bytes()
         if self.device.type != "cuda":
             return held

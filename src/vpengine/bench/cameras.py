@@ -12,8 +12,11 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
   frames a camera and for ``--point-seconds`` at least: one engine with N cameras (batched) against N engines of one
   camera each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching
-  buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``). With one frame in flight a camera's next frame waited for its last one's every result, so one engine ran
-  its stages one batch after the other while N engines overlapped theirs: that measured latency, not throughput.
+  buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``);
+  the batched engine's counts over the point (``batched_engine_counted``: frames run, late for their batch, deferred,
+  run with another camera's) say how full its batches were. With one frame in flight a camera's next frame waited
+  for its last one's every result, so one engine ran its stages one batch after the other while N engines overlapped
+  theirs: that measured latency, not throughput.
 
 ::
 
@@ -127,10 +130,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "device_memory_bytes": memory,
         "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
-        "counted": {
-            m: {k: s[k] for k in ("runs", "skipped", "dropped", "late", "deferred", "batched")}
-            for m, s in st["models"].items()
-        },
+        "counted": _counted(st),
     }
     log(
         f"stream: {n} cameras at {fps:g} Hz, {len(whole)}/{submitted} frames through every head, "
@@ -199,6 +199,18 @@ def _all_cameras(
     return whole / (time.monotonic() - t), whole, sum(p.torn for p in pumps)
 
 
+COUNTED = ("runs", "skipped", "dropped", "late", "deferred", "batched")
+
+
+def _counted(stats: dict[str, Any], since: dict[str, Any] | None = None) -> dict[str, dict[str, int]]:
+    """Each model's frames run, skipped, dropped, late for their batch, deferred and run with another camera's
+    (Note [Cameras]), from ``stats()``; with ``since`` (an earlier ``_counted``), what was added after it."""
+    now = {m: {k: s[k] for k in COUNTED} for m, s in stats["models"].items()}
+    if since is None:
+        return now
+    return {m: {k: v - since.get(m, {}).get(k, 0) for k, v in c.items()} for m, c in now.items()}
+
+
 def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: float = 0.0) -> dict[str, Any]:
     """Frames per second through every head with a thread per camera, each keeping a file run's frames in flight
     (Note [Frames in flight]): one engine with ``n`` cameras (batched) against ``n`` one-camera engines side by
@@ -211,7 +223,9 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
     with engines([one]) as (eng,):
         cams = eng.cameras if n > 1 else [None]
         _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight, heads)
+        before = _counted(eng.stats())
         batched, _, batched_torn = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds, in_flight, heads)
+        counted = _counted(eng.stats(), since=before)  # how full its batches were: late, deferred, batched
     with engines([pipelined(_config(base, 1))[0] for _ in range(n)]) as es:
         _all_cameras([(e, None) for e in es], imgs, 5, 0.0, in_flight, heads)
         separate, _, separate_torn = _all_cameras([(e, None) for e in es], imgs, rounds, seconds, in_flight, heads)
@@ -231,6 +245,7 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         "separate_fps": separate,
         "ratio": batched / separate,
         "frames_missing_a_head": {"batched": batched_torn, "separate": separate_torn},
+        "batched_engine_counted": counted,
     }
 
 

@@ -110,10 +110,14 @@ def prepare_worker(
                 check_outputs(spec.name, model.output_spec, executor(model.example_inputs(device)))
                 keys = input_keys(spec, in_ring)
                 bound = executor.bind([{k: v[k] for k in keys} for v in in_ring.views], list(out_ring.views))
+            if handoff is not None and not inline_wanted(dev.cuda, bound):
+                handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]
+            # Its batch buffers under the lock too: another model's capture counts its graph pool by what the
+            # device reserved meanwhile (CompiledExecutor.held_bytes).
+            core = WorkerCore(
+                spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff
+            )
         dev.complete()
-    if handoff is not None and not inline_wanted(dev.cuda, bound):
-        handoff = WorkerHandoff(handoff.in_events, handoff.out_events, None)  # Note [Inline launch]
-    core = WorkerCore(spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff)
     # a process of its own: all it reserved is the model's; beside other models, what it holds alone
     try:
         held = dev.memory_bytes() if own_process and alone else executor.held_bytes() + core.buffer_bytes()

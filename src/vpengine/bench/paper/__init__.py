@@ -48,9 +48,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--floor-batches",
-        default="1",
-        help="batch sizes (frames of as many cameras) the floor's device times are also taken at, e.g. 1,4,8 "
-        "(default: %(default)s)",
+        default="",
+        help="batch sizes (frames of as many cameras) the floor's device times are also taken at on CUDA, e.g. "
+        "1,4,8: the models are then compiled and captured for every size up to the largest (default: none)",
     )
     p.add_argument(
         "--results",
@@ -107,7 +107,9 @@ def main(args: argparse.Namespace) -> int:
     ns = _counts(args.heads)
     e3_ns = tuple(_counts(args.e3_heads, "--e3-heads"))
     kinds = floor.check_kinds(tuple(k.strip() for k in args.floor_heads.split(",") if k.strip()))
-    floor_batches = floor.check_batches(tuple(_counts(args.floor_batches, "--floor-batches", "frame counts")))
+    floor_batches = (
+        tuple(_counts(args.floor_batches, "--floor-batches", "frame counts")) if args.floor_batches.strip() else ()
+    )
     b = Bench.load(args.config, args.overrides, args.frames, args.results == "copy")
     # what each experiment needs, checked before anything starts: a late refusal would waste the runs before it
     needs = {

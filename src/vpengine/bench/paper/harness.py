@@ -347,10 +347,22 @@ class InProcess:
         with self.torch.inference_mode():
             return {"compute": event_ms(compute, n), "with_transfers": event_ms(whole, n)}
 
+    def back_to_back_ms(self, img: np.ndarray, batch: int, n: int = 50) -> float:
+        """Median device time (ms) of a batch of ``batch`` copies of ``img`` through every model back to back on one
+        stream, no transfers (CUDA only)."""
+        runs = list(self._frame(img, batch)["parts"].values())
+
+        def compute() -> None:
+            for run in runs:
+                run()
+
+        with self.torch.inference_mode():
+            return event_ms(compute, n)
+
     def _frame(self, img: np.ndarray, batch: int = 1) -> dict[str, Any]:
         """What the timings above replay on a batch of ``batch`` copies of ``img``, built once a size: ``parts``
         (backbone, then each head: compiled executors replay their CUDA graphs, eager ones are captured here if they
-        can be), ``upload`` and ``download``."""
+        can be), ``upload`` and ``download``, and the device ``frames`` they read."""
         if batch in self._frame_runs:
             return self._frame_runs[batch]
         torch = self.torch
@@ -358,7 +370,8 @@ class InProcess:
             host = torch.from_numpy(np.stack([img] * batch)).pin_memory()
             x = torch.empty_like(host, device=self.device)
             x.copy_(host)
-            feats = self.fm({"frame": x})
+            # a copy: the foundation's outputs live in its graphs' pool, where a replay of another batch size writes
+            feats = {k: v.clone() for k, v in self.fm({"frame": x}).items()}
             parts: dict[str, Any] = {}
             outs = []
             for name, (fn, inputs) in {
@@ -372,6 +385,7 @@ class InProcess:
                     outs += [t for t in fn(inputs).values() if t.device.type == "cuda"]
             down = [torch.empty_like(t, device="cpu", pin_memory=True) for t in outs]
         self._frame_runs[batch] = {
+            "frames": x,
             "parts": parts,
             "upload": lambda: x.copy_(host, non_blocking=True),
             "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],

@@ -127,3 +127,48 @@ def test_a_deferred_frame_of_a_camera_paused_since_is_answered_and_let_go(worker
     core.poll_s = 0.01
     core._take()
     assert rear not in outputs() and entry("rear", "decided") == rear and entry("rear", "skipped") == 1
+
+
+def test_the_least_important_lane_as_priorities_are_now_is_the_one_deferred(worker):
+    """Note [Cameras] with Note [Give way]'s key: rear (last in the configured order) waits a batch while the
+    lanes are equal; once set_priority ranks rear above front, front's frame is the one that waits."""
+    core, submit, overloaded, outputs, entry = worker
+    front, _ = submit("front", 1.0), submit("rear", 2.0)
+    overloaded()
+    core._take()
+    assert outputs() == {front: 2.0} and entry("rear", "deferred") == 1
+    core._take()  # the deferred frame alone
+    rear_entry = core.lanes[1].entry
+    core.control.set(rear_entry, "priority", 5)  # as the governor writes a head's raised priority
+    front2, rear2 = submit("front", 3.0), submit("rear", 4.0)
+    overloaded()
+    core._take()
+    assert rear2 in outputs() and front2 not in outputs()
+    assert entry("front", "deferred") == 1 and entry("rear", "deferred") == 1
+    core._take()
+    assert outputs()[front2] == 6.0 and entry("front", "decided") == front2
+
+
+def test_a_cameras_priority_ranks_lanes_of_equal_head_priority(worker):
+    core, submit, overloaded, outputs, entry = worker
+    core.control.set(core.lanes[1].entry, "camera_priority", 2)  # rear's camera above front's
+    _, rear = submit("front", 1.0), submit("rear", 2.0)
+    overloaded()
+    core._take()
+    assert outputs() == {rear: 4.0} and entry("front", "deferred") == 1 and entry("rear", "deferred") == 0
+
+
+def test_the_same_lane_is_never_deferred_twice_in_a_row(worker):
+    core, submit, overloaded, outputs, entry = worker
+    submit("front", 1.0), submit("rear", 2.0)
+    overloaded()
+    core._take()  # rear deferred
+    core._take()  # rear's deferred frame alone: no choice to make
+    front, rear = submit("front", 3.0), submit("rear", 4.0)
+    overloaded()
+    core._take()  # rear waited the last time: both run
+    assert front in outputs() and rear in outputs() and entry("rear", "deferred") == 1
+    submit("front", 5.0), submit("rear", 6.0)
+    overloaded()
+    core._take()  # and then rear may wait again
+    assert entry("rear", "deferred") == 2

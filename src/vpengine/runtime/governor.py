@@ -34,9 +34,9 @@ The foundation model serves every camera: its lane of a camera is capped only wh
 is, at the highest of their caps, so it never runs below what its most important consumer needs. Nothing is capped
 while all priorities are equal (the default), so an engine without priorities behaves as before.
 A lane that misses because its own work is too slow for its claim takes every lower lane down to the floor to no
-avail: the floor bounds that cost. Camera priorities act through the caps only: inside one batch of a model, Note
-[Cameras]'s deferral still leaves the frame of the camera last in the configured order for the next batch, which is
-the order among cameras of equal priority.
+avail: the floor bounds that cost. Inside one batch of a model the same key decides: while the model cannot keep up,
+Note [Cameras]'s deferral leaves the least important lane's frame for the next batch (among equals, the camera last
+in the configured order), so a lane raised at run time is not the one that waits a batch.
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ cannot change under a running context).
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 from vpengine.config import EngineConfig
 
@@ -52,3 +53,12 @@ def mps_below_normal(cfg: EngineConfig, model: str) -> bool:
     if chosen is not None:
         return chosen == "below_normal"
     return _model_priority(cfg, model) < _model_priority(cfg, "foundation")
+
+
+def least_important(control: Any, entries: Sequence[str]) -> int:
+    """The index of the least important of ``entries`` (lanes' control-block entries) by their priority key as it
+    is now (head priority, then camera priority); among equals the last: the camera last in the configured order."""
+    return min(
+        range(len(entries)),
+        key=lambda i: (control.get(entries[i], "priority"), control.get(entries[i], "camera_priority"), -i),
+    )

@@ -35,13 +35,13 @@ other cameras whose next frame is due by then; a camera whose frame comes later 
 ``late``. The frames the gates admit (several: copied into preallocated batch buffers of one frame per lane; one: its
 slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model has a graph
 for every batch size up to its lanes), and each frame's outputs are copied into its own slot and published with its
-camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the camera
-last in the configured order leaves its frame for the next batch, counted ``deferred`` (never twice in a row, so no
-camera starves): the first cameras keep their rate and latency. The deferred frame stays pinned and unanswered, and runs
-in the next batch unless a newer frame of its camera is there by then and the model reads the newest (the deferred one
-is then skipped and answered; a fifo model runs it first). A deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it
-must never cost a frame on its own: a caller that waits for every frame (lockstep pacing) gets every output, only a
-batch later.
+camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the least
+important lane by priorities as they are now (runtime/priority.py; among equals the camera last in the configured
+order) leaves its frame for the next batch, counted ``deferred`` (never twice in a row, so no camera starves). The
+deferred frame stays pinned and unanswered, and runs in the next batch unless a newer frame of its camera is there by
+then and the model reads the newest (the deferred one is then skipped and answered; a fifo model runs it first). A
+deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it must never
+cost a frame on its own: a caller that waits for every frame (lockstep pacing) gets every output, a batch later.
 With one lane there is no window to wait and no frame to defer: each frame is a batch of one, which the foundation
 may also take from the submitting thread (Note [Inline launch]).
 
@@ -83,6 +83,7 @@ from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, Cont
 from vpengine.runtime.device import RESTREAM_S, DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff
 from vpengine.runtime.lanes import Lane
+from vpengine.runtime.priority import least_important
 from vpengine.runtime.rate import RateGate
 from vpengine.specs import SpecDict
 from vpengine.transport.ring import RingDesc, RingReader, SlotInfo, SlotRing
@@ -99,7 +100,7 @@ class WorkerSpec:
     config: dict[str, Any]  # EngineConfig.model_dump(mode="json")
     upstream: SpecDict
     upstream_meta: dict[str, Any]
-    lanes: tuple[Lane, ...]  # the cameras it serves, in priority order (Note [Lanes] in lanes.py)
+    lanes: tuple[Lane, ...]  # the cameras it serves, in the configured order (Note [Lanes] in lanes.py)
     in_ring: RingDesc
     out_ring: RingDesc
     notify_output: bool
@@ -118,7 +119,6 @@ class _Lane:
     gate: RateGate
     last_arrival: float = -math.inf  # when its last frame reached the engine (monotonic)
     interval: float = 0.0  # moving average of its frames' spacing (0: not known yet)
-    deferred: bool = False  # its last frame was left for a later batch (Note [Cameras])
 
     @property
     def tag(self) -> int:
@@ -162,7 +162,7 @@ class WorkerCore:
         self.name = spec.name
         self.model = model
         self.output_spec = output_spec
-        # Note [Cameras]: one lane per camera this model serves (Note [Lanes] in lanes.py), in priority order
+        # Note [Cameras]: one lane per camera this model serves (Note [Lanes] in lanes.py), in the configured order
         self.lanes = [_Lane(lane, in_ring.reader(lane.reader), RateGate()) for lane in spec.lanes]
         self._by_tag = {lane.tag: lane for lane in self.lanes}
         cfg = spec.engine_config()
@@ -192,6 +192,7 @@ class WorkerCore:
         self._spare: SlotInfo | None = None  # the output slot an armed worker offers
         self._batch_s = 0.0  # moving average of how long a batch takes (Note [Cameras])
         self._held: dict[int, SlotInfo] = {}  # lane tag -> its deferred frame, pinned, admitted (Note [Cameras])
+        self._deferred_tag: int | None = None  # the lane whose frame was deferred last (Note [Cameras])
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
         # A batch of one frame is its slot, viewed, where the model's device holds the input ring. Otherwise the
@@ -277,7 +278,7 @@ class WorkerCore:
             if len(pins) < len(active):
                 self._gather(active, pins)
             admitted = []
-            for lane in self.lanes:  # in priority order
+            for lane in self.lanes:  # in the configured order
                 slot = pins.get(lane.tag)
                 if slot is not None and lane.tag in held:  # deferred by the last batch: admitted then
                     admitted.append(slot)
@@ -329,21 +330,21 @@ class WorkerCore:
         return bool(pins)
 
     def _defer(self, admitted: list[SlotInfo]) -> list[SlotInfo]:
-        """Note [Cameras]: while the model cannot keep up, the last camera in priority order leaves its frame for
-        the next batch (counted deferred, kept pinned in ``_held``, not answered), never twice in a row."""
+        """Note [Cameras]: while the model cannot keep up, the least important lane as priorities are now leaves its
+        frame for the next batch (counted deferred, kept pinned in ``_held``, not answered), never twice in a row."""
         if len(admitted) < 2 or self._batch_s <= 0:
             return admitted
         intervals = [lane.interval for lane in self.lanes if lane.interval > 0]
         if not intervals or self._batch_s <= min(intervals):
             return admitted
-        last = self._by_tag[admitted[-1].tag]
-        if last.deferred:
-            last.deferred = False
+        i = least_important(self.control, [self._by_tag[slot.tag].entry for slot in admitted])
+        lane = self._by_tag[admitted[i].tag]
+        self._deferred_tag = None if lane.tag == self._deferred_tag else lane.tag
+        if self._deferred_tag is None:  # its frame waited a batch the last time: this one runs
             return admitted
-        last.deferred = True
-        self.control.add(last.entry, "deferred")
-        self._held[last.tag] = admitted[-1]
-        return admitted[:-1]
+        self.control.add(lane.entry, "deferred")
+        self._held[lane.tag] = admitted[i]
+        return admitted[:i] + admitted[i + 1 :]
 
     def _admit(self, slot: SlotInfo, rate: float | None) -> bool:
         """Whether the frame in ``slot`` runs, by the rate gate on the frame's own timestamp (``rate.py``); frames

@@ -285,8 +285,9 @@ class EngineConfig(_Strict):
     cameras: list[CameraConfig] = Field(
         default_factory=list,
         max_length=MAX_CAMERAS,
-        description="Several cameras on one engine, in priority order (when the GPU cannot keep up, the first waits "
-        "least); empty: one camera. Every camera's frames fit input.height x width.",
+        description="Several cameras on one engine (when the GPU cannot keep up, the least important lane waits "
+        "first: by its head's priority, then its camera's, then the camera last here); empty: one camera. Every "
+        "camera's frames fit input.height x width.",
     )
     foundation_model: FoundationModelConfig = Field(default_factory=FoundationModelConfig)  # type: ignore[arg-type]
     heads: list[HeadConfig] = Field(default_factory=list)
@@ -327,11 +328,11 @@ class EngineConfig(_Strict):
         return self
 
     def camera_names(self) -> list[str]:
-        """The cameras, in priority order: the configured ones, or the one camera ``camera``."""
+        """The cameras, in the configured order: the configured ones, or the one camera ``camera``."""
         return [c.name for c in self.cameras] or [DEFAULT_CAMERA]
 
     def model_cameras(self, model: str) -> list[str]:
-        """The cameras ``model`` (``foundation`` or a head) serves, in priority order."""
+        """The cameras ``model`` (``foundation`` or a head) serves, in the configured order."""
         wanted = None if model == "foundation" else self.head(model).cameras
         return [c for c in self.camera_names() if wanted is None or c in wanted]
 

@@ -51,7 +51,7 @@ def worker(request):
         return writer.publish(slot, int(value), now, now, tag=CAMERAS.index(camera))
 
     def overloaded() -> None:
-        """The model's last batches took longer than the cameras' frames come: it defers the last camera."""
+        """The model's last batches took longer than the cameras' frames come: it defers a frame."""
         core._batch_s = 1.0
         for lane in core.lanes:
             lane.interval = 0.01
@@ -139,7 +139,7 @@ def test_the_least_important_lane_as_priorities_are_now_is_the_one_deferred(work
     assert outputs() == {front: 2.0} and entry("rear", "deferred") == 1
     core._take()  # the deferred frame alone
     rear_entry = core.lanes[1].entry
-    core.control.set(rear_entry, "priority", 5)  # as the governor writes a head's raised priority
+    core.control.set(rear_entry, "priority", 5)  # the governor writes rear's most important head lane's here
     front2, rear2 = submit("front", 3.0), submit("rear", 4.0)
     overloaded()
     core._take()
@@ -172,3 +172,20 @@ def test_the_same_lane_is_never_deferred_twice_in_a_row(worker):
     overloaded()
     core._take()  # and then rear may wait again
     assert entry("rear", "deferred") == 2
+
+
+def test_a_deferred_frame_runs_while_a_lane_raised_above_it_since_defers_another(worker):
+    """The frame deferred stays first in line: it runs in the next batch even when the lane least important now
+    is another one, whose frame then waits instead."""
+    core, submit, overloaded, outputs, entry = worker
+    submit("front", 1.0)
+    rear = submit("rear", 2.0)
+    overloaded()
+    core._take()  # rear deferred
+    core.control.set(core.lanes[1].entry, "priority", 5)
+    front = submit("front", 3.0)
+    overloaded()
+    core._take()  # front (now the least important) waits; rear's held frame runs
+    assert outputs()[rear] == 4.0 and front not in outputs() and entry("front", "deferred") == 1
+    core._take()
+    assert outputs()[front] == 6.0 and entry("front", "skipped") == 0 and entry("rear", "skipped") == 0

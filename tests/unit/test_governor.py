@@ -14,7 +14,7 @@ from vpengine.config import ConfigError
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.governor import FLOOR_HZ, HOLD_S, SETTLE_S, Governor, LaneView, Policy
 from vpengine.runtime.lanes import make_lanes
-from vpengine.runtime.priority import least_important, mps_below_normal, stream_levels
+from vpengine.runtime.priority import mps_below_normal, stream_levels
 
 
 def view(entry, key, achieved, claim=30.0, p99=0.01, deadline=math.nan, span=1.0):
@@ -397,20 +397,4 @@ def test_the_governor_thread_sleeps_while_priorities_are_equal_and_set_priority_
         assert len(steps) <= n + 1  # equal again: asleep (one tick under way may end); ticking gives ~30
     finally:
         gov.stop()
-        control.close()
-
-
-def test_the_least_important_lane_is_ranked_head_first_then_camera_then_the_configured_order():
-    """Note [Cameras]' deferral picks it: the key as the control block holds it now."""
-    control = ControlBlock.create(["d@front", "d@rear", "s@front"])
-    entries = ["d@front", "d@rear", "s@front"]
-    try:
-        assert least_important(control, entries) == 2  # all equal: the last
-        control.set("s@front", "priority", 1)
-        assert least_important(control, entries) == 1  # among the equal rest, the last
-        control.set("d@front", "camera_priority", -1)
-        assert least_important(control, entries) == 0  # a camera below the other's
-        control.set("d@front", "priority", 2)
-        assert least_important(control, entries) == 1  # the head's priority first
-    finally:
         control.close()

@@ -371,13 +371,13 @@ class Engine:
 
     @property
     def cameras(self) -> list[str]:
-        """The cameras, in priority order (``cameras`` in the config; one named ``camera`` without)."""
+        """The cameras, in the configured order (``cameras`` in the config; one named ``camera`` without)."""
         return list(self.lanes.cameras)
 
     @property
     def lanes(self) -> Lanes:
         """Every (model, camera) pair: its camera's name and tag, its reader, its control-block entry (Note [Lanes]
-        in runtime/lanes.py). ``engine.lanes.of("depth")``: the lanes of head ``depth``, in priority order."""
+        in runtime/lanes.py). ``engine.lanes.of("depth")``: the lanes of head ``depth``, in the configured order."""
         return self.plan.lanes
 
     def _staging(self, size: tuple[int, int]) -> np.ndarray:

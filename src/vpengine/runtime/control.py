@@ -52,7 +52,7 @@ _FIELDS = [
     ("decided", "q"),
     ("last_run", "q"),
     # Note [Cameras] in worker.py: frames that came after their batch's window (run in the next batch) and frames
-    # a lower-priority camera left for a later batch while the model could not keep up, and frames that ran in one
+    # the least important lane left for a later batch while the model could not keep up, and frames that ran in one
     # model call with another camera's
     ("late", "q"),
     ("deferred", "q"),

@@ -55,7 +55,7 @@ from vpengine import checks
 from vpengine.config import EngineConfig
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.lanes import Lane, Lanes
-from vpengine.runtime.priority import stream_levels
+from vpengine.runtime.priority import priority_key, stream_levels
 
 log = logging.getLogger("vpengine.governor")
 
@@ -305,7 +305,7 @@ class Governor:
     def ranked(self) -> bool:
         """Whether the lanes' priorities differ, so that some may give way to others; else none is capped."""
         with self._lock:
-            keys = {(self.control.get(e, "priority"), self.control.get(e, "camera_priority")) for e in self._entries()}
+            keys = {priority_key(self.control, e) for e in self._entries()}
             return len(keys) > 1 or self.policy.throttling
 
     def _entries(self) -> list[str]:
@@ -338,7 +338,7 @@ class Governor:
             views.append(
                 LaneView(
                     entry=lane.entry,
-                    key=(ctl.get(lane.entry, "priority"), ctl.get(lane.entry, "camera_priority")),
+                    key=priority_key(ctl, lane.entry),
                     claim_hz=claim,
                     achieved_hz=achieved_rate(starts, now, span),
                     p99_s=float(np.percentile(e2e, 99)) if len(e2e) else math.nan,
@@ -406,11 +406,12 @@ class Governor:
         return [lane.entry for lane in self._heads if lane.camera == camera] + [self._foundation[camera]]
 
     def _refresh_foundation(self) -> None:
-        """The foundation model's lane of a camera shows the priority of its most important head lane there; every
-        lane shows its model's CUDA stream level."""
+        """The foundation model's lane of a camera shows the priority of its most important head lane there (the
+        lowest of all where no head serves that camera: its frames are the first the foundation defers, Note
+        [Cameras]); every lane shows its model's CUDA stream level."""
         for cam, entry in self._foundation.items():
             mine = [self.control.get(lane.entry, "priority") for lane in self._heads if lane.camera == cam]
-            self.control.set(entry, "priority", max(mine, default=0))
+            self.control.set(entry, "priority", max(mine, default=checks.MIN_PRIORITY))
         self._write_levels(self.lanes if self._seated is None else self._seated)
 
     def _write_levels(self, lanes: Lanes) -> None:

@@ -63,14 +63,14 @@ class Lanes:
     seats: tuple[str, ...] = ()
 
     def of(self, model: str) -> tuple[Lane, ...]:
-        """``model``'s lanes, in priority order; KeyError naming the models for an unknown one."""
+        """``model``'s lanes, in the configured order of their cameras; KeyError naming the models for an unknown one."""
         try:
             return self.by_model[model]
         except KeyError:
             raise KeyError(f"no model named {model!r}; models: {list(self.by_model)}") from None
 
     def served(self, model: str) -> list[str]:
-        """The cameras ``model`` serves, in priority order."""
+        """The cameras ``model`` serves, in the configured order."""
         return [lane.camera for lane in self.of(model)]
 
     def tag(self, camera: str | None) -> int:

@@ -20,9 +20,9 @@ cannot change under a running context).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Any
 
 from vpengine.config import EngineConfig
+from vpengine.runtime.control import ControlBlock
 
 
 def _model_priority(cfg: EngineConfig, model: str) -> int:
@@ -55,10 +55,12 @@ def mps_below_normal(cfg: EngineConfig, model: str) -> bool:
     return _model_priority(cfg, model) < _model_priority(cfg, "foundation")
 
 
-def least_important(control: Any, entries: Sequence[str]) -> int:
-    """The index of the least important of ``entries`` (lanes' control-block entries) by their priority key as it
-    is now (head priority, then camera priority); among equals the last: the camera last in the configured order."""
-    return min(
-        range(len(entries)),
-        key=lambda i: (control.get(entries[i], "priority"), control.get(entries[i], "camera_priority"), -i),
-    )
+def priority_key(control: ControlBlock, entry: str) -> tuple[int, int]:
+    """A lane's priority key as the control block holds it now: its head's priority, then its camera's."""
+    return int(control.get(entry, "priority")), int(control.get(entry, "camera_priority"))
+
+
+def least_important(control: ControlBlock, entries: Sequence[str]) -> int:
+    """The index of the least important of ``entries`` (lanes' control-block entries, in the configured order of
+    their cameras) by ``priority_key``; among equals the last: the camera last in the configured order."""
+    return min(range(len(entries)), key=lambda i: (*priority_key(control, entries[i]), -i))

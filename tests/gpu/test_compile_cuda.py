@@ -16,6 +16,7 @@ from helpers.frames import frame
 from helpers.models import SmallHead
 from tests_paths import tiny
 from vpengine.backends import BackendError, make_executor
+from vpengine.backends.base import tensor_bytes
 from vpengine.engine import Engine
 from vpengine.models.base import Model
 from vpengine.models.build import build_model
@@ -188,9 +189,7 @@ def test_the_graphs_of_every_batch_size_take_about_the_largest_ones_pool():
     )
     pools = {tuple(g.pool()) for g in ex._graphs.values()}
     assert len(pools) == 1  # one pool for every batch size
-    weights = sum(t.numel() * t.element_size() for t in [*ex.model.parameters(), *ex.model.buffers()])
-    static = sum(t.numel() * t.element_size() for t in ex._static[4].values())
-    shared = ex.held_bytes() - weights - static
+    shared = ex.held_bytes() - tensor_bytes([*ex.model.parameters(), *ex.model.buffers(), *ex._static[4].values()])
     torch.cuda.synchronize()
     torch.cuda.empty_cache()
     before = torch.cuda.memory_reserved()

@@ -234,9 +234,11 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         if batched_torn + separate_torn
         else ""
     )
+    f = counted.get("foundation", {})
     log(
         f"throughput, {n} cameras, {in_flight} frames a camera in flight: one engine {batched:.1f} frames/s, "
-        f"{n} engines {separate:.1f} frames/s{torn}"
+        f"{n} engines {separate:.1f} frames/s{torn}; the one engine's backbone: {f.get('runs', 0)} frames, "
+        f"{f.get('batched', 0)} with another camera's, {f.get('late', 0)} late, {f.get('deferred', 0)} deferred"
     )
     return {
         "cameras": n,

@@ -180,7 +180,7 @@ def test_replays_allocate_no_device_memory():
 def test_the_graphs_of_every_batch_size_take_about_the_largest_ones_pool():
     """Note [CUDA graphs]: the graphs of batches 1..4 of the depth head at 1080p (the shipped GPU config's, fp16)
     share a pool about as big as the batch of 4 alone needs, and held_bytes counts it. Captured smallest first they
-    took 1.5 times that."""
+    took far more (docs/benchmarks.md)."""
     from helpers import heads
 
     cfg = heads.head_config((1080, 1920), {"name": "depth", "model": "dav2_depth_s"}, device="cuda")

@@ -21,9 +21,9 @@ robot process runs for days and must behave the same on frame 10 and frame 10 mi
   constant memory). The largest batch is captured first: the pool grows to its peak once, and each smaller graph
   takes its outputs and intermediates out of the room the larger one's intermediates freed, so the pool holds about
   what the largest batch needs, not the sum over all sizes. (Captured smallest first, each graph's outputs, alive
-  for good, split the pool where the next and larger one's intermediates had to go: on an H200 at 1080p, batches
-  1-4, the backbone's pool took 502 MiB and the depth head's 718 MiB, the depth head's batch of 4 alone 490 MiB.)
-  So a replay of the largest batch overwrites the outputs of every smaller one, which the contract allows.
+  for good, split the pool where the next and larger one's intermediates had to go: about half as much again,
+  docs/benchmarks.md.) So a replay of the largest batch overwrites the outputs of every smaller one, which the
+  contract allows.
 * No thread affinity. Graph trees keep per-thread state and assert when a graph recorded in one thread is replayed
   from another (pytorch/pytorch#123177); thread mode runs every model in its own thread. A CUDAGraph object can be
   replayed from any thread.
@@ -239,18 +239,15 @@ class CompiledExecutor(Executor):
                         outs[b] = self._run(static)
                 except Exception as e:
                     _reset_capture_state(self.device)
-                    if isinstance(e, torch.cuda.OutOfMemoryError):
-                        fix = (
-                            f"the device has too little free memory for a batch of {b} (one frame of each camera "
-                            "the model serves): fewer cameras, a smaller model or a lower precision"
-                        )
-                    else:
-                        fix = (
-                            "the model synchronises with the host or has data-dependent shapes (e.g. .item(), "
-                            "nonzero, NMS); set backend_options.cudagraphs: false to run it compiled without a graph"
-                        )
+                    fix = (
+                        f"The device has too little free memory for a batch of {b} (one frame of each camera the "
+                        "model serves): fewer cameras, a smaller model or a lower precision"
+                        if isinstance(e, torch.cuda.OutOfMemoryError)
+                        else "The model synchronises with the host or has data-dependent shapes (e.g. .item(), "
+                        "nonzero, NMS); set backend_options.cudagraphs: false to run it compiled without a graph"
+                    )
                     raise BackendError(
-                        f"{self.name}: CUDA graph capture (batch of {b}) failed: {_short(e)}. {fix[0].upper()}{fix[1:]}"
+                        f"{self.name}: CUDA graph capture (batch of {b}) failed: {_short(e)}. {fix}"
                     ) from e
                 graphs[b] = graph
                 if first is None:

@@ -326,43 +326,32 @@ class InProcess:
         with self.torch.inference_mode():
             return {name: event_ms(f[name], n) for name in ("upload", "download")}
 
-    def chained_times(self, img: np.ndarray, n: int = 50, batch: int = 1) -> dict[str, float]:
-        """Median device time (ms) of one batch's models run back to back on one stream and timed as one, without
-        and with the frames' upload and the results' download (empty off CUDA). Unlike the sum of the models timed
+    def chained_times(self, img: np.ndarray, n: int = 50) -> dict[str, float]:
+        """Median device time (ms) of one frame's models run back to back on one stream and timed as one, without
+        and with the frame's upload and the results' download (empty off CUDA). Unlike the sum of the models timed
         alone, each model here finds the caches as the one before it left them, as it does in the engine."""
         if self.device.type != "cuda":
             return {}
-        f = self._frame(img, batch)
-        runs = list(f["parts"].values())
-
-        def compute() -> None:
-            for run in runs:
-                run()
+        f = self._frame(img)
 
         def whole() -> None:
             f["upload"]()
-            compute()
+            f["back_to_back"]()
             f["download"]()
 
         with self.torch.inference_mode():
-            return {"compute": event_ms(compute, n), "with_transfers": event_ms(whole, n)}
+            return {"compute": event_ms(f["back_to_back"], n), "with_transfers": event_ms(whole, n)}
 
     def back_to_back_ms(self, img: np.ndarray, batch: int, n: int = 50) -> float:
         """Median device time (ms) of a batch of ``batch`` copies of ``img`` through every model back to back on one
         stream, no transfers (CUDA only)."""
-        runs = list(self._frame(img, batch)["parts"].values())
-
-        def compute() -> None:
-            for run in runs:
-                run()
-
         with self.torch.inference_mode():
-            return event_ms(compute, n)
+            return event_ms(self._frame(img, batch)["back_to_back"], n)
 
     def _frame(self, img: np.ndarray, batch: int = 1) -> dict[str, Any]:
         """What the timings above replay on a batch of ``batch`` copies of ``img``, built once a size: ``parts``
         (backbone, then each head: compiled executors replay their CUDA graphs, eager ones are captured here if they
-        can be), ``upload`` and ``download``, and the device ``frames`` they read."""
+        can be) and all of them ``back_to_back``, ``upload`` and ``download``, and the device ``frames`` they read."""
         if batch in self._frame_runs:
             return self._frame_runs[batch]
         torch = self.torch
@@ -387,6 +376,7 @@ class InProcess:
         self._frame_runs[batch] = {
             "frames": x,
             "parts": parts,
+            "back_to_back": lambda: [run() for run in parts.values()],
             "upload": lambda: x.copy_(host, non_blocking=True),
             "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
         }

@@ -17,6 +17,7 @@ from helpers.models import SmallHead
 from tests_paths import tiny
 from vpengine.backends import BackendError, make_executor
 from vpengine.backends.base import tensor_bytes
+from vpengine.backends.compiled import CompiledExecutor
 from vpengine.engine import Engine
 from vpengine.models.base import Model
 from vpengine.models.build import build_model
@@ -374,6 +375,11 @@ def test_a_model_that_cannot_be_captured_fails_at_warm_up_with_the_fix():
     torch.testing.assert_close(ex(x)["y"], x["x"] * 2 + (x["x"] * 2).max())
 
 
+class _Doubling(SmallHead):
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {"y": inputs["x"] * 2}
+
+
 def test_a_capture_out_of_device_memory_says_so_and_names_the_batch(monkeypatch):
     """The largest batch is captured first, so it is where a full device shows: the error names that batch and
     what to change, not a host sync."""
@@ -388,11 +394,17 @@ def test_a_capture_out_of_device_memory_says_so_and_names_the_batch(monkeypatch)
         def __exit__(self, *exc: object) -> None:
             return None
 
-    monkeypatch.setattr(torch.cuda, "graph", _Full)
+    compile_first = CompiledExecutor._compile
+
+    def compile_then_fill(self: CompiledExecutor) -> None:
+        compile_first(self)  # the device fills once the model has compiled, as it would at capture
+        monkeypatch.setattr(torch.cuda, "graph", _Full)
+
+    monkeypatch.setattr(CompiledExecutor, "_compile", compile_then_fill)
     with pytest.raises(
         BackendError, match=r"(?s)capture \(batch of 3\) failed.*too little free memory for a batch of 3"
     ):
-        make_executor(SmallHead().to(CUDA), "compile", CUDA, "user", max_batch=3)
+        make_executor(_Doubling().to(CUDA), "compile", CUDA, "user", max_batch=3)
 
 
 # ------------------------------------------------------------------------------------------ ONNX on CUDA

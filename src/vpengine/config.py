@@ -223,7 +223,9 @@ class RuntimeConfig(_Strict):
         300.0,
         gt=0,
         le=86400,
-        description="How long a worker may take to load and warm up, and a build may wait for another in its process.",
+        description="How long a worker's load and warm-up may go without progress (each batch size compiled or "
+        "graph captured is progress) before the start gives up, and a build may wait for another in its process "
+        "that makes none.",
     )
     stop_timeout_s: float = Field(3.0, gt=0, le=600, description="Grace time at stop before workers are terminated.")
     max_restarts: int = Field(

@@ -187,6 +187,29 @@ def test_compile_fullgraph_refuses_graph_breaks_and_false_runs_them():
     torch.testing.assert_close(ex(x)["y"], torch.relu(x["x"] * 2) + 1)
 
 
+class _Doubling(SmallHead):
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {"y": inputs["x"] * 2}
+
+
+def test_compile_reports_each_batch_size_as_a_step_of_its_set_up():
+    """Note [Start progress]: a start waits while a compile makes progress; on the CPU (no CUDA graphs) each batch
+    size compiled is a step (on CUDA each graph captured is one more: tests/gpu)."""
+    steps: list[tuple[int, int]] = []
+    ex = make_executor(
+        _Doubling(),
+        "compile",
+        CPU,
+        "user",
+        options={"compiler": "eager"},
+        max_batch=3,
+        progress=lambda *s: steps.append(s),
+    )
+    assert steps == [(1, 3), (2, 3), (3, 3)]
+    x = {"x": torch.randn(2, 4, 8)}
+    torch.testing.assert_close(ex(x)["y"], x["x"] * 2)
+
+
 # ------------------------------------------------------------------------------------------ bad names and options
 def test_unknown_backend_is_refused_naming_the_accepted_ones():
     with pytest.raises(BackendError, match=r"depth: unknown backend 'tensorrt'; accepted: 'eager', 'compile', 'onnx'"):

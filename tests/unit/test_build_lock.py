@@ -1,6 +1,6 @@
 """Note [One build at a time]: the process's build lock is held until a build returns, so nobody waits for it
-blindly: a waiter gives up once it is no longer wanted or after its timeout, and the error and the log name the
-holder."""
+blindly: a waiter gives up once it is no longer wanted or once the holder has made no progress for its timeout, and
+the error and the log name the holder."""
 
 from __future__ import annotations
 
@@ -32,8 +32,53 @@ def test_a_waiter_past_its_timeout_fails_naming_the_holder(busy):
     assert time.monotonic() - t < 5
     text = str(e.value)
     assert "model 'depth'" in text and "model 'slow'" in text and "'builder'" in text
-    assert "past runtime.ready_timeout_s = 0.5 s" in text
+    assert "no progress for runtime.ready_timeout_s = 0.5 s" in text
     assert not isinstance(e.value, ValueError)  # not the config's fault: a busy process
+
+
+def test_a_waiter_waits_while_the_holder_makes_progress():
+    """Note [Start progress]: a holder compiling step after step is slow, not stuck; the timeout counts from its
+    last step (another thread's steps count for nothing), and once the steps stop the waiter gives up."""
+    lock, stepping_for = BuildLock(), 1.5
+    entered, release = threading.Event(), threading.Event()
+
+    def build() -> None:
+        with lock.held("model 'slow'", 5):
+            entered.set()
+            until = time.monotonic() + stepping_for
+            while time.monotonic() < until:
+                lock.step()
+                time.sleep(0.1)
+            release.wait(30)
+
+    threading.Thread(target=build, name="builder", daemon=True).start()
+    assert entered.wait(10)
+    t = time.monotonic()
+    try:
+        with pytest.raises(BuildLockTimeout) as e, lock.held("model 'depth'", 0.5):
+            pass
+    finally:
+        release.set()
+    waited = time.monotonic() - t
+    assert stepping_for + 0.3 <= waited < stepping_for + 5, waited  # three timeouts in while it stepped
+    assert "made no progress for runtime.ready_timeout_s = 0.5 s" in str(e.value)
+
+
+def test_a_step_by_another_thread_does_not_hold_a_waiter(busy):
+    t = time.monotonic()
+    stop = threading.Event()
+
+    def steps() -> None:
+        while not stop.wait(0.05):
+            busy.step()  # not the holder
+
+    threading.Thread(target=steps, daemon=True).start()
+    try:
+        with pytest.raises(BuildLockTimeout), busy.held("model 'depth'", 0.5):
+            pass
+    finally:
+        stop.set()
+    assert time.monotonic() - t < 5
 
 
 def test_a_waiter_no_longer_wanted_leaves_without_building(busy):

@@ -15,7 +15,7 @@ Backends are imported lazily, so onnxruntime is only needed by models that use i
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -47,13 +47,15 @@ def make_executor(
     precision: str = "fp32",
     cache_dir: str | Path | None = None,
     max_batch: int = 1,
+    progress: Callable[[int, int], None] | None = None,
 ) -> Executor:
     """The executor that runs ``model`` (built on ``device``, in eval mode) with ``backend``.
 
     ``options`` are the model's ``backend_options``, ``precision`` its fp32/fp16/bf16 setting, ``cache_dir`` a
     cache folder (ONNX exports go to its ``onnx`` subfolder, compile caches to its ``compile`` subfolder: Note
     [Compile cache key] in ``compile_cache.py``; None: the checkpoint cache, ``catalog.cache_dir()``),
-    ``max_batch`` the most frames one call computes (Note [Executor contract] in ``base.py``).
+    ``max_batch`` the most frames one call computes (Note [Executor contract] in ``base.py``), ``progress`` called
+    with (steps done, steps in all) as a long set-up goes (Note [Start progress] in ``runtime/supervisor.py``).
     Compilation, export and CUDA graph capture (for every batch size up to ``max_batch``) happen here. The eager
     and compile backends cast ``model`` to the precision in place and keep it; the onnx backend leaves it untouched
     and does not keep it.
@@ -65,4 +67,4 @@ def make_executor(
     module, cls = _EXECUTORS[backend]
     executor: type[Executor] = getattr(importlib.import_module(module), cls)
     root = Path(cache_dir).expanduser() if cache_dir else catalog_cache_dir()
-    return executor(model, device, precision, name, opts, max_batch, root)
+    return executor(model, device, precision, name, opts, max_batch, root, progress)

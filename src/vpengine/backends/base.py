@@ -133,8 +133,11 @@ class Executor(abc.ABC):
         opts: BackendOptions | None,
         max_batch: int,
         cache_dir: Path,
+        progress: Callable[[int, int], None] | None = None,
     ) -> None:
         self.name = name
+        # (steps done, steps in all) after each step of a long set-up: Note [Start progress] in supervisor.py
+        self.progress: Callable[[int, int], None] = progress or (lambda done, total: None)
         self.device = resolve_device(device)
         self.precision = precision
         self.dtype = precision_dtype(precision, name)

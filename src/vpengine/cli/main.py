@@ -83,6 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    if level > logging.INFO:  # a start that takes long says where it is (Note [Start progress])
+        logging.getLogger("vpengine.start").setLevel(logging.INFO)
     try:
         return int(importlib.import_module(args._module).main(args) or 0)
     except KeyboardInterrupt:

@@ -32,8 +32,10 @@ log = logging.getLogger(__name__)
 #
 # A build cannot be interrupted, so the lock is held until the build returns, even when nobody waits for it any more
 # (a stop or a failed add_head abandons a thread-mode build) or never (a user's constructor that hangs). So nobody
-# waits for it blindly: a waiter gives up when its engine stops waiting (``cancelled``) and after its config's
-# ``runtime.ready_timeout_s``, and both that error and a log line after WAIT_LOG_S of waiting name the holder.
+# waits for it blindly: a waiter gives up when its engine stops waiting (``cancelled``) and once the holder has made
+# no progress (``step``: Note [Start progress] in runtime/supervisor.py) for its config's ``runtime.ready_timeout_s``
+# (a holder compiling batch size after batch size is slow, not stuck), and both that error and a log line after
+# WAIT_LOG_S of waiting name the holder.
 
 WAIT_LOG_S = 5.0  # a wait this long is worth a line in the log: a start looks stuck otherwise
 
@@ -53,6 +55,8 @@ class BuildLock:
     def __init__(self) -> None:
         self._lock = threading.Lock()
         self._holder: tuple[str, str, float] | None = None  # (what builds, its thread's name, since: monotonic)
+        self._stepped = 0.0  # when the holder took the lock or last made progress (monotonic)
+        self._owner: int | None = None  # the holder's thread
 
     def holder(self) -> str | None:
         """Who holds the lock now, in words; None when nobody does."""
@@ -62,23 +66,31 @@ class BuildLock:
         what, thread, since = h
         return f"{what} (thread {thread!r}, for {time.monotonic() - since:.1f} s)"
 
+    def step(self) -> None:
+        """Called by the holder, it made progress: a waiter's ``timeout`` counts from now (from anyone else:
+        nothing)."""
+        if self._owner == threading.get_ident():
+            self._stepped = time.monotonic()
+
     @contextlib.contextmanager
     def held(self, what: str, timeout: float, cancelled: Callable[[], bool] | None = None) -> Iterator[None]:
-        """Hold the lock while building ``what``; wait at most ``timeout`` s for it, and not once ``cancelled()``
-        (then ``BuildCancelled``, also when the lock was free: a build nobody wants does not take the lock)."""
+        """Hold the lock while building ``what``; wait for it while the holder makes progress, at most ``timeout``
+        s since its last step (or since this wait began), and not once ``cancelled()`` (then ``BuildCancelled``,
+        also when the lock was free: a build nobody wants does not take the lock)."""
         unwanted = cancelled or (lambda: False)
         start = time.monotonic()
         logged = False
         while not self._lock.acquire(timeout=0.25):
-            waited = time.monotonic() - start
+            now = time.monotonic()
+            waited = now - start
             if unwanted():
                 raise BuildCancelled(f"{what}: no longer wanted while waiting to build")
-            if waited >= timeout:
+            if now - max(start, self._stepped) >= timeout:
                 raise BuildLockTimeout(
-                    f"{what}: waited {waited:.1f} s, past runtime.ready_timeout_s = {timeout:g} s, to build while "
-                    f"{self.holder() or 'another build'} built; one model builds at a time in a process (Note [One "
-                    "build at a time]), and a build holds its turn until it returns, even one a stopped engine left "
-                    "behind"
+                    f"{what}: waited {waited:.1f} s to build while {self.holder() or 'another build'} built, which "
+                    f"made no progress for runtime.ready_timeout_s = {timeout:g} s; one model builds at a time in a "
+                    "process (Note [One build at a time]), and a build holds its turn until it returns, even one a "
+                    "stopped engine left behind"
                 )
             if not logged and waited >= WAIT_LOG_S:
                 log.info("%s waits to build: %s is building (one model at a time in a process)", what, self.holder())
@@ -87,9 +99,11 @@ class BuildLock:
             if unwanted():
                 raise BuildCancelled(f"{what}: no longer wanted when its turn to build came")
             self._holder = (what, threading.current_thread().name, time.monotonic())
+            self._owner = threading.get_ident()
+            self.step()
             yield
         finally:
-            self._holder = None
+            self._holder = self._owner = None
             self._lock.release()
 
 

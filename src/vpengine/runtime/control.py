@@ -58,7 +58,10 @@ _FIELDS = [
     ("deferred", "q"),
     ("batched", "q"),
     ("target_hz", "d"),  # NaN: unlimited
-    ("heartbeat", "d"),  # time.monotonic() of the last loop iteration
+    ("heartbeat", "d"),  # time.monotonic() of the last loop iteration; while loading, of the build's last step
+    # Note [Start progress] in supervisor.py: the steps of the model's build done and to do (0, 0: not counted)
+    ("build_done", "q"),
+    ("build_total", "q"),
     ("started_at", "d"),
     ("device_mem_bytes", "d"),
     # Note [Give way] in governor.py: the lane's priority (its head's; the foundation's: its most important

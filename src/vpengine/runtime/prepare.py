@@ -70,6 +70,14 @@ def prepare_worker(
         torch.set_num_threads(mcfg.cpu_threads)
     control.set_state(spec.name, LOADING)
     control.set(spec.name, "pid", os.getpid())
+
+    def step(done: int, total: int) -> None:  # Note [Start progress] in supervisor.py
+        control.set(spec.name, "build_done", done)
+        control.set(spec.name, "build_total", total)
+        control.heartbeat(spec.name)
+        build_lock.step()
+
+    step(0, 0)
     # the governor wrote it before any worker starts (Note [Stream priority at run time] in device.py)
     dev = DeviceContext(device, priority=int(control.get(spec.lanes[0].entry, "stream_level")))
     if dev.cuda:
@@ -103,6 +111,7 @@ def prepare_worker(
                 options=mcfg.backend_options,
                 precision=mcfg.precision or cfg.precision,
                 max_batch=len(spec.lanes),  # Note [Cameras]: a frame of each camera at once
+                progress=step,
             )
             # Warm-up on random inputs: first-run allocations, autotuning and compilation all happen before READY,
             # so the steady state allocates nothing (Invariant: constant memory).

@@ -58,8 +58,10 @@ Note [Child lifecycle]
   and its workers, dead with an unknown exit code or killed with it, are restarted from a new one. A death is
   handled by ``Runner._on_exit``.
 * ``start`` waits for the zygote at most ``runtime.ready_timeout_s``, for each fork's answer at most 30 s
-  (milliseconds in practice; a zygote that does not answer is killed), then for READY at most
-  ``runtime.ready_timeout_s``: at most 2 x ``ready_timeout_s`` + 30 s per worker, plus ``stop``'s bound when it fails.
+  (milliseconds in practice; a zygote that does not answer is killed), then for READY while the workers' builds
+  make progress, at most ``runtime.ready_timeout_s`` after the last step (Note [Start progress] in supervisor.py): a
+  hang ends the start within 2 x ``ready_timeout_s`` + 30 s per worker past the builds' last step, plus ``stop``'s
+  bound.
 * ``stop`` asks politely (stop flag + message) and waits ``runtime.stop_timeout_s``, then SIGTERM and 2 s, then
   SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
   its reader thread 4 s; then the monitor thread 2 s: at most ``stop_timeout_s`` + 13.5 s (7.5 s more for each older
@@ -109,7 +111,7 @@ from vpengine.runtime.sockets import (
     start_with_socket,
 )
 from vpengine.runtime.sockets import recv_fds as recv_fds  # where tools and tests have always found it
-from vpengine.runtime.supervisor import Runner
+from vpengine.runtime.supervisor import Runner, StartWait
 from vpengine.runtime.zygote import worker_path
 from vpengine.runtime.zygote_handle import WorkerProc, Zygote, describe_exit
 from vpengine.transport.ring import RingDesc
@@ -319,15 +321,15 @@ class ProcessRunner(Runner):
         for name in self.specs:
             if name not in self._children:  # the first of a group starts its process
                 self._launch(name)
-        deadline = time.monotonic() + self.cfg.runtime.ready_timeout_s
         waiting = self._processes()
+        waited = StartWait(self.control, list(self.specs), self.cfg.runtime.ready_timeout_s, "starting")
         errors: list[str] = []
         while waiting:
-            remaining = deadline - time.monotonic()
+            remaining = waited.remaining([n for ch in waiting for n in ch.names])  # Note [Start progress]
             if remaining <= 0:
                 self._not_ready({n for ch in waiting for n in ch.names})
             objs: list[Any] = [self._wake_r, *(ch.conn for ch in waiting if not ch.eof)]
-            if self._wake_r in wait(objs, timeout=remaining):
+            if self._wake_r in wait(objs, timeout=min(remaining, POLL_S)):
                 os.read(self._wake_r, 4096)
             for ch in list(waiting):
                 ch.drain()

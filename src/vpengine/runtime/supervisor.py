@@ -6,6 +6,18 @@ it left half-written in its output ring, so the models next to it never block, a
 never finished as dropped; then it restarts the worker after a backoff that doubles with each restart in the last
 ``RESTART_WINDOW_S`` (a minute). A worker restarted ``runtime.max_restarts`` times within that window is in a crash
 loop: it is marked ``failed`` in ``stats()`` and the rest of the engine goes on without it.
+
+Note [Start progress]
+~~~~~~~~~~~~~~~~~~~~~
+A first start compiles each model for every batch size up to its cameras and captures a CUDA graph for each: with
+eight cameras, minutes (in thread mode one model after another, Note [One build at a time] in models/build.py). A
+fixed deadline either fails a start that is only slow or waits as long for one that hangs. So a building worker
+reports each step (the load begun, each batch size compiled, each graph captured: ``Executor.progress``) in its
+control-block entry, ``build_done`` of ``build_total`` and its heartbeat, and ``start`` (and ``add_head``) give up
+after ``runtime.ready_timeout_s`` *without a step* by any worker still loading: in thread mode the others wait for
+the build lock behind the one that builds, so its steps are theirs, and a waiter for the build lock likewise waits
+while the holder steps. A hang (no step for ``ready_timeout_s``) still ends the start, with the error naming who was
+not ready. Meanwhile the logger ``vpengine.start`` says every ``PROGRESS_S`` where each model is (the CLI shows it).
 """
 
 from __future__ import annotations
@@ -21,7 +33,7 @@ from pathlib import Path
 from typing import NoReturn
 
 from vpengine.config import EngineConfig
-from vpengine.runtime.control import FAILED, RESTARTING, STOPPED, ControlBlock
+from vpengine.runtime.control import FAILED, POLL_S, RESTARTING, STOPPED, ControlBlock
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotRing
 
@@ -31,6 +43,9 @@ log = logging.getLogger("vpengine.supervisor")
 RESTART_BACKOFF_S = 0.5
 #: The longest wait before a restart.
 RESTART_BACKOFF_MAX_S = 10.0
+#: How often a start that waits says where each model is (Note [Start progress]).
+PROGRESS_S = 10.0
+progress_log = logging.getLogger("vpengine.start")
 #: How long a restart counts against ``runtime.max_restarts`` (and doubles the next delay): a worker that fails now
 #: and then is restarted every time, one in a crash loop is marked failed.
 RESTART_WINDOW_S = 60.0
@@ -61,6 +76,44 @@ def log_to_file(path: str, level: str, source: str) -> logging.Handler:
         logger.setLevel(handler.level)
     logger.addHandler(handler)
     return handler
+
+
+class StartWait:
+    """Note [Start progress]: when a wait for models to be ready gives up, and what it says meanwhile. ``what``:
+    the wait, in words ("starting", "adding 'det'")."""
+
+    def __init__(self, control: ControlBlock, names: list[str], limit: float, what: str) -> None:
+        self.control, self.names, self.limit, self.what = control, names, limit, what
+        self.t0 = self._said = self._done_at = time.monotonic()
+        self._left = len(names)
+
+    def remaining(self, waiting: list[str]) -> float:
+        """Seconds left before the wait for ``waiting`` gives up (0: now): ``limit`` after the last step of any of
+        them, the last time one of the others became ready (those behind it in the build lock's queue start then),
+        or the wait's start. Says where each model is when ``PROGRESS_S`` has passed since it last did."""
+        now = time.monotonic()
+        if len(waiting) < self._left:
+            self._left, self._done_at = len(waiting), now
+        last = max([self._done_at, *(self.control.get(n, "heartbeat") for n in waiting)])
+        if now - self._said >= PROGRESS_S:
+            self._said = now
+            progress_log.info("%s", self.describe(now))
+        return max(0.0, last + self.limit - now)
+
+    def describe(self, now: float) -> str:
+        parts, counted = [], False
+        for name in self.names:
+            state = self.control.state(name)
+            done, total = self.control.get(name, "build_done"), self.control.get(name, "build_total")
+            counted |= total > 0
+            if state in ("ready", "running", "paused"):
+                parts.append(f"{name} ready")
+            elif state == "loading" and total > 0:
+                parts.append(f"{name} {done} of {total} steps")
+            else:
+                parts.append(f"{name} {state}")
+        note = " (a first start compiles each batch size; later starts read the compile cache)" if counted else ""
+        return f"{self.what}, {now - self.t0:.0f} s: {', '.join(parts)}{note}"
 
 
 class Runner(ABC):
@@ -128,13 +181,18 @@ class Runner(ABC):
                 done[1].append(f"{name}: {e}")
                 done[0].set()
         limit = self.cfg.runtime.ready_timeout_s
-        ready = done[0].wait(limit)
+        waited = StartWait(self.control, [name], limit, f"adding {name!r}")
+        while not done[0].wait(min(waited.remaining([name]), POLL_S)) and waited.remaining([name]) > 0:
+            pass
+        ready = done[0].is_set()
         with self._lock:  # the monitor reports under the lock: nothing it heard is lost between here and there
             self._adding.pop(name, None)
             errors = (
                 list(done[1])
                 if ready
-                else [f"{name} was not ready within {limit} s (runtime.ready_timeout_s){self.build_lock_note()}"]
+                else [
+                    f"{name} was not ready: no progress for {limit} s (runtime.ready_timeout_s){self.build_lock_note()}"
+                ]
             )
             stopping = self._stopping
         if stopping:
@@ -186,11 +244,12 @@ class Runner(ABC):
         self._monitor.start()
 
     def _not_ready(self, waiting: set[str]) -> NoReturn:
-        """``start`` waited past ``runtime.ready_timeout_s`` for ``waiting``: stop every worker and raise."""
+        """``start`` waited for ``waiting`` past ``runtime.ready_timeout_s`` without a step of their builds (Note
+        [Start progress]): stop every worker and raise."""
         note = self.build_lock_note()
         self.stop()
         raise EngineStartError(
-            f"workers {sorted(waiting)} were not ready within {self.cfg.runtime.ready_timeout_s} s "
+            f"workers {sorted(waiting)} were not ready: no progress for {self.cfg.runtime.ready_timeout_s} s "
             f"(runtime.ready_timeout_s){note}"
         )
 

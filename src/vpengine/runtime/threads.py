@@ -68,7 +68,7 @@ from vpengine.models.build import build_lock
 from vpengine.runtime.control import HUNG, POLL_S, STOPPED
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.prepare import prepare_worker
-from vpengine.runtime.supervisor import Runner
+from vpengine.runtime.supervisor import Runner, StartWait
 from vpengine.runtime.worker import describe_exception
 
 log = logging.getLogger("vpengine.threads")
@@ -238,13 +238,16 @@ class ThreadRunner(Runner):
         for name in self.specs:
             self._launch(name)
         waiting = set(self.specs)
-        deadline = time.monotonic() + self.cfg.runtime.ready_timeout_s
+        waited = StartWait(self.control, list(self.specs), self.cfg.runtime.ready_timeout_s, "starting")
         errors = []
         while waiting:
-            try:
-                name, kind, text, _ = self._events.get(timeout=max(0.0, deadline - time.monotonic()))
-            except queue.Empty:
+            left = waited.remaining(list(waiting))  # Note [Start progress]
+            if left <= 0:
                 self._not_ready(waiting)
+            try:
+                name, kind, text, _ = self._events.get(timeout=min(left, POLL_S))
+            except queue.Empty:
+                continue
             waiting.discard(name)
             if kind != "ready":
                 errors.append(text or f"{name} exited during start-up")

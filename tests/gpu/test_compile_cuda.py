@@ -381,10 +381,10 @@ class _Doubling(SmallHead):
 
 
 def test_compile_and_capture_report_each_batch_size_as_steps():
-    """Note [Start progress]: each batch size compiled, then each graph captured, is a step of the set-up."""
+    """Note [Start progress]: each batch size run (twice), then each graph captured, is a step of the set-up."""
     steps: list[tuple[int, int]] = []
     make_executor(_Doubling().to(CUDA), "compile", CUDA, "user", max_batch=3, progress=lambda *s: steps.append(s))
-    assert steps == [(i, 6) for i in range(1, 7)]
+    assert steps == [(i, 9) for i in range(1, 10)]
 
 
 def test_a_capture_out_of_device_memory_says_so_and_names_the_batch(monkeypatch):

@@ -195,14 +195,13 @@ class CompiledExecutor(Executor):
         # Every size runs twice: a model that fills a cache on its first call (torchvision's anchor generator) is
         # compiled for the filled cache here too, not in the middle of a stream.
         limit = torch._dynamo.config.recompile_limit + 2 * self.max_batch
-        steps = self.max_batch * (2 if self.cudagraphs else 1)  # each size compiled (and captured)
+        steps = self.max_batch * (3 if self.cudagraphs else 2)  # each size run twice (and captured)
         try:
             with torch._dynamo.config.patch(recompile_limit=limit), torch.inference_mode():
                 for again in range(2):
                     for b, static in self._static.items():
                         self._run(static)
-                        if not again:
-                            self.progress(b, steps)
+                        self.progress(again * self.max_batch + b, steps)
         except Exception as e:
             hint = (
                 "; backend_options.fullgraph: false runs graph breaks eagerly"
@@ -255,7 +254,7 @@ class CompiledExecutor(Executor):
                 graphs[b] = graph
                 if first is None:
                     first = graph
-                self.progress(self.max_batch + len(graphs), 2 * self.max_batch)
+                self.progress(2 * self.max_batch + len(graphs), 3 * self.max_batch)
             self._pool_bytes = torch.cuda.memory_reserved(self.device) - before
             if self._pool_bytes < 0:  # another thread gave memory back meanwhile: no figure rather than a wrong one
                 log.warning("%s: its CUDA graphs' pool could not be measured; stats() leaves it out", self.name)

@@ -66,6 +66,11 @@ class BuildLock:
         what, thread, since = h
         return f"{what} (thread {thread!r}, for {time.monotonic() - since:.1f} s)"
 
+    @property
+    def stepped(self) -> float:
+        """When the holder took the lock or last made progress (monotonic; 0: never)."""
+        return self._stepped
+
     def step(self) -> None:
         """Called by the holder, it made progress: a waiter's ``timeout`` counts from now (from anyone else:
         nothing)."""
@@ -127,8 +132,8 @@ def build_model(
 ) -> Model:
     """Build one recipe. With ``plan_only`` it lands on the meta device with no weights (for planning).
 
-    Note [One build at a time]: waits for the process's build lock at most the config's ``runtime.ready_timeout_s``,
-    and not once ``cancelled()``.
+    Note [One build at a time]: waits for the process's build lock while its holder makes progress, at most the
+    config's ``runtime.ready_timeout_s`` after its last step, and not once ``cancelled()``.
     """
     mcfg = cfg.model(name)
     cls, defaults = resolve(mcfg.model, role)

@@ -34,7 +34,7 @@ Note [Child lifecycle]
   the engine sends the worker's spec and then the file descriptors of every region it maps (memfds, CUDA VMM
   handles) with SCM_RIGHTS -- no socket file, no /dev/shm name, so no other process can attach -- and both ends
   check the peer's uid with SO_PEERCRED. The worker answers READY (or its traceback) once its model is loaded and
-  warmed up; the engine waits at most ``runtime.ready_timeout_s``.
+  warmed up; the engine waits while its build makes progress (Note [Start progress] in supervisor.py).
 * The same socket is the death pipe: a watcher thread in the worker blocks on it, and when the engine dies (even by
   SIGKILL) the kernel closes the engine's end, the read returns EOF, and the worker exits at once. That needs the
   worker's interpreter to run (not SIGSTOPped, not hung in C code holding the GIL) and no other process to hold the
@@ -60,8 +60,7 @@ Note [Child lifecycle]
 * ``start`` waits for the zygote at most ``runtime.ready_timeout_s``, for each fork's answer at most 30 s
   (milliseconds in practice; a zygote that does not answer is killed), then for READY while the workers' builds
   make progress, at most ``runtime.ready_timeout_s`` after the last step (Note [Start progress] in supervisor.py): a
-  hang ends the start within 2 x ``ready_timeout_s`` + 30 s per worker past the builds' last step, plus ``stop``'s
-  bound.
+  build that hangs ends the start ``ready_timeout_s`` after its last step, plus ``stop``'s bound.
 * ``stop`` asks politely (stop flag + message) and waits ``runtime.stop_timeout_s``, then SIGTERM and 2 s, then
   SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
   its reader thread 4 s; then the monitor thread 2 s: at most ``stop_timeout_s`` + 13.5 s (7.5 s more for each older

@@ -14,9 +14,10 @@ eight cameras, minutes (in thread mode one model after another, Note [One build 
 fixed deadline either fails a start that is only slow or waits as long for one that hangs. So a building worker
 reports each step (the load begun, each batch size compiled, each graph captured: ``Executor.progress``) in its
 control-block entry, ``build_done`` of ``build_total`` and its heartbeat, and ``start`` (and ``add_head``) give up
-after ``runtime.ready_timeout_s`` *without a step* by any worker still loading: in thread mode the others wait for
-the build lock behind the one that builds, so its steps are theirs, and a waiter for the build lock likewise waits
-while the holder steps. A hang (no step for ``ready_timeout_s``) still ends the start, with the error naming who was
+after ``runtime.ready_timeout_s`` *without a step* by any worker still loading or by the build they wait behind (in
+thread mode the build lock's holder, which may be another engine's; one becoming ready counts too: the next behind
+it starts then), and a waiter for the build lock likewise waits while the holder steps. Only the compile backend
+counts steps; an eager or ONNX model builds in one. A hang (no step for ``ready_timeout_s``) still ends the start, with the error naming who was
 not ready. Meanwhile the logger ``vpengine.start`` says every ``PROGRESS_S`` where each model is (the CLI shows it).
 """
 
@@ -28,6 +29,7 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import NoReturn
@@ -82,19 +84,29 @@ class StartWait:
     """Note [Start progress]: when a wait for models to be ready gives up, and what it says meanwhile. ``what``:
     the wait, in words ("starting", "adding 'det'")."""
 
-    def __init__(self, control: ControlBlock, names: list[str], limit: float, what: str) -> None:
+    def __init__(
+        self,
+        control: ControlBlock,
+        names: list[str],
+        limit: float,
+        what: str,
+        elsewhere: Callable[[], float] = lambda: 0.0,
+    ) -> None:
+        """``elsewhere``: when a build they wait behind last made progress (thread mode: the build lock's holder,
+        which may be another engine's)."""
         self.control, self.names, self.limit, self.what = control, names, limit, what
+        self.elsewhere = elsewhere
         self.t0 = self._said = self._done_at = time.monotonic()
         self._left = len(names)
 
     def remaining(self, waiting: list[str]) -> float:
         """Seconds left before the wait for ``waiting`` gives up (0: now): ``limit`` after the last step of any of
-        them, the last time one of the others became ready (those behind it in the build lock's queue start then),
-        or the wait's start. Says where each model is when ``PROGRESS_S`` has passed since it last did."""
+        them or of a build they wait behind, the last time one of the others became ready (those behind it in the
+        build lock's queue start then), or the wait's start. Says where each model is when ``PROGRESS_S`` has passed since it last did."""
         now = time.monotonic()
         if len(waiting) < self._left:
             self._left, self._done_at = len(waiting), now
-        last = max([self._done_at, *(self.control.get(n, "heartbeat") for n in waiting)])
+        last = max([self._done_at, self.elsewhere(), *(self.control.get(n, "heartbeat") for n in waiting)])
         if now - self._said >= PROGRESS_S:
             self._said = now
             progress_log.info("%s", self.describe(now))
@@ -181,7 +193,7 @@ class Runner(ABC):
                 done[1].append(f"{name}: {e}")
                 done[0].set()
         limit = self.cfg.runtime.ready_timeout_s
-        waited = StartWait(self.control, [name], limit, f"adding {name!r}")
+        waited = StartWait(self.control, [name], limit, f"adding {name!r}", self.build_progress)
         while not done[0].wait(min(waited.remaining([name]), POLL_S)) and waited.remaining([name]) > 0:
             pass
         ready = done[0].is_set()
@@ -252,6 +264,11 @@ class Runner(ABC):
             f"workers {sorted(waiting)} were not ready: no progress for {self.cfg.runtime.ready_timeout_s} s "
             f"(runtime.ready_timeout_s){note}"
         )
+
+    def build_progress(self) -> float:
+        """When a build this runner's workers may wait behind last made progress (Note [Start progress]): none by
+        default (each worker process builds alone); thread mode: this process's build lock's holder."""
+        return 0.0
 
     def build_lock_note(self) -> str:
         """Why a start may be slow beyond this runner's workers: none by default (each worker process builds

@@ -182,6 +182,9 @@ class ThreadRunner(Runner):
     def beside_serving(self) -> contextlib.AbstractContextManager[None]:
         return _beside_serving(id(self), lambda: self._stopping)
 
+    def build_progress(self) -> float:
+        return build_lock.stepped if build_lock.holder() else 0.0
+
     def build_lock_note(self) -> str:
         holder = build_lock.holder()
         return f"; {holder} holds this process's build lock (Note [One build at a time])" if holder else ""
@@ -238,7 +241,9 @@ class ThreadRunner(Runner):
         for name in self.specs:
             self._launch(name)
         waiting = set(self.specs)
-        waited = StartWait(self.control, list(self.specs), self.cfg.runtime.ready_timeout_s, "starting")
+        waited = StartWait(
+            self.control, list(self.specs), self.cfg.runtime.ready_timeout_s, "starting", self.build_progress
+        )
         errors = []
         while waiting:
             left = waited.remaining(list(waiting))  # Note [Start progress]

@@ -78,3 +78,16 @@ def eng_frame(eng: Engine):  # type: ignore[no-untyped-def]
 
     cfg = eng.config.input
     return np.zeros((cfg.height, cfg.width, 3), dtype=np.uint8)
+
+
+def test_a_process_mode_start_says_where_each_model_is(monkeypatch, caplog):
+    """The same wait in process mode, where the workers report from their own processes."""
+    monkeypatch.setattr(supervisor, "PROGRESS_S", 0.0)  # every turn of the wait says it
+    with caplog.at_level(logging.INFO, logger="vpengine.start"), Engine(tiny("process")) as eng:
+        fid = eng.submit(eng_frame(eng))
+        assert set(eng.wait(fid, timeout=30)) == {"depth", "seg", "det"}
+    lines = [r.getMessage() for r in caplog.records if r.name == "vpengine.start"]
+    assert lines and all(line.startswith("starting, ") for line in lines), lines
+    names = ("foundation", "depth", "seg", "det")
+    assert all(f"{n} " in lines[-1] for n in names), lines[-1]  # every model, each with where it is
+    assert any(" loading" in line or " starting" in line for line in lines), lines

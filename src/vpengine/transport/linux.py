@@ -17,7 +17,10 @@ the word and calls ``FUTEX_WAKE``. Unlike process-shared condition variables (wh
 a signaller forever when a waiter process is killed mid-wait), a futex keeps no waiter state in user memory, so a
 dead waiter costs nothing. Every wait has a timeout: nothing in vpengine sleeps unboundedly or spins.
 
-ctypes releases the GIL around foreign calls, so a thread sleeping here does not stall the other threads.
+ctypes releases the GIL around foreign calls, so a thread sleeping here does not stall the other threads. Calls that
+never block (a free mutex taken with ``trylock``, an unlock, a wake) keep it instead: releasing it around a few
+hundred nanoseconds of work costs the caller a turn in the GIL's queue each time it wants it back, behind every other
+thread of the process (thread mode: the workers, the caller's threads), several times per mailbox operation.
 """
 
 from __future__ import annotations
@@ -32,7 +35,9 @@ import sys
 if not sys.platform.startswith("linux"):  # pragma: no cover - import-time guard
     raise ImportError("vpengine's transport needs Linux (memfd, futex, robust process-shared mutexes)")
 
-_libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+_LIBC = ctypes.util.find_library("c") or "libc.so.6"
+_libc = ctypes.CDLL(_LIBC, use_errno=True)  # releases the GIL around each call: for calls that may block
+_held = ctypes.PyDLL(_LIBC, use_errno=True)  # keeps it: for calls that never block
 
 _SYS_FUTEX = {"x86_64": 202, "aarch64": 98}.get(platform.machine())
 if _SYS_FUTEX is None:  # pragma: no cover
@@ -51,6 +56,9 @@ _libc.pthread_mutex_lock.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_unlock.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_consistent.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_init.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
+_held.syscall.restype = ctypes.c_long
+_held.pthread_mutex_trylock.argtypes = [ctypes.c_void_p]
+_held.pthread_mutex_unlock.argtypes = [ctypes.c_void_p]
 
 
 class _Timespec(ctypes.Structure):
@@ -91,7 +99,9 @@ class RobustMutex:
         self.owner_died = 0
 
     def __enter__(self) -> RobustMutex:
-        rc = _libc.pthread_mutex_lock(self._addr)
+        rc = _held.pthread_mutex_trylock(self._addr)
+        if rc == errno.EBUSY:  # held by another thread or process: wait for it with the GIL released
+            rc = _libc.pthread_mutex_lock(self._addr)
         if rc == errno.EOWNERDEAD:
             self.owner_died += 1
             _libc.pthread_mutex_consistent(self._addr)
@@ -100,7 +110,7 @@ class RobustMutex:
         return self
 
     def __exit__(self, *exc: object) -> None:
-        rc = _libc.pthread_mutex_unlock(self._addr)
+        rc = _held.pthread_mutex_unlock(self._addr)
         if rc != 0:
             raise OSError(rc, f"pthread_mutex_unlock failed: {os.strerror(rc)}")
 
@@ -123,7 +133,7 @@ def futex_wait(addr: int, expected: int, timeout: float) -> None:
 
 def futex_wake(addr: int) -> None:
     """Wake every waiter sleeping on the u32 at ``addr``."""
-    rc = _libc.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAKE, 0x7FFFFFFF, None, None, 0)
+    rc = _held.syscall(_SYS_FUTEX, ctypes.c_void_p(addr), _FUTEX_WAKE, 0x7FFFFFFF, None, None, 0)
     if rc < 0:
         err = ctypes.get_errno()
         raise OSError(err, f"futex wake failed: {os.strerror(err)}")

@@ -54,15 +54,12 @@ print(json.dumps({"fps": fps, "frames": frames, "torn": torn}))
 
 
 def run(src: str, cameras: int, seconds: float) -> dict[str, float]:
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(src).resolve()), os.environ.get("PYTHONPATH", "")]))
-    out = subprocess.run(
-        [sys.executable, "-c", ONE, str(cameras), str(seconds)],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=seconds + 300,
-        check=True,
-    )
+    path = [str(Path(src).resolve()), *filter(None, [os.environ.get("PYTHONPATH")])]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
+    cmd = [sys.executable, "-c", ONE, str(cameras), str(seconds)]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=seconds + 300)
+    if out.returncode != 0:
+        raise RuntimeError(f"a run of {src} with {cameras} cameras failed ({out.returncode}):\n{out.stderr[-3000:]}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -80,10 +77,12 @@ def main() -> int:
     if len(tags) != len(srcs):
         p.error(f"--tags names {len(tags)} trees, --src gives {len(srcs)}")
     res: dict[str, dict[str, list[float]]] = {t: {} for t in tags}
+    torn = 0
     for n in (int(c) for c in args.cameras.split(",")):
         for r in range(args.rounds):  # the trees take turns: a busy machine's drift falls on both
             for tag, src in zip(tags, srcs):
-                fps = run(src, n, args.seconds)["fps"]
+                one = run(src, n, args.seconds)
+                fps, torn = one["fps"], torn + one["torn"]
                 res[tag].setdefault(str(n), []).append(fps)
                 print(f"{tag}, {n} cameras, round {r + 1}: {fps:.1f} frames/s", flush=True)
     summary = {
@@ -91,13 +90,8 @@ def main() -> int:
     }
     for t, by_n in summary.items():
         print(t, ", ".join(f"{n} cameras {s['median_fps']:.1f} frames/s" for n, s in by_n.items()))
-    print(
-        write_results(
-            args.out,
-            "engine_overhead_cpu",
-            {"seconds": args.seconds, "trees": dict(zip(tags, srcs)), "results": summary},
-        )
-    )
+    data = {"seconds": args.seconds, "trees": dict(zip(tags, srcs)), "results": summary, "frames_missing_a_head": torn}
+    print(write_results(args.out, "engine_overhead_cpu", data))
     return 0
 
 

@@ -17,7 +17,8 @@ def _mutex() -> tuple[mmap.mmap, RobustMutex]:
 
 
 def test_a_contended_lock_waits_with_the_gil_released():
-    """The holder needs the GIL to unlock: a waiter that kept it would never get the lock (a deadlock)."""
+    """The holder needs the GIL to unlock: a waiter that kept it would never get the lock (a deadlock, which stalls
+    every thread of the process: this test then hangs until the run's time limit rather than failing)."""
     buf, m = _mutex()
     held, got = threading.Event(), threading.Event()
 

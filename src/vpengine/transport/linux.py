@@ -53,7 +53,6 @@ MUTEX_BYTES = 64
 
 _libc.syscall.restype = ctypes.c_long
 _libc.pthread_mutex_lock.argtypes = [ctypes.c_void_p]
-_libc.pthread_mutex_unlock.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_consistent.argtypes = [ctypes.c_void_p]
 _libc.pthread_mutex_init.argtypes = [ctypes.c_void_p, ctypes.c_void_p]
 _held.syscall.restype = ctypes.c_long
@@ -106,7 +105,7 @@ class RobustMutex:
             self.owner_died += 1
             _libc.pthread_mutex_consistent(self._addr)
         elif rc != 0:
-            raise OSError(rc, f"pthread_mutex_lock failed: {os.strerror(rc)}")
+            raise OSError(rc, f"locking the mutex failed: {os.strerror(rc)}")
         return self
 
     def __exit__(self, *exc: object) -> None:

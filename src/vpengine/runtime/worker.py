@@ -436,23 +436,24 @@ class WorkerCore:
         if len(slots) == 1 and self._direct:
             return {k: slots[0].tensors[k].unsqueeze(0) for k in self._keys}
         assert self._copies is not None
-        for k, buf in self._copies.items():
-            for i, slot in enumerate(slots):
-                buf[i].copy_(slot.tensors[k], non_blocking=True)
+        for k, buf in self._copies.items():  # on one device one op a key, not a frame: each op is a dispatch, a launch
+            if self._direct:
+                torch.stack([slot.tensors[k] for slot in slots], out=buf[: len(slots)])
+            else:
+                for i, slot in enumerate(slots):
+                    buf[i].copy_(slot.tensors[k], non_blocking=True)
         return {k: buf[: len(slots)] for k, buf in self._copies.items()}
 
     def _publish(self, pairs: list[tuple[SlotInfo, SlotInfo]], t_start: float) -> None:
         """Count and publish the outputs of one model call whose work ``_launch`` queued: all of them before any
         wait for the device, so a batch's frames reach the next models together; answers them all if that
         fails. The caller then releases the input slots."""
-        published = False
         try:
             self._finish(pairs, t_start)
-            published = True
-        finally:
-            if not published:
-                for slot, _ in pairs:
-                    self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
+        except BaseException:
+            for slot, _ in pairs:
+                self.control.decide(self._by_tag[slot.tag].entry, slot.origin, ran=False)
+            raise
         if len(pairs) > 1:
             for slot, _ in pairs:
                 self.control.add(self._by_tag[slot.tag].entry, "batched")
@@ -580,8 +581,7 @@ def poisons(error: BaseException) -> bool:
     (KeyboardInterrupt, SystemExit), or a CUDA error, after which the process's CUDA context is unusable."""
     if not isinstance(error, Exception):
         return True
-    accelerator = getattr(torch, "AcceleratorError", None)  # torch >= 2.8 raises CUDA errors as this
-    if accelerator is not None and isinstance(error, accelerator):
+    if isinstance(error, getattr(torch, "AcceleratorError", ())):  # torch >= 2.8 raises CUDA errors as this
         return True
     return isinstance(error, RuntimeError) and any(mark in str(error) for mark in _CUDA_ERRORS)
 

@@ -1,12 +1,13 @@
 """Another thread's build holding a build lock (Note [One build at a time] in models/build.py); whether this Python's
-collector can hold full collections off (Note [Building beside serving threads] in runtime/threads.py)."""
+collector can hold full collections off (Note [Building beside serving threads] in runtime/threads.py); a function
+run in several threads at once."""
 
 from __future__ import annotations
 
 import contextlib
 import gc
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 from vpengine.models.build import BuildLock
 from vpengine.runtime.threads import _NO_FULL_COLLECTION
@@ -40,3 +41,13 @@ def held_elsewhere(lock: BuildLock, what: str, thread: str = "builder") -> Itera
     finally:
         release.set()
         t.join(10)
+
+
+def in_threads(target: Callable[[], None], n: int, timeout: float = 30) -> None:
+    """Run ``target`` in ``n`` threads at once and wait for them all (``timeout`` each)."""
+    threads = [threading.Thread(target=target) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout)
+    assert not any(t.is_alive() for t in threads), f"{target.__name__} did not end in {timeout} s"

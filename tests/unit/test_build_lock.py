@@ -10,7 +10,7 @@ import time
 
 import pytest
 
-from helpers.builds import held_elsewhere
+from helpers.builds import held_elsewhere, in_threads
 from vpengine.models import build
 from vpengine.models.build import BuildCancelled, BuildLock, BuildLockTimeout
 
@@ -125,11 +125,7 @@ def test_builds_take_turns_and_a_free_lock_is_taken_at_once():
             time.sleep(0.01)
             inside[0] -= 1
 
-    threads = [threading.Thread(target=build_one) for _ in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(30)
+    in_threads(build_one, 8)
     assert overlap == [1] * 8  # never two at once
     t = time.monotonic()
     with lock.held("model 'y'", 30):

@@ -6,6 +6,7 @@ import mmap
 import threading
 import time
 
+from helpers.builds import in_threads
 from vpengine.transport.linux import MUTEX_BYTES, RobustMutex, address_of, mutex_init
 
 
@@ -56,11 +57,7 @@ def test_a_free_lock_is_taken_and_given_back_in_turn():
                 overlaps.append(inside[0])
                 inside[0] -= 1
 
-    threads = [threading.Thread(target=work) for _ in range(4)]
-    for th in threads:
-        th.start()
-    for th in threads:
-        th.join(30)
+    in_threads(work, 4)
     assert len(overlaps) == 2000 and max(overlaps) == 1  # one at a time, none lost
     assert m.owner_died == 0
     buf.close()

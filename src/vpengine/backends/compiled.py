@@ -190,8 +190,9 @@ class CompiledExecutor(Executor):
 
     def _compile(self) -> None:
         # Each batch size is a recompilation of the same forward (dynamic=False); dynamo would fall back to eager
-        # past its recompile limit (8 by default), so while they compile the limit grows by two per size (each runs twice, below). (Entries
-        # of earlier, dead instances of the model may count too, when a new one reuses their id.)
+        # past its recompile limit (8 by default), so while they compile the limit grows by two per size (each runs
+        # twice, below). (Entries of earlier, dead instances of the model may count too, when a new one reuses their
+        # id.)
         # Every size runs twice: a model that fills a cache on its first call (torchvision's anchor generator) is
         # compiled for the filled cache here too, not in the middle of a stream.
         limit = torch._dynamo.config.recompile_limit + 2 * self.max_batch

@@ -17,8 +17,9 @@ control-block entry, ``build_done`` of ``build_total`` and its heartbeat, and ``
 after ``runtime.ready_timeout_s`` *without a step* by any worker still loading or by the build they wait behind (in
 thread mode the build lock's holder, which may be another engine's; one becoming ready counts too: the next behind
 it starts then), and a waiter for the build lock likewise waits while the holder steps. Only the compile backend
-counts steps; an eager or ONNX model builds in one. A hang (no step for ``ready_timeout_s``) still ends the start, with the error naming who was
-not ready. Meanwhile the logger ``vpengine.start`` says every ``PROGRESS_S`` where each model is (the CLI shows it).
+counts steps; an eager or ONNX model builds in one. A hang (no step for ``ready_timeout_s``) still ends the start,
+with the error naming who was not ready. Meanwhile the logger ``vpengine.start`` says every ``PROGRESS_S`` where
+each model is (the CLI shows it).
 """
 
 from __future__ import annotations
@@ -102,7 +103,8 @@ class StartWait:
     def remaining(self, waiting: list[str]) -> float:
         """Seconds left before the wait for ``waiting`` gives up (0: now): ``limit`` after the last step of any of
         them or of a build they wait behind, the last time one of the others became ready (those behind it in the
-        build lock's queue start then), or the wait's start. Says where each model is when ``PROGRESS_S`` has passed since it last did."""
+        build lock's queue start then), or the wait's start. Says where each model is when ``PROGRESS_S`` has
+        passed since it last did."""
         now = time.monotonic()
         if len(waiting) < self._left:
             self._left, self._done_at = len(waiting), now
@@ -194,8 +196,8 @@ class Runner(ABC):
                 done[0].set()
         limit = self.cfg.runtime.ready_timeout_s
         waited = StartWait(self.control, [name], limit, f"adding {name!r}", self.build_progress)
-        while not done[0].wait(min(waited.remaining([name]), POLL_S)) and waited.remaining([name]) > 0:
-            pass
+        while not done[0].is_set() and (left := waited.remaining([name])) > 0:
+            done[0].wait(min(left, POLL_S))
         ready = done[0].is_set()
         with self._lock:  # the monitor reports under the lock: nothing it heard is lost between here and there
             self._adding.pop(name, None)

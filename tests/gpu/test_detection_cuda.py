@@ -101,7 +101,7 @@ def test_compiled_static_path_is_one_cuda_graph_per_batch_size_and_equals_torchv
 @pytest.fixture(scope="module")
 def lite_paths():
     """frcnn_dinov2_lite as the shipped GPU config runs it (ViT-S features of 1080p frames, 80 classes, fp16), once
-    for every batch size below: torchvision's eager path and the compiled static path (8 compiles, minutes cold)."""
+    for every batch size below: torchvision's eager path and the compiled static path (batches 1-8, minutes cold)."""
     import torch._inductor.config as inductor_config
 
     from helpers import heads

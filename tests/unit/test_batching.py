@@ -10,6 +10,7 @@ a few pixels (at most 0.1%); short integer outputs (labels, counts) must be equa
 from __future__ import annotations
 
 import contextlib
+import logging
 
 import numpy as np
 import pytest
@@ -191,10 +192,7 @@ def tiny_inputs(cfg, name: str, model: Model, n: int = B) -> list[dict[str, torc
 @pytest.mark.parametrize("backend", ["eager", pytest.param("compile", marks=INDUCTOR), "onnx"])
 @pytest.mark.parametrize("name", [pytest.param("foundation", marks=pytest.mark.slow), "depth", "seg", "det"])
 def test_backends_run_a_batch_as_its_frames_alone(backend, name, tmp_path):
-    # Inductor compiles the foundation model (preprocessing and ViT in C++) once per batch size, the longest compile
-    # of the unit tests: two sizes show a full batch and a smaller one (its frames alone) as well as three do, and
-    # the heads compile three.
-    b = 2 if (backend, name) == ("compile", "foundation") else B
+    b = B  # batches of 2 and 3 share one compiled graph (Note [One compile for every batch])
     cfg = tiny("thread")
     model = build(cfg, name)
     inputs = tiny_inputs(cfg, name, model, b)
@@ -239,22 +237,120 @@ def test_static_buffer_backends_refuse_batches_they_were_not_set_up_for(backend,
         make_executor(build(cfg, "depth"), backend, CPU, "depth", cache_dir=tmp_path, max_batch=0)
 
 
-def test_compile_keeps_every_batch_size_past_dynamo_s_recompile_limit():
-    # each batch size is a recompilation; past torch._dynamo.config.recompile_limit (8) dynamo would quietly run
-    # the model eagerly, so here it must fail instead, and must not need to. (dynamo's own patch, not monkeypatch:
-    # after monkeypatch's undo, later compiles in the process found the entry missing)
-    cfg = tiny("thread")
-    model = build(cfg, "depth")
+class _FixedBatch(Model):
+    """A head whose code fixes its batch to a number (a loop over the frames): dynamo specialises each size."""
+
+    role = "head"
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.input_spec = {"patch.3": TensorSpec((6, 4), "float32")}
+        self.output_spec = {"y": TensorSpec((6, 4), "float32")}
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        x = inputs["patch.3"]
+        return {"y": torch.stack([x[i] * (i + 1) for i in range(x.shape[0])])}
+
+
+def compiled_graphs() -> int:
+    return int(torch._dynamo.utils.counters["stats"]["unique_graphs"])
+
+
+def test_a_model_that_fixes_its_batch_compiles_every_size_past_dynamo_s_recompile_limit():
+    """Note [One compile for every batch]: the symbolic batch is a hint. A model whose code fixes its batch compiles
+    once per size, as before, with no error; past torch._dynamo.config.recompile_limit (8) dynamo would quietly run
+    the model eagerly, so here it must fail instead, and must not need to. (dynamo's own patch, not monkeypatch:
+    after monkeypatch's undo, later compiles in the process found the entry missing)"""
     n = torch._dynamo.config.recompile_limit + 2
+    torch._dynamo.reset()  # what earlier tests compiled must not count, nor be reused
+    before = compiled_graphs()
     with torch._dynamo.config.patch(fail_on_recompile_limit_hit=True):
-        ex = make_executor(model, "compile", CPU, "depth", max_batch=n, options={"compiler": "eager"})
-        x = torch.cat([features_of(cfg, model, 1)[0]["patch.3"]] * n)
+        ex = make_executor(_FixedBatch(), "compile", CPU, "h", max_batch=n, options={"compiler": "eager"})
+        assert compiled_graphs() - before >= n  # a graph per size, at least
+        x = torch.randn(n, 6, 4, generator=torch.Generator().manual_seed(0))
         with torch.compiler.set_stance("fail_on_recompile"):
             for b in (n, 1, n - 1):
-                assert ex({"patch.3": x[:b]})["depth"].shape == (b, 120, 160)
+                want = x[:b] * torch.arange(1, b + 1)[:, None, None]
+                torch.testing.assert_close(ex({"patch.3": x[:b]})["y"], want)
     # its entries, past the limit, would count against the next compile of this head in the process (another test's)
     del ex
     torch._dynamo.reset()
+
+
+@torch.library.custom_op("vpengine_test::fixed_batch_only", mutates_args=())
+def _fixed_batch_only(x: torch.Tensor) -> torch.Tensor:
+    return x * 2
+
+
+@_fixed_batch_only.register_fake
+def _(x: torch.Tensor) -> torch.Tensor:
+    if isinstance(x.shape[0], torch.SymInt):  # as a kernel might whose shapes must be known when it is traced
+        raise RuntimeError("fixed_batch_only: the batch must be a number")
+    return torch.empty_like(x)
+
+
+class _NoSymbolicBatch(_FixedBatch):
+    """A head that compiles with every shape fixed and fails to with a symbolic batch."""
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {"y": _fixed_batch_only(inputs["patch.3"])}
+
+
+def test_a_model_that_fails_to_compile_with_a_symbolic_batch_compiles_every_size_and_says_why(caplog):
+    """Note [One compile for every batch]: a model the symbolic batch breaks still starts, compiled per size, with a
+    warning naming it and the error; one that fails alone still fails, naming its error."""
+    torch._dynamo.reset()
+    before = compiled_graphs()
+    with caplog.at_level(logging.WARNING, logger="vpengine.backends"):
+        ex = make_executor(_NoSymbolicBatch(), "compile", CPU, "h", max_batch=4, options={"compiler": "aot_eager"})
+    assert compiled_graphs() - before >= 4  # a graph per size: the symbolic one failed
+    (warning,) = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert "h: compiling batches of 2 to 4 with one graph failed" in warning and "batch must be a number" in warning
+    x = torch.randn(4, 6, 4, generator=torch.Generator().manual_seed(0))
+    with torch.compiler.set_stance("fail_on_recompile"):
+        for b in (4, 1, 3, 2):
+            torch.testing.assert_close(ex({"patch.3": x[:b]})["y"], x[:b] * 2)
+    caplog.clear()
+    with pytest.raises(BackendError, match=r"h: torch.compile \(compiler 'aot_eager'\) failed at warm-up"):
+        make_executor(_FailsAlone(), "compile", CPU, "h", max_batch=4, options={"compiler": "aot_eager"})
+    assert not [r for r in caplog.records if "with one graph failed" in r.getMessage()]  # no batch to blame
+
+
+class _FailsAlone(_FixedBatch):
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        raise ValueError("a frame")
+
+
+@pytest.mark.parametrize(
+    ("head", "graphs"),
+    [
+        (None, 2),  # the foundation model: DINOv2 with registers
+        ({"name": "h", "model": "dav2_depth_s", "options": DPT_WIDTHS}, 2),
+        ({"name": "h", "model": "dinov2_linear_ade20k_s", "options": {"upsample": "torch"}}, 2),
+        ({"name": "h", "model": "frcnn_dinov2_lite", "options": {"num_classes": 3, "score_threshold": 0.0}}, 3),
+    ],
+    ids=["dinov2", "dpt", "linear-seg", "faster-rcnn"],
+)
+def test_the_zoo_compiles_once_for_one_frame_and_once_for_every_batch(head, graphs):
+    """Note [One compile for every batch]: the built-in models (small, of the released structure) compile a graph for
+    a batch of one and one for batches of 2 to max_batch (the detector one more: its anchors fill a cache on the
+    first call), not one per size; the batches are the eager model's, and none compiles again."""
+    cfg = zoo_config(SMALL_DINOV2, [head] if head else [])
+    name = "h" if head else "foundation"
+    model = build(cfg, name)
+    n = 5
+    inputs = frames_of(cfg, n) if head is None else features_of(cfg, model, n)
+    torch._dynamo.reset()  # what earlier tests compiled must not count, nor be reused
+    before = compiled_graphs()
+    ex = make_executor(model, "compile", CPU, name, max_batch=n, options={"compiler": "aot_eager"})
+    assert compiled_graphs() - before == graphs
+    eager = make_executor(build(cfg, name), "eager", CPU, name)
+    with torch.compiler.set_stance("fail_on_recompile"):
+        for b in (n, 3, 2, 1):
+            got = {k: v.clone() for k, v in ex(cat(inputs[:b])).items()}
+            want = eager(cat(inputs[:b]))
+            assert_batch_is_its_frames(got, [{k: v[i : i + 1] for k, v in want.items()} for i in range(b)], 1e-4,
+                                       f"{name}, a batch of {b}")  # fmt: skip
 
 
 class _PatchAndClass(Model):

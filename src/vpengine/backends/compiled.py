@@ -39,12 +39,26 @@ The price is one device-to-device copy of the inputs per frame, small next to a 
 518x518 are ~8 MB). Inductor's own CUDA graphs are never enabled (``max-autotune`` maps to
 ``max-autotune-no-cudagraphs``), so there are never two layers of graphs.
 
-The CPU path compiles the same way (inductor generates C++, built with the system compiler), once per batch size
-(``dynamic=False``: each size gets code specialised to its shapes, as the single-frame code always was), and also
-feeds the compiled code from the static input buffers: each batch size always sees the same tensors, so dynamo's
-guards (dtype, shape, strides, whether a tensor is an inference tensor) cannot fail and recompile in the steady
-state, and inductor's alignment assumptions hold (per-key views carved out of one mailbox allocation need not be
-16-byte aligned).
+The CPU path compiles the same way (inductor generates C++, built with the system compiler), and also feeds the
+compiled code from the static input buffers: each batch size always sees the same tensors, so dynamo's guards
+(dtype, shape, strides, whether a tensor is an inference tensor) cannot fail and recompile in the steady state, and
+inductor's alignment assumptions hold (per-key views carved out of one mailbox allocation need not be 16-byte
+aligned).
+
+Note [One compile for every batch]
+~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+A model is compiled twice, not once per batch size: for a batch of one, with every shape fixed as the single-frame
+code always was, and once for any batch from 2 to ``max_batch``, whose batch dimension is symbolic (before they
+first run, the static views of 2 or more frames are marked dynamic in that dimension, and every view static in all
+its others, so no other dimension turns symbolic however other models of the process were compiled); the graphs are
+still captured one per size. With ``max_batch`` 2 or less every shape stays fixed, as before. A first start of eight
+cameras compiled each of its four models eight times: minutes on an H200 in thread mode, where builds take turns.
+The foundation, depth and detection models (1080p, fp16, H200, batches 1-4) set up in a quarter less time, ran as
+fast within 2% (depth faster) and gave the same outputs (docs/benchmarks.md). A model whose code fixes its batch to
+a number (a Python list as long as the batch, ``int(x.shape[0])`` in arithmetic) is compiled per size instead: the
+mark is a hint (``maybe_mark_dynamic``); one that fails to compile with a symbolic batch is compiled per size, with
+a warning saying why. The built-in models are held to two compiled graphs (three for the detector, whose anchors
+fill a cache on the first call) by a test.
 
 What inductor and Triton write to disk goes to a folder keyed on the release (Note [Compile cache key] in
 compile_cache.py), so a start never reads what another release compiled.
@@ -144,8 +158,8 @@ def _reset_capture_state(device: torch.device) -> None:
 
 
 class CompiledExecutor(Executor):
-    """``torch.compile`` of the model, compiled for every batch size up to ``max_batch`` and (on CUDA) graph-captured
-    at construction, before READY.
+    """``torch.compile`` of the model, compiled for batches of 1 to ``max_batch`` (Note [One compile for every batch])
+    and (on CUDA) graph-captured for each at construction, before READY.
 
     The model is cast to the precision in place: the executor owns it from here on.
     """
@@ -159,16 +173,13 @@ class CompiledExecutor(Executor):
         # Before anything compiles: no entry of another release is ever read (Note [Compile cache key]).
         self.compile_cache = use_compile_cache(self.cache_dir / "compile")
         self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
-        mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
-        self._compiled = torch.compile(
-            self.model, fullgraph=self.opts.fullgraph, dynamic=False, backend=self.opts.compiler, mode=mode
-        )
-        self._run = PrecisionRunner(self._compiled, self.output_spec, self.dtype, self.device.type)
+        self._compiled, self._run = self._compiler(dynamic=self.max_batch > 2)
         self._keys = list(self.input_spec)
         # One buffer per key for max_batch frames; batch size b reads its first b frames, through views made once
         # here, so each batch size always sees the same tensors (Note [CUDA graphs]).
-        full = model.example_inputs(self.device, self.max_batch)
-        self._static = {b: {k: full[k][:b] for k in self._keys} for b in range(1, self.max_batch + 1)}
+        self._full = model.example_inputs(self.device, self.max_batch)
+        self._static = self._views()
+        self._at = 0  # the batch size the warm-up runs
         self._graphs: dict[int, torch.cuda.CUDAGraph] = {}
         self._graph_out: dict[int, dict[str, torch.Tensor]] = {}
         self._side: torch.cuda.Stream | None = None
@@ -188,11 +199,57 @@ class CompiledExecutor(Executor):
             self.warmup_s,
         )
 
+    def _compiler(
+        self, dynamic: bool
+    ) -> tuple[Callable[..., Any], Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]]]:
+        """The compiled model and its precision runner; ``dynamic``: batches of 2 or more may share a graph (Note [One
+        compile for every batch]), else every shape is fixed."""
+        mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
+        compiled = torch.compile(
+            self.model,
+            fullgraph=self.opts.fullgraph,
+            dynamic=None if dynamic else False,
+            backend=self.opts.compiler,
+            mode=mode,
+        )
+        return compiled, PrecisionRunner(compiled, self.output_spec, self.dtype, self.device.type)
+
+    def _views(self) -> dict[int, dict[str, torch.Tensor]]:
+        """Each batch size's static inputs: the first ``b`` frames of the buffers, new views (no marks on them)."""
+        return {b: {k: self._full[k][:b] for k in self._keys} for b in range(1, self.max_batch + 1)}
+
     def _compile(self) -> None:
-        # Each batch size is a recompilation of the same forward (dynamic=False); dynamo would fall back to eager
-        # past its recompile limit (8 by default), so while they compile the limit grows by two per size (each runs
-        # twice, below). (Entries of earlier, dead instances of the model may count too, when a new one reuses their
-        # id.)
+        """Note [One compile for every batch]: with a symbolic batch where ``max_batch`` > 2, each size compiled
+        apart if that fails."""
+        if self.max_batch <= 2:  # two sizes are two graphs either way
+            self._warm_up()
+            return
+        for b, static in self._static.items():
+            for t in static.values():
+                for d in range(1, t.dim()):  # only the batch may vary: no other dimension turns symbolic
+                    torch._dynamo.mark_static(t, d)
+                if b > 1:
+                    torch._dynamo.maybe_mark_dynamic(t, 0)
+        try:
+            self._warm_up()
+        except BackendError as e:
+            if self._at < 2:  # a frame alone failed: no batch to blame
+                raise
+            log.warning(
+                "%s: compiling batches of 2 to %d with one graph failed (%s); compiling each batch size instead",
+                self.name,
+                self.max_batch,
+                _short(e.__cause__ if e.__cause__ is not None else e),
+            )
+            self._compiled, self._run = self._compiler(dynamic=False)
+            self._static = self._views()
+            self._warm_up()
+
+    def _warm_up(self) -> None:
+        # A model that fixes its batch compiles each size, each a recompilation of the same forward; dynamo would fall
+        # back to eager past its recompile limit (8 by default), so while they compile the limit grows by two per
+        # size (each runs twice, below). (Entries of earlier, dead instances of the model may count too, when a new
+        # one reuses their id.)
         # Every size runs twice: a model that fills a cache on its first call (torchvision's anchor generator) is
         # compiled for the filled cache here too, not in the middle of a stream.
         limit = torch._dynamo.config.recompile_limit + 2 * self.max_batch
@@ -201,6 +258,7 @@ class CompiledExecutor(Executor):
             with torch._dynamo.config.patch(recompile_limit=limit), torch.inference_mode():
                 for again in range(2):
                     for b, static in self._static.items():
+                        self._at = b
                         self._run(static)
                         self.progress(again * self.max_batch + b, steps)
         except Exception as e:

@@ -102,10 +102,12 @@ def proposals(head: FasterRCNNHead, maps: OrderedDict[str, torch.Tensor]) -> tup
     feats = list(maps.values())
     b = feats[0].shape[0]
     objectness, deltas = rpn.head(feats)
-    anchors = rpn.anchor_generator(head._images(b, feats[0].device), feats)
+    # every frame's anchors are the same: one frame's, repeated (a list of b would fix b: Note [One compile for
+    # every batch] in backends/compiled.py)
+    anchors = rpn.anchor_generator(head._images(1, feats[0].device), feats)[0].repeat(b, 1)
     per_level = [o.shape[1] * o.shape[2] * o.shape[3] for o in objectness]
     obj, deltas = concat_box_prediction_layers(objectness, deltas)
-    decoded = _decode(rpn.box_coder, deltas.detach().reshape(-1, 4), torch.cat(anchors)).view(b, -1, 4)
+    decoded = _decode(rpn.box_coder, deltas.detach().reshape(-1, 4), anchors).view(b, -1, 4)
     obj = obj.view(b, -1)
     top = [min(rpn.pre_nms_top_n(), k) for k in per_level]
     width = max(top)

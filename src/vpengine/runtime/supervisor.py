@@ -9,10 +9,11 @@ loop: it is marked ``failed`` in ``stats()`` and the rest of the engine goes on 
 
 Note [Start progress]
 ~~~~~~~~~~~~~~~~~~~~~
-A first start compiles each model for every batch size up to its cameras and captures a CUDA graph for each: with
-eight cameras, minutes (in thread mode one model after another, Note [One build at a time] in models/build.py). A
-fixed deadline either fails a start that is only slow or waits as long for one that hangs. So a building worker
-reports each step (the load begun, each batch size compiled, each graph captured: ``Executor.progress``) in its
+A first start compiles each model (Note [One compile for every batch] in backends/compiled.py) and captures a CUDA
+graph for every batch size up to its cameras: with eight cameras, minutes (in thread mode one model after another,
+Note [One build at a time] in models/build.py). A fixed deadline either fails a start that is only slow or waits as
+long for one that hangs. So a building worker reports each step (the load begun, each batch size run in the
+compile's warm-up, each graph captured: ``Executor.progress``) in its
 control-block entry, ``build_done`` of ``build_total`` and its heartbeat, and ``start`` (and ``add_head``) give up
 after ``runtime.ready_timeout_s`` *without a step* by any worker still loading or by the build they wait behind (in
 thread mode the build lock's holder, which may be another engine's; one becoming ready counts too: the next behind
@@ -126,7 +127,11 @@ class StartWait:
                 parts.append(f"{name} {done} of {total} steps")
             else:
                 parts.append(f"{name} {state}")
-        note = " (a first start compiles each batch size; later starts read the compile cache)" if counted else ""
+        note = (
+            " (a first start compiles each model for its batch sizes; later starts read the compile cache)"
+            if counted
+            else ""
+        )
         return f"{self.what}, {now - self.t0:.0f} s: {', '.join(parts)}{note}"
 
 

@@ -35,7 +35,7 @@ def run(
     heads = [b.head(k, k) for k in check_kinds(kinds)]
     batches = tuple(sorted(set(batches))) if b.on_cuda else ()  # device times: CUDA only (main checks each >= 1)
     # Built for the largest batch, as an engine of that many cameras builds them: the graph of one frame is the
-    # same code either way (one compile and capture per batch size)
+    # same code either way (its own compile, and a capture per batch size)
     seq = InProcess(b, heads, max_batch=max(batches, default=1))
     dt = seq.device_times(imgs[0])
     xfer = seq.transfer_times(imgs[0])

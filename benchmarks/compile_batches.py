@@ -21,14 +21,11 @@ Writes ``DIR/compile_batches_<device>.json`` with the machine.
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-from vpengine.bench.common import write_results
+from vpengine.bench.common import add_tree_arguments, run_in_tree, trees, write_results
 
 ONE = """
 import json, sys, time
@@ -92,28 +89,17 @@ print(json.dumps({"compile_key": compile_key(), "models": rows}))
 
 
 def run(src: str, config: str, sets: list[str], device: str, n: int, runs: int, saved: Path) -> dict:
-    path = [str(Path(src).resolve()), *filter(None, [os.environ.get("PYTHONPATH")])]
     with tempfile.TemporaryDirectory() as cache:  # a first start: nothing compiled yet
-        env = dict(
-            os.environ,
-            PYTHONPATH=os.pathsep.join(path),
-            TORCHINDUCTOR_CACHE_DIR=f"{cache}/inductor",
-            TRITON_CACHE_DIR=f"{cache}/triton",
-        )
-        cmd = [sys.executable, "-c", ONE, config, device, str(n), str(runs), str(saved), *sets]
-        out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
-    lines = out.stdout.strip().splitlines()
-    if out.returncode != 0 or not lines:
-        raise RuntimeError(f"the run of {src} failed ({out.returncode}):\n{out.stderr[-3000:]}")
-    return json.loads(lines[-1])
+        env = {"TORCHINDUCTOR_CACHE_DIR": f"{cache}/inductor", "TRITON_CACHE_DIR": f"{cache}/triton"}
+        argv = [config, device, str(n), str(runs), str(saved), *sets]
+        return run_in_tree(src, ONE, argv, f"the run of {src}", timeout=3600, env=env)
 
 
 def main() -> int:
     import torch
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--src", action="append", help="a tree's src/ folder (repeat; default: this one's)")
-    p.add_argument("--tags", default="", help="a name for each --src, comma-separated")
+    add_tree_arguments(p)
     p.add_argument("--config", "-c", default="bench", help="engine config (default: the shipped bench config)")
     p.add_argument("--set", action="append", default=[], help="a config override, key=value (repeat)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -121,10 +107,7 @@ def main() -> int:
     p.add_argument("--runs", type=int, default=50, help="timed calls of each batch size (default 50)")
     p.add_argument("--out", default=".", help="results folder")
     args = p.parse_args()
-    srcs = args.src or [str(Path(__file__).resolve().parents[1] / "src")]
-    tags = [t for t in args.tags.split(",") if t] or [f"tree{i}" for i in range(len(srcs))]
-    if len(tags) != len(srcs):
-        p.error(f"--tags names {len(tags)} trees, --src gives {len(srcs)}")
+    tags, srcs = zip(*trees(p, args, Path(__file__).resolve().parents[1] / "src"))
     if args.max_batch < 1:
         p.error(f"--max-batch {args.max_batch}: at least 1")
     res: dict[str, dict] = {}

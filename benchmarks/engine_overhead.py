@@ -16,14 +16,11 @@ Writes ``DIR/engine_overhead_cpu.json`` with the machine.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import statistics
-import subprocess
 import sys
 from pathlib import Path
 
-from vpengine.bench.common import write_results
+from vpengine.bench.common import add_tree_arguments, run_in_tree, trees, write_results
 
 ONE = """
 import json, sys
@@ -54,28 +51,19 @@ print(json.dumps({"fps": fps, "frames": frames, "torn": torn}))
 
 
 def run(src: str, cameras: int, seconds: float) -> dict[str, float]:
-    path = [str(Path(src).resolve()), *filter(None, [os.environ.get("PYTHONPATH")])]
-    env = dict(os.environ, PYTHONPATH=os.pathsep.join(path))
-    cmd = [sys.executable, "-c", ONE, str(cameras), str(seconds)]
-    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=seconds + 300)
-    if out.returncode != 0:
-        raise RuntimeError(f"a run of {src} with {cameras} cameras failed ({out.returncode}):\n{out.stderr[-3000:]}")
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    what = f"a run of {src} with {cameras} cameras"
+    return run_in_tree(src, ONE, [str(cameras), str(seconds)], what, timeout=seconds + 300)
 
 
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--src", action="append", help="a tree's src/ folder (repeat; default: this one's)")
-    p.add_argument("--tags", default="", help="a name for each --src, comma-separated")
+    add_tree_arguments(p)
     p.add_argument("--cameras", default="1,4", help="camera counts (default 1,4)")
     p.add_argument("--seconds", type=float, default=5.0, help="length of each run (default 5)")
     p.add_argument("--rounds", type=int, default=5, help="runs of each tree and camera count (default 5)")
     p.add_argument("--out", default=".", help="results folder")
     args = p.parse_args()
-    srcs = args.src or [str(Path(__file__).resolve().parents[1] / "src")]
-    tags = [t for t in args.tags.split(",") if t] or [f"tree{i}" for i in range(len(srcs))]
-    if len(tags) != len(srcs):
-        p.error(f"--tags names {len(tags)} trees, --src gives {len(srcs)}")
+    tags, srcs = zip(*trees(p, args, Path(__file__).resolve().parents[1] / "src"))
     res: dict[str, dict[str, list[float]]] = {t: {} for t in tags}
     torn = 0
     for n in (int(c) for c in args.cameras.split(",")):

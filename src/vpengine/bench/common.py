@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import datetime as dt
 import json
 import os
 import platform
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +40,36 @@ def machine_info() -> dict[str, Any]:
         info["gpu_memory_gb"] = round(p.total_memory / 2**30, 1)
         info["cuda"] = torch.version.cuda
     return info
+
+
+def add_tree_arguments(p: argparse.ArgumentParser) -> None:
+    """``--src`` (repeat) and ``--tags``: the trees a before/after benchmark runs side by side (``trees``)."""
+    p.add_argument("--src", action="append", help="a tree's src/ folder (repeat; default: this one's)")
+    p.add_argument("--tags", default="", help="a name for each --src, comma-separated")
+
+
+def trees(p: argparse.ArgumentParser, args: argparse.Namespace, default_src: Path) -> list[tuple[str, str]]:
+    """(tag, src folder) of each tree ``--src`` names (``default_src`` without any), or the parser's error."""
+    srcs = args.src or [str(default_src)]
+    tags = [t for t in args.tags.split(",") if t] or [f"tree{i}" for i in range(len(srcs))]
+    if len(tags) != len(srcs):
+        p.error(f"--tags names {len(tags)} trees, --src gives {len(srcs)}")
+    return list(zip(tags, srcs))
+
+
+def run_in_tree(
+    src: str, code: str, argv: list[str], what: str, timeout: float, env: dict[str, str] | None = None
+) -> Any:
+    """Run Python ``code`` with ``argv`` in a fresh interpreter importing vpengine from ``src`` (and ``env`` added to
+    the environment): the JSON its last line of output prints. RuntimeError naming ``what`` and the error output if
+    it fails."""
+    path = [str(Path(src).resolve()), *filter(None, [os.environ.get("PYTHONPATH")])]
+    full = dict(os.environ, **(env or {}), PYTHONPATH=os.pathsep.join(path))
+    out = subprocess.run([sys.executable, "-c", code, *argv], env=full, capture_output=True, text=True, timeout=timeout)
+    lines = out.stdout.strip().splitlines()
+    if out.returncode != 0 or not lines:
+        raise RuntimeError(f"{what} failed ({out.returncode}):\n{out.stderr[-3000:]}")
+    return json.loads(lines[-1])
 
 
 def write_results(out_dir: str | Path, name: str, data: dict[str, Any]) -> Path:

@@ -53,12 +53,12 @@ first run, the static views of 2 or more frames are marked dynamic in that dimen
 its others, so no other dimension turns symbolic however other models of the process were compiled); the graphs are
 still captured one per size. With ``max_batch`` 2 or less every shape stays fixed, as before. A first start of eight
 cameras compiled each of its four models eight times: minutes on an H200 in thread mode, where builds take turns.
-The foundation, depth and detection models (1080p, fp16, H200, batches 1-4) set up in a quarter less time, ran as
-fast within 2% (depth faster) and gave the same outputs (docs/benchmarks.md). A model whose code fixes its batch to
-a number (a Python list as long as the batch, ``int(x.shape[0])`` in arithmetic) is compiled per size instead: the
-mark is a hint (``maybe_mark_dynamic``); one that fails to compile with a symbolic batch is compiled per size, with
-a warning saying why. The built-in models are held to two compiled graphs (three for the detector, whose anchors
-fill a cache on the first call) by a test.
+What that saves at start, and what it costs or saves per call, against a compile per size, is what
+``benchmarks/compile_batches.py`` measures, outputs compared. A model whose code fixes its batch to a number (a
+Python list as long as the batch, ``int(x.shape[0])`` in arithmetic) is compiled per size instead: the mark is a hint
+(``maybe_mark_dynamic``); one that fails to compile with a symbolic batch is compiled per size, with a warning saying
+why. The built-in models are held to two compiled graphs (three for the detector, whose anchors fill a cache on the
+first call), and their batches to the eager model's outputs, by a test.
 
 What inductor and Triton write to disk goes to a folder keyed on the release (Note [Compile cache key] in
 compile_cache.py), so a start never reads what another release compiled.
@@ -173,7 +173,6 @@ class CompiledExecutor(Executor):
         # Before anything compiles: no entry of another release is ever read (Note [Compile cache key]).
         self.compile_cache = use_compile_cache(self.cache_dir / "compile")
         self.cudagraphs = self.device.type == "cuda" and self.opts.cudagraphs
-        self._compiled, self._run = self._compiler(dynamic=self.max_batch > 2)
         self._keys = list(self.input_spec)
         # One buffer per key for max_batch frames; batch size b reads its first b frames, through views made once
         # here, so each batch size always sees the same tensors (Note [CUDA graphs]).
@@ -199,10 +198,8 @@ class CompiledExecutor(Executor):
             self.warmup_s,
         )
 
-    def _compiler(
-        self, dynamic: bool
-    ) -> tuple[Callable[..., Any], Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]]]:
-        """The compiled model and its precision runner; ``dynamic``: batches of 2 or more may share a graph (Note [One
+    def _compiler(self, dynamic: bool) -> PrecisionRunner:
+        """The compiled model, run at the precision; ``dynamic``: batches of 2 or more may share a graph (Note [One
         compile for every batch]), else every shape is fixed."""
         mode = None if self.opts.mode == "default" else "max-autotune-no-cudagraphs"
         compiled = torch.compile(
@@ -212,7 +209,7 @@ class CompiledExecutor(Executor):
             backend=self.opts.compiler,
             mode=mode,
         )
-        return compiled, PrecisionRunner(compiled, self.output_spec, self.dtype, self.device.type)
+        return PrecisionRunner(compiled, self.output_spec, self.dtype, self.device.type)
 
     def _views(self) -> dict[int, dict[str, torch.Tensor]]:
         """Each batch size's static inputs: the first ``b`` frames of the buffers, new views (no marks on them)."""
@@ -221,7 +218,9 @@ class CompiledExecutor(Executor):
     def _compile(self) -> None:
         """Note [One compile for every batch]: with a symbolic batch where ``max_batch`` > 2, each size compiled
         apart if that fails."""
-        if self.max_batch <= 2:  # two sizes are two graphs either way
+        symbolic = self.max_batch > 2  # else two sizes are two graphs either way
+        self._run = self._compiler(dynamic=symbolic)
+        if not symbolic:
             self._warm_up()
             return
         for b, static in self._static.items():
@@ -241,7 +240,7 @@ class CompiledExecutor(Executor):
                 self.max_batch,
                 _short(e.__cause__ if e.__cause__ is not None else e),
             )
-            self._compiled, self._run = self._compiler(dynamic=False)
+            self._run = self._compiler(dynamic=False)
             self._static = self._views()
             self._warm_up()
 

@@ -8,8 +8,9 @@ and set up by the compile backend with their configured options (the foundation 
 the heads; heads of another backend are left out) for batches of 1 to ``--max-batch``, as an engine of that many
 cameras sets them up; then each batch size timed over ``--runs`` calls back to back (ms a call between CUDA events
 on the stream, launches included; wall time on the CPU). Each tree's outputs for a frame alone, a batch of 2 and the
-largest batch are compared with the first tree's (largest absolute difference per output). Each tree is named by its
-compile cache key (a digest of its source, Note [Compile cache key])::
+largest batch are compared with the first tree's: a floating output by its largest absolute difference, an integer one
+(a class map, labels, a count) by the fraction of its elements that differ, since class ids have no distance. Each
+tree is named by its compile cache key (a digest of its source, Note [Compile cache key])::
 
     python benchmarks/compile_batches.py --max-batch 8 --out benchmarks/results/h200
     python benchmarks/compile_batches.py --src .before/src --src src --tags before,after --out DIR
@@ -24,8 +25,12 @@ import argparse
 import sys
 import tempfile
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from vpengine.bench.common import add_tree_arguments, run_in_tree, trees, write_results
+
+if TYPE_CHECKING:
+    import torch
 
 ONE = """
 import json, sys, time
@@ -98,7 +103,7 @@ def run(src: str, config: str, sets: list[str], device: str, n: int, runs: int, 
 def main() -> int:
     import torch
 
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_tree_arguments(p)
     p.add_argument("--config", "-c", default="bench", help="engine config (default: the shipped bench config)")
     p.add_argument("--set", action="append", default=[], help="a config override, key=value (repeat)")
@@ -125,23 +130,29 @@ def main() -> int:
             if set(other) != set(first):
                 raise RuntimeError(f"{tag} set up {sorted(other)}, {tags[0]} {sorted(first)}: not the same models")
             differ[tag] = {
-                m: {
-                    str(b): {k: float((first[m][b][k].double() - other[m][b][k].double()).abs().max()) for k in out}
-                    for b, out in first[m].items()
-                }
+                m: {str(b): {k: difference(v, other[m][b][k]) for k, v in out.items()} for b, out in first[m].items()}
                 for m in first
             }
-            print(f"{tag} against {tags[0]}, largest difference by model and batch: {differ[tag]}")
+            print(f"{tag} against {tags[0]}, by model and batch (largest difference; integers: share that differ):")
+            for m, rows in differ[tag].items():
+                print(f"  {m}: {rows}")
     data = {
         "config": args.config,
         "overrides": args.set,
         "max_batch": args.max_batch,
         "trees": dict(zip(tags, srcs)),
         "results": res,
-        "largest_difference": differ,
+        "difference": differ,
     }
     print(write_results(args.out, f"compile_batches_{args.device.split(':')[0]}", data))
     return 0
+
+
+def difference(a: torch.Tensor, b: torch.Tensor) -> float:
+    """A floating output's largest absolute difference; an integer output's share of elements that differ."""
+    if a.is_floating_point():
+        return float((a.double() - b.double()).abs().max())
+    return float((a != b).double().mean()) if a.numel() else 0.0
 
 
 if __name__ == "__main__":

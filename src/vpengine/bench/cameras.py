@@ -6,7 +6,9 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
 * ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
   synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
   the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
-  and the device memory in use (NVML, else PyTorch's reserved bytes) with the engine's memory report.
+  how long one thread takes to hand in a tick's frames (``tick_submit_ms``: a tick whose last frame comes past the
+  batch window runs in two batches, counted late), and the device memory in use (NVML, else PyTorch's reserved
+  bytes) with the engine's memory report.
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
@@ -97,6 +99,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         eng.results()
         frames: dict[int, dict[str, float]] = {}
         submitted = 0
+        handing: list[float] = []  # per tick: the first submit's call to the last's return, s
         t0 = time.monotonic()
         k = 0
         while time.monotonic() - t0 < seconds:
@@ -104,10 +107,11 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
             while (now := time.monotonic()) < t:
                 for r in eng.results(timeout=t - now):
                     frames.setdefault(r.frame_id, {})[r.head] = r.latency
-            stamp = time.time()
+            stamp, t_hand = time.time(), time.monotonic()
             for i, c in enumerate(cams):  # synchronised cameras: every frame of a tick at once, one capture stamp
                 frames.setdefault(eng.submit(imgs[(k + i) % len(imgs)], timestamp=stamp, camera=c), {})
                 submitted += 1
+            handing.append(time.monotonic() - t_hand)
             k += 1
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
@@ -127,6 +131,9 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "frames_all_heads": len(whole),
         "frames_not_all_heads": submitted - len(whole),
         "latency_all_heads_ms": pct(whole),
+        # one thread hands in a tick's frames one after another: past the batch window, the last ones are late for
+        # the batch (``counted``'s late) and run in a second one
+        "tick_submit_ms": pct(handing),
         "device_memory_bytes": memory,
         "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
@@ -135,6 +142,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     log(
         f"stream: {n} cameras at {fps:g} Hz, {len(whole)}/{submitted} frames through every head, "
         f"p50 {out['latency_all_heads_ms']['p50']:.1f} ms, p99 {out['latency_all_heads_ms']['p99']:.1f} ms, "
+        f"a tick's submits p99 {out['tick_submit_ms']['p99']:.1f} ms, "
         f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS"
     )
     return out

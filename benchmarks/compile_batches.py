@@ -7,10 +7,11 @@ Each tree runs in a fresh interpreter with a compile cache of its own, empty (a 
 and set up by the compile backend with their configured options (the foundation model always, its features feed
 the heads; heads of another backend are left out) for batches of 1 to ``--max-batch``, as an engine of that many
 cameras sets them up; then each batch size timed over ``--runs`` calls back to back (ms a call between CUDA events
-on the stream, launches included; wall time on the CPU). Each tree's outputs for a frame alone, a batch of 2 and the
-largest batch are compared with the first tree's: a floating output by its largest absolute difference, an integer one
-(a class map, labels, a count) by the fraction of its elements that differ, since class ids have no distance. Each
-tree is named by its compile cache key (a digest of its source, Note [Compile cache key])::
+on the stream, launches included; wall time on the CPU). The heads read the first frames of the foundation model's
+features for the largest batch, each tree its own. Each tree's outputs for a frame alone, a batch of 2 and the
+largest batch are compared with the first tree's: a floating output by its largest absolute difference, an integer
+one (a class map, labels, a count) by the share of its elements that differ (a class id that differs is wrong by
+any amount). Each tree is named by its compile cache key (a digest of its source, Note [Compile cache key])::
 
     python benchmarks/compile_batches.py --max-batch 8 --out benchmarks/results/h200
     python benchmarks/compile_batches.py --src .before/src --src src --tags before,after --out DIR
@@ -130,7 +131,10 @@ def main() -> int:
             if set(other) != set(first):
                 raise RuntimeError(f"{tag} set up {sorted(other)}, {tags[0]} {sorted(first)}: not the same models")
             differ[tag] = {
-                m: {str(b): {k: difference(v, other[m][b][k]) for k, v in out.items()} for b, out in first[m].items()}
+                m: {
+                    str(b): {k: difference(v, other[m][b][k], f"{m} {k} at a batch of {b}") for k, v in out.items()}
+                    for b, out in first[m].items()
+                }
                 for m in first
             }
             print(f"{tag} against {tags[0]}, by model and batch (largest difference; integers: share that differ):")
@@ -148,11 +152,16 @@ def main() -> int:
     return 0
 
 
-def difference(a: torch.Tensor, b: torch.Tensor) -> float:
-    """A floating output's largest absolute difference; an integer output's share of elements that differ."""
+def difference(a: torch.Tensor, b: torch.Tensor, what: str) -> float:
+    """A floating output's largest absolute difference; an integer output's share of elements that differ; 0 for
+    empty outputs. RuntimeError naming ``what`` if the two are not of one shape and dtype."""
+    if a.shape != b.shape or a.dtype != b.dtype:
+        raise RuntimeError(f"{what}: {a.dtype}{list(a.shape)} against {b.dtype}{list(b.shape)}")
+    if not a.numel():
+        return 0.0
     if a.is_floating_point():
         return float((a.double() - b.double()).abs().max())
-    return float((a != b).double().mean()) if a.numel() else 0.0
+    return float((a != b).double().mean())
 
 
 if __name__ == "__main__":

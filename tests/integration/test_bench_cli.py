@@ -169,6 +169,7 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert s["memory_report"]["mailbox_host_bytes"] > 0 and "out.depth" in s["memory_report"]["mailboxes"]
     assert s["counted"]["foundation"]["batched"] > 0  # two synchronised cameras: the backbone ran them together
     assert 0 < s["tick_submit_ms"]["p50"] <= s["tick_submit_ms"]["p99"]  # two submits a tick, one thread
+    assert s["start_s"] > 0
     assert [t["cameras"] for t in res["throughput"]] == [1, 2]
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     assert all(t["in_flight"] == 3 for t in res["throughput"])  # a file run's (Note [Frames in flight])

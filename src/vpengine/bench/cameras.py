@@ -6,8 +6,9 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
 * ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
   synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
   the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
-  how long one thread takes to hand in a tick's frames (``tick_submit_ms``: a tick whose last frame comes past the
-  batch window runs in two batches, counted late), and the device memory in use (NVML, else PyTorch's reserved
+  how long one thread takes to hand in a tick's frames (``tick_submit_ms``, from the first submit's call to the
+  last's return: an upper bound on how far apart they reach the backbone; a frame that comes past the batch window
+  runs in the next batch, counted late), the engine's start (``start_s``), and the device memory in use (NVML, else PyTorch's reserved
   bytes) with the engine's memory report.
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
@@ -90,7 +91,11 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
     from vpengine.bench.paper.harness import log, pct
     from vpengine.engine import Engine
 
+    t_start = time.monotonic()
     with Engine(_config(base, n)) as eng:
+        start_s = (
+            time.monotonic() - t_start
+        )  # a first start compiles and captures (Note [Start progress] in runtime/supervisor.py)
         cams = eng.cameras
         heads = list(eng.plan.heads)
         for i in range(10):  # warm-up, every camera
@@ -127,6 +132,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "cameras": n,
         "fps_per_camera": fps,
         "seconds": seconds,
+        "start_s": start_s,
         "frames_submitted": submitted,
         "frames_all_heads": len(whole),
         "frames_not_all_heads": submitted - len(whole),

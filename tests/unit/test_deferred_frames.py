@@ -189,3 +189,12 @@ def test_a_deferred_frame_runs_while_a_lane_raised_above_it_since_defers_another
     assert outputs()[rear] == 4.0 and front not in outputs() and entry("front", "deferred") == 1
     core._take()
     assert outputs()[front] == 6.0 and entry("front", "skipped") == 0 and entry("rear", "skipped") == 0
+
+
+def test_the_frames_of_one_batch_each_get_their_own_outputs(worker):
+    # Note [One call for a batch's copies] in runtime/worker.py: one copy call for the whole batch, each pair in place
+    core, submit, _, outputs, entry = worker
+    front, rear = submit("front", 1.0), submit("rear", 2.0)
+    core._take()
+    assert outputs() == {front: 2.0, rear: 4.0}
+    assert entry("front", "batched") == entry("rear", "batched") == 1

@@ -58,6 +58,16 @@ RuntimeError saying "CUDA error"), after which the process's CUDA context is unu
 fresh process recovers; likewise a failure after the run's work was queued (waiting for the device, publishing).
 Dead and hung workers are found by their runner as before.
 
+Note [One call for a batch's copies]
+~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+A model's outputs for a batch go into their slots in one call (``torch._foreach_copy_``), not in a copy a frame and
+output: a tensor op called from Python gives up the interpreter lock and takes it back, and in thread mode, where
+every model and the callers' threads share one interpreter, each take-back may wait its turn. The backbone's 8
+feature tensors for 8 cameras were 64 such calls a batch. On the CPU with models that cost nothing
+(``benchmarks/engine_overhead.py``) the engine goes faster for it (docs/benchmarks.md). Slots on another
+device than the outputs (a head's outputs kept on the host) keep a copy each: one call over two devices would copy
+each pair in turn anyway.
+
 The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
 launching the foundation's work) live in handoff.py.
 """
@@ -426,9 +436,13 @@ class WorkerCore:
         if n not in self._checked:
             check_outputs(self.name, self.output_spec, outputs, batch=n)
             self._checked.add(n)
-        for i, (_, out) in enumerate(pairs):
-            for k, t in out.tensors.items():
-                t.copy_(outputs[k][i], non_blocking=True)
+        dsts = [t for _, out in pairs for t in out.tensors.values()]
+        srcs = [outputs[k][i] for i, (_, out) in enumerate(pairs) for k in out.tensors]
+        if dsts[0].device == srcs[0].device:  # Note [One call for a batch's copies]
+            torch._foreach_copy_(dsts, srcs, non_blocking=True)
+        else:  # to host output slots: a copy each
+            for dst, src in zip(dsts, srcs):
+                dst.copy_(src, non_blocking=True)
 
     def _inputs(self, slots: list[SlotInfo]) -> dict[str, torch.Tensor]:
         """The frames as one batch (Note [Executor contract] in backends/base.py): one frame's slot viewed, or

@@ -60,13 +60,14 @@ Dead and hung workers are found by their runner as before.
 
 Note [One call for a batch's copies]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
-A model's outputs for a batch go into their slots in one call (``torch._foreach_copy_``), not in a copy a frame and
-output: a tensor op called from Python gives up the interpreter lock and takes it back, and in thread mode, where
-every model and the callers' threads share one interpreter, each take-back may wait its turn. The backbone's 8
-feature tensors for 8 cameras were 64 such calls a batch. On the CPU with models that cost nothing
-(``benchmarks/engine_overhead.py``) the engine goes faster for it (docs/benchmarks.md). Slots on another
-device than the outputs (a head's outputs kept on the host) keep a copy each: one call over two devices would copy
-each pair in turn anyway.
+A batch's frames go into the model's batch buffers in one call, and its outputs into their slots in another
+(``torch._foreach_copy_``), not in a copy (or a stack) a frame and key: a tensor op called from Python gives up the
+interpreter lock and takes it back, and in thread mode, where every model and the callers' threads share one
+interpreter, each take-back may wait its turn. The backbone's 8 feature tensors for 8 cameras were 64 output copies
+a batch, and each head stacked every feature key it reads. On the CPU with models that cost nothing
+(``benchmarks/engine_overhead.py``) the engine goes faster for it (docs/benchmarks.md). Copies between the host and
+the device (host input slots, a head's outputs kept on the host) stay one a tensor: one call over two devices would
+copy each pair in turn anyway.
 
 The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
 launching the foundation's work) live in handoff.py.
@@ -214,6 +215,10 @@ class WorkerCore:
             self._copies = {
                 k: views[k].new_empty((len(self.lanes), *views[k].shape), device=device.device) for k in self._keys
             }
+        # each buffer's rows (a frame each) and its first n rows, as views made once rather than a batch
+        copies = self._copies or {}
+        self._rows = {k: list(buf.unbind(0)) for k, buf in copies.items()}
+        self._batches = {n: {k: buf[:n] for k, buf in copies.items()} for n in range(1, len(self.lanes) + 1)}
 
     def buffer_bytes(self) -> int:
         """Device memory of the batch buffers this worker keeps (Note [Cameras]); 0 on the CPU."""
@@ -450,13 +455,15 @@ class WorkerCore:
         if len(slots) == 1 and self._direct:
             return {k: slots[0].tensors[k].unsqueeze(0) for k in self._keys}
         assert self._copies is not None
-        for k, buf in self._copies.items():  # on one device one op a key, not a frame: each op is a dispatch, a launch
-            if self._direct:
-                torch.stack([slot.tensors[k] for slot in slots], out=buf[: len(slots)])
-            else:
+        n, rows = len(slots), self._rows
+        if self._direct:  # every key of every frame in one call (Note [One call for a batch's copies])
+            dsts = [rows[k][i] for k in rows for i in range(n)]
+            torch._foreach_copy_(dsts, [s.tensors[k] for k in rows for s in slots], non_blocking=True)
+        else:  # host slots to the device: a copy each
+            for k, row in rows.items():
                 for i, slot in enumerate(slots):
-                    buf[i].copy_(slot.tensors[k], non_blocking=True)
-        return {k: buf[: len(slots)] for k, buf in self._copies.items()}
+                    row[i].copy_(slot.tensors[k], non_blocking=True)
+        return dict(self._batches[n])
 
     def _publish(self, pairs: list[tuple[SlotInfo, SlotInfo]], t_start: float) -> None:
         """Count and publish the outputs of one model call whose work ``_launch`` queued: all of them before any

@@ -65,14 +65,15 @@ def main() -> int:
     args = p.parse_args()
     tags, srcs = zip(*trees(p, args, Path(__file__).resolve().parents[1] / "src"))
     res: dict[str, dict[str, list[float]]] = {t: {} for t in tags}
-    torn = 0
+    torn = {t: 0 for t in tags}  # frames that came back without some head's output, by tree
     for n in (int(c) for c in args.cameras.split(",")):
         for r in range(args.rounds):  # the trees take turns: a busy machine's drift falls on both
             for tag, src in zip(tags, srcs):
                 one = run(src, n, args.seconds)
-                fps, torn = one["fps"], torn + one["torn"]
+                fps, torn[tag] = one["fps"], torn[tag] + one["torn"]
                 res[tag].setdefault(str(n), []).append(fps)
-                print(f"{tag}, {n} cameras, round {r + 1}: {fps:.1f} frames/s", flush=True)
+                missing = f", {one['torn']} frames missing a head" if one["torn"] else ""
+                print(f"{tag}, {n} cameras, round {r + 1}: {fps:.1f} frames/s{missing}", flush=True)
     summary = {
         t: {n: {"median_fps": statistics.median(v), "runs": v} for n, v in by_n.items()} for t, by_n in res.items()
     }

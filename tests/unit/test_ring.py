@@ -421,6 +421,24 @@ def test_the_writer_keeps_each_cameras_newest_frame_for_its_reader():
         ring.close()
 
 
+def test_a_camera_that_publishes_more_overwrites_its_own_older_slots_not_another_cameras():
+    # an output ring read by origin (Engine.wait): a camera whose outputs come faster, or whose caller keeps up, must
+    # not push out the outputs a slower camera's caller has not waited for yet (Note [Tagged slots])
+    ring = SlotRing.create("out", SPECS, 7, [ReaderDecl("peek")], n_tags=2)
+    try:
+        slow = [publish_tagged(ring, 100.0 + i, 1) for i in range(3)]
+        fast = [publish_tagged(ring, float(i), 0) for i in range(10)]
+        peek = ring.reader("peek")
+        for origin in slow:  # all three kept: camera 0 held the most, so it gave up its own
+            slot, _ = peek.pin_origin(origin)
+            assert slot is not None and slot.tag == 1
+            peek.release(slot)
+        kept = [o for o in fast if (s := peek.pin_origin(o)[0]) is not None and peek.release(s) is None]
+        assert kept == fast[-4:]  # the rest of the ring, its newest
+    finally:
+        ring.close()
+
+
 def test_a_tagged_fifo_reader_under_block_is_never_overwritten_by_another_cameras_frames():
     ring = SlotRing.create(
         "in", SPECS, 5, [ReaderDecl("fm@a", "fifo", tag=0), ReaderDecl("fm@b", "fifo", tag=1)], "cpu", n_tags=2,

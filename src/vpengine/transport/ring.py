@@ -46,6 +46,10 @@ tag's own sequence (``tag_seq``), so a model that reads every camera holds one s
 most one slot per camera. A reader without a tag sees every slot, as before. The writer keeps the newest slot of
 each tag for readers that have not looked yet, so a ring needs readers + tags + 1 slots (with one tag: readers + 2),
 and tags - 1 more where the writer fills a slot per tag before it publishes them (a batch of every camera's frames).
+Where it must overwrite, it takes the oldest slot of the camera that holds the most, not the oldest of all: a
+camera whose frames come faster, or whose reader keeps up, then gives up its own older slots rather than another
+camera's, so each camera keeps its share of the ring (an output ring's ``output.slots`` a camera, which a caller
+waiting for a slower camera's outputs relies on).
 
 The ring is this module's ``SlotRing`` (creation, attachment, supervision, stats, the one futex wait), its
 ``RingReader`` (ring_reader.py) and ``RingWriter`` (ring_writer.py), over the metadata offsets and descriptions of

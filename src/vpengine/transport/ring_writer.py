@@ -59,25 +59,30 @@ class RingWriter:
                 c = q[b + R_CURSOR]
                 unread[decl.tag] = min(unread.get(decl.tag, c), c)
         newest: dict[int, int] = {}  # tag -> its newest published seq, kept for readers that have not looked yet
+        held: dict[int, int] = {}  # tag -> how many published slots it has
         for i in range(ring.n_slots):
             b = ring._slot(i)
             if q[b + S_STATE] == PUBLISHED:
                 t = q[b + S_TAG]
                 newest[t] = max(newest.get(t, 0), q[b + S_SEQ])
-        best, best_seq = None, None
+                held[t] = held.get(t, 0) + 1
+        # an empty slot first; else the oldest slot of the camera that holds the most (Note [Tagged slots])
+        best, best_key = None, None
         for i in range(ring.n_slots):
             b = ring._slot(i)
             state, seq = q[b + S_STATE], q[b + S_SEQ]
             if state == WRITING or i in pinned:
                 continue
+            key = (-ring.n_slots - 1, seq)
             if state == PUBLISHED:
                 tag = q[b + S_TAG]
                 if seq == newest[tag]:
                     continue
                 if unread and (seq > unread.get(None, seq) or q[b + S_TAG_SEQ] > unread.get(tag, q[b + S_TAG_SEQ])):
                     continue  # unread by a FIFO reader and the policy forbids overwriting it
-            if best_seq is None or seq < best_seq:
-                best, best_seq = i, seq
+                key = (-held[tag], seq)
+            if best_key is None or key < best_key:
+                best, best_key = i, key
         return best
 
     def acquire(self, timeout: float | None = None, should_stop: Callable[[], bool] | None = None) -> SlotInfo | None:

@@ -439,6 +439,27 @@ def test_a_camera_that_publishes_more_overwrites_its_own_older_slots_not_another
         ring.close()
 
 
+def test_slots_lent_out_do_not_count_against_their_cameras_share():
+    # an output ring as the engine sizes it: 2 cameras, 2 slots a camera, 2 leases, the newest of each; two results
+    # of camera 0 lent out (pinned by lease readers) must not make it the camera that gives up its slots
+    readers = [ReaderDecl("peek"), ReaderDecl("lease0", active=False), ReaderDecl("lease1", active=False)]
+    ring = SlotRing.create("out", SPECS, 2 * 2 + 2 + 1, readers, n_tags=2)
+    try:
+        lent = [publish_tagged(ring, float(i), 0) for i in range(2)]
+        leases = [ring.reader(f"lease{i}") for i in range(2)]
+        pins = [lease.pin_origin(o)[0] for lease, o in zip(leases, lent)]
+        assert all(p is not None for p in pins)
+        for i in range(6):  # the cameras take turns
+            publish_tagged(ring, 10.0 + i, 0)
+            publish_tagged(ring, 100.0 + i, 1)
+        tags = [ring.slot_tag(i) for i in range(ring.n_slots) if i not in {p.index for p in pins}]
+        assert sorted(tags) == [0, 0, 1, 1, 1]  # beside the two lent: 2 of camera 0 (its share), 3 of camera 1
+        for lease, p in zip(leases, pins):
+            lease.release(p)
+    finally:
+        ring.close()
+
+
 def test_a_tagged_fifo_reader_under_block_is_never_overwritten_by_another_cameras_frames():
     ring = SlotRing.create(
         "in", SPECS, 5, [ReaderDecl("fm@a", "fifo", tag=0), ReaderDecl("fm@b", "fifo", tag=1)], "cpu", n_tags=2,

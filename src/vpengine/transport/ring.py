@@ -6,7 +6,8 @@ Two flavours share this code and differ only in how a reader picks a slot and ho
   frame it never saw is counted as *missed* (skipped). The writer overwrites the oldest slot nobody pins.
 * :class:`FifoQueue` (bounded, ordered): a reader pins the next slot in sequence order; a slot overwritten before
   the reader got to it is counted as *missed* (dropped). On overflow the writer applies a policy: ``drop_oldest``
-  (overwrite the oldest unread), ``drop_newest`` (refuse the new item, counted), or ``block`` (wait for a reader).
+  (overwrite the oldest unread; in a ring of several cameras, the oldest of the camera that holds the most: Note
+  [Tagged slots]), ``drop_newest`` (refuse the new item, counted), or ``block`` (wait for a reader).
 
 Every reader can also *peek* (pin the newest slot whether seen or not, no accounting), which ``Engine.latest`` uses.
 
@@ -46,10 +47,10 @@ tag's own sequence (``tag_seq``), so a model that reads every camera holds one s
 most one slot per camera. A reader without a tag sees every slot, as before. The writer keeps the newest slot of
 each tag for readers that have not looked yet, so a ring needs readers + tags + 1 slots (with one tag: readers + 2),
 and tags - 1 more where the writer fills a slot per tag before it publishes them (a batch of every camera's frames).
-Where it must overwrite, it takes the oldest slot of the camera that holds the most, not the oldest of all: a
-camera whose frames come faster, or whose reader keeps up, then gives up its own older slots rather than another
-camera's, so each camera keeps its share of the ring (an output ring's ``output.slots`` a camera, which a caller
-waiting for a slower camera's outputs relies on).
+Where it must overwrite, it takes the oldest slot of the camera that holds the most slots no reader pins (a lent
+result is not its camera's to give up), not the oldest of all: a camera whose frames come faster, or whose reader
+keeps up, then gives up its own older slots rather than another camera's, so each camera keeps its share of the
+ring (an output ring's ``output.slots`` a camera, which a caller waiting for a slower camera's outputs relies on).
 
 The ring is this module's ``SlotRing`` (creation, attachment, supervision, stats, the one futex wait), its
 ``RingReader`` (ring_reader.py) and ``RingWriter`` (ring_writer.py), over the metadata offsets and descriptions of

@@ -59,13 +59,14 @@ class RingWriter:
                 c = q[b + R_CURSOR]
                 unread[decl.tag] = min(unread.get(decl.tag, c), c)
         newest: dict[int, int] = {}  # tag -> its newest published seq, kept for readers that have not looked yet
-        held: dict[int, int] = {}  # tag -> how many published slots it has
+        held: dict[int, int] = {}  # tag -> how many published slots it has that no reader pins
         for i in range(ring.n_slots):
             b = ring._slot(i)
             if q[b + S_STATE] == PUBLISHED:
                 t = q[b + S_TAG]
                 newest[t] = max(newest.get(t, 0), q[b + S_SEQ])
-                held[t] = held.get(t, 0) + 1
+                if i not in pinned:  # a slot a reader holds (a lent result) is not the camera's to give up
+                    held[t] = held.get(t, 0) + 1
         # an empty slot first; else the oldest slot of the camera that holds the most (Note [Tagged slots])
         best, best_key = None, None
         for i in range(ring.n_slots):
@@ -80,7 +81,7 @@ class RingWriter:
                     continue
                 if unread and (seq > unread.get(None, seq) or q[b + S_TAG_SEQ] > unread.get(tag, q[b + S_TAG_SEQ])):
                     continue  # unread by a FIFO reader and the policy forbids overwriting it
-                key = (-held[tag], seq)
+                key = (-held.get(tag, 0), seq)
             if best_key is None or key < best_key:
                 best, best_key = i, key
         return best

@@ -17,7 +17,9 @@ from vpengine.specs import TensorSpec
 from vpengine.transport.ring import ReaderDecl, SlotRing
 
 CAMERAS = ["front", "rear"]
-X, F = {"x": TensorSpec((4,), "float32")}, {"f": TensorSpec((4,), "float32")}
+# two keys each way, so a batch's copies that mixed up keys and frames would show (Note [One call for a batch's copies])
+X = {"x": TensorSpec((4,), "float32"), "y": TensorSpec((4,), "float32")}
+F = {"f": TensorSpec((4,), "float32"), "g": TensorSpec((4,), "float32")}
 
 
 @pytest.fixture()
@@ -40,13 +42,18 @@ def worker(request):
         out_ring=out_ring.desc,
         notify_output=False,
     )
-    core = WorkerCore(spec, lambda inputs: {"f": inputs["x"] * 2}, F, in_ring, out_ring, control, DeviceContext("cpu"))
+
+    def model(inputs):
+        return {"f": inputs["x"] * 2, "g": inputs["y"] * 3}
+
+    core = WorkerCore(spec, model, F, in_ring, out_ring, control, DeviceContext("cpu"))
     writer = in_ring.writer()
 
     def submit(camera: str, value: float) -> int:
         slot = writer.acquire(timeout=1.0)
         assert slot is not None
         slot.tensors["x"].fill_(value)
+        slot.tensors["y"].fill_(value + 0.5)
         now = time.monotonic()
         return writer.publish(slot, int(value), now, now, tag=CAMERAS.index(camera))
 
@@ -56,14 +63,14 @@ def worker(request):
         for lane in core.lanes:
             lane.interval = 0.01
 
-    def outputs() -> dict[int, float]:
-        """origin -> the value the model wrote for it, of every output in the ring."""
+    def outputs(key: str = "f") -> dict[int, float]:
+        """origin -> the value the model wrote for it as ``key``, of every output in the ring."""
         peek = out_ring.reader("peek")
         found = {}
         for origin in range(1, in_ring.last_seq + 1):
             slot, _ = peek.pin_origin(origin)
             if slot is not None:
-                found[origin] = slot.tensors["f"][0].item()
+                found[origin] = slot.tensors[key][0].item()
                 peek.release(slot)
         return found
 
@@ -196,5 +203,6 @@ def test_the_frames_of_one_batch_each_get_their_own_outputs(worker):
     core, submit, _, outputs, entry = worker
     front, rear = submit("front", 1.0), submit("rear", 2.0)
     core._take()
-    assert outputs() == {front: 2.0, rear: 4.0}
+    assert outputs("f") == {front: 2.0, rear: 4.0}  # x * 2
+    assert outputs("g") == {front: 4.5, rear: 7.5}  # y * 3, y = x + 0.5
     assert entry("front", "batched") == entry("rear", "batched") == 1

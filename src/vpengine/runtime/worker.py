@@ -443,6 +443,8 @@ class WorkerCore:
             self._checked.add(n)
         dsts = [t for _, out in pairs for t in out.tensors.values()]
         srcs = [outputs[k][i] for i, (_, out) in enumerate(pairs) for k in out.tensors]
+        if not dsts:  # a model of no outputs
+            return
         if dsts[0].device == srcs[0].device:  # Note [One call for a batch's copies]
             torch._foreach_copy_(dsts, srcs, non_blocking=True)
         else:  # to host output slots: a copy each
@@ -456,7 +458,7 @@ class WorkerCore:
             return {k: slots[0].tensors[k].unsqueeze(0) for k in self._keys}
         assert self._copies is not None
         n, rows = len(slots), self._rows
-        if self._direct:  # every key of every frame in one call (Note [One call for a batch's copies])
+        if self._direct and rows:  # every key of every frame in one call (Note [One call for a batch's copies])
             dsts = [rows[k][i] for k in rows for i in range(n)]
             torch._foreach_copy_(dsts, [s.tensors[k] for k in rows for s in slots], non_blocking=True)
         else:  # host slots to the device: a copy each

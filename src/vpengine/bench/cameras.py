@@ -8,8 +8,8 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
   how long one thread takes to hand in a tick's frames (``tick_submit_ms``, from the first submit's call to the
   last's return: an upper bound on how far apart they reach the backbone; a frame that comes past the batch window
-  runs in the next batch, counted late), the engine's start (``start_s``), and the device memory in use (NVML, else PyTorch's reserved
-  bytes) with the engine's memory report.
+  runs in the next batch, counted late), the engine's start (``start_s``), and the device memory in use (NVML,
+  else PyTorch's reserved bytes) with the engine's memory report.
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
@@ -93,9 +93,8 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
 
     t_start = time.monotonic()
     with Engine(_config(base, n)) as eng:
-        start_s = (
-            time.monotonic() - t_start
-        )  # a first start compiles and captures (Note [Start progress] in runtime/supervisor.py)
+        # a first start compiles and captures (Note [Start progress] in runtime/supervisor.py)
+        start_s = time.monotonic() - t_start
         cams = eng.cameras
         heads = list(eng.plan.heads)
         for i in range(10):  # warm-up, every camera
@@ -137,9 +136,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "frames_all_heads": len(whole),
         "frames_not_all_heads": submitted - len(whole),
         "latency_all_heads_ms": pct(whole),
-        # one thread hands in a tick's frames one after another: past the batch window, the last ones are late for
-        # the batch (``counted``'s late) and run in a second one
-        "tick_submit_ms": pct(handing),
+        "tick_submit_ms": pct(handing),  # against the batch window: ``counted``'s late
         "device_memory_bytes": memory,
         "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels

@@ -74,14 +74,14 @@ class RingWriter:
             state, seq = q[b + S_STATE], q[b + S_SEQ]
             if state == WRITING or i in pinned:
                 continue
-            key = (-ring.n_slots - 1, seq)
-            if state == PUBLISHED:
-                tag = q[b + S_TAG]
-                if seq == newest[tag]:
-                    continue
-                if unread and (seq > unread.get(None, seq) or q[b + S_TAG_SEQ] > unread.get(tag, q[b + S_TAG_SEQ])):
-                    continue  # unread by a FIFO reader and the policy forbids overwriting it
-                key = (-held.get(tag, 0), seq)
+            if state != PUBLISHED:
+                return i
+            tag = q[b + S_TAG]
+            if seq == newest[tag]:
+                continue
+            if unread and (seq > unread.get(None, seq) or q[b + S_TAG_SEQ] > unread.get(tag, q[b + S_TAG_SEQ])):
+                continue  # unread by a FIFO reader and the policy forbids overwriting it
+            key = (-held.get(tag, 0), seq)
             if best_key is None or key < best_key:
                 best, best_key = i, key
         return best

@@ -3,6 +3,7 @@ their camera, outputs in each camera's own grid, a head limited to one camera, r
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -100,6 +101,78 @@ def test_frame_slot_lends_the_cameras_own_size():
         assert out["seg"].camera == "rear" and out["seg"]["classes"].shape == (90, 200)
 
 
+def test_a_camera_fills_its_slot_while_another_cameras_slot_is_open():
+    # Note [Frames of several cameras at once]: a slot is filled under its camera's lock, not the submit lock
+    with Engine(tiny("thread", *CAMERAS)) as e:
+        done = {c: threading.Event() for c in ("front", "rear")}
+        ids: dict[str, int] = {}
+
+        def submit(camera: str) -> None:
+            ids[camera] = e.submit(frame(9), camera=camera)
+            done[camera].set()
+
+        with e.frame_slot(camera="rear") as slot:
+            others = [threading.Thread(target=submit, args=(c,)) for c in ("front", "rear")]
+            for t in others:
+                t.start()
+            assert done["front"].wait(10), "another camera's submit waited for an open slot"
+            time.sleep(0.2)
+            assert not done["rear"].is_set(), "the same camera's submit went through while its slot was open"
+            slot.array[...] = frame(3, 90, 200)
+            buffer = slot.array
+        for t in others:
+            t.join(10)
+        assert ids["front"] < slot.frame_id < ids["rear"]  # ids in the order the frames were published
+        assert e.wait(ids["rear"], timeout=30)["seg"].camera == "rear"  # the camera's newest: nothing skips it
+        assert buffer is not None
+        # frames of another size are fitted from a buffer of the camera's own: two cameras' blocks open at once,
+        # each writing a frame of the same size, submit their own frames
+        written, front_ids = threading.Event(), []
+
+        def front_block() -> None:
+            with e.frame_slot(camera="front", size=(90, 200)) as front:
+                front.array[...] = frame(1, 90, 200)
+                written.set()
+                time.sleep(0.3)  # the rear camera's block opens, writes and closes meanwhile
+            front_ids.append(front.frame_id)
+
+        t = threading.Thread(target=front_block)
+        t.start()
+        assert written.wait(10)
+        with e.frame_slot(camera="rear") as rear:
+            rear.array[...] = frame(2, 90, 200)
+        t.join(10)
+        got = e.wait(front_ids[0], timeout=30)["depth"]["depth"]
+        alone = e.wait(e.submit(frame(1, 90, 200), camera="front"), timeout=30)["depth"]["depth"]
+        np.testing.assert_array_equal(got, alone)
+
+
+def test_cameras_submitting_from_threads_of_their_own_lose_no_frame_and_never_run_out_of_slots():
+    cams = [f"c{i}" for i in range(4)]
+    with Engine(tiny("thread", "cameras=[" + ", ".join(f"{{name: {c}}}" for c in cams) + "]")) as e:
+        ids: dict[str, list[int]] = {c: [] for c in cams}
+        answered: dict[str, list[str]] = {c: [] for c in cams}
+        go = threading.Barrier(len(cams))
+
+        def drive(camera: str) -> None:  # a camera's driver: its next frame once the last one is answered
+            go.wait()
+            for i in range(30):
+                ids[camera].append(e.submit(frame(i), camera=camera))
+                answered[camera] += [r.camera for r in e.wait(ids[camera][-1], heads=["depth"], timeout=30).values()]
+
+        threads = [threading.Thread(target=drive, args=(c,)) for c in cams]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(60)
+        every = [f for c in cams for f in ids[c]]
+        assert len(every) == 4 * 30 and len(set(every)) == len(every)
+        for c in cams:
+            assert ids[c] == sorted(ids[c])  # a camera's frames in the order it handed them in
+            assert answered[c] == [c] * 30
+        assert e.stats()["engine"]["submitted"] == 4 * 30
+
+
 def test_one_camera_engines_keep_their_names_and_layout():
     with Engine(tiny("thread")) as e:
         assert e.cameras == ["camera"]
@@ -161,15 +234,17 @@ def test_a_batch_that_fails_answers_every_camera_and_the_head_goes_on(tmp_path, 
         assert st["front"]["seg"]["runs"] + st["rear"]["seg"]["runs"] >= 40 + 24 - len(missing)
 
 
-def test_the_feature_mailbox_has_room_for_a_whole_batch_while_every_reader_pins_another_frame():
+@pytest.mark.parametrize("mailbox", ["features", "input"])
+def test_a_mailbox_has_room_for_a_slot_a_camera_in_writing_while_every_reader_pins_another_frame(mailbox):
     """The foundation acquires one feature slot per camera of its batch before it publishes any (Note [Tagged
-    slots]): with every head's reader pinning a slot of its own and each camera's newest kept, all of them must still
-    be free. A mailbox sized for one slot in writing crashed the foundation with two cameras and slow heads."""
+    slots]), and the cameras' threads fill an input slot each at once (Note [Frames of several cameras at once] in
+    engine/core.py): with every reader pinning a slot of its own and each camera's newest kept, all of them must
+    still be free. A mailbox sized for one slot in writing crashed the foundation with two cameras and slow heads."""
     from vpengine.runtime.plan import mailboxes, make_plan
     from vpengine.transport import SlotRing
 
-    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]")
-    box = next(m for m in mailboxes(make_plan(cfg), shared=False) if m["name"] == "features")
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}, {name: left}]")
+    box = next(m for m in mailboxes(make_plan(cfg), shared=False) if m["name"] == mailbox)
     ring = SlotRing.create(**box)
     try:
         writer, tags = ring.writer(), len(cfg.camera_names())

@@ -3,13 +3,13 @@
 Two measurements, on the config's models (``configs/bench.yaml`` by default: DINOv2 ViT-S/14 + depth, segmentation
 and detection heads at 1080p, process mode; ``--set`` as everywhere):
 
-* ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), their frames submitted together as
-  synchronised cameras deliver them, for ``--seconds``: per frame, the latency from submit to every head's result on
-  the host (p50, p99), frames some head never answered (each is counted by the engine too, as skipped),
-  how long one thread takes to hand in a tick's frames (``tick_submit_ms``, from the first submit's call to the
-  last's return: an upper bound on how far apart they reach the backbone; a frame that comes past the batch window
-  runs in the next batch, counted late), the engine's start (``start_s``), and the device memory in use (NVML,
-  else PyTorch's reserved bytes) with the engine's memory report.
+* ``stream``: ``--stream-cameras`` cameras (4) at ``--fps`` each (30 Hz), for ``--seconds``, each camera's frames
+  submitted by a thread of its own at every tick, as synchronised cameras' drivers deliver them: per frame, the
+  latency from submit to every head's result on the host (p50, p99), frames some head never answered (each is
+  counted by the engine too, as skipped), how long the cameras take to hand in a tick's frames (``tick_submit_ms``,
+  from the tick's start to the last submit's return: an upper bound on how far apart they reach the backbone; a frame
+  that comes past the batch window runs in the next batch, counted late), the engine's start (``start_s``), and the
+  device memory in use (NVML, else PyTorch's reserved bytes) with the engine's memory report.
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
@@ -102,21 +102,22 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                 eng.wait(eng.submit(imgs[i % len(imgs)], camera=c), timeout=120)
         eng.results()
         frames: dict[int, dict[str, float]] = {}
+        handing: list[float] = []  # per tick: its start to the last submit's return, s
         submitted = 0
-        handing: list[float] = []  # per tick: the first submit's call to the last's return, s
         t0 = time.monotonic()
-        k = 0
-        while time.monotonic() - t0 < seconds:
-            t = t0 + k / fps
-            while (now := time.monotonic()) < t:
-                for r in eng.results(timeout=t - now):
-                    frames.setdefault(r.frame_id, {})[r.head] = r.latency
-            stamp, t_hand = time.time(), time.monotonic()
-            for i, c in enumerate(cams):  # synchronised cameras: every frame of a tick at once, one capture stamp
-                frames.setdefault(eng.submit(imgs[(k + i) % len(imgs)], timestamp=stamp, camera=c), {})
-                submitted += 1
-            handing.append(time.monotonic() - t_hand)
-            k += 1
+        with _Cameras(eng, cams, imgs) as drivers:
+            k = 0
+            while time.monotonic() - t0 < seconds:
+                t = t0 + k / fps
+                while (now := time.monotonic()) < t:
+                    for r in eng.results(timeout=t - now):
+                        frames.setdefault(r.frame_id, {})[r.head] = r.latency
+                t_hand = time.monotonic()
+                for fid in drivers.tick(k, time.time()):  # synchronised cameras: one capture stamp a tick
+                    frames.setdefault(fid, {})
+                    submitted += 1
+                handing.append(time.monotonic() - t_hand)
+                k += 1
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
             rs = eng.results(timeout=0.5)
@@ -149,6 +150,57 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS"
     )
     return out
+
+
+class _Cameras:
+    """A thread a camera, as a camera's driver delivers its frames: at each ``tick`` every camera submits one frame
+    (the tick's ``k``-th of ``imgs``, shifted by the camera's index) stamped with the tick's capture time, at once;
+    ``tick`` returns their frame ids when every camera's submit has returned, or raises a camera's error."""
+
+    def __init__(self, eng: Any, cams: list[str], imgs: list[np.ndarray]) -> None:
+        self.eng, self.cams, self.imgs = eng, cams, imgs
+        self._go = threading.Barrier(len(cams) + 1)
+        self._done = threading.Barrier(len(cams) + 1)
+        self._k, self._stamp = 0, 0.0
+        self._fids: list[int] = [0] * len(cams)
+        self._error: BaseException | None = None
+        self._threads = [
+            threading.Thread(target=self._drive, args=(i,), name=f"camera-{c}", daemon=True) for i, c in enumerate(cams)
+        ]
+
+    def __enter__(self) -> _Cameras:
+        for t in self._threads:
+            t.start()
+        return self
+
+    def _drive(self, i: int) -> None:
+        try:
+            while True:
+                self._go.wait()
+                img = self.imgs[(self._k + i) % len(self.imgs)]
+                self._fids[i] = self.eng.submit(img, timestamp=self._stamp, camera=self.cams[i])
+                self._done.wait()
+        except threading.BrokenBarrierError:
+            return
+        except BaseException as e:  # handed to the tick, which raises it
+            self._error = e
+            self._go.abort()
+            self._done.abort()
+
+    def tick(self, k: int, stamp: float) -> list[int]:
+        self._k, self._stamp = k, stamp
+        try:
+            self._go.wait()
+            self._done.wait()
+        except threading.BrokenBarrierError:
+            raise RuntimeError(f"a camera's submit failed: {self._error!r}") from self._error
+        return list(self._fids)
+
+    def __exit__(self, *exc: object) -> None:
+        self._go.abort()  # every driver returns: from its wait, or from its submit at the next one
+        self._done.abort()
+        for t in self._threads:
+            t.join(timeout=10)
 
 
 class _Pump:

@@ -19,8 +19,20 @@ fast GPU is as long as the backbone. ``frame_slot`` lends the slot itself instea
 frame there once (``cv2.VideoCapture.read(image=...)``, a driver's DMA buffer copy, a message's payload). The slot is
 the writer's (state WRITING) until the with-block ends, so no reader sees a half-written frame; leaving the block
 publishes it exactly as ``submit`` would (same frame ids, counters and skip accounting), and an exception or
-``cancel()`` gives it back unpublished. The submit lock is held for the whole block: frames enter the engine in one
-order, from one writer at a time.
+``cancel()`` gives it back unpublished.
+
+Note [Frames of several cameras at once]
+~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+A batch takes the frames of every camera that reach the backbone within its window, so what matters with several
+cameras is how far apart a tick's frames arrive. Filling a slot (``submit``'s copy, a ``frame_slot`` block) is most of
+a submit and is DRAM-bound (1.5 ms for a 1080p frame on an H200's host): eight cameras handed in one after the other
+took 12 ms, past the window, and the batch split. So a slot is filled outside the submit lock, under its camera's
+own lock: cameras' threads fill their slots at once, one frame of a camera at a time. Only taking a slot and
+publishing it hold the submit lock, so frames still enter the ring in one order (frame ids, placements and the inline
+launch keep their single writer), and the input ring holds a slot a camera more for the frames being filled (3 a
+camera: its reader's, its newest, the one being filled). A thread with a ``frame_slot`` block open may not submit
+(its camera's lock is held: the same camera would deadlock), and buffers lent for frames of another size are one
+per camera and size, so two cameras' blocks never share one.
 """
 
 from __future__ import annotations
@@ -148,8 +160,10 @@ class Engine:
         self._res = _Resources()
         self._finalizer = weakref.finalize(self, _Resources.close, self._res)
         self._state = "planned"
+        # Note [Frames of several cameras at once]: taking and publishing an input slot; filling one, by camera
         self._submit_lock = threading.Lock()
-        self._filling: int | None = None  # thread id holding an open frame_slot (and _submit_lock)
+        self._filling_locks = [threading.Lock() for _ in range(max(1, len(self.config.cameras)))]
+        self._filling: set[int] = set()  # threads holding an open frame_slot (and their camera's filling lock)
         self._next_id = 0
         self._submitted = 0
         self._rejected = 0
@@ -162,7 +176,7 @@ class Engine:
             {h: (m.meta, m.output_spec) for h, m in self.plan.heads.items()},
             self.plan.foundation.meta.get("normalize_mean", IMAGENET_MEAN),
         )
-        self._staged: dict[tuple[int, int], np.ndarray] = {}
+        self._staged: list[dict[tuple[int, int], np.ndarray]] = [{} for _ in self._filling_locks]  # by camera
         self._t_start = 0.0
         self.memory_report: dict[str, Any] = {}
         self._cuda: CudaSetup | None = None  # set at start on CUDA
@@ -314,7 +328,7 @@ class Engine:
         t_submit = time.monotonic()
         t_capture = time.time() if timestamp is None else float(timestamp)
         self._refuse_inside_frame_slot()
-        with self._submit_lock:
+        with self._filling_locks[cam]:  # Note [Frames of several cameras at once]
             slot = self._acquire_input()
             return self._enter_frame(
                 slot, lambda view: self.boundary.write(arr, view), frame_id, t_capture, t_submit, cam
@@ -346,9 +360,9 @@ class Engine:
         (``ok, slot.array = cap.read(image=slot.array)``): a writer that allocated a new array instead of writing
         into it (OpenCV does when the sizes differ) raises ValueError naming both sizes. Leaving the block submits
         it (latency counts from there); an exception inside the block or ``cancel()`` gives the slot back and
-        submits nothing. One slot is open at a time: other threads' ``submit``/``frame_slot`` calls wait for it to
-        close, so fill it promptly (a camera read, a decode); calling them from inside the block raises
-        RuntimeError.
+        submits nothing. One slot of a camera is open at a time: other threads' ``submit``/``frame_slot`` calls for
+        that camera wait for it to close, so fill it promptly (a camera read, a decode), while other cameras' go on
+        (Note [Frames of several cameras at once]); calling them from inside the block raises RuntimeError.
         """
         self._require_running()
         self._refuse_inside_frame_slot()
@@ -380,18 +394,21 @@ class Engine:
         in runtime/lanes.py). ``engine.lanes.of("depth")``: the lanes of head ``depth``, in the configured order."""
         return self.plan.lanes
 
-    def _staging(self, size: tuple[int, int]) -> np.ndarray:
-        """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per size (``buffer_for``)."""
-        return buffer_for(self._staged, size, self.boundary.dtype)
+    def _staging(self, camera: int, size: tuple[int, int]) -> np.ndarray:
+        """The buffer ``frame_slot(size=...)`` lends for frames of another size: one per camera and size
+        (``buffer_for``), so blocks of two cameras open at once never share one."""
+        return buffer_for(self._staged[camera], size, self.boundary.dtype)
 
     def _refuse_inside_frame_slot(self) -> None:
-        if self._filling == threading.get_ident():
+        if threading.get_ident() in self._filling:
             raise RuntimeError("a frame_slot is open in this thread: submit after its with-block ends")
 
     def _acquire_input(self) -> SlotInfo:
-        """The input slot to fill next; the caller holds ``_submit_lock``."""
-        slot = self._input_writer.acquire()
-        assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2
+        """The input slot to fill next; the caller holds its camera's filling lock, so a camera fills one slot at a
+        time, and the ring has a slot a camera for it (Note [Frames of several cameras at once])."""
+        with self._submit_lock:
+            slot = self._input_writer.acquire()
+        assert slot is not None  # input ring is drop_oldest with n_slots >= readers + 2 * cameras
         return slot
 
     def _enter_frame(
@@ -406,12 +423,15 @@ class Engine:
         """Check, write and publish a frame into input ``slot`` (``submit``, and a ``frame_slot`` block's end):
         ``fill`` writes it into the slot's frame array (or finds it written there) and says where it lies;
         ``timestamp`` is its capture time (None: now). Its frame id. Anything that raises gives the slot back
-        unpublished: a leaked slot is a frame the ring never gets again. The caller holds ``_submit_lock``."""
+        unpublished: a leaked slot is a frame the ring never gets again. The caller holds its camera's filling lock:
+        the slot is filled outside the submit lock, and published under it (Note [Frames of several cameras at
+        once])."""
         try:
             stamp = checks.timestamp(timestamp)
             t_capture = time.time() if stamp is None else stamp
             placement = fill(self._frame_views[slot.index])
-            return self._publish_input(slot, frame_id, t_capture, t_submit, placement, camera)
+            with self._submit_lock:
+                return self._publish_input(slot, frame_id, t_capture, t_submit, placement, camera)
         except BaseException:
             self._input_writer.abort(slot)
             raise

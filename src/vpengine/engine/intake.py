@@ -79,19 +79,21 @@ class FrameSlot:
             raise RuntimeError("a FrameSlot is used for one with-block; call engine.frame_slot() again")
         fence = eng._res.fence
         fence.__enter__()  # the slot is mapped memory: held for the whole block (Note [Unmapping at stop])
-        eng._submit_lock.acquire()
+        # the camera's filling lock for the whole block (Note [Frames of several cameras at once] in core.py)
+        lock = eng._filling_locks[self._camera]
+        lock.acquire()
         try:
             eng._require_running()
             slot = eng._acquire_input()
         except BaseException:
-            eng._submit_lock.release()
+            lock.release()
             fence.leave()
             raise
-        eng._filling = threading.get_ident()
+        eng._filling.add(threading.get_ident())
         self._slot = slot
         # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
         # (Note [Frame grid] in boundary.py)
-        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._size)
+        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._camera, self._size)
         return self
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
@@ -111,6 +113,6 @@ class FrameSlot:
                 slot, fill, self._frame_id_arg, self.timestamp, time.monotonic(), self._camera
             )
         finally:
-            eng._filling = None
-            eng._submit_lock.release()
+            eng._filling.discard(threading.get_ident())
+            eng._filling_locks[self._camera].release()
             eng._res.fence.leave()

@@ -168,7 +168,9 @@ def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
         dict(
             name="input",
             specs=plan.frame_spec,
-            n_slots=2 * tags + 1 + fifo_fm * tags,
+            # a camera's reader's, its newest, the one its thread fills (Note [Frames of several cameras at once]
+            # in engine/core.py)
+            n_slots=3 * tags + fifo_fm * tags,
             readers=readers("foundation", cfg.foundation_model.input_mode),
             device="cpu",
             shared=shared,

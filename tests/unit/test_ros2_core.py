@@ -6,6 +6,7 @@ No DDS and no processes here; the engine tests use the real engine in thread mod
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 from types import SimpleNamespace
@@ -421,6 +422,38 @@ def test_core_outputs_carry_the_exact_input_header_on_every_topic():
                 assert (p.encoding, p.width, p.height, p.step) == ("bgr8", 160, 120, 480)
     assert core.counters["received"] == core.counters["submitted"] == 3
     assert core.counters["header_fallbacks"] == 0
+
+
+def test_a_cameras_frame_goes_in_while_another_cameras_submit_is_still_filling():
+    # each camera's input thread fills its own slot (Note [Frames of several cameras at once] in engine/core.py): a
+    # camera's submit under way holds no other camera's frame back
+    core = Ros2Core(tiny("thread"), cameras=["front", "rear"])
+    core.start()
+    try:
+        eng = core.engine
+        assert eng is not None
+        submit, filling, go_on = eng.submit, threading.Event(), threading.Event()
+
+        def slow_front(img, **kw):  # the front camera's submit, held in the middle of its copy
+            if kw.get("camera") == "front":
+                filling.set()
+                assert go_on.wait(20)
+            return submit(img, **kw)
+
+        eng.submit = slow_front  # type: ignore[method-assign]
+        front: list[int | None] = []
+        t = threading.Thread(target=lambda: front.append(core.handle_image(image_msg(frame(1), "bgr8"), "front")))
+        t.start()
+        assert filling.wait(20)
+        rear = core.handle_image(image_msg(frame(2), "bgr8"), "rear")  # not behind the front camera's
+        go_on.set()
+        t.join(20)
+        assert rear is not None and front and front[0] is not None and front[0] < rear
+        assert set(eng.wait(rear, timeout=30)) == {"depth", "seg", "det"}
+        assert core.counters["submitted"] == 2
+    finally:
+        go_on.set()
+        core.stop()
 
 
 @pytest.mark.parametrize("every_frame", [False, True])

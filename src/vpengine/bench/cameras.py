@@ -101,6 +101,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
             for c in cams:
                 eng.wait(eng.submit(imgs[i % len(imgs)], camera=c), timeout=120)
         eng.results()
+        warm = _counted(eng.stats())  # the warm-up's frames, one at a time, each waiting the window: not counted
         frames: dict[int, dict[str, float]] = {}
         handing: list[float] = []  # per tick: its start to the last submit's return, s
         submitted = 0
@@ -141,7 +142,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "device_memory_bytes": memory,
         "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
-        "counted": _counted(st),
+        "counted": _counted(st, since=warm),  # over the stream
     }
     log(
         f"stream: {n} cameras at {fps:g} Hz, {len(whole)}/{submitted} frames through every head, "

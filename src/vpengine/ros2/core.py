@@ -272,13 +272,16 @@ class Ros2Core:
             fid = self._next_fid
             self._next_fid += 1
             self.book.add(fid, header, bgr)
-            t0 = time.thread_time()
-            try:
-                eng.submit(frame, frame_id=fid, timestamp=header.seconds, camera=camera)
-            except ValueError as e:
-                error: ValueError | None = e
-            else:
-                error = None
+        # outside the lock: each camera's input thread fills its own slot, at once with the others' (Note [Frames of
+        # several cameras at once] in engine/core.py)
+        t0 = time.thread_time()
+        try:
+            eng.submit(frame, frame_id=fid, timestamp=header.seconds, camera=camera)
+        except ValueError as e:
+            error: ValueError | None = e
+        else:
+            error = None
+            with self._input_lock:
                 self.busy["submit"] += time.thread_time() - t0
         if error is not None:
             self._reject("engine", str(error), camera)

@@ -111,3 +111,22 @@ def test_a_run_without_a_progress_bar_reads_the_engines_stats_for_its_summary_al
     monkeypatch.setattr(Engine, "stats", lambda self: calls.append(1) or stats(self))
     s = run_pipeline(tiny("thread"), Numbered(30), progress=False)
     assert s["frames_submitted"] == 30 and len(calls) == 1  # not once a frame for rates nobody sees
+
+
+def test_a_realtime_run_of_two_cameras_submits_one_while_the_others_submit_is_filling(monkeypatch):
+    # each camera's feed thread fills its own input slot (Note [Frames of several cameras at once] in engine/core.py)
+    from vpengine.engine import Engine
+
+    submit, rear_in, overlapped = Engine.submit, threading.Event(), []
+
+    def held_front(self, image, **kw):  # the front camera's first submit waits for a rear frame to go in meanwhile
+        if kw.get("camera") == "front" and not overlapped:
+            overlapped.append(rear_in.wait(20))
+        elif kw.get("camera") == "rear":
+            rear_in.set()
+        return submit(self, image, **kw)
+
+    monkeypatch.setattr(Engine, "submit", held_front)
+    s = run_pipeline(tiny("thread"), {"front": Numbered(10), "rear": Numbered(10)}, pace="realtime", progress=False)
+    assert overlapped == [True]
+    assert s["frames_submitted"] == 20

@@ -103,9 +103,11 @@ class Pipeline:
         self.out_dir, self.fps, self.max_frames, self.progress = out_dir, fps, max_frames, progress
         self._sinks = (save_every, viz, list(sink_factories), depth_format, video, folder)
         self.frames: RecentFrames[str] = RecentFrames(FRAMES_KEPT * len(self.sources))
-        # held around submit-and-add and by the lookup of a result's frame: a result may come back before submit
-        # returns, and must find its frame
+        # frame ids are chosen here and each frame booked before its submit: a result may come back before submit
+        # returns, and must find its frame; the submits themselves run outside the lock, each camera's feed filling
+        # its slot at once with the others' (Note [Frames of several cameras at once] in engine/core.py)
         self._submitting = threading.Lock()
+        self._next_fid = 0
         self.tally = Tally()
         self.feeds: list[Feed] = []
 
@@ -222,16 +224,17 @@ class Pipeline:
     # ------------------------------------------------------------------------------------ the loop's steps
     def _submit(self, feed: Feed, frame: Frame, stamp: float | None) -> int:
         with self._submitting:
-            fid = self.engine.submit(frame.image, timestamp=stamp, camera=feed.camera)
-            self.frames.add(fid, frame.name or f"{fid:06d}", frame.image)
+            fid = self._next_fid
+            self._next_fid += 1
+        self.frames.add(fid, frame.name or f"{fid:06d}", frame.image)
+        self.engine.submit(frame.image, frame_id=fid, timestamp=stamp, camera=feed.camera)
         feed.submitted += 1
         return fid
 
     def _handle(self, results: Iterable[Result]) -> None:
         for r in results:
             key = self.tally.add(r)
-            with self._submitting:
-                frame, name = self.frames.frame(r.frame_id), self.frames.tag(r.frame_id)
+            frame, name = self.frames.frame(r.frame_id), self.frames.tag(r.frame_id)
             if self._writes and not self.writer.put(r, frame, name or str(r.frame_id)):
                 self.tally.unwritten[key] += 1
 

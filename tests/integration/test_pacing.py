@@ -117,16 +117,22 @@ def test_a_realtime_run_of_two_cameras_submits_one_while_the_others_submit_is_fi
     # each camera's feed thread fills its own input slot (Note [Frames of several cameras at once] in engine/core.py)
     from vpengine.engine import Engine
 
-    submit, rear_in, overlapped = Engine.submit, threading.Event(), []
+    submit, front_in, rear_in = Engine.submit, threading.Event(), threading.Event()
+    waited: dict[str, bool] = {}
 
-    def held_front(self, image, **kw):  # the front camera's first submit waits for a rear frame to go in meanwhile
-        if kw.get("camera") == "front" and not overlapped:
-            overlapped.append(rear_in.wait(20))
-        elif kw.get("camera") == "rear":
+    def meet(self, image, **kw):  # each camera's first submit: under way while the other's goes in
+        camera = kw.get("camera")
+        if camera == "front" and camera not in waited:
+            front_in.set()
+            waited[camera] = rear_in.wait(20)
+        elif camera == "rear" and camera not in waited:
+            waited[camera] = front_in.wait(20)
+            fid = submit(self, image, **kw)
             rear_in.set()
+            return fid
         return submit(self, image, **kw)
 
-    monkeypatch.setattr(Engine, "submit", held_front)
+    monkeypatch.setattr(Engine, "submit", meet)
     s = run_pipeline(tiny("thread"), {"front": Numbered(10), "rear": Numbered(10)}, pace="realtime", progress=False)
-    assert overlapped == [True]
+    assert waited == {"front": True, "rear": True}  # one lock around both submits: one of them waits in vain
     assert s["frames_submitted"] == 20

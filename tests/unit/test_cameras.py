@@ -147,7 +147,7 @@ def test_a_camera_fills_its_slot_while_another_cameras_slot_is_open():
         np.testing.assert_array_equal(got, alone)
 
 
-def test_cameras_submitting_from_threads_of_their_own_lose_no_frame_and_never_run_out_of_slots():
+def test_cameras_submitting_from_threads_of_their_own_get_every_frame_back_under_their_own_ids():
     cams = [f"c{i}" for i in range(4)]
     with Engine(tiny("thread", "cameras=[" + ", ".join(f"{{name: {c}}}" for c in cams) + "]")) as e:
         ids: dict[str, list[int]] = {c: [] for c in cams}

@@ -128,6 +128,12 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                 frames.setdefault(r.frame_id, {})[r.head] = r.latency
         memory = _device_memory(eng)
         st = eng.stats()
+        for _ in range(100):  # until the backbone has accounted for every frame (ran, skipped or dropped), 5 s at most
+            fm = _counted(st, since=warm)["foundation"]
+            if fm["runs"] + fm["skipped"] + fm["dropped"] >= submitted:
+                break
+            time.sleep(0.05)
+            st = eng.stats()
     whole = [max(v.values()) for v in frames.values() if len(v) == len(heads)]
     out = {
         "cameras": n,
@@ -160,8 +166,9 @@ class _Cameras:
 
     def __init__(self, eng: Any, cams: list[str], imgs: list[np.ndarray]) -> None:
         self.eng, self.cams, self.imgs = eng, cams, imgs
-        self._go = threading.Barrier(len(cams) + 1)
-        self._done = threading.Barrier(len(cams) + 1)
+        # a submit never blocks on the models: a tick that has not gone through in this long has hung
+        self._go = threading.Barrier(len(cams) + 1, timeout=60)
+        self._done = threading.Barrier(len(cams) + 1, timeout=60)
         self._k, self._stamp = 0, 0.0
         self._fids: list[int] = [0] * len(cams)
         self._error: BaseException | None = None
@@ -194,7 +201,9 @@ class _Cameras:
             self._go.wait()
             self._done.wait()
         except threading.BrokenBarrierError:
-            raise RuntimeError(f"a camera's submit failed: {self._error!r}") from self._error
+            raise RuntimeError(
+                f"a camera's submit failed: {self._error!r}" if self._error else "a camera's submit hung for 60 s"
+            ) from self._error
         return list(self._fids)
 
     def __exit__(self, *exc: object) -> None:

@@ -260,7 +260,8 @@ def output_kinds(meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int
 class Boundary:
     """Frames in (checked, fitted into the input canvas); outputs go back through :meth:`to_frame` (each frame's
     ``Placement`` with the kinds in ``kinds``). One per engine, whatever the cameras (each frame carries its own
-    placement); ``write`` runs under the engine's submit lock."""
+    placement); ``write`` runs in the submitting threads, several cameras' at once (Note [Frames of several cameras
+    at once] in core.py): it writes only into the slot it is given."""
 
     def __init__(
         self,
@@ -327,9 +328,10 @@ class Boundary:
 
     def placement(self, frame_hw: tuple[int, int]) -> Placement:
         p = self._placements.get(frame_hw)
-        if p is None:
-            p = self._placements[frame_hw] = Placement.fit(frame_hw, self.canvas_hw)
-            if not p.identity:
+        if p is None:  # two cameras' threads may get here at once: one placement kept, logged once
+            fresh = Placement.fit(frame_hw, self.canvas_hw)
+            p = self._placements.setdefault(frame_hw, fresh)
+            if p is fresh and not p.identity:
                 log.info("%s; set input.height/width to that size to spare the resizing", p.describe())
         return p
 

@@ -14,7 +14,7 @@ are counted as skipped, results nobody collected as missed, and ``stats()`` show
 
 Note [Frame slots]
 ~~~~~~~~~~~~~~~~~~
-``submit`` copies the caller's frame into an input slot: 6 MB for a 1080p frame, about 1 ms of memcpy, which on a
+``submit`` copies the caller's frame into an input slot: 6 MB for a 1080p frame, about 1.5 ms of memcpy, which on a
 fast GPU is as long as the backbone. ``frame_slot`` lends the slot itself instead, so a camera or decoder writes the
 frame there once (``cv2.VideoCapture.read(image=...)``, a driver's DMA buffer copy, a message's payload). The slot is
 the writer's (state WRITING) until the with-block ends, so no reader sees a half-written frame; leaving the block

@@ -82,18 +82,21 @@ class FrameSlot:
         # the camera's filling lock for the whole block (Note [Frames of several cameras at once] in core.py)
         lock = eng._filling_locks[self._camera]
         lock.acquire()
+        slot = None
         try:
             eng._require_running()
             slot = eng._acquire_input()
+            # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the
+            # end (Note [Frame grid] in boundary.py)
+            array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._camera, self._size)
         except BaseException:
+            if slot is not None:
+                eng._input_writer.abort(slot)
             lock.release()
             fence.leave()
             raise
         eng._filling.add(threading.get_ident())
-        self._slot = slot
-        # the slot itself when the frames are the models' size; else a buffer the frame is fitted from at the end
-        # (Note [Frame grid] in boundary.py)
-        self._array = eng._frame_views[slot.index] if self._size is None else eng._staging(self._camera, self._size)
+        self._slot, self._array = slot, array
         return self
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:

@@ -141,7 +141,9 @@ FIFO_MARGIN = 4
 def mailboxes(plan: Plan, shared: bool) -> list[dict[str, Any]]:
     """``SlotRing.create``'s arguments for every mailbox: the input, the features, one output per head. Each is as
     small as its readers allow (readers + tags + 1: Note [Slot lifetime], Note [Tagged slots] in
-    transport/ring.py), plus the margin a fifo reader needs to catch up, plus the leases of each head's output.
+    transport/ring.py), plus a slot a camera more being written in the input and the features (the cameras' threads
+    fill theirs at once; the foundation fills its batch's before it publishes), plus the margin a fifo reader needs to
+    catch up, plus the leases of each head's output.
     With several cameras, every slot is tagged with its frame's camera and each model reads with one reader per
     camera it serves (its lanes, Note [Lanes]); results are read untagged, every camera's in one stream."""
     cfg, lanes = plan.cfg, plan.lanes

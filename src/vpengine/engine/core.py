@@ -314,8 +314,10 @@ class Engine:
         time in seconds (e.g. the camera's stamp; default: now): rate limits run on these stamps, so a file's frames
         stamped by their position obey them however fast they are fed. Never blocks on the models: if the
         foundation model is busy, the newest frame wins and the overwritten one is counted as skipped. ``camera``:
-        which of the configured cameras it comes from (Note [Cameras] in runtime/worker.py; None: the only one).
-        Raises ValueError naming what was expected if the frame is not an image.
+        which of the configured cameras it comes from (Note [Cameras] in runtime/worker.py; None: the only one);
+        submit each camera's frames from a thread of its own, so that a tick's frames arrive together and run as
+        one batch (Note [Frames of several cameras at once]). Raises ValueError naming what was expected if the
+        frame is not an image.
         """
         self._require_running()
         try:

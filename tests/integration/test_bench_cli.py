@@ -172,6 +172,7 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     # counted over the stream, not the warm-up: every frame submitted then is one the backbone ran or skipped
     fm = s["counted"]["foundation"]
     assert fm["runs"] + fm["skipped"] + fm["dropped"] == s["frames_submitted"], (fm, s["frames_submitted"])
+    assert fm["runs"] / 2 <= fm["batches"] <= fm["runs"] and f"mean batch {fm['runs'] / fm['batches']:.1f}" in p.stdout
     assert s["start_s"] > 0
     assert [t["cameras"] for t in res["throughput"]] == [1, 2]
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])

@@ -201,6 +201,9 @@ def test_frames_that_come_together_run_as_one_batch_and_give_what_they_give_alon
             st = models[m]
             assert st["batched"] + 2 * (st["deferred"] + st["late"]) >= 24 and st["batched"] > 0, st
         assert models["foundation"]["runs"] == 51 and models["foundation"]["dropped"] == 0
+        for m in ("foundation", "depth"):  # a model call a batch: two frames in each pair that ran together
+            st = models[m]
+            assert st["batches"] == st["runs"] - st["batched"] // 2, st
 
 
 def test_a_batch_that_fails_answers_every_camera_and_the_head_goes_on(tmp_path, restart_backoff):

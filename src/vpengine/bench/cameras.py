@@ -17,7 +17,7 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   camera each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching
   buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``);
   the batched engine's counts over the point (``batched_engine_counted``: frames run, late for their batch, deferred,
-  run with another camera's) say how full its batches were. With one frame in flight a camera's next frame waited
+  run with another camera's, model calls) say how full its batches were. With one frame in flight a camera's next frame waited
   for its last one's every result, so one engine ran its stages one batch after the other while N engines overlapped
   theirs: that measured latency, not throughput.
 
@@ -150,10 +150,12 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
         "counted": _counted(st, since=warm),  # over the stream
     }
+    fm = out["counted"]["foundation"]
     log(
         f"stream: {n} cameras at {fps:g} Hz, {len(whole)}/{submitted} frames through every head, "
         f"p50 {out['latency_all_heads_ms']['p50']:.1f} ms, p99 {out['latency_all_heads_ms']['p99']:.1f} ms, "
-        f"a tick's submits p99 {out['tick_submit_ms']['p99']:.1f} ms, "
+        f"a tick's submits p99 {out['tick_submit_ms']['p99']:.1f} ms, the backbone's mean batch "
+        f"{fm['runs'] / max(fm['batches'], 1):.1f} frames ({fm['late']} late), "
         f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS"
     )
     return out
@@ -272,7 +274,7 @@ def _all_cameras(
     return whole / (time.monotonic() - t), whole, sum(p.torn for p in pumps)
 
 
-COUNTED = ("runs", "skipped", "dropped", "late", "deferred", "batched")
+COUNTED = ("runs", "skipped", "dropped", "late", "deferred", "batched", "batches")
 
 
 def _counted(stats: dict[str, Any], since: dict[str, Any] | None = None) -> dict[str, dict[str, int]]:

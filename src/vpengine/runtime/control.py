@@ -53,10 +53,12 @@ _FIELDS = [
     ("last_run", "q"),
     # Note [Cameras] in worker.py: frames that came after their batch's window (run in the next batch) and frames
     # the least important lane left for a later batch while the model could not keep up, and frames that ran in one
-    # model call with another camera's
+    # model call with another camera's; and the model calls, counted on the lane of each call's first frame (runs /
+    # batches: the mean batch)
     ("late", "q"),
     ("deferred", "q"),
     ("batched", "q"),
+    ("batches", "q"),
     ("target_hz", "d"),  # NaN: unlimited
     ("heartbeat", "d"),  # time.monotonic() of the last loop iteration; while loading, of the build's last step
     # Note [Start progress] in supervisor.py: the steps of the model's build done and to do (0, 0: not counted)
@@ -378,6 +380,7 @@ class ControlBlock:
             "late": total("late"),
             "deferred": total("deferred"),
             "batched": total("batched"),
+            "batches": total("batches"),
             "errors": self._get(i, "errors"),
             "restarts": self._get(i, "restarts"),
             "crashes": self._get(i, "crashes"),

@@ -25,8 +25,8 @@ Note [Frames of several cameras at once]
 ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
 A batch takes the frames of every camera that reach the backbone within its window, so what matters with several
 cameras is how far apart a tick's frames arrive. Filling a slot (``submit``'s copy, a ``frame_slot`` block) is most of
-a submit and is DRAM-bound (about 1.5 ms for a 1080p frame on an H200's host): eight cameras handed in one after the other
-took 12 ms, past the window, and the batch split. So a slot is filled outside the submit lock, under its camera's
+a submit and is DRAM-bound (about 1.5 ms for a 1080p frame on an H200's host): eight cameras handed in one after the
+other took 12 ms, past the window, and the batch split. So a slot is filled outside the submit lock, under its camera's
 own lock: cameras' threads fill their slots at once, one frame of a camera at a time. Only taking a slot and
 publishing it hold the submit lock, so frames still enter the ring in one order (frame ids, placements and the inline
 launch keep their single writer), and the input ring holds a slot a camera more for the frames being filled (3 a

@@ -17,8 +17,8 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   camera each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching
   buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``);
   the batched engine's counts over the point (``batched_engine_counted``: frames run, late for their batch, deferred,
-  run with another camera's, model calls) say how full its batches were. With one frame in flight a camera's next frame waited
-  for its last one's every result, so one engine ran its stages one batch after the other while N engines overlapped
+  run with another camera's, model calls) say how full its batches were. With one frame in flight a camera's next
+  frame waited for its last one's every result, so one engine ran its stages one batch after the other while N engines overlapped
   theirs: that measured latency, not throughput.
 
 ::

@@ -18,8 +18,8 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``);
   the batched engine's counts over the point (``batched_engine_counted``: frames run, late for their batch, deferred,
   run with another camera's, model calls) say how full its batches were. With one frame in flight a camera's next
-  frame waited for its last one's every result, so one engine ran its stages one batch after the other while N engines overlapped
-  theirs: that measured latency, not throughput.
+  frame waited for its last one's every result, so one engine ran its stages one batch after the other while N
+  engines overlapped theirs: that measured latency, not throughput.
 
 ::
 

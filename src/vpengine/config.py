@@ -240,8 +240,9 @@ class RuntimeConfig(_Strict):
         le=100,
         description="With several cameras: how long a model waits, after the first camera's frame, for the others' "
         "to run them as one batch (only for cameras whose next frame is due by then); a frame later than that goes "
-        "in the next batch (counted as late). A 1080p frame takes about 1.5 ms to hand in: eight synchronised cameras "
-        "submitting from threads of their own arrive within about 5 ms, from one thread within about 12 ms.",
+        "in the next batch (counted as late). On an H200's host a 1080p frame takes about 1.5 ms to hand in: eight "
+        "synchronised cameras submitting from threads of their own arrive within about 5 ms, from one thread within "
+        "about 12 ms (docs/benchmarks.md).",
     )
     hang_timeout_s: float | None = Field(
         60.0,

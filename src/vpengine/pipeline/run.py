@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import itertools
 import logging
 import threading
 import time
@@ -104,10 +105,9 @@ class Pipeline:
         self._sinks = (save_every, viz, list(sink_factories), depth_format, video, folder)
         self.frames: RecentFrames[str] = RecentFrames(FRAMES_KEPT * len(self.sources))
         # frame ids are chosen here and each frame booked before its submit: a result may come back before submit
-        # returns, and must find its frame; the submits themselves run outside the lock, each camera's feed filling
-        # its slot at once with the others' (Note [Frames of several cameras at once] in engine/core.py)
-        self._submitting = threading.Lock()
-        self._next_fid = 0
+        # returns, and must find its frame; the feeds' submits run at once, each camera filling its own slot (Note
+        # [Frames of several cameras at once] in engine/core.py)
+        self._fids = itertools.count()  # next() is atomic: the feeds' threads share it
         self.tally = Tally()
         self.feeds: list[Feed] = []
 
@@ -223,9 +223,7 @@ class Pipeline:
 
     # ------------------------------------------------------------------------------------ the loop's steps
     def _submit(self, feed: Feed, frame: Frame, stamp: float | None) -> int:
-        with self._submitting:
-            fid = self._next_fid
-            self._next_fid += 1
+        fid = next(self._fids)
         self.frames.add(fid, frame.name or f"{fid:06d}", frame.image)
         self.engine.submit(frame.image, frame_id=fid, timestamp=stamp, camera=feed.camera)
         feed.submitted += 1

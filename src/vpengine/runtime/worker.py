@@ -34,8 +34,8 @@ batch (``_take_ring``): it waits for the first frame of any camera, then at most
 other cameras whose next frame is due by then; a camera whose frame comes later goes in the next batch, counted
 ``late``. The frames the gates admit (several: copied into preallocated batch buffers of one frame per lane; one: its
 slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model has a graph
-for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean batch), and each frame's outputs are copied into its own slot and published with its
-camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the least
+for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean batch), and each frame's outputs
+are copied into its own slot and published with its camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the least
 important lane by priorities as they are now (runtime/priority.py; among equals the camera last in the configured
 order) leaves its frame for the next batch, counted ``deferred`` (never twice in a row, so no camera starves). The
 deferred frame stays pinned and unanswered, and runs in the next batch unless a newer frame of its camera is there by

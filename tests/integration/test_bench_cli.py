@@ -174,6 +174,12 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert fm["runs"] + fm["skipped"] + fm["dropped"] == s["frames_submitted"], (fm, s["frames_submitted"])
     assert fm["runs"] / 2 <= fm["batches"] <= fm["runs"] and f"mean batch {fm['runs'] / fm['batches']:.1f}" in p.stdout
     assert s["start_s"] > 0
+    # where the misses and the tail were: every frame that missed a head named by its tick and camera
+    assert len(s["missed_frames"]) == min(100, s["frames_not_all_heads"])
+    assert all(0 <= k <= s["frames_submitted"] // 2 and c in ("cam0", "cam1") for k, c in s["missed_frames"])
+    slowest = s["slowest_ticks_ms"]
+    assert 0 < len(slowest) <= 10 and [ms for _, ms in slowest] == sorted((ms for _, ms in slowest), reverse=True)
+    assert slowest[0][1] >= s["latency_all_heads_ms"]["p99"] and "missed a head at ticks" in p.stdout
     assert [t["cameras"] for t in res["throughput"]] == [1, 2]
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     assert all(t["in_flight"] == 3 for t in res["throughput"])  # a file run's (Note [Frames in flight])

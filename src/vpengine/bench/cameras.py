@@ -103,6 +103,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         eng.results()
         warm = _counted(eng.stats())  # the warm-up's frames, one at a time, each waiting the window: not counted
         frames: dict[int, dict[str, float]] = {}
+        where: dict[int, tuple[int, int]] = {}  # frame id: its tick, its camera's index
         handing: list[float] = []  # per tick: its start to the last submit's return, s
         submitted = 0
         t0 = time.monotonic()
@@ -114,11 +115,13 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                     for r in eng.results(timeout=t - now):
                         frames.setdefault(r.frame_id, {})[r.head] = r.latency
                 t_hand = time.monotonic()
-                for fid in drivers.tick(k, time.time()):  # synchronised cameras: one capture stamp a tick
+                for i, fid in enumerate(drivers.tick(k, time.time())):  # synchronised cameras: one stamp a tick
                     frames.setdefault(fid, {})
+                    where[fid] = (k, i)
                     submitted += 1
                 handing.append(time.monotonic() - t_hand)
                 k += 1
+        ticks = k
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
             rs = eng.results(timeout=0.5)
@@ -135,6 +138,12 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
             time.sleep(0.05)
             st = eng.stats()
     whole = [max(v.values()) for v in frames.values() if len(v) == len(heads)]
+    # where the misses and the tail were: at the start (something done once) or spread over the stream
+    missed = sorted(where[f] for f, v in frames.items() if f in where and len(v) < len(heads))
+    worst: dict[int, float] = {}  # tick: its slowest frame's latency, s
+    for f, v in frames.items():
+        if f in where and v:
+            worst[where[f][0]] = max(worst.get(where[f][0], 0.0), *v.values())
     out = {
         "cameras": n,
         "fps_per_camera": fps,
@@ -145,6 +154,9 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "frames_not_all_heads": submitted - len(whole),
         "latency_all_heads_ms": pct(whole),
         "tick_submit_ms": pct(handing),  # against the batch window: ``counted``'s late
+        # the first 100 frames that missed a head, as [tick, camera]; the 10 ticks whose slowest frame took longest
+        "missed_frames": [[k, cams[i]] for k, i in missed[:100]],
+        "slowest_ticks_ms": sorted(([k, 1e3 * s] for k, s in worst.items()), key=lambda t: -t[1])[:10],
         "device_memory_bytes": memory,
         "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
@@ -156,7 +168,9 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         f"p50 {out['latency_all_heads_ms']['p50']:.1f} ms, p99 {out['latency_all_heads_ms']['p99']:.1f} ms, "
         f"a tick's submits p99 {out['tick_submit_ms']['p99']:.1f} ms, the backbone's mean batch "
         f"{fm['runs'] / max(fm['batches'], 1):.1f} frames ({fm['late']} late), "
-        f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS"
+        f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS; "
+        f"missed a head at ticks {sorted({k for k, _ in missed}) or 'none'}, slowest ticks "
+        f"{', '.join(f'{k} ({ms:.0f} ms)' for k, ms in out['slowest_ticks_ms'][:5])} of {ticks}"
     )
     return out
 

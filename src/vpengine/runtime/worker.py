@@ -32,12 +32,17 @@ reader of its input ring, its rate gate, and its control-block entry (``model@ca
 answered frames), so rates, counts and Note [Answered frames] hold per camera. A model takes its lanes' frames as one
 batch (``_take_ring``): it waits for the first frame of any camera, then at most ``runtime.batch_window_ms`` for the
 other cameras whose next frame is due by then; a camera whose frame comes later goes in the next batch, counted
-``late``. The frames the gates admit (several: copied into preallocated batch buffers of one frame per lane; one: its
-slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model has a graph
-for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean batch), and each frame's outputs
-are copied into its own slot and published with its camera's tag. When the model cannot keep up (its last batch took longer than the cameras' frame interval), the least
-important lane by priorities as they are now (runtime/priority.py; among equals the camera last in the configured
-order) leaves its frame for the next batch, counted ``deferred`` (never twice in a row, so no camera starves). The
+``late``. When a camera's frame is due is read off the median of its last ``SPACINGS`` frame spacings, not a
+moving average: one long gap (a paused stream, a warm-up of frames one at a time) left the average far above the
+camera's rate for a dozen frames or more, through which the camera was not waited for and a tick's frames ran in two
+or three batches (more device time a frame than one); the median has the rate back after three frames and ignores
+one gap or burst. The frames the gates admit (several: copied into preallocated batch buffers of one frame per
+lane; one: its slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a
+compiled model has a graph for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean
+batch), and each frame's outputs are copied into its own slot and published with its camera's tag. When the model
+cannot keep up (its last batch took longer than the cameras' frame interval), the least important lane by
+priorities as they are now (runtime/priority.py; among equals the camera last in the configured order) leaves its
+frame for the next batch, counted ``deferred`` (never twice in a row, so no camera starves). The
 deferred frame stays pinned and unanswered, and runs in the next batch unless a newer frame of its camera is there by
 then and the model reads the newest (the deferred one is then skipped and answered; a fifo model runs it first). A
 deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it must never
@@ -75,14 +80,16 @@ launching the foundation's work) live in handoff.py.
 
 from __future__ import annotations
 
+import collections
 import logging
 import math
 import os
+import statistics
 import threading
 import time
 import traceback
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -121,6 +128,10 @@ class WorkerSpec:
         return load_config(self.config)
 
 
+#: A lane's frame interval is the median of its last this many frame spacings (Note [Cameras])
+SPACINGS = 5
+
+
 @dataclass
 class _Lane:
     """A lane's state in its worker (Note [Cameras])."""
@@ -129,7 +140,8 @@ class _Lane:
     reader: RingReader
     gate: RateGate
     last_arrival: float = -math.inf  # when its last frame reached the engine (monotonic)
-    interval: float = 0.0  # moving average of its frames' spacing (0: not known yet)
+    interval: float = 0.0  # median of its last frames' spacings (0: not known yet)
+    spacings: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=SPACINGS))
 
     @property
     def tag(self) -> int:
@@ -141,8 +153,8 @@ class _Lane:
 
     def arrived(self, t: float) -> None:
         if self.last_arrival > -math.inf and t > self.last_arrival:
-            step = t - self.last_arrival
-            self.interval = step if self.interval <= 0 else self.interval + 0.125 * (step - self.interval)
+            self.spacings.append(t - self.last_arrival)
+            self.interval = statistics.median(self.spacings)
         self.last_arrival = t
 
     def due_by(self, deadline: float, now: float) -> bool:

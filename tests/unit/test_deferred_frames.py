@@ -61,7 +61,7 @@ def worker(request):
         """The model's last batches took longer than the cameras' frames come: it defers a frame."""
         core._batch_s = 1.0
         for lane in core.lanes:
-            lane.interval = 0.01
+            lane.mean_interval = 0.01
 
     def outputs(key: str = "f") -> dict[int, float]:
         """origin -> the value the model wrote for it as ``key``, of every output in the ring."""

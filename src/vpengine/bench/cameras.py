@@ -137,7 +137,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                 break
             time.sleep(0.05)
             st = eng.stats()
-    whole = [max(v.values()) for v in frames.values() if len(v) == len(heads)]
+    whole = [max(v.values()) for f, v in frames.items() if f in where and len(v) == len(heads)]
     # where the misses and the tail were: at the start (something done once) or spread over the stream
     missed = sorted(where[f] for f, v in frames.items() if f in where and len(v) < len(heads))
     worst: dict[int, float] = {}  # tick: its slowest frame's latency, s
@@ -169,10 +169,18 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         f"a tick's submits p99 {out['tick_submit_ms']['p99']:.1f} ms, the backbone's mean batch "
         f"{fm['runs'] / max(fm['batches'], 1):.1f} frames ({fm['late']} late), "
         f"device memory {memory / 2**30 if memory else float('nan'):.2f} GiB, {out['workers_on_mps']} workers on MPS; "
-        f"missed a head at ticks {sorted({k for k, _ in missed}) or 'none'}, slowest ticks "
+        f"missed a head at ticks {_listed(sorted({k for k, _ in missed}))}, slowest ticks "
         f"{', '.join(f'{k} ({ms:.0f} ms)' for k, ms in out['slowest_ticks_ms'][:5])} of {ticks}"
     )
     return out
+
+
+def _listed(ticks: list[int], most: int = 20) -> str:
+    """``ticks`` for a log line: the first ``most`` and how many more, or "none"."""
+    if not ticks:
+        return "none"
+    more = f" and {len(ticks) - most} more" if len(ticks) > most else ""
+    return ", ".join(map(str, ticks[:most])) + more
 
 
 class _Cameras:

@@ -26,27 +26,29 @@ answered by the newer frame it took.
 
 Note [Cameras]
 ~~~~~~~~~~~~~~
-Several cameras feed one engine: one backbone's weights, one set of workers and mailboxes. Every frame is tagged with
-its camera (Note [Tagged slots] in transport/ring.py) and a model keeps one *lane* per camera it serves: that camera's
-reader of its input ring, its rate gate, and its control-block entry (``model@camera``: rate, counters, latencies,
-answered frames), so rates, counts and Note [Answered frames] hold per camera. A model takes its lanes' frames as one
-batch (``_take_ring``): it waits for the first frame of any camera, then at most ``runtime.batch_window_ms`` for the
-other cameras whose next frame is due by then; a camera whose frame comes later goes in the next batch, counted
-``late``. When a camera's frame is due is read off the median of its last ``SPACINGS`` frame spacings, not a
-moving average: one long gap (a paused stream, a warm-up of frames one at a time) left the average far above the
-camera's rate for a dozen frames or more, through which the camera was not waited for and a tick's frames ran in two
-or three batches (more device time a frame than one); the median has the rate back after three frames and ignores
-one gap or burst. The frames the gates admit (several: copied into preallocated batch buffers of one frame per
-lane; one: its slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a
-compiled model has a graph for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean
-batch), and each frame's outputs are copied into its own slot and published with its camera's tag. When the model
-cannot keep up (its last batch took longer than the cameras' frame interval), the least important lane by
-priorities as they are now (runtime/priority.py; among equals the camera last in the configured order) leaves its
-frame for the next batch, counted ``deferred`` (never twice in a row, so no camera starves). The
-deferred frame stays pinned and unanswered, and runs in the next batch unless a newer frame of its camera is there by
-then and the model reads the newest (the deferred one is then skipped and answered; a fifo model runs it first). A
-deferral is a guess from wall-clock averages and may be wrong (one slow batch under load is enough), so it must never
-cost a frame on its own: a caller that waits for every frame (lockstep pacing) gets every output, a batch later.
+Several cameras feed one engine: one backbone's weights, one set of workers and mailboxes. Every frame is tagged
+with its camera (Note [Tagged slots] in transport/ring.py) and a model keeps one *lane* per camera it serves: that
+camera's reader of its input ring, its rate gate, and its control-block entry (``model@camera``: rate, counters,
+latencies, answered frames), so rates, counts and Note [Answered frames] hold per camera. A model takes its lanes'
+frames as one batch (``_take_ring``): it waits for the first frame of any camera, then at most
+``runtime.batch_window_ms`` for the other cameras whose next frame is due by then; a camera whose frame comes later
+goes in the next batch, counted ``late``. A camera's next frame is due one interval after its last, the interval
+being the median of its last ``SPACINGS`` frame spacings (the lower middle one of an even count), not a moving
+average: one long gap (a paused stream, a warm-up of frames one at a time) kept the average far above the camera's
+rate for a dozen frames or more, through which the camera was not waited for and a tick's frames ran in two or three
+batches, costing more device time a frame than one batch; the median has a new rate after three frames and ignores
+one gap or burst. The frames the gates admit (several: copied into preallocated batch buffers of one frame per lane;
+one: its slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model
+has a graph for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean batch), and each
+frame's outputs are copied into its own slot and published with its camera's tag. When the model cannot keep up (its
+batches took longer, on average, than the cameras' frames come: here a moving average of each camera's spacing,
+smoother than the median), the least important lane by priorities as they are now (runtime/priority.py; among equals
+the camera last in the configured order) leaves its frame for the next batch, counted ``deferred`` (never twice in a
+row, so no camera starves). The deferred frame stays pinned and unanswered, and runs in the next batch unless a
+newer frame of its camera is there by then and the model reads the newest (the deferred one is then skipped and
+answered; a fifo model runs it first). A deferral is a guess from wall-clock averages and may be wrong (one slow
+batch under load is enough), so it must never cost a frame on its own: a caller that waits for every frame (lockstep
+pacing) gets every output, a batch later.
 With one lane there is no window to wait and no frame to defer: each frame is a batch of one, which the foundation
 may also take from the submitting thread (Note [Inline launch]).
 
@@ -140,8 +142,9 @@ class _Lane:
     reader: RingReader
     gate: RateGate
     last_arrival: float = -math.inf  # when its last frame reached the engine (monotonic)
-    interval: float = 0.0  # median of its last frames' spacings (0: not known yet)
+    interval: float = 0.0  # when its next frame is due after its last: median of its last spacings (0: not known)
     spacings: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=SPACINGS))
+    mean_interval: float = 0.0  # moving average of its frames' spacing: how fast they come, for deferral
 
     @property
     def tag(self) -> int:
@@ -153,8 +156,11 @@ class _Lane:
 
     def arrived(self, t: float) -> None:
         if self.last_arrival > -math.inf and t > self.last_arrival:
-            self.spacings.append(t - self.last_arrival)
-            self.interval = statistics.median(self.spacings)
+            step = t - self.last_arrival
+            self.spacings.append(step)
+            self.interval = statistics.median_low(self.spacings)  # of two or four: the lower, not a gap's mean
+            m = self.mean_interval
+            self.mean_interval = step if m <= 0 else m + 0.125 * (step - m)
         self.last_arrival = t
 
     def due_by(self, deadline: float, now: float) -> bool:
@@ -361,7 +367,7 @@ class WorkerCore:
         frame for the next batch (counted deferred, kept pinned in ``_held``, not answered), never twice in a row."""
         if len(admitted) < 2 or self._batch_s <= 0:
             return admitted
-        intervals = [lane.interval for lane in self.lanes if lane.interval > 0]
+        intervals = [lane.mean_interval for lane in self.lanes if lane.mean_interval > 0]
         if not intervals or self._batch_s <= min(intervals):
             return admitted
         i = least_important(self.control, [self._by_tag[slot.tag].entry for slot in admitted])

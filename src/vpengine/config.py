@@ -242,7 +242,7 @@ class RuntimeConfig(_Strict):
         "to run them as one batch (only for cameras whose next frame is due by then); a frame later than that goes "
         "in the next batch (counted as late). On an H200's host a 1080p frame takes about 1.5 ms to hand in: eight "
         "synchronised cameras submitting from threads of their own arrive within about 5 ms, from one thread within "
-        "about 12 ms (docs/benchmarks.md).",
+        "about 12 ms (docs/benchmarks.md). Keep it well under the cameras' frame period (the engine warns).",
     )
     hang_timeout_s: float | None = Field(
         60.0,

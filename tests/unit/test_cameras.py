@@ -3,6 +3,7 @@ their camera, outputs in each camera's own grid, a head limited to one camera, r
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 
@@ -239,6 +240,26 @@ def test_after_a_pause_a_ticks_frames_run_as_one_batch_again_within_three_ticks(
         assert runs + skipped == 40, (runs, skipped)
         # one batch a tick; a few split by a loaded machine's stalls (the moving average: 17 for these 10 ticks)
         assert batches <= 13, f"{batches} batches for 10 ticks"
+
+
+@pytest.mark.parametrize("window_ms", [100, 5])
+def test_a_batch_window_as_long_as_a_cameras_frame_spacing_is_said_once(window_ms, caplog):
+    """Note [Cameras]: with a window of a frame period or more a batch may wait for a camera's next frame; the
+    engine says so once (the default window says nothing)."""
+    cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", f"runtime.batch_window_ms={window_ms}")
+    with caplog.at_level(logging.WARNING, logger="vpengine.worker"), Engine(cfg) as e:
+        ids = []
+        for _ in range(10):  # 30 Hz, both cameras at once
+            t = time.monotonic()
+            ids += [e.submit(frame(1), camera="front"), e.submit(frame(2), camera="rear")]
+            time.sleep(max(0.0, t + 1 / 30 - time.monotonic()))
+        for f in ids:
+            e.wait(f, timeout=30)
+    said = [r.getMessage() for r in caplog.records if "batch_window_ms" in r.getMessage()]
+    if window_ms == 5:
+        assert said == []
+    else:
+        assert len(said) == 1 and said[0].startswith("runtime.batch_window_ms is 100 ms, as long as camera "), said
 
 
 def test_a_batch_that_fails_answers_every_camera_and_the_head_goes_on(tmp_path, restart_backoff):

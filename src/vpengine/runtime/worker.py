@@ -222,6 +222,8 @@ class WorkerCore:
         self._batch_s = 0.0  # moving average of how long a batch takes (Note [Cameras])
         self._held: dict[int, SlotInfo] = {}  # lane tag -> its deferred frame, pinned, admitted (Note [Cameras])
         self._deferred_tag: int | None = None  # the lane whose frame was deferred last (Note [Cameras])
+        # the foundation, which every camera's frames pass, says once if the window reaches a camera's next frame
+        self._window_said = spec.role != "foundation" or len(self.lanes) < 2 or self.window <= 0
         # The executor runs straight from the slots (Note [Slot-bound runs]): no staging, no copies here.
         self._bound = bound
         # A batch of one frame is its slot, viewed, where the model's device holds the input ring. Otherwise the
@@ -317,6 +319,7 @@ class WorkerCore:
                     admitted.append(slot)
                 elif slot is not None:
                     lane.arrived(slot.t_submit)
+                    self._check_window(lane)
                     if self._admit(slot, lane.gate.hz):  # a rate set while it waited decides
                         admitted.append(slot)
             if admitted:
@@ -342,6 +345,20 @@ class WorkerCore:
                 return
             self._in_ring.wait_any([lane.reader for lane in due], deadline - now, self._should_stop)
             self._pin_ready(due, pins)
+
+    def _check_window(self, lane: _Lane) -> None:
+        """Note [Cameras]: a window as long as a camera's frame spacing lets a batch wait for that camera's *next*
+        frame once this one's has run, up to a frame's time on every frame. Said once, when the spacing is known."""
+        if self._window_said or len(lane.spacings) < SPACINGS or lane.interval > self.window:
+            return
+        self._window_said = True
+        log.warning(
+            "runtime.batch_window_ms is %g ms, as long as camera %r's frame spacing (%.0f ms): a batch may wait for "
+            "that camera's next frame, up to a frame's time on every frame; set it well under the spacing (default 5)",
+            self.window * 1e3,
+            lane.lane.camera,
+            lane.interval * 1e3,
+        )
 
     def _drop_held(self, tag: int) -> None:
         """Give up lane ``tag``'s deferred frame: counted skipped, answered, unpinned."""

@@ -137,13 +137,20 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                 break
             time.sleep(0.05)
             st = eng.stats()
-    whole = [max(v.values()) for f, v in frames.items() if f in where and len(v) == len(heads)]
-    # where the misses and the tail were: at the start (something done once) or spread over the stream
-    missed = sorted(where[f] for f, v in frames.items() if f in where and len(v) < len(heads))
+    # the stream's frames (not the warm-up's): their latency through every head; where the misses and the tail
+    # were, at the start (something done once) or spread over the stream
+    whole: list[float] = []  # s
+    missed: list[tuple[int, int]] = []  # tick, camera index
     worst: dict[int, float] = {}  # tick: its slowest frame's latency, s
-    for f, v in frames.items():
-        if f in where and v:
-            worst[where[f][0]] = max(worst.get(where[f][0], 0.0), *v.values())
+    for f, (k, i) in where.items():
+        v = frames[f]
+        if len(v) == len(heads):
+            whole.append(max(v.values()))
+        else:
+            missed.append((k, i))
+        if v:
+            worst[k] = max(worst.get(k, 0.0), *v.values())
+    missed.sort()
     out = {
         "cameras": n,
         "fps_per_camera": fps,

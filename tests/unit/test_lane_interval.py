@@ -49,3 +49,11 @@ def test_a_camera_that_stopped_is_not_waited_for():
     now = last + 4 * PERIOD  # no frame for four periods: not live
     assert not lane.due_by(now + WINDOW, now)
     assert not _lane([])[0].due_by(200.0, 100.0)  # one frame: no spacing known yet
+
+
+def test_a_camera_handed_in_at_the_callers_pace_is_not_taken_for_stopped_after_one_longer_spacing():
+    # frames 8 ms apart, once 30 ms (the caller busy with its results): 26 ms after the last, more than three of its
+    # usual spacings, its next frame is still waited for
+    lane, last = _lane([0.008] * 3 + [0.03] + [0.008] * 3)
+    now = last + 0.026
+    assert lane.due_by(now + 0.1, now)

@@ -37,18 +37,20 @@ being the median of its last ``SPACINGS`` frame spacings (the lower middle one o
 average: one long gap (a paused stream, a warm-up of frames one at a time) kept the average far above the camera's
 rate for a dozen frames or more, through which the camera was not waited for and a tick's frames ran in two or three
 batches, costing more device time a frame than one batch; the median has a new rate after three frames and ignores
-one gap or burst. The frames the gates admit (several: copied into preallocated batch buffers of one frame per lane;
-one: its slot, viewed) run as one batch through the model (Note [Batched models] in models/base.py; a compiled model
-has a graph for every batch size up to its lanes; ``stats()``' ``runs`` / ``batches`` is the mean batch), and each
-frame's outputs are copied into its own slot and published with its camera's tag. When the model cannot keep up (its
-batches took longer, on average, than the cameras' frames come: here a moving average of each camera's spacing,
-smoother than the median), the least important lane by priorities as they are now (runtime/priority.py; among equals
-the camera last in the configured order) leaves its frame for the next batch, counted ``deferred`` (never twice in a
-row, so no camera starves). The deferred frame stays pinned and unanswered, and runs in the next batch unless a
-newer frame of its camera is there by then and the model reads the newest (the deferred one is then skipped and
-answered; a fifo model runs it first). A deferral is a guess from wall-clock averages and may be wrong (one slow
-batch under load is enough), so it must never cost a frame on its own: a caller that waits for every frame (lockstep
-pacing) gets every output, a batch later.
+one gap or burst. A camera that has sent nothing for three spacings is not waited for; there the longer of the
+median and a moving average counts, or a camera handed in at its caller's pace, whose spacing varies several-fold,
+looked stopped after one longer spacing. The frames the gates admit (several: copied into preallocated batch buffers
+of one frame per lane; one: its slot, viewed) run as one batch through the model (Note [Batched models] in
+models/base.py; a compiled model has a graph for every batch size up to its lanes; ``stats()``' ``runs`` /
+``batches`` is the mean batch), and each frame's outputs are copied into its own slot and published with its
+camera's tag. When the model cannot keep up (its batches took longer, on average, than the cameras' frames come:
+here a moving average of each camera's spacing, smoother than the median), the least important lane by priorities as
+they are now (runtime/priority.py; among equals the camera last in the configured order) leaves its frame for the
+next batch, counted ``deferred`` (never twice in a row, so no camera starves). The deferred frame stays pinned and
+unanswered, and runs in the next batch unless a newer frame of its camera is there by then and the model reads the
+newest (the deferred one is then skipped and answered; a fifo model runs it first). A deferral is a guess from
+wall-clock averages and may be wrong (one slow batch under load is enough), so it must never cost a frame on its
+own: a caller that waits for every frame (lockstep pacing) gets every output, a batch later.
 With one lane there is no window to wait and no frame to defer: each frame is a batch of one, which the foundation
 may also take from the submitting thread (Note [Inline launch]).
 
@@ -144,7 +146,7 @@ class _Lane:
     last_arrival: float = -math.inf  # when its last frame reached the engine (monotonic)
     interval: float = 0.0  # when its next frame is due after its last: median of its last spacings (0: not known)
     spacings: collections.deque[float] = field(default_factory=lambda: collections.deque(maxlen=SPACINGS))
-    mean_interval: float = 0.0  # moving average of its frames' spacing: how fast they come, for deferral
+    mean_interval: float = 0.0  # moving average of its spacing: for deferral, and whether it still delivers
 
     @property
     def tag(self) -> int:
@@ -167,7 +169,9 @@ class _Lane:
         """Whether its next frame should come by ``deadline``: it delivers frames, and the next is due then."""
         if self.interval <= 0:
             return False
-        live = now - self.last_arrival < 3 * self.interval
+        # still delivering: judged by the longer of its two spacings, or a caller-paced camera, whose spacing varies
+        # several-fold, looks stopped after one long spacing
+        live = now - self.last_arrival < 3 * max(self.interval, self.mean_interval)
         return live and self.last_arrival + self.interval <= deadline
 
 

@@ -126,6 +126,8 @@ def prepare_worker(
             core = WorkerCore(
                 spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff
             )
+            if dev.cuda:  # Note [First batch] in worker.py
+                core.warm_batch(model.example_inputs(device))
         dev.complete()
     # a process of its own: all it reserved is the model's; beside other models, what it holds alone
     try:

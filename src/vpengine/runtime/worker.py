@@ -78,6 +78,20 @@ a batch, and each head stacked every feature key it reads. On the CPU with model
 the device (host input slots, a head's outputs kept on the host) stay one a tensor: one call over two devices would
 copy each pair in turn anyway.
 
+Note [First batch]
+~~~~~~~~~~~~~~~~~~
+Invariant (Note [Thread stack] in gpu.py): every kernel a worker runs has run once before READY. The executor's
+warm-up runs the model alone; the worker's own copies around it (a batch's frames into its batch buffers, its
+outputs into their slots: Note [One call for a batch's copies]) first ran on the first batch of several cameras a
+stream sent, and a kernel's first launch loads its module (CUDA loads lazily): host memory the driver maps and fills
+while the worker's thread waits. On an H200 with 8 cameras that was some 4,000 page faults in the foundation's
+thread within the stream's first half second, all in a batch's output copies (none in the model's call or the input
+copies), and the slowest ticks of a 5 s stream were its first ones (docs/benchmarks.md). So on CUDA a worker runs one batch of a frame per lane through the same code
+before READY (``warm_batch``): the model's example inputs as every frame, into output slots it acquires and gives
+back unpublished, which no reader sees. Not on the CPU, where there is nothing to load and a batch of a large model
+costs seconds of start; not where the output ring was published to before (a restart, a head's seat used again),
+whose slots readers may hold.
+
 The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
 launching the foundation's work) live in handoff.py.
 """
@@ -247,6 +261,34 @@ class WorkerCore:
     def buffer_bytes(self) -> int:
         """Device memory of the batch buffers this worker keeps (Note [Cameras]); 0 on the CPU."""
         return tensor_bytes(self._copies.values()) if self._copies else 0
+
+    def warm_batch(self, example: dict[str, torch.Tensor]) -> int:
+        """Note [First batch]: one batch of a frame per lane through this worker's own copies and the model, before
+        READY, ``example`` (the model's inputs for a batch of 1, on its device) as every frame, into output slots
+        it acquires and gives back unpublished. Returns the frames it ran: 0 where the worker has no copies of its
+        own (one camera, graphs bound to the slots), or its output ring was published to before (a restart, a
+        head's seat used again: slots may be held, and the process ran its batches already)."""
+        if (self._bound and len(self.lanes) == 1) or self.writer.ring.last_seq > 0:
+            return 0
+        missing = [k for k in self._keys if k not in example]
+        if missing:
+            raise ValueError(f"{self.name}: example inputs lack {missing}, which the worker reads")
+        frame = {k: example[k][0] for k in self._keys}
+        outs: list[SlotInfo] = []
+        try:
+            for _ in self.lanes:
+                slot = self.writer.acquire(timeout=0)
+                if slot is None:  # never published to, so only a ring with fewer slots than cameras
+                    break
+                outs.append(slot)
+            if outs:
+                with torch.inference_mode():
+                    self._batch_through([frame] * len(outs), [out.tensors for out in outs])
+                self.dev.complete()
+        finally:
+            for out in outs:
+                self.writer.abort(out)
+        return len(outs)
 
     def run(self, should_stop: Callable[[], bool]) -> None:
         ctl, name = self.control, self.name
@@ -476,12 +518,18 @@ class WorkerCore:
         if self._bound and n == 1:  # graphs captured for this pair of slots
             self.model.run_bound(pairs[0][0].index, pairs[0][1].index)  # type: ignore[attr-defined]
             return
-        outputs = self.model(self._inputs([slot for slot, _ in pairs]))
+        self._batch_through([slot.tensors for slot, _ in pairs], [out.tensors for _, out in pairs])
+
+    def _batch_through(self, frames: list[dict[str, torch.Tensor]], outs: list[dict[str, torch.Tensor]]) -> None:
+        """The model on ``frames`` (one frame's input tensors each) as one batch, each frame's outputs copied into
+        its own ``outs`` tensors."""
+        n = len(frames)
+        outputs = self.model(self._inputs(frames))
         if n not in self._checked:
             check_outputs(self.name, self.output_spec, outputs, batch=n)
             self._checked.add(n)
-        dsts = [t for _, out in pairs for t in out.tensors.values()]
-        srcs = [outputs[k][i] for i, (_, out) in enumerate(pairs) for k in out.tensors]
+        dsts = [t for out in outs for t in out.values()]
+        srcs = [outputs[k][i] for i, out in enumerate(outs) for k in out]
         if not dsts:  # a model of no outputs
             return
         if dsts[0].device == srcs[0].device:  # Note [One call for a batch's copies]
@@ -490,20 +538,20 @@ class WorkerCore:
             for dst, src in zip(dsts, srcs):
                 dst.copy_(src, non_blocking=True)
 
-    def _inputs(self, slots: list[SlotInfo]) -> dict[str, torch.Tensor]:
+    def _inputs(self, frames: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
         """The frames as one batch (Note [Executor contract] in backends/base.py): one frame's slot viewed, or
         the frames copied into the batch buffers."""
-        if len(slots) == 1 and self._direct:
-            return {k: slots[0].tensors[k].unsqueeze(0) for k in self._keys}
+        if len(frames) == 1 and self._direct:
+            return {k: frames[0][k].unsqueeze(0) for k in self._keys}
         assert self._copies is not None
-        n, rows = len(slots), self._rows
+        n, rows = len(frames), self._rows
         if self._direct and rows:  # every key of every frame in one call (Note [One call for a batch's copies])
             dsts = [rows[k][i] for k in rows for i in range(n)]
-            torch._foreach_copy_(dsts, [s.tensors[k] for k in rows for s in slots], non_blocking=True)
+            torch._foreach_copy_(dsts, [f[k] for k in rows for f in frames], non_blocking=True)
         else:  # host slots to the device: a copy each
             for k, row in rows.items():
-                for i, slot in enumerate(slots):
-                    row[i].copy_(slot.tensors[k], non_blocking=True)
+                for i, f in enumerate(frames):
+                    row[i].copy_(f[k], non_blocking=True)
         return dict(self._batches[n])
 
     def _publish(self, pairs: list[tuple[SlotInfo, SlotInfo]], t_start: float) -> None:

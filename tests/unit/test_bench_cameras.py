@@ -65,3 +65,45 @@ def test_a_pump_keeps_its_frames_in_flight_waits_for_every_one_and_counts_only_w
     )
     assert [(e.n, e.most_open, e.open) for e in engines] == [(10, 3, []), (10, 3, [])]
     assert (whole, torn) == (19, 1)  # the frame without seg's output is not counted through every head
+
+
+@pytest.mark.skipif(not __import__("os").path.isdir("/proc/self/task"), reason="reads /proc (Linux)")
+def test_page_faults_are_counted_by_thread_name_and_by_worker_process():
+    import mmap
+    import os
+    import subprocess
+    import sys
+    import threading
+
+    import numpy as np
+
+    from vpengine.bench.cameras import _faults_between, _page_faults
+
+    touch, touched, done = threading.Event(), threading.Event(), threading.Event()
+
+    def toucher() -> None:
+        touch.wait(10)
+        buf = mmap.mmap(-1, 8 << 20)  # 8 MiB never touched before, in pages of 4 KiB: a fault a page
+        if hasattr(mmap, "MADV_NOHUGEPAGE"):
+            buf.madvise(mmap.MADV_NOHUGEPAGE)
+        np.frombuffer(buf, np.uint8)[::4096] = 1
+        touched.set()
+        done.wait(10)
+        buf.close()
+
+    t = threading.Thread(target=toucher, name="toucher")
+    t.start()
+    child = subprocess.Popen([sys.executable, "-c", "import sys; sys.stdin.read()"], stdin=subprocess.PIPE)
+    try:
+        workers = {child.pid: ["depth", "seg"], os.getpid(): ["foundation"]}  # this process's threads come by name
+        before = _page_faults(workers)
+        touch.set()
+        assert touched.wait(10)
+        taken = _faults_between(before, _page_faults(workers))
+        assert taken.get("toucher", 0) >= 1500, taken  # 2048 pages
+        assert next(iter(taken)) == "toucher"  # most first
+        assert "process depth+seg" in before and "process foundation" not in before
+    finally:
+        done.set()
+        t.join()
+        child.communicate(b"", timeout=10)

@@ -8,8 +8,10 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   latency from submit to every head's result on the host (p50, p99), frames some head never answered (each is
   counted by the engine too, as skipped), how long the cameras take to hand in a tick's frames (``tick_submit_ms``,
   from the tick's start to the last submit's return: an upper bound on how far apart they reach the backbone; a frame
-  that comes past the batch window runs in the next batch, counted late), the engine's start (``start_s``), and the
-  device memory in use (NVML, else PyTorch's reserved bytes) with the engine's memory report.
+  that comes past the batch window runs in the next batch, counted late), the engine's start (``start_s``), the
+  device memory in use (NVML, else PyTorch's reserved bytes) with the engine's memory report, where frames missed a
+  head and the slowest ticks, and the host page faults each thread and worker process took over the first second and
+  the rest (``page_faults``; Linux): a thread that serves without mapping new memory takes none.
 * ``throughput``: for each N in ``--cameras`` (1, 2, 4, 8), frames per second through every head, as fast as they go,
   each camera pumped by its own thread with as many frames in flight as a file run keeps (Note [Frames in flight]
   in pipeline/pacing.py: every frame through every head, in order; the count is in the results), ``--rounds``
@@ -106,10 +108,16 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         where: dict[int, tuple[int, int]] = {}  # frame id: its tick, its camera's index
         handing: list[float] = []  # per tick: its start to the last submit's return, s
         submitted = 0
+        workers: dict[int, list[str]] = {}  # pid -> its models
+        for model, st in eng.stats()["models"].items():
+            workers.setdefault(int(st["pid"]), []).append(model)
+        faults = [_page_faults(workers)]  # at the stream's start, after its first second, at its end
         t0 = time.monotonic()
         with _Cameras(eng, cams, imgs) as drivers:
             k = 0
             while time.monotonic() - t0 < seconds:
+                if k == round(fps):
+                    faults.append(_page_faults(workers))
                 t = t0 + k / fps
                 while (now := time.monotonic()) < t:
                     for r in eng.results(timeout=t - now):
@@ -122,6 +130,7 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                 handing.append(time.monotonic() - t_hand)
                 k += 1
         ticks = k
+        faults.append(_page_faults(workers))
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
             rs = eng.results(timeout=0.5)
@@ -168,6 +177,13 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "memory_report": st["memory"],  # where it goes: mailboxes, each worker's pool, each process's (at start)
         "workers_on_mps": len(st["engine"]["mps"]["workers_on_mps"]),  # MPS overlaps the workers' kernels
         "counted": _counted(st, since=warm),  # over the stream
+        # what each thread of this process (by name) and each worker process took (Note [First batch] in
+        # runtime/worker.py: serving maps no new memory), over the stream's first second and over the rest
+        # (a stream of a second or less: all of it the first second)
+        "page_faults": {
+            "first_second": _faults_between(faults[0], faults[1]),
+            "rest": _faults_between(faults[1], faults[2]) if len(faults) > 2 else None,
+        },
     }
     fm = out["counted"]["foundation"]
     log(
@@ -179,7 +195,51 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         f"missed a head at ticks {_listed(sorted({k for k, _ in missed}))}, slowest ticks "
         f"{', '.join(f'{k} ({ms:.0f} ms)' for k, ms in out['slowest_ticks_ms'][:5])} of {ticks}"
     )
+    for span, taken in out["page_faults"].items():
+        if taken is not None:
+            most = ", ".join(f"{k} {v}" for k, v in list(taken.items())[:6]) or "none"
+            log(f"stream: host page faults, {span.replace('_', ' ')}: {most}")
     return out
+
+
+def _page_faults(workers: dict[int, list[str]]) -> dict[str, int]:
+    """Minor page faults so far (Linux; empty elsewhere): of each thread of this process by its Python name (threads
+    Python did not start, such as the CUDA driver's, summed as "other"), and of each worker process in ``workers``
+    (pid -> its models) other than this one, as "process <models>". A first touch of memory is one; memory that
+    serving reuses takes none."""
+    import os
+
+    def minflt(stat_path: str) -> int:
+        with open(stat_path) as f:
+            return int(f.read().rsplit(")", 1)[1].split()[7])  # after the name: state ... flags, minflt
+
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    out: dict[str, int] = {}
+    try:
+        tids = os.listdir("/proc/self/task")
+    except OSError:
+        return out
+    for tid in tids:
+        try:
+            n = minflt(f"/proc/self/task/{tid}/stat")
+        except (OSError, ValueError, IndexError):  # ended meanwhile
+            continue
+        name = names.get(int(tid), "other")
+        out[name] = out.get(name, 0) + n
+    for pid, models in workers.items():
+        if pid != os.getpid():
+            try:
+                out[f"process {'+'.join(models)}"] = minflt(f"/proc/{pid}/stat")
+            except (OSError, ValueError, IndexError):
+                continue
+    return out
+
+
+def _faults_between(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+    """The faults each thread or process took between two ``_page_faults``, most first, those that took none left
+    out (a thread started in between counts from its start)."""
+    taken = {k: n - before.get(k, 0) for k, n in after.items() if n > before.get(k, 0)}
+    return dict(sorted(taken.items(), key=lambda kv: -kv[1]))
 
 
 def _listed(ticks: list[int], most: int = 20) -> str:

@@ -80,17 +80,18 @@ copy each pair in turn anyway.
 
 Note [First batch]
 ~~~~~~~~~~~~~~~~~~
-Invariant (Note [Thread stack] in gpu.py): every kernel a worker runs has run once before READY. The executor's
-warm-up runs the model alone; the worker's own copies around it (a batch's frames into its batch buffers, its
-outputs into their slots: Note [One call for a batch's copies]) first ran on the first batch of several cameras a
-stream sent, and a kernel's first launch loads its module (CUDA loads lazily): host memory the driver maps and fills
-while the worker's thread waits. On an H200 with 8 cameras that was some 4,000 page faults in the foundation's
-thread within the stream's first half second, all in a batch's output copies (none in the model's call or the input
-copies), and the slowest ticks of a 5 s stream were its first ones (docs/benchmarks.md). So on CUDA a worker runs one batch of a frame per lane through the same code
-before READY (``warm_batch``): the model's example inputs as every frame, into output slots it acquires and gives
-back unpublished, which no reader sees. Not on the CPU, where there is nothing to load and a batch of a large model
-costs seconds of start; not where the output ring was published to before (a restart, a head's seat used again),
-whose slots readers may hold.
+Invariant: a served frame runs no kernel for the first time. The executor's warm-up runs the model alone; the
+worker's own copies around it (a batch's frames into its batch buffers, its outputs into their slots: Note [One call
+for a batch's copies]) first ran on the first batch of several cameras a stream sent, and a kernel's first launch
+loads its module (CUDA loads lazily): host memory the driver maps and fills while the worker's thread waits. On an
+H200 with 8 cameras that was some 4,000 page faults in the foundation's thread within the stream's first half second,
+in a batch's output copies (none in the model's call or the input copies), and the slowest ticks of a 5 s stream
+were its first ones (docs/benchmarks.md). So on CUDA a worker runs one batch of a frame per lane through the same
+code before READY (``warm_batch``), into output slots it acquires and gives back unpublished, which no reader sees.
+The batch is the largest: a model whose sizes are not all captured (eager, ONNX) may still run a smaller size the
+first time on a served frame. Not on the CPU, where there is nothing to load and a batch of a large model costs
+seconds of start; not where the output ring was published to before (a restart, a head's seat used again), whose
+slots readers may hold: there the first batch is not warmed.
 
 The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
 launching the foundation's work) live in handoff.py.
@@ -114,7 +115,7 @@ import torch
 
 from vpengine.backends.base import tensor_bytes
 from vpengine.config import EngineConfig, load_config
-from vpengine.models.base import Role, check_outputs
+from vpengine.models.base import ModelBuildError, Role, check_outputs, random_inputs
 from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
 from vpengine.runtime.device import RESTREAM_S, DeviceContext
 from vpengine.runtime.handoff import WorkerHandoff
@@ -264,16 +265,19 @@ class WorkerCore:
 
     def warm_batch(self, example: dict[str, torch.Tensor]) -> int:
         """Note [First batch]: one batch of a frame per lane through this worker's own copies and the model, before
-        READY, ``example`` (the model's inputs for a batch of 1, on its device) as every frame, into output slots
-        it acquires and gives back unpublished. Returns the frames it ran: 0 where the worker has no copies of its
-        own (one camera, graphs bound to the slots), or its output ring was published to before (a restart, a
-        head's seat used again: slots may be held, and the process ran its batches already)."""
+        READY, into output slots it acquires and gives back unpublished. Every frame is ``example`` (the model's
+        inputs for a batch of 1, on its device), and random values of the upstream spec for the keys the worker
+        copies that the model does not read (a head copies every feature key). Returns the frames it ran: 0 where
+        the worker has no copies of its own (one camera, graphs bound to the slots), or where its output ring was
+        published to before (a restart, a head's seat used again), whose slots readers may hold. Raises
+        ModelBuildError, naming the batch, if the model fails on it."""
         if (self._bound and len(self.lanes) == 1) or self.writer.ring.last_seq > 0:
             return 0
-        missing = [k for k in self._keys if k not in example]
+        frame = {**random_inputs(self.spec.upstream, 0, 1, self.dev.device), **example}
+        missing = [k for k in self._keys if k not in frame]
         if missing:
-            raise ValueError(f"{self.name}: example inputs lack {missing}, which the worker reads")
-        frame = {k: example[k][0] for k in self._keys}
+            raise ModelBuildError(f"{self.name}: example inputs lack {missing}, which the worker reads")
+        one = {k: frame[k][0] for k in self._keys}
         outs: list[SlotInfo] = []
         try:
             for _ in self.lanes:
@@ -282,9 +286,15 @@ class WorkerCore:
                     break
                 outs.append(slot)
             if outs:
-                with torch.inference_mode():
-                    self._batch_through([frame] * len(outs), [out.tensors for out in outs])
-                self.dev.complete()
+                try:
+                    with torch.inference_mode():
+                        self._batch_through([one] * len(outs), [out.tensors for out in outs])
+                    self.dev.complete()
+                except Exception as e:
+                    raise ModelBuildError(
+                        f"{self.name}: a batch of {len(outs)} example frames, run before READY (Note [First batch] "
+                        f"in runtime/worker.py), raised {type(e).__name__}: {e}"
+                    ) from e
         finally:
             for out in outs:
                 self.writer.abort(out)

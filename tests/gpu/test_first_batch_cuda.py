@@ -28,15 +28,19 @@ def faults(name):
     with open(f"/proc/self/task/{t.native_id}/stat") as f:
         return int(f.read().rsplit(")", 1)[1].split()[7])  # minflt
 
-# compiled as the shipped config: a frame alone runs the graphs bound to its slots, none of the worker's copies
+# the backbone, depth and seg compiled: a frame alone runs the graphs bound to its slots, none of the worker's copies
 COMPILED = ["foundation_model.backend=compile", "heads.depth.backend=compile", "heads.seg.backend=compile"]
 cfg = tiny("thread", "device=cuda", *COMPILED, "cameras=[" + ", ".join("{name: %s}" % c for c in CAMERAS) + "]")
 with Engine(cfg) as e:
+    sent = []  # when the last camera's frames were submitted
     for r in range(3):  # one frame at a time, 20 ms apart: each camera's spacing is known, its frames run alone
         for i, c in enumerate(CAMERAS):
+            sent.append(time.monotonic())
             e.wait(e.submit(frame(4 * r + i), camera=c), timeout=60)
             time.sleep(0.02)
-    time.sleep(0.2)  # every camera's next frame is due (and it still delivers): the tick's frames run as one batch
+    # until the last camera's next frame is due: every camera's is, and each still delivers (a frame within three
+    # of its spacings), so the tick's frames run as one batch
+    time.sleep(max(0.0, 2 * sent[-1] - sent[-5] - time.monotonic()))
     before = faults("vpengine-foundation")
     ids = [e.submit(frame(20 + i), camera=c) for i, c in enumerate(CAMERAS)]
     outs = [e.wait(f, timeout=60) for f in ids]

@@ -154,3 +154,24 @@ def test_a_model_that_fails_on_the_batch_fails_the_start_naming_it(foundation):
     ):
         core.warm_batch(EXAMPLE)
     _untouched(out_ring, core.control, [lane.entry for lane in core.lanes])  # its slots given back
+
+
+def test_a_device_error_on_the_batch_is_raised_as_it_is(foundation):
+    core, _, _, out_ring = foundation
+
+    def lost(inputs):
+        raise RuntimeError("CUDA error: an illegal memory access was encountered")
+
+    core.model = lost
+    with pytest.raises(RuntimeError, match="CUDA error") as info:
+        core.warm_batch(EXAMPLE)
+    assert not isinstance(info.value, ModelBuildError)  # the device's, not the config's
+    assert any("example frames run before READY" in n for n in info.value.__notes__)
+    _untouched(out_ring, core.control, [lane.entry for lane in core.lanes])
+
+
+def test_example_inputs_short_of_a_key_the_worker_reads_are_refused_by_name(foundation):
+    core, batches, _, out_ring = foundation  # its upstream names no keys here: nothing fills y
+    with pytest.raises(ModelBuildError, match=r"foundation: example inputs lack \['y'\], which the worker reads"):
+        core.warm_batch({"x": EXAMPLE["x"]})
+    assert not batches and out_ring.last_seq == 0

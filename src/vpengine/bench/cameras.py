@@ -116,12 +116,12 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         with _Cameras(eng, cams, imgs) as drivers:
             k = 0
             while time.monotonic() - t0 < seconds:
-                if k == round(fps):
-                    faults.append(_page_faults(workers))
                 t = t0 + k / fps
                 while (now := time.monotonic()) < t:
                     for r in eng.results(timeout=t - now):
                         frames.setdefault(r.frame_id, {})[r.head] = r.latency
+                if k == round(fps):  # a second in
+                    faults.append(_page_faults(workers))
                 t_hand = time.monotonic()
                 for i, fid in enumerate(drivers.tick(k, time.time())):  # synchronised cameras: one stamp a tick
                     frames.setdefault(fid, {})
@@ -129,8 +129,8 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
                     submitted += 1
                 handing.append(time.monotonic() - t_hand)
                 k += 1
+            faults.append(_page_faults(workers))  # the cameras' threads still there
         ticks = k
-        faults.append(_page_faults(workers))
         deadline = time.monotonic() + 5
         while time.monotonic() < deadline:
             rs = eng.results(timeout=0.5)
@@ -179,8 +179,10 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         "counted": _counted(st, since=warm),  # over the stream
         # what each thread of this process (by name) and each worker process took (Note [First batch] in
         # runtime/worker.py: serving maps no new memory), over the stream's first second and over the rest
-        # (a stream of a second or less: all of it the first second)
-        "page_faults": {
+        # (None where /proc cannot tell; a stream of fewer than ``fps`` ticks: all of it the first second)
+        "page_faults": None
+        if faults[0] is None
+        else {
             "first_second": _faults_between(faults[0], faults[1]),
             "rest": _faults_between(faults[1], faults[2]) if len(faults) > 2 else None,
         },
@@ -195,15 +197,15 @@ def stream(base: Any, n: int, fps: float, seconds: float, imgs: list[np.ndarray]
         f"missed a head at ticks {_listed(sorted({k for k, _ in missed}))}, slowest ticks "
         f"{', '.join(f'{k} ({ms:.0f} ms)' for k, ms in out['slowest_ticks_ms'][:5])} of {ticks}"
     )
-    for span, taken in out["page_faults"].items():
+    for span, taken in (out["page_faults"] or {}).items():
         if taken is not None:
             most = ", ".join(f"{k} {v}" for k, v in list(taken.items())[:6]) or "none"
             log(f"stream: host page faults, {span.replace('_', ' ')}: {most}")
     return out
 
 
-def _page_faults(workers: dict[int, list[str]]) -> dict[str, int]:
-    """Minor page faults so far (Linux; empty elsewhere): of each thread of this process by its Python name (threads
+def _page_faults(workers: dict[int, list[str]]) -> dict[str, int] | None:
+    """Minor page faults so far (Linux; None elsewhere): of each thread of this process by its Python name (threads
     Python did not start, such as the CUDA driver's, summed as "other"), and of each worker process in ``workers``
     (pid -> its models) other than this one, as "process <models>". A first touch of memory is one; memory that
     serving reuses takes none."""
@@ -218,7 +220,7 @@ def _page_faults(workers: dict[int, list[str]]) -> dict[str, int]:
     try:
         tids = os.listdir("/proc/self/task")
     except OSError:
-        return out
+        return None
     for tid in tids:
         try:
             n = minflt(f"/proc/self/task/{tid}/stat")
@@ -235,9 +237,10 @@ def _page_faults(workers: dict[int, list[str]]) -> dict[str, int]:
     return out
 
 
-def _faults_between(before: dict[str, int], after: dict[str, int]) -> dict[str, int]:
+def _faults_between(before: dict[str, int] | None, after: dict[str, int] | None) -> dict[str, int]:
     """The faults each thread or process took between two ``_page_faults``, most first, those that took none left
     out (a thread started in between counts from its start)."""
+    before, after = before or {}, after or {}
     taken = {k: n - before.get(k, 0) for k, n in after.items() if n > before.get(k, 0)}
     return dict(sorted(taken.items(), key=lambda kv: -kv[1]))
 

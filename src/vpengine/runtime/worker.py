@@ -273,7 +273,8 @@ class WorkerCore:
         ModelBuildError, naming the batch, if the model fails on it."""
         if (self._bound and len(self.lanes) == 1) or self.writer.ring.last_seq > 0:
             return 0
-        frame = {**random_inputs(self.spec.upstream, 0, 1, self.dev.device), **example}
+        rest = {k: v for k, v in self.spec.upstream.items() if k not in example}
+        frame = {**random_inputs(rest, 0, 1, self.dev.device), **example}
         missing = [k for k in self._keys if k not in frame]
         if missing:
             raise ModelBuildError(f"{self.name}: example inputs lack {missing}, which the worker reads")
@@ -291,6 +292,9 @@ class WorkerCore:
                         self._batch_through([one] * len(outs), [out.tensors for out in outs])
                     self.dev.complete()
                 except Exception as e:
+                    if poisons(e):  # the device, not the model: raised as it is (Note [Frame errors])
+                        e.add_note(f"{self.name}: in a batch of {len(outs)} example frames run before READY")
+                        raise
                     raise ModelBuildError(
                         f"{self.name}: a batch of {len(outs)} example frames, run before READY (Note [First batch] "
                         f"in runtime/worker.py), raised {type(e).__name__}: {e}"

@@ -4,10 +4,9 @@ at a time on real rings, the guess forced, so nothing depends on timing."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 
+from helpers.rings import submitter
 from tests_paths import tiny
 from vpengine.runtime.control import ControlBlock
 from vpengine.runtime.device import DeviceContext
@@ -47,15 +46,7 @@ def worker(request):
         return {"f": inputs["x"] * 2, "g": inputs["y"] * 3}
 
     core = WorkerCore(spec, model, F, in_ring, out_ring, control, DeviceContext("cpu"))
-    writer = in_ring.writer()
-
-    def submit(camera: str, value: float) -> int:
-        slot = writer.acquire(timeout=1.0)
-        assert slot is not None
-        slot.tensors["x"].fill_(value)
-        slot.tensors["y"].fill_(value + 0.5)
-        now = time.monotonic()
-        return writer.publish(slot, int(value), now, now, tag=CAMERAS.index(camera))
+    submit = submitter(in_ring, CAMERAS)
 
     def overloaded() -> None:
         """The model's last batches took longer than the cameras' frames come: it defers a frame."""

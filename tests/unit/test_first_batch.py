@@ -5,11 +5,10 @@ for the foundation and for a head, which copies every feature key while its mode
 
 from __future__ import annotations
 
-import time
-
 import pytest
 import torch
 
+from helpers.rings import submitter
 from tests_paths import tiny
 from vpengine.models.base import ModelBuildError
 from vpengine.runtime.control import ControlBlock
@@ -64,15 +63,7 @@ def _worker(role: str):
 @pytest.fixture()
 def foundation():
     core, batches, in_ring, out_ring, _ = _worker("foundation")
-    writer = in_ring.writer()
-
-    def submit(camera: str, value: float) -> int:
-        slot = writer.acquire(timeout=1.0)
-        assert slot is not None
-        slot.tensors["x"].fill_(value)
-        slot.tensors["y"].fill_(value + 0.5)
-        now = time.monotonic()
-        return writer.publish(slot, int(value), now, now, tag=CAMERAS.index(camera))
+    submit = submitter(in_ring, CAMERAS)
 
     yield core, batches, submit, out_ring
     core.run(lambda: True)

@@ -10,6 +10,8 @@ import threading
 import time
 from pathlib import Path
 
+import torch
+
 from vpengine.models.base import BuildContext, Model, Options
 from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyViTOptions
 
@@ -37,13 +39,34 @@ class FaultOptions(Options):
     log_at_build: str | None = None  # log this (WARNING, logger vpengine.faulty) when built
 
 
-class FaultyHead(TinyDepthHead):
+class _Runs:
+    """Counts a model's runs on served frames: not the engine's calls before READY, which give the model its example
+    inputs (the executor's warm-up, the first call; on CUDA also each worker's first batch, Note [First batch] in
+    runtime/worker.py, every frame of it the example)."""
+
+    calls = 0
+    _example: dict | None = None
+
+    def _run(self, inputs) -> int | None:  # type: ignore[no-untyped-def]
+        """This call's run number (1-based), or None for a warm-up call."""
+        if self._example is None:
+            self._example = {k: v[0].detach().clone() for k, v in inputs.items()}
+            return None
+        if all(
+            k in inputs and inputs[k][0].shape == v.shape and torch.equal(inputs[k][0], v)
+            for k, v in self._example.items()
+        ):
+            return None
+        self.calls += 1
+        return self.calls
+
+
+class FaultyHead(_Runs, TinyDepthHead):
     """tiny_depth with injectable faults."""
 
     def __init__(self, ctx: BuildContext, fault: FaultOptions) -> None:
         super().__init__(ctx, TinyHeadOptions())
         self.fault = fault
-        self.calls = 0
         if fault.ignore_sigterm and not ctx.plan_only:
             signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
@@ -59,9 +82,8 @@ class FaultyHead(TinyDepthHead):
         return cls(ctx, fault)
 
     def forward(self, inputs):
-        self.calls += 1
-        run = self.calls - 1  # call 1 is the engine's warm-up before READY
-        if run == 0:
+        run = self._run(inputs)
+        if run is None:
             return super().forward(inputs)
         f = self.fault
         if f.sleep_ms:
@@ -100,7 +122,7 @@ class FaultyViTOptions(TinyViTOptions):
     once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
 
 
-class FaultyViT(TinyViT):
+class FaultyViT(_Runs, TinyViT):
     """tiny_vit (same weights for the same seed) that raises once on a given run: a foundation model to restart."""
 
     options_type = FaultyViTOptions
@@ -108,13 +130,11 @@ class FaultyViT(TinyViT):
     def __init__(self, image_hw: tuple[int, int], opts: FaultyViTOptions, dtype: str = "float32") -> None:
         super().__init__(image_hw, opts, dtype)
         self.fault = opts
-        self.calls = 0
 
     def forward(self, inputs):
-        self.calls += 1
-        run = self.calls - 1  # call 1 is the engine's warm-up before READY
+        run = self._run(inputs)
         f = self.fault
-        if run == f.raise_at_run and (f.once_marker is None or not Path(f.once_marker).exists()):
+        if run is not None and run == f.raise_at_run and (f.once_marker is None or not Path(f.once_marker).exists()):
             if f.once_marker is not None:
                 Path(f.once_marker).touch()
             raise RuntimeError(f"{'CUDA error: ' if f.cuda_error else ''}injected foundation failure at run {run}")

@@ -40,6 +40,11 @@ def _register_host_rings(*rings: SlotRing) -> None:
                 region.register_with_cuda()
 
 
+def warms_first_batch(dev: DeviceContext) -> bool:
+    """Whether a worker runs a batch of a frame per camera before READY (Note [First batch] in worker.py): on CUDA."""
+    return dev.cuda
+
+
 def prepare_worker(
     spec: WorkerSpec,
     in_ring: SlotRing,
@@ -126,7 +131,7 @@ def prepare_worker(
             core = WorkerCore(
                 spec, executor, model.output_spec, in_ring, out_ring, control, dev, bound=bound, handoff=handoff
             )
-            if dev.cuda:  # Note [First batch] in worker.py
+            if warms_first_batch(dev):
                 core.warm_batch(model.example_inputs(device))
         dev.complete()
     # a process of its own: all it reserved is the model's; beside other models, what it holds alone

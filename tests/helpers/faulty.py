@@ -42,7 +42,8 @@ class FaultOptions(Options):
 class _Runs:
     """Counts a model's runs on served frames: not the engine's calls before READY, which give the model its example
     inputs (the executor's warm-up, the first call; on CUDA also each worker's first batch, Note [First batch] in
-    runtime/worker.py, every frame of it the example)."""
+    runtime/worker.py, every frame of it the example). On the eager backend: compiled, ``forward`` is traced, not
+    called per frame."""
 
     calls = 0
     _example: dict | None = None
@@ -52,10 +53,7 @@ class _Runs:
         if self._example is None:
             self._example = {k: v[0].detach().clone() for k, v in inputs.items()}
             return None
-        if all(
-            k in inputs and inputs[k][0].shape == v.shape and torch.equal(inputs[k][0], v)
-            for k, v in self._example.items()
-        ):
+        if all(k in inputs and torch.equal(inputs[k][0], v) for k, v in self._example.items()):
             return None
         self.calls += 1
         return self.calls

@@ -1,8 +1,8 @@
 """Note [First batch] (runtime/worker.py) in a whole engine: every worker's batch of a frame per camera before READY
 fits what the engine wires around it (the foundation's frames, a head's feature keys, output slots on the host and
 on the device), leaves no trace in what the engine serves and counts, and a head added at run time warms its own,
-but a restarted worker does not, into the mailbox it published to. On CUDA only in the product; here on the CPU, switched on (thread
-mode: the switch is this process's)."""
+but a restarted worker does not, into the mailbox it published to. On CUDA only in the product; here on the CPU,
+switched on (thread mode: the switch is this process's)."""
 
 from __future__ import annotations
 

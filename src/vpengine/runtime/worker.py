@@ -90,9 +90,9 @@ were its first ones (docs/benchmarks.md). So on CUDA a worker runs one batch of 
 code before READY (``warm_batch``), into output slots it acquires and gives back unpublished, which no reader sees.
 The batch is the largest: a model whose sizes are not all captured (eager, ONNX) may still run a smaller size the
 first time on a served frame. Not on the CPU, where there is nothing to load and a batch of a large model costs
-seconds of start; not where the output ring was published to before (a restarted worker's), whose slots readers
-may hold (a borrowed result): there the first batch is not warmed. A head added at run time has a new mailbox and
-warms its batch like the others.
+seconds of start; not where the output ring was published to before (as a restarted worker's usually was), whose
+slots readers may hold (a borrowed result): there the first batch is not warmed. A head added at run time has a new
+mailbox and warms its batch like the others.
 
 The hand-offs that thread mode on CUDA uses between models (events instead of host waits, the submitting thread
 launching the foundation's work) live in handoff.py.
@@ -270,7 +270,7 @@ class WorkerCore:
         inputs for a batch of 1, on its device), and random values of the upstream spec for the keys the worker
         copies that the model does not read (a head copies every feature key). Returns the frames it ran: 0 where
         the worker has no copies of its own (one camera, graphs bound to the slots), or where its output ring was
-        published to before (a restarted worker's), whose slots readers may hold. Raises
+        published to before (as a restarted worker's usually was), whose slots readers may hold. Raises
         ModelBuildError naming the batch if the model fails on it (a device error: raised as it is, with a note)."""
         if (self._bound and len(self.lanes) == 1) or self.writer.ring.last_seq > 0:
             return 0

@@ -24,17 +24,23 @@ DET2 = {"name": "det2", "model": "tiny_det"}
 FAULTY = "helpers.faulty:FaultyHead"
 
 
-def test_every_worker_warms_a_batch_of_every_camera_and_serves_as_before(monkeypatch):
-    warmed: list[tuple[str, int]] = []
+@pytest.fixture()
+def warmed(monkeypatch):
+    """The warm batch switched on in this process; each worker's (name, frames it warmed), in order."""
+    noted: list[tuple[str, int]] = []
     warm = WorkerCore.warm_batch
 
-    def noted(self, example):  # type: ignore[no-untyped-def]
+    def noting(self, example):  # type: ignore[no-untyped-def]
         n = warm(self, example)
-        warmed.append((self.name, n))
+        noted.append((self.name, n))
         return n
 
     monkeypatch.setattr(prepare, "warms_first_batch", lambda dev: True)
-    monkeypatch.setattr(WorkerCore, "warm_batch", noted)
+    monkeypatch.setattr(WorkerCore, "warm_batch", noting)
+    return noted
+
+
+def test_every_worker_warms_a_batch_of_every_camera_and_serves_as_before(warmed):
     cfg = tiny("thread", "cameras=[{name: a}, {name: b}, {name: c}]", "runtime.spare_heads=1")
     with Engine(cfg) as e:
         assert sorted(warmed) == [("depth", 3), ("det", 3), ("foundation", 3), ("seg", 3)]
@@ -56,18 +62,8 @@ def test_every_worker_warms_a_batch_of_every_camera_and_serves_as_before(monkeyp
         assert warmed[-1] == ("det2", 3)
 
 
-def test_a_restarted_worker_leaves_the_mailbox_it_published_to_alone(tmp_path, monkeypatch, restart_backoff):
+def test_a_restarted_worker_leaves_the_mailbox_it_published_to_alone(tmp_path, warmed, restart_backoff):
     """Readers may hold its output slots (a borrowed result): no warm batch there."""
-    warmed: list[tuple[str, int]] = []
-    warm = WorkerCore.warm_batch
-
-    def noted(self, example):  # type: ignore[no-untyped-def]
-        n = warm(self, example)
-        warmed.append((self.name, n))
-        return n
-
-    monkeypatch.setattr(prepare, "warms_first_batch", lambda dev: True)
-    monkeypatch.setattr(WorkerCore, "warm_batch", noted)
     restart_backoff(0.05)
     opts = json.dumps({"raise_at_run": 2, "cuda_error": True, "once_marker": str(tmp_path / "raised")})
     cfg = tiny(

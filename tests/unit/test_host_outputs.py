@@ -14,39 +14,65 @@ def frame(i: int) -> np.ndarray:
 
 def test_a_dropped_array_is_reused_and_a_kept_one_never_changes():
     pool = _HostOutputs()
-    a = pool.copy("depth", "depth", frame(1))
+    a = pool.copy("depth", 0, "depth", frame(1))
     address = a.ctypes.data
     del a
-    b = pool.copy("depth", "depth", frame(2))
+    b = pool.copy("depth", 0, "depth", frame(2))
     assert b.ctypes.data == address and (b == 2).all()  # reused: no fresh memory for this frame
-    c = pool.copy("depth", "depth", frame(3))  # b is still held: c gets other memory
+    c = pool.copy("depth", 0, "depth", frame(3))  # b is still held: c gets other memory
     assert c.ctypes.data != b.ctypes.data and (b == 2).all() and (c == 3).all()
 
 
 def test_views_and_tensors_keep_their_array_alive():
     pool = _HostOutputs()
-    view = pool.copy("det", "boxes", frame(1))[1:3]  # the array itself is dropped, a view of it is kept
-    tensor = torch.from_numpy(pool.copy("det", "scores", frame(2)))
+    view = pool.copy("det", 0, "boxes", frame(1))[1:3]  # the array itself is dropped, a view of it is kept
+    tensor = torch.from_numpy(pool.copy("det", 0, "scores", frame(2)))
     for i in range(3, 3 + 2 * _RECYCLED_PER_OUTPUT):
-        pool.copy("det", "boxes", frame(i))
-        pool.copy("det", "scores", frame(i))
+        pool.copy("det", 0, "boxes", frame(i))
+        pool.copy("det", 0, "scores", frame(i))
     assert (view == 1).all() and (tensor == 2).all()
 
 
 def test_outputs_of_other_heads_or_shapes_are_not_mixed_up():
     pool = _HostOutputs()
-    a = pool.copy("depth", "depth", frame(1))
+    a = pool.copy("depth", 0, "depth", frame(1))
     del a
-    seg = pool.copy("seg", "depth", frame(7))  # same key name, other head: its own pool
+    seg = pool.copy("seg", 0, "depth", frame(7))  # same key name, other head: its own pool
     assert (seg == 7).all()
-    small = pool.copy("depth", "depth", np.ones((2, 2), np.float32))
+    small = pool.copy("depth", 0, "depth", np.ones((2, 2), np.float32))
     assert small.shape == (2, 2)
-    big = pool.copy("depth", "depth", np.zeros((8, 8), np.uint8))
+    big = pool.copy("depth", 0, "depth", np.zeros((8, 8), np.uint8))
     assert big.shape == (8, 8) and big.dtype == np.uint8
 
 
 def test_the_pool_is_bounded_when_every_result_is_kept():
     pool = _HostOutputs()
-    kept = [pool.copy("depth", "depth", frame(i)) for i in range(10)]
+    kept = [pool.copy("depth", 0, "depth", frame(i)) for i in range(10)]
     assert [int(k[0, 0]) for k in kept] == list(range(10))  # all distinct, none overwritten
-    assert len(pool._pools["depth", "depth"]) == _RECYCLED_PER_OUTPUT
+    assert len(pool._pools["depth", 0, "depth"]) == _RECYCLED_PER_OUTPUT
+
+
+def test_every_camera_of_a_tick_reuses_its_own_arrays():
+    """A tick's results of eight cameras come out together; each camera's dropped arrays are reused on the next."""
+    pool = _HostOutputs()
+    tick = [pool.copy("depth", cam, "depth", frame(cam)) for cam in range(8)]
+    addresses = [a.ctypes.data for a in tick]
+    del tick
+    for k in range(1, 4):
+        tick = [pool.copy("depth", cam, "depth", frame(10 * k + cam)) for cam in range(8)]
+        assert [a.ctypes.data for a in tick] == addresses  # no fresh memory: each camera's own array again
+        assert [int(a[0, 0]) for a in tick] == [10 * k + cam for cam in range(8)]
+        del tick
+
+
+def test_a_free_array_of_another_shape_makes_way():
+    pool = _HostOutputs()
+    for _ in range(_RECYCLED_PER_OUTPUT):
+        pool.copy("depth", 0, "depth", np.ones((2, 2), np.float32))  # dropped at once: the first one is reused
+    kept = [pool.copy("depth", 0, "depth", np.ones((2, 2), np.float32)) for _ in range(_RECYCLED_PER_OUTPUT)]
+    del kept  # the pool is full of free 2x2 arrays
+    big = pool.copy("depth", 0, "depth", frame(5))  # the camera's frames are another size now
+    address = big.ctypes.data
+    del big
+    again = pool.copy("depth", 0, "depth", frame(6))
+    assert again.ctypes.data == address and (again == 6).all()  # the new size is recycled, not fresh every frame

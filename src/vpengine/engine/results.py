@@ -40,7 +40,7 @@ from vpengine.runtime.lanes import Lanes
 from vpengine.runtime.supervisor import EngineDeadError
 from vpengine.transport.ring import Accept, RingReader, SlotInfo, SlotRing
 
-_RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, output) for reuse once the user has let go of them
+_RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, camera, output) for reuse once the user has let go of them
 LEASES = 2  # results of each head a caller may hold without a copy (Note [Borrowed results])
 
 
@@ -55,24 +55,34 @@ _FREE_REFS = _refcounts([np.empty(1)])[0]
 class _HostOutputs:
     """Host arrays for results, recycled: copying a 1080p float32 depth map into fresh memory costs page faults on
     every frame (eight of them are 66 MB), so an array is reused once nothing outside this pool refers to it
-    (a view or a tensor made from it refers to it too). Bounded: at most ``_RECYCLED_PER_OUTPUT`` arrays per
-    output are kept; beyond that results get fresh arrays that are not tracked."""
+    (a view or a tensor made from it refers to it too). Kept per camera: every camera's result of a tick is handed
+    out at once, so a pool shared by the cameras would give all but its first arrays fresh memory on every tick;
+    the allocator then maps and unmaps it whenever results bunch up, and each of those page faults lands on a late
+    frame (Note [First batch] in runtime/worker.py: serving maps no new memory). Bounded: at most
+    ``_RECYCLED_PER_OUTPUT`` arrays per (head, camera, output) are kept; beyond that results get fresh arrays that
+    are not tracked."""
 
     def __init__(self) -> None:
-        self._pools: dict[tuple[str, str], list[np.ndarray]] = {}
+        self._pools: dict[tuple[str, int, str], list[np.ndarray]] = {}
 
     def forget(self, head: str) -> None:
         self._pools = {k: v for k, v in self._pools.items() if k[0] != head}
 
-    def copy(self, head: str, key: str, src: np.ndarray) -> np.ndarray:
-        pool = self._pools.setdefault((head, key), [])
-        for arr, refs in zip(pool, _refcounts(pool)):
-            if refs <= _FREE_REFS and arr.shape == src.shape and arr.dtype == src.dtype:
-                np.copyto(arr, src)
-                return arr
+    def copy(self, head: str, camera: int, key: str, src: np.ndarray) -> np.ndarray:
+        """``src`` copied into a free array of ``head``'s ``key`` for the camera of tag ``camera``."""
+        pool = self._pools.setdefault((head, camera, key), [])
+        other = None  # a free array of another shape or type: replaced by this one's
+        for i, (arr, refs) in enumerate(zip(pool, _refcounts(pool))):
+            if refs <= _FREE_REFS:
+                if arr.shape == src.shape and arr.dtype == src.dtype:
+                    np.copyto(arr, src)
+                    return arr
+                other = i
         arr = src.copy()
         if len(pool) < _RECYCLED_PER_OUTPUT:
             pool.append(arr)
+        elif other is not None:
+            pool[other] = arr
         return arr
 
 
@@ -451,10 +461,12 @@ class Outbox:
                 if k in kinds:
                     outputs[k] = change.to_frame(kinds[k], v)
                 else:
-                    outputs[k] = self._host_outputs.copy(head, k, v) if isinstance(v, np.ndarray) else t.clone()
+                    outputs[k] = (
+                        self._host_outputs.copy(head, slot.tag, k, v) if isinstance(v, np.ndarray) else t.clone()
+                    )
         else:
             outputs = {
-                k: self._host_outputs.copy(head, k, t.numpy()) if _numpy_output(t) else t.clone()
+                k: self._host_outputs.copy(head, slot.tag, k, t.numpy()) if _numpy_output(t) else t.clone()
                 for k, t in slot.tensors.items()
             }
         # Note [Empty boxes] in boundary.py: in every grid and every way of handing out (a borrowed result's box rows

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import threading
+import types
+
 import numpy as np
+import pytest
 import torch
 
-from vpengine.engine.results import _RECYCLED_PER_OUTPUT, _HostOutputs
+from vpengine.engine.results import _RECYCLED_PER_OUTPUT, Outbox, _HostOutputs
 
 
 def frame(i: int) -> np.ndarray:
@@ -65,14 +69,26 @@ def test_every_camera_of_a_tick_reuses_its_own_arrays():
         del tick
 
 
-def test_a_free_array_of_another_shape_makes_way():
-    pool = _HostOutputs()
-    for _ in range(_RECYCLED_PER_OUTPUT):
-        pool.copy("depth", 0, "depth", np.ones((2, 2), np.float32))  # dropped at once: the first one is reused
-    kept = [pool.copy("depth", 0, "depth", np.ones((2, 2), np.float32)) for _ in range(_RECYCLED_PER_OUTPUT)]
-    del kept  # the pool is full of free 2x2 arrays
-    big = pool.copy("depth", 0, "depth", frame(5))  # the camera's frames are another size now
-    address = big.ctypes.data
-    del big
-    again = pool.copy("depth", 0, "depth", frame(6))
-    assert again.ctypes.data == address and (again == 6).all()  # the new size is recycled, not fresh every frame
+def test_a_failed_copy_waits_for_the_other_heads_copies():
+    """The caller releases the pinned slots as soon as ``_copy_out`` raises; a head's copy still reading its slot
+    then would read a slot being written again."""
+    outbox = Outbox.__new__(Outbox)  # only what _copy_out uses
+    outbox.heads = {"depth": None, "seg": None}
+    outbox._pool = None
+    reading, finished = threading.Event(), threading.Event()
+
+    def to_result(head, slot):
+        if head == "depth":
+            reading.set()
+            threading.Event().wait(0.3)  # still copying
+            finished.set()
+            return head
+        reading.wait(5)
+        raise RuntimeError("seg's copy failed")
+
+    outbox._to_result = to_result
+    big = types.SimpleNamespace(tensors={"x": torch.zeros(1 << 20)})  # 4 MB: copied by the pool, not inline
+    with pytest.raises(RuntimeError, match="seg's copy failed"):
+        outbox._copy_out([("seg", big), ("depth", big)])  # seg's error is collected first
+    assert finished.is_set()
+    outbox._pool.shutdown()

@@ -20,6 +20,7 @@ torn reads); once the last array, view of one, or tensor made from one is gone, 
 from __future__ import annotations
 
 import collections
+import concurrent.futures
 import sys
 import threading
 import time
@@ -56,11 +57,12 @@ class _HostOutputs:
     """Host arrays for results, recycled: copying a 1080p float32 depth map into fresh memory costs page faults on
     every frame (eight of them are 66 MB), so an array is reused once nothing outside this pool refers to it
     (a view or a tensor made from it refers to it too). Kept per camera: every camera's result of a tick is handed
-    out at once, so a pool shared by the cameras would give all but its first arrays fresh memory on every tick;
-    the allocator then maps and unmaps it whenever results bunch up, and each of those page faults lands on a late
-    frame (Note [First batch] in runtime/worker.py: serving maps no new memory). Bounded: at most
-    ``_RECYCLED_PER_OUTPUT`` arrays per (head, camera, output) are kept; beyond that results get fresh arrays that
-    are not tracked."""
+    out at once, so a pool shared by the cameras would give all but its first ``_RECYCLED_PER_OUTPUT`` results
+    fresh memory on every tick; the allocator then maps and unmaps it whenever results bunch up, and each of those
+    page faults lands on a late frame (Note [First batch] in runtime/worker.py: serving maps no new memory). Bounded:
+    at most ``_RECYCLED_PER_OUTPUT`` arrays per (head, camera, output) are kept (eight cameras' 1080p float32 depth
+    maps: 133 MB); beyond that results get fresh arrays that are not tracked. An output's shape is its slot's, fixed
+    for the engine's life, so an array that is kept always fits."""
 
     def __init__(self) -> None:
         self._pools: dict[tuple[str, int, str], list[np.ndarray]] = {}
@@ -69,20 +71,15 @@ class _HostOutputs:
         self._pools = {k: v for k, v in self._pools.items() if k[0] != head}
 
     def copy(self, head: str, camera: int, key: str, src: np.ndarray) -> np.ndarray:
-        """``src`` copied into a free array of ``head``'s ``key`` for the camera of tag ``camera``."""
+        """``src`` copied into a free array of ``head``'s ``key`` for the camera of tag ``camera`` (or a new one)."""
         pool = self._pools.setdefault((head, camera, key), [])
-        other = None  # a free array of another shape or type: replaced by this one's
-        for i, (arr, refs) in enumerate(zip(pool, _refcounts(pool))):
-            if refs <= _FREE_REFS:
-                if arr.shape == src.shape and arr.dtype == src.dtype:
-                    np.copyto(arr, src)
-                    return arr
-                other = i
+        for arr, refs in zip(pool, _refcounts(pool)):
+            if refs <= _FREE_REFS and arr.shape == src.shape and arr.dtype == src.dtype:
+                np.copyto(arr, src)
+                return arr
         arr = src.copy()
         if len(pool) < _RECYCLED_PER_OUTPUT:
             pool.append(arr)
-        elif other is not None:
-            pool[other] = arr
         return arr
 
 
@@ -181,8 +178,8 @@ class Result:
     #: Seconds from submit to this output being on the host (published, and its device work done).
     latency: float
     #: Output tensors: numpy arrays (host outputs) or torch tensors (device outputs, bfloat16). A host array's memory
-    #: is reused for a later result of the same head once nothing refers to the array (nor to any view of it) any
-    #: more, so keeping a reference (or a view, or ``torch.from_numpy`` of it) keeps its content.
+    #: is reused for a later result of the same head and camera once nothing refers to the array (nor to any view of
+    #: it) any more, so keeping a reference (or a view, or ``torch.from_numpy`` of it) keeps its content.
     outputs: dict[str, Any]
     seq: int = 0
     #: When the output was there to read (``time.monotonic()``).
@@ -246,7 +243,7 @@ class Outbox:
         self._rings = rings
         self._lock = threading.Lock()
         self._streaming = False
-        self._pool: Any = None
+        self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._host_outputs = _HostOutputs()
         self._numpy_heads: dict[str, bool] = {}  # head -> its outputs are handed out as numpy arrays
 
@@ -500,9 +497,12 @@ class Outbox:
             borrowed = [None if copy else self._borrow(h, s) for h, s in pinned]
             return {h: self._to_result(h, s, b) for (h, s), b in zip(pinned, borrowed)}
         if self._pool is None:
-            from concurrent.futures import ThreadPoolExecutor
-
-            self._pool = ThreadPoolExecutor(max_workers=min(8, len(self.heads)), thread_name_prefix="vpe-copy")
+            self._pool = concurrent.futures.ThreadPoolExecutor(
+                max_workers=min(8, len(self.heads)), thread_name_prefix="vpe-copy"
+            )
             weakref.finalize(self, self._pool.shutdown, wait=False)
         futures = {h: self._pool.submit(self._to_result, h, s) for h, s in pinned}
+        # every copy finished before any error is raised: the caller releases the pinned slots on an error, and a
+        # copy still reading one would read a slot being written again (and race a later copy into the same array)
+        concurrent.futures.wait(futures.values())
         return {h: f.result() for h, f in futures.items()}

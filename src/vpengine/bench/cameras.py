@@ -211,9 +211,10 @@ def _page_faults(workers: dict[int, list[str]]) -> dict[str, int] | None:
     serving reuses takes none."""
     import os
 
+    from vpengine.bench.common import proc_stat
+
     def minflt(stat_path: str) -> int:
-        with open(stat_path) as f:
-            return int(f.read().rsplit(")", 1)[1].split()[7])  # after the name: state ... flags, minflt
+        return int(proc_stat(stat_path)[7])  # state, ppid, pgrp, session, tty_nr, tpgid, flags, minflt
 
     names = {t.native_id: t.name for t in threading.enumerate()}
     out: dict[str, int] = {}

@@ -13,6 +13,13 @@ from pathlib import Path
 from typing import Any
 
 
+def proc_stat(path: str) -> list[str]:
+    """The fields of a ``/proc/<pid>/stat`` (or ``/proc/<pid>/task/<tid>/stat``) after the command name, which may
+    hold spaces and parentheses: state, ppid, ... (``proc(5)``'s fields from the third on). OSError if it is gone."""
+    with open(path) as f:
+        return f.read().rsplit(")", 1)[1].split()
+
+
 def cpu_model() -> str:
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

@@ -51,12 +51,13 @@ def _device_used(device: str) -> int | None:
 
 
 def _children() -> int:
+    from vpengine.bench.common import proc_stat
+
     me, n = str(os.getpid()), 0
     for pid in os.listdir("/proc"):
         if pid.isdigit():
             try:
-                with open(f"/proc/{pid}/stat") as f:
-                    n += f.read().rsplit(")", 1)[1].split()[1] == me
+                n += proc_stat(f"/proc/{pid}/stat")[1] == me  # ppid
             except OSError:
                 continue
     return n

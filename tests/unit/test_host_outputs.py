@@ -69,6 +69,22 @@ def test_every_camera_of_a_tick_reuses_its_own_arrays():
         del tick
 
 
+def test_a_camera_whose_frames_change_size_gets_arrays_of_the_new_size_kept():
+    """Outputs mapped to the frame's grid take the frame's size: once a camera's frames change size, arrays of the
+    new size are kept in place of the free ones of the old, and one still held keeps its content."""
+    pool = _HostOutputs()
+    held = pool.copy("depth", 0, "depth", frame(1))  # 4x5
+    pool.copy("depth", 0, "depth", frame(2))  # dropped at once: free
+    bigger = np.full((6, 7), 3.0, np.float32)
+    a = pool.copy("depth", 0, "depth", bigger)
+    address = a.ctypes.data
+    del a
+    b = pool.copy("depth", 0, "depth", bigger * 2)
+    assert b.ctypes.data == address and (b == 6).all()  # the new size is kept and reused
+    assert sorted(x.shape for x in pool._pools["depth", 0, "depth"]) == [(4, 5), (6, 7)]
+    assert (held == 1).all()
+
+
 def test_a_failed_copy_waits_for_the_other_heads_copies():
     """The caller releases the pinned slots as soon as ``_copy_out`` raises; a head's copy still reading its slot
     then would read a slot being written again."""

@@ -40,6 +40,7 @@ grid with ``output.grid: native``) and for borrowed results: no result has a zer
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -53,6 +54,8 @@ from vpengine.specs import SpecDict
 log = logging.getLogger("vpengine")
 
 GridKind = Literal["map", "labels", "boxes"]
+#: Gives the array of a shape and dtype that an output mapped to a frame's grid is written into.
+Alloc = Callable[[tuple[int, ...], np.dtype], np.ndarray]
 GRID_KINDS: tuple[str, ...] = ("map", "labels", "boxes")
 
 
@@ -105,11 +108,12 @@ class Placement:
         )
         return np.minimum(np.maximum(out, 0), np.array([fw, fh, fw, fh], boxes.dtype)).astype(boxes.dtype)
 
-    def to_frame(self, kind: GridKind, value: Any) -> Any:
-        """One output of ``kind`` in the canvas grid -> in the frame's (a new array; ``value`` is left alone)."""
+    def to_frame(self, kind: GridKind, value: Any, alloc: Alloc | None = None) -> Any:
+        """One output of ``kind`` in the canvas grid -> in the frame's (``value`` is left alone): a new array, or for
+        a map one that ``alloc`` gives (see ``map_to_frame``)."""
         if kind == "boxes":
             return self.boxes_to_frame(value)
-        return self.map_to_frame(value, labels=kind == "labels")
+        return self.map_to_frame(value, labels=kind == "labels", alloc=alloc)
 
     @property
     def area_to_frame(self) -> bool:
@@ -121,25 +125,30 @@ class Placement:
         """Whether the frame is area-averaged into the canvas, by the same rule."""
         return _area_averaged(self.frame_hw, (self.h, self.w))
 
-    def map_to_frame(self, m: Any, labels: bool) -> Any:
+    def map_to_frame(self, m: Any, labels: bool, alloc: Alloc | None = None) -> Any:
         """A map ``[H, W, ...]`` in the canvas -> ``[h, w, ...]`` at the frame's size: the frame's region cut out
         and resized, values (``labels`` False) bilinear or area-averaged (Note [Frame grid]), class ids nearest.
-        Numpy arrays or tensors."""
+        Numpy arrays or tensors. ``alloc(shape, dtype)``: where a 2-D numpy map OpenCV resizes is written (the
+        engine's recycled result arrays), rather than new memory on every frame."""
         region = m[self.y0 : self.y0 + self.h, self.x0 : self.x0 + self.w]
         fh, fw = self.frame_hw
         if isinstance(m, torch.Tensor):
             return _resize_tensor(region, (fh, fw), labels, shrink=self.area_to_frame)
         import cv2
 
+        def resized(interpolation: int) -> np.ndarray:
+            dst = alloc((fh, fw), region.dtype) if alloc is not None and region.ndim == 2 else None
+            return cv2.resize(region, (fw, fh), dst=dst, interpolation=interpolation)
+
         if labels:
             if region.dtype in _CV_NEAREST:
-                return cv2.resize(region, (fw, fh), interpolation=cv2.INTER_NEAREST_EXACT)
+                return resized(cv2.INTER_NEAREST_EXACT)
             rows = np.minimum(((np.arange(fh) + 0.5) * (self.h / fh)).astype(np.intp), self.h - 1)
             cols = np.minimum(((np.arange(fw) + 0.5) * (self.w / fw)).astype(np.intp), self.w - 1)
             return region[rows][:, cols]
         filt = cv2.INTER_AREA if self.area_to_frame else cv2.INTER_LINEAR
         if region.dtype in _CV_LINEAR:
-            return cv2.resize(region, (fw, fh), interpolation=filt)
+            return resized(filt)
         return cv2.resize(region.astype(np.float32), (fw, fh), interpolation=filt).astype(m.dtype)
 
 

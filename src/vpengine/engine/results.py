@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import collections
 import concurrent.futures
+import functools
 import sys
 import threading
 import time
@@ -61,8 +62,9 @@ class _HostOutputs:
     fresh memory on every tick; the allocator then maps and unmaps it whenever results bunch up, and each of those
     page faults lands on a late frame (Note [First batch] in runtime/worker.py: serving maps no new memory). Bounded:
     at most ``_RECYCLED_PER_OUTPUT`` arrays per (head, camera, output) are kept (eight cameras' 1080p float32 depth
-    maps: 133 MB); beyond that results get fresh arrays that are not tracked. An output's shape is its slot's, fixed
-    for the engine's life, so an array that is kept always fits."""
+    maps: 133 MB); beyond that results get fresh arrays that are not tracked. Outputs mapped to their frame's grid
+    (Note [Frame grid] in boundary.py) are written into these arrays too, at the frame's size: where a camera's
+    frames change size, a free array of the old size makes way for one of the new."""
 
     def __init__(self) -> None:
         self._pools: dict[tuple[str, int, str], list[np.ndarray]] = {}
@@ -72,14 +74,24 @@ class _HostOutputs:
 
     def copy(self, head: str, camera: int, key: str, src: np.ndarray) -> np.ndarray:
         """``src`` copied into a free array of ``head``'s ``key`` for the camera of tag ``camera`` (or a new one)."""
+        arr = self.take(head, camera, key, src.shape, src.dtype)
+        np.copyto(arr, src)
+        return arr
+
+    def take(self, head: str, camera: int, key: str, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+        """An array of ``shape`` and ``dtype`` to write ``head``'s ``key`` for the camera of tag ``camera`` into: a
+        kept one that nothing refers to, else a new one, kept where there is room or in place of a free one of
+        another shape (outputs mapped to a frame's grid take the frame's size, which may change)."""
         pool = self._pools.setdefault((head, camera, key), [])
-        for arr, refs in zip(pool, _refcounts(pool)):
-            if refs <= _FREE_REFS and arr.shape == src.shape and arr.dtype == src.dtype:
-                np.copyto(arr, src)
-                return arr
-        arr = src.copy()
+        free = [i for i, refs in enumerate(_refcounts(pool)) if refs <= _FREE_REFS]
+        for i in free:
+            if pool[i].shape == shape and pool[i].dtype == dtype:
+                return pool[i]
+        arr = np.empty(shape, dtype)
         if len(pool) < _RECYCLED_PER_OUTPUT:
             pool.append(arr)
+        elif free:
+            pool[free[0]] = arr
         return arr
 
 
@@ -460,7 +472,9 @@ class Outbox:
             for k, t in slot.tensors.items():
                 v = t.numpy() if _numpy_output(t) else t
                 if k in kinds:
-                    outputs[k] = change.to_frame(kinds[k], v)
+                    outputs[k] = change.to_frame(
+                        kinds[k], v, alloc=functools.partial(self._host_outputs.take, head, slot.tag, k)
+                    )
                 else:
                     outputs[k] = (
                         self._host_outputs.copy(head, slot.tag, k, v) if isinstance(v, np.ndarray) else t.clone()

@@ -74,10 +74,11 @@ def test_class_maps_take_the_nearest_class_and_keep_their_dtype(dtype):
 @pytest.mark.parametrize(
     "dtype, labels, written", [(np.float32, False, True), (np.uint8, True, True), (np.int64, True, False)]
 )
-def test_a_map_is_written_where_alloc_says_and_comes_out_the_same(dtype, labels, written):
+@pytest.mark.parametrize("frame_hw", [(300, 500), (40, 53)])  # scaled up (bilinear); shrunk by 3 (area-averaged)
+def test_a_map_is_written_where_alloc_says_and_comes_out_the_same(dtype, labels, written, frame_hw):
     """The engine hands its recycled result arrays to ``map_to_frame`` (Note [Frame grid]): an OpenCV-resized 2-D map
     is written into the one given, with the values it has without; a map resized by hand is new memory as before."""
-    p = Placement.fit((300, 500), (120, 160))
+    p = Placement.fit(frame_hw, (120, 160))
     rng = np.random.default_rng(0)
     m = rng.integers(0, 150, (120, 160)).astype(dtype)
     given: list[np.ndarray] = []
@@ -88,10 +89,12 @@ def test_a_map_is_written_where_alloc_says_and_comes_out_the_same(dtype, labels,
 
     out = p.map_to_frame(m, labels=labels, alloc=alloc)
     np.testing.assert_array_equal(out, p.map_to_frame(m, labels=labels))
-    assert out.shape == (300, 500) and out.dtype == dtype
+    assert out.shape == frame_hw and out.dtype == dtype
     assert (out is given[0]) if written else not given
     colour = rng.integers(0, 255, (120, 160, 3)).astype(np.uint8)  # 3 channels: new memory, the same values
+    before = len(given)
     np.testing.assert_array_equal(p.map_to_frame(colour, False, alloc=alloc), p.map_to_frame(colour, False))
+    assert len(given) == before
 
 
 def test_output_kinds_are_declared_or_inferred_from_the_canvas_shape():

@@ -54,7 +54,8 @@ def test_a_native_grid_head_keeps_the_models_grid_and_says_so():
         assert out["seg"].grid == "frame" and out["seg"]["classes"].shape == (240, 640)
 
 
-def test_results_of_another_size_reuse_the_arrays_a_caller_let_go(engine):
+@pytest.mark.parametrize("hw", [(240, 320), (1080, 1920)])  # 1080p: the heads' outputs are copied side by side
+def test_results_of_another_size_reuse_the_arrays_a_caller_let_go(engine, hw):
     """Outputs mapped to the frame's grid are written into the engine's recycled arrays (Note [Frame grid]): no new
     memory on every frame once the caller has dropped a result, and a result still held never changes."""
     pools = engine._outbox._host_outputs._pools
@@ -62,14 +63,14 @@ def test_results_of_another_size_reuse_the_arrays_a_caller_let_go(engine):
     def recycled(res, head, key):  # the array is one the engine keeps for reuse
         return any(res[head][key] is a for a in pools.get((head, 0, key), []))
 
-    first = engine.wait(engine.submit(frame(1, 240, 320)), timeout=5)
+    first = engine.wait(engine.submit(frame(1, *hw)), timeout=5)
     held, kept = first["depth"]["depth"], first["depth"]["depth"].copy()
     assert recycled(first, "depth", "depth") and recycled(first, "seg", "classes")
     seg = id(first["seg"]["classes"])
     del first
     for i in (2, 3):
-        res = engine.wait(engine.submit(frame(i, 240, 320)), timeout=5)
-        assert id(res["seg"]["classes"]) == seg and res["seg"]["classes"].shape == (240, 320)  # the one let go
+        res = engine.wait(engine.submit(frame(i, *hw)), timeout=5)
+        assert id(res["seg"]["classes"]) == seg and res["seg"]["classes"].shape == hw  # the one let go
         assert recycled(res, "depth", "depth") and res["depth"]["depth"] is not held
         assert not np.array_equal(res["depth"]["depth"], kept)  # another frame, other values
         del res

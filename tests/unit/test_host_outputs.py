@@ -73,16 +73,31 @@ def test_a_camera_whose_frames_change_size_gets_arrays_of_the_new_size_kept():
     """Outputs mapped to the frame's grid take the frame's size: once a camera's frames change size, arrays of the
     new size are kept in place of the free ones of the old, and one still held keeps its content."""
     pool = _HostOutputs()
+    kept = pool._pools.setdefault(("depth", 0, "depth"), [])
     held = pool.copy("depth", 0, "depth", frame(1))  # 4x5
     pool.copy("depth", 0, "depth", frame(2))  # dropped at once: free
     bigger = np.full((6, 7), 3.0, np.float32)
     a = pool.copy("depth", 0, "depth", bigger)
-    address = a.ctypes.data
+    assert any(x is a for x in kept)  # in place of the free 4x5 one
+    new = id(a)  # the pool keeps it alive, so no other object has this id meanwhile
     del a
     b = pool.copy("depth", 0, "depth", bigger * 2)
-    assert b.ctypes.data == address and (b == 6).all()  # the new size is kept and reused
-    assert sorted(x.shape for x in pool._pools["depth", 0, "depth"]) == [(4, 5), (6, 7)]
+    assert id(b) == new and (b == 6).all()  # the new size is kept and reused
+    assert sorted(x.shape for x in kept) == [(4, 5), (6, 7)]
     assert (held == 1).all()
+
+
+def test_one_odd_frame_does_not_keep_its_arrays_for_good():
+    """A free array of a size no longer asked for goes as soon as one of the size asked for is reused: one big frame
+    among small ones does not hold its outputs' memory for the engine's life."""
+    pool = _HostOutputs()
+    kept = pool._pools.setdefault(("depth", 0, "depth"), [])
+    for i in range(2):
+        pool.copy("depth", 0, "depth", frame(i))  # both dropped
+    pool.copy("depth", 0, "depth", np.zeros((60, 80), np.float32))  # the odd one, dropped
+    assert sorted(x.shape for x in kept) == [(4, 5), (60, 80)]
+    pool.copy("depth", 0, "depth", frame(3))
+    assert [x.shape for x in kept] == [(4, 5)]
 
 
 def test_a_failed_copy_waits_for_the_other_heads_copies():

@@ -60,11 +60,12 @@ class _HostOutputs:
     (a view or a tensor made from it refers to it too). Kept per camera: every camera's result of a tick is handed
     out at once, so a pool shared by the cameras would give all but its first ``_RECYCLED_PER_OUTPUT`` results
     fresh memory on every tick; the allocator then maps and unmaps it whenever results bunch up, and each of those
-    page faults lands on a late frame (Note [First batch] in runtime/worker.py: serving maps no new memory). Bounded:
-    at most ``_RECYCLED_PER_OUTPUT`` arrays per (head, camera, output) are kept (eight cameras' 1080p float32 depth
-    maps: 133 MB); beyond that results get fresh arrays that are not tracked. Outputs mapped to their frame's grid
-    (Note [Frame grid] in boundary.py) are written into these arrays too, at the frame's size: where a camera's
-    frames change size, a free array of the old size makes way for one of the new."""
+    page faults lands on a late frame (Note [First batch] in runtime/worker.py: serving maps no new memory). Outputs
+    mapped to their frame's grid (Note [Frame grid] in boundary.py) are written into these arrays too, at the
+    frame's size. Bounded: at most ``_RECYCLED_PER_OUTPUT`` arrays per (head, camera, output) are kept (eight cameras'
+    1080p float32 depth maps: 133 MB), each of a size still asked for: a free one of another size goes once another
+    size is asked for (a camera's frames changed size, or one odd frame came). Beyond that results get fresh arrays
+    that are not tracked."""
 
     def __init__(self) -> None:
         self._pools: dict[tuple[str, int, str], list[np.ndarray]] = {}
@@ -84,9 +85,12 @@ class _HostOutputs:
         another shape (outputs mapped to a frame's grid take the frame's size, which may change)."""
         pool = self._pools.setdefault((head, camera, key), [])
         free = [i for i, refs in enumerate(_refcounts(pool)) if refs <= _FREE_REFS]
-        for i in free:
-            if pool[i].shape == shape and pool[i].dtype == dtype:
-                return pool[i]
+        fits = [i for i in free if pool[i].shape == shape and pool[i].dtype == dtype]
+        if fits:
+            arr = pool[fits[0]]
+            # a free array of a size no longer asked for goes: one odd frame's outputs are not kept for good
+            pool[:] = [a for i, a in enumerate(pool) if i not in free or i in fits]
+            return arr
         arr = np.empty(shape, dtype)
         if len(pool) < _RECYCLED_PER_OUTPUT:
             pool.append(arr)
@@ -446,7 +450,7 @@ class Outbox:
         if numpy is None:  # a head's outputs are host arrays, or not, in every slot
             numpy = self._numpy_heads[head] = all(_numpy_output(t) for t in slot.tensors.values())
         if not numpy or self._grid_change(head, slot) is not None:
-            return None  # outputs mapped to another grid are new arrays: nothing to lend
+            return None  # outputs mapped to another grid are not the slot's: nothing to lend
         return self.leases.borrow(head, slot)
 
     def _grid_change(self, head: str, slot: SlotInfo) -> Placement | None:
@@ -466,7 +470,7 @@ class Outbox:
         change = self._grid_change(head, slot)
         if borrowed is not None:
             outputs = borrowed
-        elif change is not None:  # Note [Frame grid]: mapped straight out of the slot, into new arrays
+        elif change is not None:  # Note [Frame grid]: mapped straight out of the slot, 2-D maps into the kept arrays
             kinds = self.boundary.kinds[head]
             outputs = {}
             for k, t in slot.tensors.items():

@@ -45,7 +45,7 @@ heads = {h.name for h in base.heads}
 with engines([cfg]) as (eng,):
     cams = eng.cameras if n > 1 else [None]
     bc._all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight, heads)
-    fps, frames, torn = bc._all_cameras([(eng, c) for c in cams], imgs, 50, seconds, in_flight, heads)
+    fps, frames, torn, _ = bc._all_cameras([(eng, c) for c in cams], imgs, 50, seconds, in_flight, heads)
 print(json.dumps({"fps": fps, "frames": frames, "torn": torn}))
 """
 

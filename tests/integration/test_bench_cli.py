@@ -184,6 +184,10 @@ def test_cameras_bench_streams_batches_and_compares_with_separate_engines(tmp_pa
     assert all(t["batched_fps"] > 0 and t["separate_fps"] > 0 for t in res["throughput"])
     assert all(t["in_flight"] == 3 for t in res["throughput"])  # a file run's (Note [Frames in flight])
     assert all(set(t["frames_missing_a_head"]) == {"batched", "separate"} for t in res["throughput"])
+    for t in res["throughput"]:  # where a frame's time went, for each: its results coming, and their reading
+        for ms in t["frame_ms"].values():
+            assert 0 < ms["ready"]["p50"] <= ms["ready"]["p99"] and 0 <= ms["read"]["p50"] <= ms["read"]["p99"]
+            assert ms["ready"]["p50"] < 5_000  # ms: a tiny model's frame on the CPU is nowhere near 5 s
     for t in res["throughput"]:  # the batched engine's counts over the timed frames: every frame of every camera ran
         counted = t["batched_engine_counted"]
         assert set(counted) == {"foundation", "depth", "seg"}

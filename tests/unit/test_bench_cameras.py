@@ -4,6 +4,7 @@ an error rather than a rate over frames that never ran, a file run's frames in f
 from __future__ import annotations
 
 import time
+import types
 
 import pytest
 
@@ -13,16 +14,23 @@ HEADS = {"depth", "seg"}
 
 
 class Engine:
-    """submit/wait of an engine whose every frame takes ``step`` seconds; ``fail_at`` frames in, wait raises."""
+    """submit/wait of an engine whose every frame takes ``step`` seconds; ``fail_at`` frames in, wait raises. A
+    frame's results are there ``ready`` s after its submit, and wait returns ``read`` s after that (or after it is
+    called, if later)."""
 
-    def __init__(self, step: float, fail_at: int | None = None, torn_at: int | None = None) -> None:
+    def __init__(
+        self, step: float, fail_at: int | None = None, torn_at: int | None = None, ready: float = 0.0, read: float = 0.0
+    ) -> None:
         self.step, self.fail_at, self.torn_at, self.n = step, fail_at, torn_at, 0
+        self.ready, self.read = ready, read
         self.open: list[int] = []  # submitted, not yet waited for
+        self.submitted: dict[int, float] = {}
         self.most_open = 0
 
     def submit(self, img, camera=None):
         self.n += 1
         self.open.append(self.n)
+        self.submitted[self.n] = time.monotonic()
         self.most_open = max(self.most_open, len(self.open))
         return self.n
 
@@ -31,13 +39,18 @@ class Engine:
         if fid == self.fail_at:
             raise TimeoutError(f"frame {fid}: no result")
         time.sleep(self.step)
-        return {"depth": 0} if fid == self.torn_at else {"depth": 0, "seg": 1}  # torn: seg's was overwritten
+        there = self.submitted.pop(fid) + self.ready
+        time.sleep(max(0.0, there - time.monotonic()) + self.read)
+        heads = ["depth"] if fid == self.torn_at else ["depth", "seg"]  # torn: seg's was overwritten
+        return {h: types.SimpleNamespace(t_publish=there) for h in heads}
 
 
 def test_a_point_runs_its_rounds_and_at_least_its_seconds():
     engines = [Engine(0.01), Engine(0.01)]
     t = time.monotonic()
-    fps, _, torn = _all_cameras([(e, None) for e in engines], [None], rounds=3, seconds=0.3, in_flight=1, heads=HEADS)
+    fps, _, torn, _ = _all_cameras(
+        [(e, None) for e in engines], [None], rounds=3, seconds=0.3, in_flight=1, heads=HEADS
+    )
     took = time.monotonic() - t
     assert took >= 0.3 and all(e.n > 3 for e in engines)
     assert fps == pytest.approx(sum(e.n for e in engines) / took, rel=0.05) and torn == 0
@@ -60,11 +73,24 @@ def test_a_pump_that_fails_fails_the_point():
 
 def test_a_pump_keeps_its_frames_in_flight_waits_for_every_one_and_counts_only_whole_frames():
     engines = [Engine(0.0), Engine(0.0, torn_at=4)]
-    _, whole, torn = _all_cameras(
+    _, whole, torn, spent = _all_cameras(
         [(e, None) for e in engines], [None], rounds=10, seconds=0.0, in_flight=3, heads=HEADS
     )
     assert [(e.n, e.most_open, e.open) for e in engines] == [(10, 3, []), (10, 3, [])]
     assert (whole, torn) == (19, 1)  # the frame without seg's output is not counted through every head
+    assert spent["ready"]["n"] == spent["read"]["n"] == 19  # where the time went: whole frames only
+
+
+def test_a_frames_time_is_split_into_its_results_coming_and_their_reading():
+    """``frame_ms``: from submit to the last head's result there, and from then (or the wait call) to the return."""
+    engines = [Engine(0.0, ready=0.03, read=0.01), Engine(0.0, ready=0.03, read=0.01)]
+    _, whole, _, spent = _all_cameras(
+        [(e, None) for e in engines], [None], rounds=6, seconds=0.0, in_flight=2, heads=HEADS
+    )
+    assert whole == 12 and spent["ready"]["n"] == spent["read"]["n"] == 12
+    assert 30 - 1 <= spent["ready"]["p50"] < 1000 and 10 <= spent["read"]["p50"] < 1000  # ms; sleeps only last longer
+    # a read counts from the later of the results' coming and the wait's call: never the time spent before either
+    assert spent["read"]["p50"] < spent["ready"]["p50"]
 
 
 PAGES = 2048

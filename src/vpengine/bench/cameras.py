@@ -19,7 +19,10 @@ and detection heads at 1080p, process mode; ``--set`` as everywhere):
   camera each running side by side in this process (the GPU overlaps their streams). Their ratio is what batching
   buys. A frame that came back without some head's output is not counted but reported (``frames_missing_a_head``);
   the batched engine's counts over the point (``batched_engine_counted``: frames run, late for their batch, deferred,
-  run with another camera's, model calls) say how full its batches were. With one frame in flight a camera's next
+  run with another camera's, model calls) say how full its batches were. Where a frame's time goes, for each
+  (``frame_ms``): from its submit to the last head's result being there (``ready``: the engine's and device's work,
+  and the queue before them), and from then, or from the wait call if later, to the wait's return (``read``:
+  copying the results out, and waiting for another caller's). With one frame in flight a camera's next
   frame waited for its last one's every result, so one engine ran its stages one batch after the other while N
   engines overlapped theirs: that measured latency, not throughput.
 
@@ -317,25 +320,34 @@ class _Pump:
     def __init__(self, eng: Any, camera: str | None, heads: set[str], in_flight: int) -> None:
         self.eng, self.camera, self.heads, self.in_flight = eng, camera, heads, in_flight
         self.whole = self.torn = 0
+        self.ready_s: list[float] = []  # per whole frame: submit -> the last head's result there
+        self.read_s: list[float] = []  # per whole frame: then (or the wait call, if later) -> the wait's return
         self.error: Exception | None = None
 
-    def _answer(self, fid: int) -> None:
-        if set(self.eng.wait(fid, timeout=120)) >= self.heads:
+    def _answer(self, fid: int, t_submit: float) -> None:
+        t_call = time.monotonic()
+        res = self.eng.wait(fid, timeout=120)
+        t_back = time.monotonic()
+        if set(res) >= self.heads:
             self.whole += 1
+            ready = max(r.t_publish for r in res.values())
+            self.ready_s.append(ready - t_submit)
+            self.read_s.append(t_back - max(t_call, ready))
         else:
             self.torn += 1
 
     def run(self, imgs: list[np.ndarray], rounds: int, until: float) -> None:
         k = 0
-        pending: collections.deque[int] = collections.deque()
+        pending: collections.deque[tuple[int, float]] = collections.deque()
         try:
             while k < rounds or time.monotonic() < until:
                 if len(pending) == self.in_flight:
-                    self._answer(pending.popleft())
-                pending.append(self.eng.submit(imgs[k % len(imgs)], camera=self.camera))
+                    self._answer(*pending.popleft())
+                t = time.monotonic()
+                pending.append((self.eng.submit(imgs[k % len(imgs)], camera=self.camera), t))
                 k += 1
             while pending:
-                self._answer(pending.popleft())
+                self._answer(*pending.popleft())
         except Exception as e:
             self.error = e
 
@@ -347,10 +359,12 @@ def _all_cameras(
     seconds: float,
     in_flight: int,
     heads: set[str],
-) -> tuple[float, int, int]:
+) -> tuple[float, int, int, dict[str, dict[str, float]]]:
     """Every camera pumped by its own thread, as each camera's driver would, ``rounds`` frames each and ``seconds``
-    at least: frames per second through every head over them all, how many frames that is, and how many missed some
-    head."""
+    at least: frames per second through every head over them all, how many frames that is, how many missed some
+    head, and where the whole frames' time went (``frame_ms`` in the module's docstring)."""
+    from vpengine.bench.paper.harness import pct
+
     pumps = [_Pump(e, c, heads, in_flight) for e, c in pairs]
     t = time.monotonic()
     threads = [threading.Thread(target=p.run, args=(imgs, rounds, t + seconds)) for p in pumps]
@@ -364,7 +378,8 @@ def _all_cameras(
             f"{len(errors)} of {len(pairs)} cameras' pumps failed: {type(errors[0]).__name__}: {errors[0]}"
         ) from errors[0]
     whole = sum(p.whole for p in pumps)
-    return whole / (time.monotonic() - t), whole, sum(p.torn for p in pumps)
+    spent = {"ready": pct([v for p in pumps for v in p.ready_s]), "read": pct([v for p in pumps for v in p.read_s])}
+    return whole / (time.monotonic() - t), whole, sum(p.torn for p in pumps), spent
 
 
 COUNTED = ("runs", "skipped", "dropped", "late", "deferred", "batched", "batches")
@@ -392,11 +407,15 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         cams = eng.cameras if n > 1 else [None]
         _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight, heads)
         before = _counted(eng.stats())
-        batched, _, batched_torn = _all_cameras([(eng, c) for c in cams], imgs, rounds, seconds, in_flight, heads)
+        batched, _, batched_torn, batched_ms = _all_cameras(
+            [(eng, c) for c in cams], imgs, rounds, seconds, in_flight, heads
+        )
         counted = _counted(eng.stats(), since=before)  # how full its batches were: late, deferred, batched
     with engines([pipelined(_config(base, 1))[0] for _ in range(n)]) as es:
         _all_cameras([(e, None) for e in es], imgs, 5, 0.0, in_flight, heads)
-        separate, _, separate_torn = _all_cameras([(e, None) for e in es], imgs, rounds, seconds, in_flight, heads)
+        separate, _, separate_torn, separate_ms = _all_cameras(
+            [(e, None) for e in es], imgs, rounds, seconds, in_flight, heads
+        )
     torn = (
         f"; frames some head's output missed: {batched_torn} and {separate_torn}"
         if batched_torn + separate_torn
@@ -406,7 +425,9 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
     log(
         f"throughput, {n} cameras, {in_flight} frames a camera in flight: one engine {batched:.1f} frames/s, "
         f"{n} engines {separate:.1f} frames/s{torn}; the one engine's backbone: {f.get('runs', 0)} frames, "
-        f"{f.get('batched', 0)} with another camera's, {f.get('late', 0)} late, {f.get('deferred', 0)} deferred"
+        f"{f.get('batched', 0)} with another camera's, {f.get('late', 0)} late, {f.get('deferred', 0)} deferred; "
+        f"a frame's results there {batched_ms['ready']['p50']:.1f} and {separate_ms['ready']['p50']:.1f} ms after "
+        f"its submit, read in {batched_ms['read']['p50']:.2f} and {separate_ms['read']['p50']:.2f} ms (p50)"
     )
     return {
         "cameras": n,
@@ -415,6 +436,7 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         "separate_fps": separate,
         "ratio": batched / separate,
         "frames_missing_a_head": {"batched": batched_torn, "separate": separate_torn},
+        "frame_ms": {"batched": batched_ms, "separate": separate_ms},
         "batched_engine_counted": counted,
     }
 

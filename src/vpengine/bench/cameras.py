@@ -359,12 +359,11 @@ def _all_cameras(
     seconds: float,
     in_flight: int,
     heads: set[str],
-) -> tuple[float, int, int, dict[str, dict[str, float]]]:
+) -> tuple[float, int, int, dict[str, list[float]]]:
     """Every camera pumped by its own thread, as each camera's driver would, ``rounds`` frames each and ``seconds``
     at least: frames per second through every head over them all, how many frames that is, how many missed some
-    head, and where the whole frames' time went (``frame_ms`` in the module's docstring)."""
-    from vpengine.bench.paper.harness import pct
-
+    head, and where the whole frames' time went: each one's ``ready`` and ``read`` seconds (``frame_ms`` in the
+    module's docstring)."""
     pumps = [_Pump(e, c, heads, in_flight) for e, c in pairs]
     t = time.monotonic()
     threads = [threading.Thread(target=p.run, args=(imgs, rounds, t + seconds)) for p in pumps]
@@ -372,14 +371,15 @@ def _all_cameras(
         th.start()
     for th in threads:
         th.join()
+    took = time.monotonic() - t
     errors = [p.error for p in pumps if p.error is not None]
     if errors:
         raise RuntimeError(
             f"{len(errors)} of {len(pairs)} cameras' pumps failed: {type(errors[0]).__name__}: {errors[0]}"
         ) from errors[0]
     whole = sum(p.whole for p in pumps)
-    spent = {"ready": pct([v for p in pumps for v in p.ready_s]), "read": pct([v for p in pumps for v in p.read_s])}
-    return whole / (time.monotonic() - t), whole, sum(p.torn for p in pumps), spent
+    spent = {"ready": [v for p in pumps for v in p.ready_s], "read": [v for p in pumps for v in p.read_s]}
+    return whole / took, whole, sum(p.torn for p in pumps), spent
 
 
 COUNTED = ("runs", "skipped", "dropped", "late", "deferred", "batched", "batches")
@@ -398,7 +398,7 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
     """Frames per second through every head with a thread per camera, each keeping a file run's frames in flight
     (Note [Frames in flight]): one engine with ``n`` cameras (batched) against ``n`` one-camera engines side by
     side, each point ``seconds`` at least."""
-    from vpengine.bench.paper.harness import engines, log
+    from vpengine.bench.paper.harness import engines, log, pct
     from vpengine.pipeline.pacing import pipelined
 
     one, in_flight = pipelined(_config(base, n))
@@ -407,13 +407,13 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         cams = eng.cameras if n > 1 else [None]
         _all_cameras([(eng, c) for c in cams], imgs, 5, 0.0, in_flight, heads)
         before = _counted(eng.stats())
-        batched, _, batched_torn, batched_ms = _all_cameras(
+        batched, _, batched_torn, batched_s = _all_cameras(
             [(eng, c) for c in cams], imgs, rounds, seconds, in_flight, heads
         )
         counted = _counted(eng.stats(), since=before)  # how full its batches were: late, deferred, batched
     with engines([pipelined(_config(base, 1))[0] for _ in range(n)]) as es:
         _all_cameras([(e, None) for e in es], imgs, 5, 0.0, in_flight, heads)
-        separate, _, separate_torn, separate_ms = _all_cameras(
+        separate, _, separate_torn, separate_s = _all_cameras(
             [(e, None) for e in es], imgs, rounds, seconds, in_flight, heads
         )
     torn = (
@@ -421,6 +421,10 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         if batched_torn + separate_torn
         else ""
     )
+    frame_ms = {
+        k: {what: pct(v) for what, v in s.items()} for k, s in (("batched", batched_s), ("separate", separate_s))
+    }
+    batched_ms, separate_ms = frame_ms["batched"], frame_ms["separate"]
     f = counted.get("foundation", {})
     log(
         f"throughput, {n} cameras, {in_flight} frames a camera in flight: one engine {batched:.1f} frames/s, "
@@ -436,7 +440,7 @@ def throughput(base: Any, n: int, rounds: int, imgs: list[np.ndarray], seconds: 
         "separate_fps": separate,
         "ratio": batched / separate,
         "frames_missing_a_head": {"batched": batched_torn, "separate": separate_torn},
-        "frame_ms": {"batched": batched_ms, "separate": separate_ms},
+        "frame_ms": frame_ms,
         "batched_engine_counted": counted,
     }
 

@@ -235,11 +235,12 @@ class Outbox:
     """The engine's readers of every head's output mailbox, and what turns a pinned slot into a :class:`Result`.
 
     ``placements`` maps a frame's origin (its input seq) to where it lies in the models' input grid; the engine adds
-    to it as frames come in. Thread-safe: one read lock guards the readers, never held while sleeping. A result is
-    waited for and copied under it, one camera's after another's: a reader a camera holding its slots, each
-    camera's result copied outside the lock, took the waits for the lock away but not the time (the callers then
-    waited for the device side by side, polling for the interpreter lock the heads' threads launch their work
-    with), and four cameras' frames per second on a GPU fell rather than rose."""
+    to it as frames come in. Thread-safe: one read lock guards the readers. It is not held while a call waits for an
+    output to be published; it is held while a pinned result's device work is waited for and the result copied, so
+    one camera's results are read after another's. Tried instead: a reader a camera, each camera's results read
+    outside the lock. That removed the waits for the lock but not the time: the callers then waited for the device
+    side by side, taking turns at the interpreter lock the heads' threads launch their work with, and four cameras'
+    frames per second on a GPU fell."""
 
     def __init__(
         self,

@@ -39,11 +39,11 @@ from vpengine.models.base import Model
 from vpengine.runtime.control import NOT_SERVING, POLL_S, ControlBlock
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.lanes import Lanes
+from vpengine.runtime.plan import LEASES
 from vpengine.runtime.supervisor import EngineDeadError
 from vpengine.transport.ring import Accept, RingReader, SlotInfo, SlotRing
 
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, camera, output) for reuse once the user has let go of them
-LEASES = 2  # results of each head a caller may hold without a copy (Note [Borrowed results])
 
 
 def _refcounts(pool: list[np.ndarray]) -> list[int]:

@@ -132,7 +132,8 @@ def training_mismatch(head: str, meta: dict[str, Any], reads: set[str], fm_meta:
 
 
 # ------------------------------------------------------------------------------------------------ mailboxes
-#: Results of each head a caller may hold without a copy, each keeping one output slot (Note [Borrowed results]).
+#: Results of each head a caller may hold without a copy, each keeping one output slot (Note [Borrowed results] in
+#: engine/results.py, whose lease readers these are).
 LEASES = 2
 #: Frames a fifo reader may fall behind and still catch up: its mailbox gets this many slots more.
 FIFO_MARGIN = 4

@@ -86,8 +86,8 @@ def test_a_pump_keeps_its_frames_in_flight_waits_for_every_one_and_counts_only_w
 @pytest.mark.parametrize(
     "in_flight, ready, read",
     [
-        (1, 0.03, 0.02),  # each wait is called at once: before the results come (not counted as reading)
-        (3, 0.005, 0.02),  # most are called well after their results came (the time before is not reading either)
+        (1, 0.06, 0.04),  # each wait is called at once: before the results come (not counted as reading)
+        (3, 0.005, 0.04),  # most are called well after their results came (the time before is not reading either)
     ],
 )
 def test_a_frames_time_is_split_into_its_results_coming_and_their_reading(in_flight, ready, read):
@@ -100,7 +100,8 @@ def test_a_frames_time_is_split_into_its_results_coming_and_their_reading(in_fli
     assert whole == 16 and len(spent["ready"]) == len(spent["read"]) == 16
     # seconds; sleeps only ever last longer. ready is the last head's: depth's result came 5 ms before seg's
     assert ready - 0.001 <= statistics.median(spent["ready"]) < 1
-    assert read <= statistics.median(spent["read"]) < read + 0.01
+    # the bound leaves a busy machine 30 ms of oversleep, and sits well below what the time before the read adds
+    assert read <= statistics.median(spent["read"]) < read + 0.03
 
 
 PAGES = 2048

@@ -187,7 +187,9 @@ class Answers:
 # fifo) whatever the config says: in lockstep the pipeline, not a camera, decides what queues, so a model sees the
 # same frames either way. How many rounds (a frame of each camera): what the mailboxes hold without overwriting a
 # frame nobody has taken (a fifo reader's margin, FIFO_MARGIN, and each head's kept results, output.slots), less one
-# for the round being submitted. The rounds are answered on a thread of their own (Note [Answering thread]).
+# for the round being submitted. The rounds are answered on a thread of their own (Note [Answering thread]). More
+# rounds, with mailboxes to match, were tried with four cameras on a GPU (five and seven a camera): frames per second
+# fell in thread and process mode alike, and each frame's results came later.
 def pipelined(cfg: EngineConfig) -> tuple[EngineConfig, int]:
     """The config a lockstep run uses and how many rounds of frames it keeps in flight (Note [Frames in flight])."""
     overrides = ["foundation_model.input_mode=fifo"] + [f"heads.{h.name}.input_mode=fifo" for h in cfg.heads]

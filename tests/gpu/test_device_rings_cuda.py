@@ -28,8 +28,11 @@ D = {"d": TensorSpec((4,), "float32")}
 
 def test_a_local_region_for_bare_cuda_names_the_current_device():
     region = allocate("t", 64, "cuda", shared=False)
-    assert region.device == torch.device("cuda", torch.cuda.current_device())
-    assert region.tensor().device == region.device
+    try:
+        assert region.device == torch.device("cuda", torch.cuda.current_device())
+        assert region.tensor().device == region.device
+    finally:
+        region.close()
 
 
 def _head(cameras: list[str]):

@@ -118,9 +118,9 @@ class LocalRegion(Region):
         self._tensor: torch.Tensor | None = torch.empty(
             max(nbytes, 1), dtype=torch.uint8, device=device, pin_memory=pin
         )[:nbytes]
-        # The device as the memory's own, indexed ("cuda" names the current one as "cuda:0"), as a shared region's
-        # is: a worker compares it with its own indexed device to read its inputs in place, and "cuda" compares
-        # unequal to "cuda:0".
+        # The device as the memory's own, indexed (a bare "cuda" becomes "cuda:N", N the current device), as a
+        # shared region's is: a worker compares it with its own indexed device to read its inputs in place, and a
+        # bare "cuda" compares unequal to every "cuda:N".
         self.device = self._tensor.device
 
     def tensor(self) -> torch.Tensor:

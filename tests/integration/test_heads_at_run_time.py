@@ -19,6 +19,7 @@ from helpers.builds import full_collections_can_be_held_off, held_elsewhere
 from helpers.frames import frame
 from helpers.groups import INDUCTOR
 from tests_paths import tiny
+from vpengine.bench.common import proc_stat
 from vpengine.config import ConfigError
 from vpengine.engine import Engine, EngineDeadError, EngineStartError
 from vpengine.models.build import build_lock
@@ -38,8 +39,7 @@ def descendants() -> set[int]:
     for pid in os.listdir("/proc"):
         if pid.isdigit():
             try:
-                with open(f"/proc/{pid}/stat") as f:
-                    parents[int(pid)] = int(f.read().rsplit(")", 1)[1].split()[1])
+                parents[int(pid)] = int(proc_stat(f"/proc/{pid}/stat")[1])  # ppid
             except OSError:
                 continue
     found, frontier = set(), {os.getpid()}

@@ -143,7 +143,11 @@ def test_process_mode_add_remove_cycles_leave_no_process_or_fd_behind():
             eng.add_head(DET2)
             assert "det2" in eng.wait(eng.submit(frame(0)), timeout=30)
             eng.remove_head("det2")
-        time.sleep(0.5)  # the monitor closes a removed worker's socket at its next look
+        # the monitor closes a removed worker's socket at its next look, and its process exits: given until then
+        # (a busy machine's look may come late), nothing more stays behind
+        deadline = time.monotonic() + 10
+        while (descendants() != procs or open_fds() != fds) and time.monotonic() < deadline:
+            time.sleep(0.1)
         assert descendants() == procs
         assert open_fds() == fds
 

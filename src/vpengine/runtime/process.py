@@ -234,6 +234,7 @@ class ProcessRunner(Runner):
         self._retired: list[Zygote] = []  # older ones, still the parents of workers they forked
         self._owner = os.getpid()  # Note [Child lifecycle]: a fork of the engine stops nothing
         self._retired_children: list[_Child] = []  # workers of heads removed, their sockets still open
+        self._retired_closed = threading.Condition(self._lock)  # the monitor closed the sockets of those
 
     def _wake(self) -> None:
         with self._wake_lock:
@@ -348,6 +349,7 @@ class ProcessRunner(Runner):
             for ch in self._retired_children:
                 ch.close()
             self._retired_children.clear()
+            self._retired_closed.notify_all()
 
     def _watched(self) -> list[_Child]:
         """The worker processes to watch: not dead and handled already."""
@@ -458,6 +460,12 @@ class ProcessRunner(Runner):
         with self._lock:  # the monitor may be polling its socket now: it closes it once it is not
             self._retired_children.append(ch)
         self._wake()
+        monitor = self._monitor
+        if monitor is not None and monitor.is_alive() and threading.current_thread() is not monitor:
+            with self._lock:  # the caller gets back a runner with nothing of the head's left open
+                self._retired_closed.wait_for(
+                    lambda: ch not in self._retired_children or self._stopping, self.cfg.runtime.stop_timeout_s
+                )
         return []
 
     # -------------------------------------------------------------------------------------------- stop

@@ -19,14 +19,14 @@ import json, sys, threading, time
 sys.path[:0] = sys.argv[1:]
 from helpers.frames import frame
 from tests_paths import tiny
+from vpengine.bench.common import proc_stat
 from vpengine.engine import Engine
 
 CAMERAS = ["a", "b", "c", "d"]
 
 def faults(name):
     (t,) = [t for t in threading.enumerate() if t.name == name]
-    with open(f"/proc/self/task/{t.native_id}/stat") as f:
-        return int(f.read().rsplit(")", 1)[1].split()[7])  # minflt
+    return int(proc_stat(f"/proc/self/task/{t.native_id}/stat")[7])  # minflt
 
 # the backbone, depth and seg compiled: a frame alone runs the graphs bound to its slots, none of the worker's copies
 COMPILED = ["foundation_model.backend=compile", "heads.depth.backend=compile", "heads.seg.backend=compile"]

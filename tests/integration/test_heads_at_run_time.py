@@ -152,6 +152,29 @@ def test_process_mode_add_remove_cycles_leave_no_process_or_fd_behind():
         assert descendants() == procs
 
 
+def test_a_removal_the_monitor_is_too_busy_to_finish_returns_in_time_and_says_so(monkeypatch, caplog):
+    with Engine(two_heads("process", "runtime.stop_timeout_s=0.5")) as eng:
+        eng.add_head(DET2)
+        runner = eng._res.runner
+        close = runner._close_retired
+        monkeypatch.setattr(runner, "_close_retired", lambda: None)  # the monitor never gets to it
+        t0 = time.monotonic()
+        with caplog.at_level("WARNING", logger="vpengine"):
+            eng.remove_head("det2")
+        assert 0.5 <= time.monotonic() - t0 < 20  # the wait is bounded by stop_timeout_s, then remove_head returns
+        assert any(
+            "det2: the monitor did not close its worker's socket within 0.5 s" in r.getMessage() for r in caplog.records
+        )
+        assert runner._retired_children  # still to close
+        monkeypatch.setattr(runner, "_close_retired", close)
+        runner._wake()
+        deadline = time.monotonic() + 10
+        while runner._retired_children and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not runner._retired_children  # closed at the monitor's next look
+        assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
+
+
 def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():
     with Engine(two_heads("thread")) as eng:
 

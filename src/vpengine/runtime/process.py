@@ -463,8 +463,14 @@ class ProcessRunner(Runner):
         monitor = self._monitor
         if monitor is not None and monitor.is_alive() and threading.current_thread() is not monitor:
             with self._lock:  # the caller gets back a runner with nothing of the head's left open
-                self._retired_closed.wait_for(
+                closed = self._retired_closed.wait_for(
                     lambda: ch not in self._retired_children or self._stopping, self.cfg.runtime.stop_timeout_s
+                )
+            if not closed:
+                log.warning(
+                    "%s: the monitor did not close its worker's socket within %.1f s; it will at its next look",
+                    name,
+                    self.cfg.runtime.stop_timeout_s,
                 )
         return []
 

@@ -63,8 +63,9 @@ Note [Child lifecycle]
   build that hangs ends the start ``ready_timeout_s`` after its last step, plus ``stop``'s bound.
 * ``stop`` asks politely (stop flag + message) and waits ``runtime.stop_timeout_s``, then SIGTERM and 2 s, then
   SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
-  its reader thread 4 s; then the monitor thread 2 s: at most ``stop_timeout_s`` + 13.5 s (7.5 s more for each older
-  zygote still kept for its workers). It always returns, in practice within ``stop_timeout_s``.
+  its reader thread 4 s; then the monitor thread 2 s and the spawner thread 1 s: at most ``stop_timeout_s`` + 14.5 s
+  (7.5 s more for each older zygote still kept for its workers). It always returns, in practice within
+  ``stop_timeout_s``.
 
 Note [Process groups]
 ~~~~~~~~~~~~~~~~~~~~~
@@ -154,10 +155,12 @@ class _Spawner:
         self._calls.put((fn, fut))
         return fut.result()
 
-    def close(self) -> None:
-        """Let the thread end; call once every process it started is gone."""
+    def close(self, timeout: float = 1.0) -> None:
+        """End the thread (waiting at most ``timeout``); call once every process it started is gone."""
         self._closed = True
         self._calls.put(None)
+        if self._thread is not threading.current_thread():
+            self._thread.join(timeout)
 
 
 class _Child:

@@ -403,14 +403,19 @@ def _raised(fn):
     return None
 
 
-def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use():
+def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use(tmp_path):
     """Thread mode: a removed head whose model does not return within runtime.stop_timeout_s is abandoned; its seat
     is retired, not handed to the next head, which would share its features reader with the old thread."""
     with Engine(two_heads("thread", "runtime.stop_timeout_s=0.5", "runtime.spare_heads=2")) as eng:
-        stuck = {"name": "stuck", "model": "helpers.faulty:FaultyHead", "options": {"hang_at_run": 1, "hang_s": 3}}
+        hanging = tmp_path / "hanging"  # touched as its hang begins
+        options = {"hang_at_run": 1, "hang_s": 3, "once_marker": str(hanging)}
+        stuck = {"name": "stuck", "model": "helpers.faulty:FaultyHead", "options": options}
         eng.add_head(stuck)
         eng.submit(frame(0))
-        time.sleep(0.5)  # it is inside its hang
+        deadline = time.monotonic() + 30
+        while not hanging.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert hanging.exists()  # it is inside its hang
         eng.remove_head("stuck")
         assert eng.lanes.seats == ("+1",)  # +0 stays out of use while its thread lives
         eng.add_head(DET2)

@@ -70,17 +70,18 @@ def pump_until(e: Engine, cond, what: str, timeout: float = 30.0, every: float =
 
 # ------------------------------------------------------------------------------------- 2, 3: stop vs. users
 STOP_RACE = """
-    import threading, time
+    import os, shutil, tempfile, threading, time
     from helpers.frames import frame
     from tests_paths import tiny
     from vpengine.engine import Engine, EngineDeadError
 
     problems = []
     for _ in range(3):
+        hanging = os.path.join(tempfile.mkdtemp(), "hanging")  # touched as its hang begins
         cfg = tiny(
             "thread",
             "heads=[{name: depth, model: tiny_depth}, {name: slow, model: helpers.faulty:FaultyHead, "
-            "options: {hang_at_run: 1, hang_s: 1.5}}]",
+            "options: {hang_at_run: 1, hang_s: 1.5, once_marker: %s}}]" % hanging,
             "runtime.stop_timeout_s=0.2",
         )
         e = Engine(cfg).start()
@@ -106,7 +107,9 @@ STOP_RACE = """
         threads = [threading.Thread(target=hammer, args=(k,)) for k in range(4)]
         for t in threads:
             t.start()
-        time.sleep(0.4)  # "slow" is inside its forward (1.5 s) now: it outlasts stop's 0.2 s
+        while not os.path.exists(hanging) and time.monotonic() < t0 + 30:
+            time.sleep(0.02)
+        # "slow" is inside its forward (1.5 s) now: it outlasts stop's 0.2 s
         e.stop()
         mapped_while_slow_runs = bool(e._res.rings)
         for call in (
@@ -130,6 +133,7 @@ STOP_RACE = """
             time.sleep(0.05)
         if not mapped_while_slow_runs or e._res.rings:
             problems.append(f"mapped while the thread ran: {mapped_while_slow_runs}; after: {bool(e._res.rings)}")
+        shutil.rmtree(os.path.dirname(hanging), ignore_errors=True)
     print("problems:", problems)
 """
 

@@ -766,40 +766,50 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
     published: list[float] = []
     refreshed: list[float] = []
     core = _FakeCore()
+    period = 0.5
     loop = ControlLoop(
-        core, published.append, commands.wait, period_s=0.2, before_diagnostics=lambda: refreshed.append(1)
+        core, published.append, commands.wait, period_s=period, before_diagnostics=lambda: refreshed.append(1)
     )  # type: ignore[arg-type]
+
+    def just_after_a_beat() -> float:
+        n = len(published)
+        while len(published) == n:
+            time.sleep(0.005)
+        return time.monotonic()
+
     stop = threading.Event()
     th = threading.Thread(target=loop.run, args=(stop,))
     th.start()
     try:
-        time.sleep(1.1)
+        time.sleep(2.1)
         n = len(published)
-        assert 5 <= n <= 7, published  # at 0, 0.2, ... 1.0 s
+        assert 4 <= n <= 6, published  # at 0, 0.5, ... 2.0 s
         gaps = np.diff(published)
-        assert (np.abs(gaps - 0.2) < 0.1).all(), gaps
-        sent = time.monotonic()
+        assert (np.abs(gaps - period) < 0.2).all(), gaps
+        # sent just after a beat, the next is a period away: a command applied and shown before half of it is
+        # applied at once (a stall of a loaded machine is tens of ms, not a quarter of a second)
+        sent = just_after_a_beat()
         commands.put(("rate", "depth", "5"))
         with caplog.at_level("WARNING", logger="vpengine.ros2"):
             commands.put(("rate", "nope", "5"))
-            time.sleep(0.15)
-            priority_sent = time.monotonic()
+            time.sleep(0.1)  # the diagnostics the command brought are out: the next publish is the schedule's
+            priority_sent = just_after_a_beat()
             commands.put(("priority", "depth", "9"))
             commands.put(("priority", "nope", "9"))
-            time.sleep(0.15)
+            time.sleep(period / 2)
     finally:
         stop.set()
         th.join(5)
     ((_, value, applied),) = core.rates
-    assert value == "5" and applied - sent < 0.05
+    assert value == "5" and applied - sent < period / 2
     after = [t for t in published if t >= applied]
-    assert after and after[0] - applied < 0.05  # diagnostics right after the command, showing it
+    assert after and after[0] - applied < period / 2  # diagnostics right after the command, showing it
     assert any(
         "rate command {key: 'nope', value: '5'} ignored: unknown model" in r.getMessage() for r in caplog.records
     )
     ((_, value, applied),) = core.priorities  # on the same thread, at once, and shown at once
-    assert value == "9" and applied - priority_sent < 0.05
-    assert any(t >= applied and t - applied < 0.05 for t in published)
+    assert value == "9" and applied - priority_sent < period / 2
+    assert any(t >= applied and t - applied < period / 2 for t in published)
     assert any("priority command {key: 'nope', value: '9'} ignored: no head" in r.getMessage() for r in caplog.records)
     assert len(refreshed) == len(published)
     with pytest.raises(ValueError, match="period must be > 0 s, got 0"):

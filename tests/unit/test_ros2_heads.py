@@ -244,9 +244,9 @@ def test_head_commands_run_one_at_a_time_off_the_control_thread_and_each_outcome
         for th in threads:
             th.join(10)
     (applied,) = core.rates
-    assert applied - sent < 0.1  # not behind the build
+    assert applied - sent < 0.5  # not behind the build, 0.7 s more (a loaded machine stalls tens of ms)
     gaps = [b - a for a, b in itertools.pairwise(diagnostics)]
-    assert max(gaps) < 0.4, gaps  # /diagnostics kept its beat through two builds
+    assert max(gaps) < 0.7, gaps  # /diagnostics kept its beat through two builds of 1 s each
     assert core.order[:4] == ["a", "b", "-a", "-nope"] and core.most_at_once == 1
     assert [(o.command, o.head, o.ok) for o in published[:4]] == [
         ("add_head", "a", True),

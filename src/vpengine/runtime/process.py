@@ -62,10 +62,11 @@ Note [Child lifecycle]
   make progress, at most ``runtime.ready_timeout_s`` after the last step (Note [Start progress] in supervisor.py): a
   build that hangs ends the start ``ready_timeout_s`` after its last step, plus ``stop``'s bound.
 * ``stop`` asks politely (stop flag + message) and waits ``runtime.stop_timeout_s``, then SIGTERM and 2 s, then
-  SIGKILL and 2 s, all workers together; then each zygote gets EOF and 1 s, SIGTERM and 0.5 s, SIGKILL and 2 s, and
-  its reader thread 4 s; then the monitor thread 2 s and the spawner thread 1 s: at most ``stop_timeout_s`` + 14.5 s
-  (7.5 s more for each older zygote still kept for its workers). It always returns, in practice within
-  ``stop_timeout_s``.
+  SIGKILL and 2 s, all workers together; then the monitor thread gets 2 s; then each zygote gets EOF and 1 s, SIGTERM
+  and 0.5 s, SIGKILL and 2 s, and its reader thread 4 s; then the spawner thread 1 s: at most ``stop_timeout_s`` +
+  14.5 s (7.5 s more for each older zygote still kept for its workers). It always returns, in practice within
+  ``stop_timeout_s``. ``remove_head`` stops one worker the same way, then waits for the monitor to close its socket
+  (at most ``stop_timeout_s`` again).
 
 Note [Process groups]
 ~~~~~~~~~~~~~~~~~~~~~
@@ -155,7 +156,7 @@ class _Spawner:
         self._calls.put((fn, fut))
         return fut.result()
 
-    def close(self, timeout: float = 1.0) -> None:
+    def close(self, timeout: float) -> None:
         """End the thread (waiting at most ``timeout``); call once every process it started is gone."""
         self._closed = True
         self._calls.put(None)
@@ -207,6 +208,7 @@ class _Child:
 
 _TERM_GRACE_S = 2.0  # how long stop waits after SIGTERM, and after SIGKILL, for all children together
 _ZYGOTE_GRACE_S = 1.0  # how long stop waits for the zygote to leave at EOF (it only has to exit) before SIGTERM
+_SPAWNER_GRACE_S = 1.0  # how long stop waits for the spawner thread to end (it has nothing left to do by then)
 
 
 def _affinity() -> list[int]:
@@ -486,6 +488,7 @@ class ProcessRunner(Runner):
         self._abandon_adds()
         with self._lock:
             self._pending.clear()
+            self._retired_closed.notify_all()  # a removal waiting for its socket's close waits no more
         with contextlib.suppress(OSError):
             self._wake()
         self.control.request_stop()
@@ -516,7 +519,7 @@ class ProcessRunner(Runner):
         self._close_retired()
         for z in [*self._retired, *([self._zygote] if self._zygote else [])]:
             z.close(_ZYGOTE_GRACE_S)  # after the workers: its end would SIGKILL those still there
-        self._spawner.close()
+        self._spawner.close(_SPAWNER_GRACE_S)
         with self._wake_lock:
             for fd in (self._wake_r, self._wake_w):
                 with contextlib.suppress(OSError):

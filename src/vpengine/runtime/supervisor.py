@@ -171,8 +171,9 @@ class Runner(ABC):
 
     @abstractmethod
     def _retire(self, name: str) -> list[threading.Thread]:
-        """Stop one worker and forget it (a head removed; the caller holds the lock for the forgetting); returns
-        threads that may still touch the mailboxes."""
+        """Stop one worker and forget it (a head removed); returns threads that may still touch the mailboxes.
+        Called without the lock held (the process runner waits there for its monitor); the caller takes it for the
+        forgetting afterwards."""
 
     # ------------------------------------------------------------------------------ heads at run time
     def beside_serving(self) -> contextlib.AbstractContextManager[None]:

@@ -25,8 +25,8 @@ class FaultOptions(Options):
     raise_at_run: int | None = None  # raise on this run (1-based) of this process
     raise_every: int | None = None  # raise on every Nth run (a model that fails on some frames)
     cuda_error: bool = False  # raise_at_run raises a CUDA error (Note [Frame errors]: its worker is restarted)
-    once_marker: str | None = None  # if set, raise only while this file does not exist (it is created first)
-    hang_at_run: int | None = None  # sleep forever (or hang_s) on this run and every later one
+    once_marker: str | None = None  # if set, raise, exit or hang only while this file does not exist (touched first)
+    hang_at_run: int | None = None  # sleep for ever (or hang_s) on this run and later ones (once, with once_marker)
     hang_s: float | None = None  # how long a hang lasts; None: for ever
     exit_at_run: int | None = None  # os._exit(0) on this run (once, with once_marker)
     gil_hang_at_run: int | None = None  # on this run, sleep for ever in C code that holds the GIL

@@ -145,7 +145,8 @@ def test_process_mode_add_remove_cycles_leave_no_process_or_fd_behind():
             assert "det2" in eng.wait(eng.submit(frame(0)), timeout=30)
             eng.remove_head("det2")
             assert open_fds() == fds  # remove_head returns with the worker's socket closed
-        # the zygote reaps the worker (its zombie is still a descendant until then): given until then, nothing more
+        # the zygote has reaped each (remove_head waits for its report), but a worker killed after its grace may be
+        # reported late: given until then, nothing more
         deadline = time.monotonic() + 10
         while descendants() != procs and time.monotonic() < deadline:
             time.sleep(0.1)
@@ -156,23 +157,52 @@ def test_a_removal_the_monitor_is_too_busy_to_finish_returns_in_time_and_says_so
     with Engine(two_heads("process", "runtime.stop_timeout_s=0.5")) as eng:
         eng.add_head(DET2)
         runner = eng._res.runner
-        close = runner._close_retired
-        monkeypatch.setattr(runner, "_close_retired", lambda: None)  # the monitor never gets to it
+        monkeypatch.setattr(type(runner), "_close_retired", lambda self: None)  # the monitor never gets to it
         t0 = time.monotonic()
-        with caplog.at_level("WARNING", logger="vpengine"):
-            eng.remove_head("det2")
+        try:
+            with caplog.at_level("WARNING", logger="vpengine"):
+                eng.remove_head("det2")
+        finally:
+            monkeypatch.undo()
         assert 0.5 <= time.monotonic() - t0 < 20  # the wait is bounded by stop_timeout_s, then remove_head returns
         assert any(
             "det2: the monitor did not close its worker's socket within 0.5 s" in r.getMessage() for r in caplog.records
         )
         assert runner._retired_children  # still to close
-        monkeypatch.setattr(runner, "_close_retired", close)
         runner._wake()
         deadline = time.monotonic() + 10
         while runner._retired_children and time.monotonic() < deadline:
             time.sleep(0.05)
         assert not runner._retired_children  # closed at the monitor's next look
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
+
+
+def test_a_removal_still_waiting_for_the_monitor_returns_when_the_engine_stops(monkeypatch):
+    eng = Engine(two_heads("process", "runtime.stop_timeout_s=10")).start()
+    runner = eng._res.runner
+    took: list[float] = []
+    try:
+        eng.add_head(DET2)
+        monkeypatch.setattr(type(runner), "_close_retired", lambda self: None)  # the monitor never gets to it
+
+        def remove() -> None:
+            t0 = time.monotonic()
+            eng.remove_head("det2")
+            took.append(time.monotonic() - t0)
+
+        remover = threading.Thread(target=remove)
+        remover.start()
+        deadline = time.monotonic() + 10
+        while not runner._retired_children and time.monotonic() < deadline:  # its worker is gone: it waits now
+            time.sleep(0.02)
+        assert runner._retired_children and remover.is_alive()
+        eng.stop()
+        remover.join(5)
+        assert not remover.is_alive() and took and took[0] < 8  # with the stop, not 10 s later
+    finally:
+        monkeypatch.undo()
+        eng.stop()
+        runner._close_retired()
 
 
 def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():

@@ -109,8 +109,11 @@ STOP_RACE = """
             t.start()
         while not os.path.exists(hanging) and time.monotonic() < t0 + 30:
             time.sleep(0.02)
+        if not os.path.exists(hanging):
+            problems.append("slow never began its hang")
         # "slow" is inside its forward (1.5 s) now: it outlasts stop's 0.2 s
         e.stop()
+        t_stop = time.monotonic()
         mapped_while_slow_runs = bool(e._res.rings)
         for call in (
             lambda: e.latest("depth"),
@@ -129,7 +132,7 @@ STOP_RACE = """
         for t in threads:
             t.join()
         # the abandoned thread returns, publishes and leaves; the mailboxes are unmapped only after that
-        while e._res.rings and time.monotonic() < t0 + 10.0:
+        while e._res.rings and time.monotonic() < t_stop + 10.0:
             time.sleep(0.05)
         if not mapped_while_slow_runs or e._res.rings:
             problems.append(f"mapped while the thread ran: {mapped_while_slow_runs}; after: {bool(e._res.rings)}")

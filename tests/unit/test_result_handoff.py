@@ -278,7 +278,7 @@ def test_a_spinning_wait_sleeps_through_the_predicted_part_of_the_work_and_polls
     t = ev.wait_done(slot, spin_s=0.1)
     assert event.syncs == 0  # done while polled: never waited in the driver
     # the first query, then a sleep through 0.6 - 0.1 s, then the polls
-    assert event.polls >= 2 and event.polled_at[1] >= slot.t_publish + 0.5
+    assert event.polled_at[1] >= slot.t_publish + 0.5
     assert t >= event.due and t - event.due < 0.1  # polled, not slept past the end
     assert ev.done_at[i] == (slot.seq, t)
     r.release(slot)
@@ -321,7 +321,7 @@ def test_a_spinning_wait_widens_its_window_by_the_spread_of_recent_results_up_to
     slot = r.pin()
     t = ev.wait_done(slot, spin_s=0.2)
     assert t >= event.due
-    assert event.syncs == (0 if polled else 1)  # 0.8 s: past the no-spread window, inside the widened one
+    assert event.syncs == (0 if polled else 1)  # the widened case's 0.8 s: past the no-spread window, inside its own
     if not polled:
         window = 0.2 + min(2 * spread, 0.4)
         assert event.sync_called_at >= slot.t_publish + 0.5 + window

@@ -772,8 +772,9 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
     )  # type: ignore[arg-type]
 
     def just_after_a_beat() -> float:
-        n = len(published)
+        n, deadline = len(published), time.monotonic() + 5
         while len(published) == n:
+            assert time.monotonic() < deadline, "the control loop stopped publishing"
             time.sleep(0.005)
         return time.monotonic()
 
@@ -786,8 +787,8 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
         assert 4 <= n <= 6, published  # at 0, 0.5, ... 2.0 s
         gaps = np.diff(published)
         assert (np.abs(gaps - period) < 0.2).all(), gaps
-        # sent just after a beat, the next is a period away: a command applied and shown before half of it is
-        # applied at once (a stall of a loaded machine is tens of ms, not a quarter of a second)
+        # sent just after a beat, the next is a period away: a command applied within 0.15 s is applied at once, not
+        # held to the next beat nor to the end of the loop's 0.2 s wait (a stall of a loaded machine is tens of ms)
         sent = just_after_a_beat()
         commands.put(("rate", "depth", "5"))
         with caplog.at_level("WARNING", logger="vpengine.ros2"):
@@ -801,14 +802,14 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
         stop.set()
         th.join(5)
     ((_, value, applied),) = core.rates
-    assert value == "5" and applied - sent < period / 2
+    assert value == "5" and applied - sent < 0.15
     after = [t for t in published if t >= applied]
     assert after and after[0] - applied < period / 2  # diagnostics right after the command, showing it
     assert any(
         "rate command {key: 'nope', value: '5'} ignored: unknown model" in r.getMessage() for r in caplog.records
     )
     ((_, value, applied),) = core.priorities  # on the same thread, at once, and shown at once
-    assert value == "9" and applied - priority_sent < period / 2
+    assert value == "9" and applied - priority_sent < 0.15
     assert any(t >= applied and t - applied < period / 2 for t in published)
     assert any("priority command {key: 'nope', value: '9'} ignored: no head" in r.getMessage() for r in caplog.records)
     assert len(refreshed) == len(published)

@@ -18,6 +18,7 @@ from helpers import faulty
 from helpers.builds import full_collections_can_be_held_off, held_elsewhere
 from helpers.frames import frame
 from helpers.groups import INDUCTOR
+from helpers.waiting import wait_for
 from tests_paths import tiny
 from vpengine.bench.common import proc_stat
 from vpengine.config import ConfigError
@@ -147,10 +148,7 @@ def test_process_mode_add_remove_cycles_leave_no_process_or_fd_behind():
             assert open_fds() == fds  # remove_head returns with the worker's socket closed
         # the zygote has reaped each (remove_head waits for its report), but a worker killed after its grace may be
         # reported late: given until then, nothing more
-        deadline = time.monotonic() + 10
-        while descendants() != procs and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert descendants() == procs
+        wait_for(lambda: descendants() == procs, 10, "the removed workers' exit", show=lambda: descendants() - procs)
 
 
 def test_a_removal_the_monitor_is_too_busy_to_finish_returns_in_time_and_says_so(monkeypatch, caplog):
@@ -170,10 +168,7 @@ def test_a_removal_the_monitor_is_too_busy_to_finish_returns_in_time_and_says_so
         )
         assert runner._retired_children  # still to close
         runner._wake()
-        deadline = time.monotonic() + 10
-        while runner._retired_children and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert not runner._retired_children  # closed at the monitor's next look
+        wait_for(lambda: not runner._retired_children, 10, "the monitor's next look to close the socket")
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
 
 
@@ -192,10 +187,8 @@ def test_a_removal_still_waiting_for_the_monitor_returns_when_the_engine_stops(m
 
         remover = threading.Thread(target=remove)
         remover.start()
-        deadline = time.monotonic() + 10
-        while not runner._retired_children and time.monotonic() < deadline:  # its worker is gone: it waits now
-            time.sleep(0.02)
-        assert runner._retired_children and remover.is_alive()
+        wait_for(lambda: runner._retired_children, 10, "det2's worker to be gone")  # the removal waits now
+        assert remover.is_alive()
         eng.stop()
         remover.join(5)
         assert not remover.is_alive() and took and took[0] < 8  # with the stop, not 10 s later
@@ -442,10 +435,7 @@ def test_a_worker_that_will_not_stop_keeps_its_seat_out_of_use(tmp_path):
         stuck = {"name": "stuck", "model": "helpers.faulty:FaultyHead", "options": options}
         eng.add_head(stuck)
         eng.submit(frame(0))
-        deadline = time.monotonic() + 30
-        while not hanging.exists() and time.monotonic() < deadline:
-            time.sleep(0.02)
-        assert hanging.exists()  # it is inside its hang
+        wait_for(hanging.exists, 30, "stuck's hang")  # it is inside its hang
         eng.remove_head("stuck")
         assert eng.lanes.seats == ("+1",)  # +0 stays out of use while its thread lives
         eng.add_head(DET2)

@@ -771,7 +771,7 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
         core, published.append, commands.wait, period_s=period, before_diagnostics=lambda: refreshed.append(1)
     )  # type: ignore[arg-type]
 
-    def just_after_a_beat() -> float:
+    def just_after_a_beat() -> float:  # polled every 5 ms, not wait_for's 50: 'just after' is what it measures from
         n, deadline = len(published), time.monotonic() + 5
         while len(published) == n:
             assert time.monotonic() < deadline, "the control loop stopped publishing"

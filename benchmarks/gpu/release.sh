@@ -4,7 +4,10 @@
 #   bash benchmarks/gpu/release.sh [STAGE...] [-- ARGS...]
 #
 # STAGE, in this order by default: tests integration e1 e2 e3 e4 e5 floor report (the others on request).
-#   tests        every gpu-marked test                               env.txt, gpu_tests.log
+#   tests        every gpu-marked test: tests1, tests2 and tests3    env.txt, gpu_tests.log
+#   tests1       ... the compile backend's and cameras' tests, NMS and the detector's eager static path
+#   tests2       ... the detector compiled, device mailboxes, the engine on the GPU (but bench cameras)
+#   tests3       ... every other gpu test (a new test file lands here)
 #   integration  the core integration tests on CUDA                  integration_tests_on_cuda.log
 #   e1           E1 at 8 heads                                       paper_cuda_e1.json
 #   e2           E2 at 1, 2, 4, 8 detection heads, with MPS          paper_cuda_e2.json
@@ -23,7 +26,10 @@
 # ARGS go to every `vpengine bench paper` after the stage's own, so they win (e.g. -- --set mode=thread, or
 # -- --heads 8 for a shorter E2); CONFIG is its config (configs/bench.yaml).
 # Each stage ends within its time limit (T_<STAGE> seconds, defaults below), so stages can be grouped into calls of
-# at most 10 minutes: tests; integration; e1; floor; e2; e3 e4; e5. Every benchmark's output is in release.log.
+# at most 10 minutes: tests1; tests2; tests3; integration; e1; floor; e2; e3 e4; e5. With an empty compile cache the
+# gpu tests take about 15 minutes (most of it compiling), hence three parts; with a warm one `tests` fits one call.
+# PYTEST_ARGS go to every pytest run (e.g. -x, or --collect-only to list what a part selects). Every benchmark's
+# output is in release.log.
 source benchmarks/gpu/setup.sh
 set -o pipefail
 CONFIG=${CONFIG:-configs/bench.yaml}
@@ -42,17 +48,40 @@ paper() {
     "${args[@]}" 2>&1 | tee -a "$OUT/release.log" | grep "E[1-5] \|floor\|MPS daemon\|Error\|error\|->"
 }
 
+# the gpu tests in parts, each within a call on an empty compile cache (tests1 starts gpu_tests.log, the others add)
+G=tests/gpu DET=tests/gpu/test_detection_cuda.py
+PART1=($G/test_cameras_cuda.py $G/test_compile_cuda.py "$DET::test_triton_nms_keeps_what_batched_nms_keeps_on_the_cpu"
+  "$DET::test_static_path_on_cuda_equals_torchvision_and_never_syncs")
+PART2=("$DET::test_compiled_static_path_is_one_cuda_graph_per_batch_size_and_equals_torchvision"
+  "$DET::test_lite_recipe_at_1080p_compiled_is_faster_than_torchvision_eager" $G/test_device_rings_cuda.py
+  $G/test_engine_gpu.py -k "not bench_cameras")
+PART3=($G --ignore=$G/test_cameras_cuda.py --ignore=$G/test_compile_cuda.py --ignore=$DET
+  --ignore=$G/test_device_rings_cuda.py -k "not test_engine_gpu or bench_cameras")
+# gpu_tests PART...: each part's tests (PART1, PART2, PART3), its lines into gpu_tests.log
+gpu_tests() {
+  local part sel
+  if [ "$1" = 1 ]; then
+    {
+      nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
+      "$PYTHON" -c "import sys, torch; print(sys.version); print('torch', torch.__version__, 'cuda', torch.version.cuda)"
+      which nvidia-cuda-mps-control
+    } 2>&1 | tee "$OUT/env.txt"
+    : > "$OUT/gpu_tests.log"
+  fi
+  for part in "$@"; do
+    sel="PART$part[@]"
+    echo "== gpu tests, part $part, $(date -u +%FT%TZ)" >> "$OUT/gpu_tests.log"
+    # shellcheck disable=SC2086
+    timeout "${T_TESTS:-560}" "$PYTHON" -m pytest -m gpu -v -p no:cacheprovider ${PYTEST_ARGS:-} "${!sel}" 2>&1 \
+      | tee -a "$OUT/gpu_tests.log" | tail -5
+  done
+}
+
 for stage in "${stages[@]}"; do
   echo "== $stage"
   case $stage in
-    tests)
-      {
-        nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv
-        "$PYTHON" -c "import sys, torch; print(sys.version); print('torch', torch.__version__, 'cuda', torch.version.cuda)"
-        which nvidia-cuda-mps-control
-      } 2>&1 | tee "$OUT/env.txt"
-      timeout "${T_TESTS:-560}" "$PYTHON" -m pytest -m gpu tests/gpu -q -p no:cacheprovider 2>&1 \
-        | tee "$OUT/gpu_tests.log" | tail -15 ;;
+    tests) gpu_tests 1 2 3 ;;
+    tests[123]) gpu_tests "${stage#tests}" ;;
     integration)
       # the DINOv2 engine tests read a 1080p frame from ../shared/data/media, which the GPU machine lacks: carry it
       # in .media/ (cp ../shared/data/media/cheetah_1080p_0.jpg .media/)
@@ -79,9 +108,7 @@ for stage in "${stages[@]}"; do
     boundary) paper "${T_BOUNDARY:-560}" e5_boundary --experiments E5 --e5-frames "${E5_FRAMES:-10000}" \
       --set input.height=720 --set input.width=1280 --frame-size 1920x1080 ;;
     cameras)
-      # Faster R-CNN compiled without CUDA graphs (its NMS syncs with the host): 4 cameras at 30 Hz need it
       timeout "${T_CAMERAS:-560}" "$PYTHON" -m vpengine.cli.main bench cameras --cameras "${CAMERA_COUNTS:-1,2,4,8}" \
-        --set heads.det.backend=compile --set 'heads.det.backend_options={cudagraphs: false, fullgraph: false}' \
         --out "$OUT" --name cameras_cuda 2>&1 | tee -a "$OUT/release.log" | grep "stream\|throughput\|rror\|json" ;;
     web)
       timeout "${T_WEB:-300}" "$PYTHON" -m vpengine.cli.main bench web -c configs/dinov2s_depth_seg_det.yaml \
@@ -101,7 +128,7 @@ for stage in "${stages[@]}"; do
         cp "/tmp/street_$variant/summary.json" "$OUT/run_street_$variant.json"
       done ;;
     report) vpengine bench report --results "$OUT" --out "$OUT" ;;
-    *) echo "unknown stage $stage; accepted: tests integration e1 e2 e3 e4 e5 floor resources hop boundary cameras" \
+    *) echo "unknown stage $stage; accepted: tests tests1 tests2 tests3 integration e1 e2 e3 e4 e5 floor resources hop boundary cameras" \
       "web street report"; exit 2 ;;
   esac
 done

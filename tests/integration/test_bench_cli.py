@@ -137,7 +137,30 @@ def test_release_script_stages_run_the_paper_and_the_report(tmp_path):
     ]
     assert "paper_cpu_e1.json |" in (tmp_path / "summary.md").read_text()
     bad = _script("release.sh", "e9", OUT=str(tmp_path))
-    assert bad.returncode == 2 and "unknown stage e9; accepted: tests integration e1" in bad.stdout
+    assert bad.returncode == 2 and "unknown stage e9; accepted: tests tests1 tests2 tests3 integration e1" in bad.stdout
+
+
+def test_release_scripts_gpu_test_parts_run_every_gpu_test_once(tmp_path):
+    # the parts fit a call each on an empty compile cache; a gpu test in none of them, or in two, would go unrun or
+    # cost a call twice. --collect-only lists what each part selects, without a GPU (-qq against the stage's -v: one
+    # test id a line).
+    p = _script("release.sh", "tests", OUT=str(tmp_path), PYTEST_ARGS="--collect-only -qq")
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-2000:]
+    parts: list[list[str]] = []
+    for line in (tmp_path / "gpu_tests.log").read_text().splitlines():
+        if line.startswith("== gpu tests, part "):
+            parts.append([])
+        elif "::" in line:
+            parts[-1].append(line.strip())
+    assert len(parts) == 3 and all(parts), [len(x) for x in parts]
+    every = subprocess.run(
+        [sys.executable, "-m", "pytest", "-m", "gpu", "tests/gpu", "--collect-only", "-q", "-p", "no:cacheprovider"],
+        cwd=ROOT, capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    expected = sorted(line for line in every.stdout.splitlines() if "::" in line)
+    assert len(expected) > 50, every.stdout[-2000:] + every.stderr[-2000:]
+    assert sorted(t for part in parts for t in part) == expected  # each once: a test in two parts would be listed twice
+    assert any("bench_cameras" in t for t in parts[2]) and not any("bench_cameras" in t for t in parts[1])
 
 
 def test_compare_script_runs_both_trees_and_reports_after_against_before(tmp_path):

@@ -159,3 +159,86 @@ def test_the_checkpoint_a_model_declares_is_the_one_checked_at_plan_time_and_loa
     Engine(cfg)
     head = build_model(cfg, "mine", "head", plan.features, plan.feature_meta, torch.device("cpu"), plan_only=False)
     assert bool((head.proj.weight == 0.25).all())
+
+
+# ------------------------------------------------------------------------------- files that are not checkpoints
+def test_a_file_that_is_not_a_checkpoint_is_refused_in_a_line_with_the_reason_and_the_fix(tmp_path):
+    from vpengine.models.weights import read_state_dict
+
+    garbage = tmp_path / "garbage.pth"
+    garbage.write_bytes(bytes(range(256)) * 4)
+    whole_model = tmp_path / "whole_model.pth"
+    torch.save(torch.nn.Linear(2, 2), whole_model)  # the model pickled, not its state_dict
+    for path, reason in ((garbage, "Unsupported operand"), (whole_model, "torch.nn.modules.linear.Linear")):
+        with pytest.raises(CheckpointError) as e:
+            read_state_dict(path)
+        msg = str(e.value)
+        assert "\n" not in msg and str(path) in msg and reason in msg, msg
+        assert "save its state_dict" in msg
+        assert "weights_only` set to `False`" not in msg and "file an issue" not in msg  # torch's advice: not ours
+
+
+def test_a_folder_named_as_checkpoint_is_refused_naming_the_files_in_it(empty_cache, tmp_path):
+    (tmp_path / "head.pth").write_bytes(b"x")
+    (tmp_path / "notes.txt").write_text("not a checkpoint")
+    with pytest.raises(CheckpointError) as e:
+        Engine(user_head("DeclaredCheckpointHead", checkpoint=str(tmp_path)))
+    line = str(e.value).splitlines()[1]
+    assert line == f"mine: checkpoint {str(tmp_path)!r} is a folder: name the checkpoint file in it; in it: head.pth"
+
+
+def test_a_checkpoint_no_model_will_load_is_said_to_be_ignored(empty_cache, caplog, monkeypatch):
+    from vpengine.models import weights
+
+    cfg = user_head("TinyDepthHead", checkpoint="/data/runs/mine.pth")  # a head that declares no checkpoint
+    with caplog.at_level(logging.WARNING, logger="vpengine.weights"):
+        Engine(cfg)  # planned
+    said = [r.getMessage() for r in caplog.records if "mine.pth" in r.getMessage()]
+    assert said == [
+        "mine: checkpoint '/data/runs/mine.pth' is set, but model 'helpers.models:TinyDepthHead' declares none to "
+        "load (Model.needed_checkpoint), so vpengine neither checks nor loads it: it is ignored unless the model's "
+        "own load_checkpoint reads it"
+    ]
+
+    # random weights win over a configured checkpoint: the warning that says so names it
+    monkeypatch.setattr(weights, "_RANDOM_WARNED", set())
+    cfg = load_config(user_head("DeclaredCheckpointHead", checkpoint="site.pth"), ["weights.random_weights=true"])
+    plan = make_plan(cfg)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="vpengine.weights"):
+        build_model(cfg, "mine", "head", plan.features, plan.feature_meta, torch.device("cpu"), plan_only=False)
+    assert any(
+        "RANDOM WEIGHTS" in r.getMessage() and "its checkpoint 'site.pth' is not loaded" in r.getMessage()
+        for r in caplog.records
+    ), [r.getMessage() for r in caplog.records]
+
+
+def test_a_worker_that_cannot_read_its_checkpoint_fails_the_start_in_a_line_without_a_traceback(empty_cache, tmp_path):
+    from vpengine.engine import EngineStartError
+
+    bad = tmp_path / "mine.pth"
+    bad.write_bytes(b"\x80\x02not a checkpoint at all")
+    eng = Engine(user_head("DeclaredCheckpointHead", checkpoint=str(bad)))
+    with pytest.raises(EngineStartError) as e:
+        eng.start()
+    msg = str(e.value)
+    assert f"CheckpointError: cannot read checkpoint {str(bad)!r}" in msg
+    assert "Traceback" not in msg and msg.count("cannot read checkpoint") == 1, msg
+
+
+def test_a_build_error_wrapping_another_keeps_the_traceback_of_its_cause():
+    from vpengine.runtime.worker import describe_exception
+
+    def user_code() -> None:
+        raise KeyError("embed_dim")
+
+    try:
+        try:
+            user_code()
+        except KeyError as cause:
+            raise ModelBuildError("mine: from_config failed") from cause
+    except ModelBuildError as e:
+        text = describe_exception("mine", e)
+    assert text.splitlines()[0].endswith("ModelBuildError: mine: from_config failed")
+    assert "Traceback" in text and "in user_code" in text  # where the user's bug is
+    assert describe_exception("mine", ModelBuildError("mine: no such recipe")).count("\n") == 0

@@ -27,6 +27,7 @@ import hashlib
 import json
 import logging
 import os
+import pickle
 import sys
 import threading
 from collections.abc import Mapping
@@ -59,10 +60,12 @@ def resolve_checkpoint(ctx: BuildContext, model: Model) -> Path | None:
         return None
     if ctx.engine.weights.random_weights:
         if ctx.name not in _RANDOM_WARNED:
+            configured = getattr(ctx.cfg, "checkpoint", None)
             log.warning(
-                "%s (%s): RANDOM WEIGHTS, outputs are meaningless (weights.random_weights is set)",
+                "%s (%s): RANDOM WEIGHTS, outputs are meaningless (weights.random_weights is set%s)",
                 ctx.name,
                 ctx.cfg.model,
+                f"; its checkpoint {str(configured)!r} is not loaded" if configured else "",
             )
             _RANDOM_WARNED.add(ctx.name)
         return None
@@ -99,6 +102,12 @@ def _locate(recipe: str, name: str) -> Path:
     path = Path(name).expanduser()
     if path.is_file():
         return path
+    if path.is_dir():
+        found = sorted(p.name for p in path.iterdir() if p.suffix in _FILE_SUFFIXES)
+        inside = f"; in it: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}" if found else ""
+        raise CheckpointError(
+            f"checkpoint {str(path.absolute())!r} is a folder: name the checkpoint file in it{inside}"
+        )
     cache = catalog.cache_dir()
     entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
     if entry is not None:
@@ -130,6 +139,17 @@ def check_checkpoints(cfg: Any, models: Mapping[str, Model]) -> None:
             needed = model.needed_checkpoint(mcfg)
             if needed is not None:
                 _locate(mcfg.model, needed)
+            elif getattr(mcfg, "checkpoint", None):
+                # Nothing lost silently: a user who set a checkpoint expects it in use. A model that declares none
+                # may still read it in its own load_checkpoint, so this is said, not refused.
+                log.warning(
+                    "%s: checkpoint %r is set, but model %r declares none to load (Model.needed_checkpoint), so "
+                    "vpengine neither checks nor loads it: it is ignored unless the model's own load_checkpoint "
+                    "reads it",
+                    name,
+                    str(mcfg.checkpoint),
+                    mcfg.model,
+                )
         except CheckpointError as e:
             problems.setdefault(str(e), []).append(name)
     if problems:
@@ -272,6 +292,23 @@ def check_file(entry: Entry, path: Path, expected: str, progress: bool) -> None:
 
 
 # ------------------------------------------------------------------------------------------- reading, applying
+def _read_failure(e: Exception) -> str:
+    """Why a checkpoint could not be read, in a line. torch.load's refusal under ``weights_only`` is a page that
+    suggests loading with ``weights_only=False``, which vpengine never does (it would run the file's code): kept
+    is its reason, and the fix that fits."""
+    text = str(e)
+    if isinstance(e, pickle.UnpicklingError) or "weights_only" in text:
+        reason = text.partition("WeightsUnpickler error:")[2].partition("Check the documentation")[0]
+        reason = " ".join(reason.split()) or type(e).__name__
+        return (
+            f"not a file of tensors that loads without running code ({reason}). vpengine reads checkpoints with "
+            "torch.load(weights_only=True) or safetensors: if it holds a whole pickled model or other objects, "
+            "save its state_dict (torch.save(model.state_dict(), path)); otherwise the file is damaged or not a "
+            "checkpoint"
+        )
+    return f"{type(e).__name__}: {' '.join(text.split())}"
+
+
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """Tensors from a checkpoint file, without executing any code. Unwraps {'state_dict'|'model': ...}."""
     path = Path(path)
@@ -285,7 +322,7 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         else:
             sd = torch.load(str(path), map_location="cpu", weights_only=True)
     except Exception as e:  # truncated, corrupt, or pickled code refused by weights_only
-        raise CheckpointError(f"cannot read checkpoint {str(path)!r}: {type(e).__name__}: {e}") from None
+        raise CheckpointError(f"cannot read checkpoint {str(path)!r}: {_read_failure(e)}") from None
     for key in ("state_dict", "model", "module"):
         if isinstance(sd, Mapping) and key in sd and isinstance(sd[key], Mapping):
             sd = sd[key]

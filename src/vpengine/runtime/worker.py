@@ -722,5 +722,11 @@ def input_keys(spec: WorkerSpec, in_ring: SlotRing) -> list[str]:
 
 
 def describe_exception(name: str, exc: BaseException) -> str:
+    """``name (pid P): Type: message`` and the traceback. A ModelBuildError raised for its own reason (no cause
+    chained: a missing or unreadable checkpoint, a model that does not fit its config) says what is wrong and the fix
+    in its message; its traceback would bury that line under vpengine's frames and repeat it, so it has none."""
+    head = f"{name} (pid {os.getpid()}): {type(exc).__name__}: {exc}"
+    if isinstance(exc, ModelBuildError) and exc.__cause__ is None:
+        return head
     tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
-    return f"{name} (pid {os.getpid()}): {type(exc).__name__}: {exc}\n{tb}"
+    return f"{head}\n{tb}"

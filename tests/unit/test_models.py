@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 import torch
@@ -252,3 +254,34 @@ def test_the_tiny_detection_heads_cells_are_built_where_the_model_is():
     h, w = cfg.input.height, cfg.input.width
     want = torch.tensor([[0, 0, w / gw, h / gh], [w - w / gw, h - h / gh, w, h]])
     assert torch.allclose(head.cells[[0, -1]], want)
+
+
+# ------------------------------------------------------------------------------- a user model that is not found
+def test_a_user_model_not_found_says_where_python_looked_and_the_fix(tmp_path, monkeypatch):
+    from vpengine.models import registry
+
+    here = str(tmp_path)
+    monkeypatch.chdir(tmp_path)
+    # as the vpengine command runs: the current folder is not on the import path
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", ".", here)])
+    (tmp_path / "my_site_pkg").mkdir()
+    (tmp_path / "my_site_pkg" / "__init__.py").write_text("")
+    (tmp_path / "my_site_pkg" / "heads.py").write_text("import surely_not_installed_dep\n")
+
+    with pytest.raises(ModelBuildError) as e:
+        registry.resolve("my_site_pkg.heads:MyHead", "head")
+    assert str(e.value) == (
+        "model 'my_site_pkg.heads:MyHead' cannot be imported: No module named 'my_site_pkg'; 'my_site_pkg' is in the "
+        f"current folder {here!r}, where the vpengine command does not look: run with PYTHONPATH=. or install its "
+        "package (pip install -e) (docs/models.md, Your own head)"
+    )
+    with pytest.raises(ModelBuildError, match="; put the folder that holds it on PYTHONPATH, or install its package"):
+        registry.resolve("elsewhere_pkg.heads:MyHead", "head")
+
+    monkeypatch.syspath_prepend(here)  # found now: what it imports is not
+    with pytest.raises(ModelBuildError) as e:
+        registry.resolve("my_site_pkg.heads:MyHead", "head")
+    assert str(e.value).endswith(
+        "No module named 'surely_not_installed_dep' (a module 'my_site_pkg.heads' imports: install it in this "
+        "environment)"
+    )

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from vpengine.models.base import Model, ModelBuildError, Role
@@ -42,11 +43,29 @@ def _import(target: str) -> type[Model]:
         raise ModelBuildError(f"model {target!r}: expected 'package.module:Class'")
     try:
         obj = getattr(importlib.import_module(module), attr)
+    except ModuleNotFoundError as e:
+        raise ModelBuildError(f"model {target!r} cannot be imported: {e}{_import_hint(module, e)}") from None
     except (ImportError, AttributeError) as e:
         raise ModelBuildError(f"model {target!r} cannot be imported: {e}") from None
     if not (isinstance(obj, type) and issubclass(obj, Model)):
         raise ModelBuildError(f"model {target!r} is not a vpengine.models.Model subclass")
     return obj
+
+
+def _import_hint(module: str, e: ModuleNotFoundError) -> str:
+    """The fix for a user model's module that is not found: where Python looks, or the package its code lacks."""
+    if not e.name or not (module == e.name or module.startswith(e.name + ".")):
+        return f" (a module {module!r} imports: install it in this environment)"
+    root = module.partition(".")[0]
+    here = Path.cwd()
+    if (here / root).is_dir() or (here / f"{root}.py").is_file():
+        where = (
+            f"; {root!r} is in the current folder {str(here)!r}, where the vpengine command does not look: run with "
+            "PYTHONPATH=. or install its package (pip install -e)"
+        )
+    else:
+        where = "; put the folder that holds it on PYTHONPATH, or install its package (pip install -e)"
+    return f"{where} (docs/models.md, Your own head)"
 
 
 def resolve(name: str, role: Role) -> tuple[type[Model], dict[str, Any]]:

@@ -13,6 +13,7 @@ import pytest
 from helpers.frames import frame
 from tests_paths import tiny
 from vpengine.engine import Engine
+from vpengine.pipeline.pacing import pipelined
 
 CAMERAS = ["cameras=[{name: front}, {name: rear, height: 90, width: 200}]", "heads.seg.cameras=[rear]"]
 # one worker runs them all: the module's engines start once a mode
@@ -242,17 +243,21 @@ def test_after_a_pause_a_ticks_frames_run_as_one_batch_again_within_three_ticks(
         assert batches <= 13, f"{batches} batches for 10 ticks"
 
 
-@pytest.mark.parametrize("window_ms", [100, 5])
-def test_a_batch_window_as_long_as_a_cameras_frame_spacing_is_said_once(window_ms, caplog):
+@pytest.mark.parametrize(("window_ms", "hz"), [(100, 30), (5, 30), (5, None)])
+def test_a_batch_window_as_long_as_a_cameras_frame_spacing_is_said_once(window_ms, hz, caplog):
     """Note [Cameras]: with a window of a frame period or more a batch may wait for a camera's next frame; the
-    engine says so once (the default window says nothing)."""
+    engine says so once. The default window says nothing, not even of frames handed in as fast as they go (a file
+    run: hz None), closer than the window but no camera's spacing."""
     cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", f"runtime.batch_window_ms={window_ms}")
+    if hz is None:  # as `vpengine run` of files: every frame, in order (Note [Frames in flight])
+        cfg = pipelined(cfg)[0]
     with caplog.at_level(logging.WARNING, logger="vpengine.worker"), Engine(cfg) as e:
         ids = []
-        for _ in range(10):  # 30 Hz, both cameras at once
+        for _ in range(10):  # both cameras at once
             t = time.monotonic()
             ids += [e.submit(frame(1), camera="front"), e.submit(frame(2), camera="rear")]
-            time.sleep(max(0.0, t + 1 / 30 - time.monotonic()))
+            if hz is not None:
+                time.sleep(max(0.0, t + 1 / hz - time.monotonic()))
         for f in ids:
             e.wait(f, timeout=30)
     said = [r.getMessage() for r in caplog.records if "batch_window_ms" in r.getMessage()]

@@ -115,7 +115,7 @@ from typing import Any
 import torch
 
 from vpengine.backends.base import tensor_bytes
-from vpengine.config import EngineConfig, load_config
+from vpengine.config import EngineConfig, RuntimeConfig, load_config
 from vpengine.models.base import ModelBuildError, Role, check_outputs, random_inputs
 from vpengine.runtime.control import PAUSED, POLL_S, RUNNING, ControlBlock, ControlDesc
 from vpengine.runtime.device import RESTREAM_S, DeviceContext
@@ -148,6 +148,8 @@ class WorkerSpec:
         return load_config(self.config)
 
 
+#: runtime.batch_window_ms's default, in seconds
+_DEFAULT_WINDOW_S = RuntimeConfig.model_fields["batch_window_ms"].default * 1e-3
 #: A lane's frame interval is the median of its last this many frame spacings (Note [Cameras])
 SPACINGS = 5
 
@@ -409,8 +411,12 @@ class WorkerCore:
 
     def _check_window(self, lane: _Lane) -> None:
         """Note [Cameras]: a window as long as a camera's frame spacing lets a batch wait for that camera's *next*
-        frame once this one's has run, up to a frame's time on every frame. Said once, when the spacing is known."""
+        frame once this one's has run, up to a frame's time on every frame. Said once, when the spacing is known,
+        and only of a window set above the default: frames closer than the default's 5 ms are a file or a burst
+        handed in as fast as the models go, not a camera's spacing, and the advice would be the setting as it is."""
         if self._window_said or len(lane.spacings) < SPACINGS or lane.interval > self.window:
+            return
+        if self.window <= _DEFAULT_WINDOW_S:
             return
         self._window_said = True
         log.warning(

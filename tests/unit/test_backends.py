@@ -464,6 +464,16 @@ def test_cli_export_errors_name_the_accepted_values(tmp_path, capsys):
     assert not list(tmp_path.iterdir())
 
 
+def test_cli_export_without_the_onnx_extra_names_what_installs_it(tmp_path, capsys, monkeypatch):
+    def exporter_without_onnxscript(*args, **kwargs):  # as torch.onnx.export fails where onnxscript is missing
+        raise ModuleNotFoundError("No module named 'onnxscript'", name="onnxscript")
+
+    monkeypatch.setattr(torch.onnx, "export", exporter_without_onnxscript)
+    assert cli(["export", "-c", str(TINY), "-m", "depth", "-o", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "depth: ONNX export (dynamo) needs onnxscript, which is not installed: pip install 'vpengine[onnx]'" in err
+
+
 # ------------------------------------------------------------------------------------------ every recipe
 #: Options a recipe cannot be built without (it has no defaults for them), keyed by model class.
 REQUIRED_OPTIONS = {"vpengine.models.detection:FasterRCNNHead": {"num_classes": 3}}

@@ -323,7 +323,9 @@ def test_wrong_methods_unknown_paths_and_large_bodies_are_refused(view):
     assert request(view.url + "api/rate/depth")[0] == 405
     assert request(view.url + "api/priority/depth")[0] == 405
     assert request(view.url + "api/stats", "PUT", b"{}")[0] == 405
-    assert request(view.url + "nothing/here")[0] == 404
+    status, _, body = request(view.url + "api")
+    assert status == 404 and json.loads(body)["error"].startswith("no such page: /api; the pages: GET / (the live")
+    assert "/api/stats" in json.loads(body)["error"]
     assert request(view.url + "api/rate/depth", "PUT", b"x" * 10000)[0] == 413
 
 

@@ -16,7 +16,10 @@ COMMANDS = {
     ),
     "config": ("vpengine.cli.configs", "the configs that ship with vpengine: list, show"),
     "info": ("vpengine.cli.info", "versions, devices, CUDA MPS daemon, model catalog"),
-    "bench": ("vpengine.cli.bench", "benchmarks: the paper's experiments and their report, hop, pipeline, resources"),
+    "bench": (
+        "vpengine.cli.bench",
+        "benchmarks: the paper's experiments, cameras, heads, steering, hop, pipeline, resources, web, report",
+    ),
     "export": ("vpengine.cli.export", "export a model of a config to ONNX"),
     "weights": ("vpengine.cli.weights", "checkpoint catalog: list, fetch, verify, path"),
     "train": (

@@ -228,6 +228,13 @@ def serve(
     return WebServer(engine, host, port, token, frames, frame_color)
 
 
+#: What a 404 lists (docs/web.md says what each does)
+_PAGES = (
+    "GET / (the live view), /api/stats, /api/latest/<head>.jpg, /metrics; PUT /api/rate/<head>, "
+    "/api/priority/<head>; POST /api/heads; DELETE /api/heads/<name>"
+)
+
+
 class _HttpError(Exception):
     def __init__(self, status: HTTPStatus, message: str) -> None:
         super().__init__(message)
@@ -302,7 +309,7 @@ class _Handler(BaseHTTPRequestHandler):
                 body, ctype = self.view.metrics()
                 self._send(HTTPStatus.OK, body, ctype)
             else:
-                raise _HttpError(HTTPStatus.NOT_FOUND, f"no such page: {path}")
+                raise _HttpError(HTTPStatus.NOT_FOUND, f"no such page: {path}; the pages: {_PAGES}")
         except _HttpError as e:
             self._send_json(e.status, {"error": str(e)}, e.status == HTTPStatus.UNAUTHORIZED)
         except (BrokenPipeError, ConnectionResetError):

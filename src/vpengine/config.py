@@ -374,10 +374,25 @@ def _clip(text: str, limit: int = _SHOWN_CHARS) -> str:
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
 
 
-def _format_validation_error(err: ValidationError, source: str) -> str:
+def _named_loc(loc: tuple[Any, ...], data: Any) -> str:
+    """An error's place as a user writes it: a list item by its ``name`` where it has one (``heads.depth.rate_hz``,
+    as ``--set`` takes it), else by its index."""
+    parts, node = [], data
+    for p in loc:
+        if isinstance(p, int) and isinstance(node, list) and 0 <= p < len(node):
+            node = node[p]
+            name = node.get("name") if isinstance(node, dict) else None
+            parts.append(str(name) if isinstance(name, str) and name and "." not in name else str(p))
+        else:
+            node = node.get(p) if isinstance(node, dict) else None
+            parts.append(str(p))
+    return ".".join(parts)
+
+
+def _format_validation_error(err: ValidationError, source: str, data: Any = None) -> str:
     lines = [f"invalid configuration{f' in {source}' if source else ''}:"]
     for e in err.errors():
-        loc = _clip(".".join(str(p) for p in e["loc"]) or "(top level)")
+        loc = _clip(_named_loc(e["loc"], data) or "(top level)")
         if e["type"] == "extra_forbidden":
             parent = _model_at(EngineConfig, e["loc"][:-1])
             accepted = sorted(parent.model_fields) if parent else []
@@ -385,7 +400,9 @@ def _format_validation_error(err: ValidationError, source: str) -> str:
         else:
             given = e.get("input")
             shown = _clip(json.dumps(given, default=str)) if not isinstance(given, dict) else "{...}"
-            lines.append(f"  {loc}: {_clip(e['msg'], 4 * _SHOWN_CHARS)} (got {shown})")
+            msg = _clip(e["msg"], 4 * _SHOWN_CHARS)
+            said = ", got " in msg  # a validator of ours that quotes the value already
+            lines.append(f"  {loc}: {msg}" if said else f"  {loc}: {msg} (got {shown})")
     return "\n".join(lines)
 
 
@@ -583,7 +600,7 @@ def load_config(
     try:
         return EngineConfig.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(_format_validation_error(e, where)) from None
+        raise ConfigError(_format_validation_error(e, where, data)) from None
 
 
 def dump_config(cfg: EngineConfig) -> str:

@@ -158,7 +158,7 @@ def test_config_errors_are_reported_without_a_traceback(tmp_path, cli):
     bad.write_text("heads:\n  - {name: d, model: tiny_depth, rate: 5}\n")
     p = cli("run", "-c", str(bad), "-s", "synthetic:64x64@30:3")
     assert p.returncode == 1
-    assert "heads.0.rate: unknown key" in p.stderr and "Traceback" not in p.stderr
+    assert "heads.d.rate: unknown key" in p.stderr and "Traceback" not in p.stderr
     p = cli("run", "-c", "configs/tiny.yaml", "-s", str(tmp_path / "missing.avi"))
     assert p.returncode == 1 and "does not exist" in p.stderr
 
@@ -332,6 +332,11 @@ def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, ca
             "exists already; give a new name, or add --exist-ok to replace it",
         ),
         (["--out-bag", str(tmp_path / "bag")], "exists already; give a new name (never overwritten)"),
+        (
+            ["--video", str(tmp_path / "v.gif")],
+            f"--video '{tmp_path / 'v.gif'}': cannot write a video as '.gif'; name it .mp4, .avi, .m4v, .mkv, .mov, "
+            ".webm",
+        ),
         (["-s", "synthetic:64x64@0"], "synthetic source rate must be a number of Hz above 0, got 0.0"),
     ]:
         assert main([*run, *args]) == 1
@@ -387,6 +392,24 @@ def test_an_unreadable_image_is_skipped_and_listed_in_the_summary(tmp_path, cli)
     assert s["frames_submitted"] == 3 and s["inputs_skipped"] == [
         {"file": str(frames / "im2.png"), "why": "not a readable image"}
     ]
+
+
+def test_a_video_cut_short_is_counted_and_listed_in_the_summary(tmp_path, cli):
+    import cv2
+
+    w = cv2.VideoWriter(str(tmp_path / "whole.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        w.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    w.release()
+    data = (tmp_path / "whole.avi").read_bytes()
+    (tmp_path / "cut.avi").write_bytes(data[: len(data) // 2])  # its header still announces 20 frames
+    p = cli("run", "-c", "tiny", "-s", str(tmp_path / "cut.avi"), "-o", str(tmp_path / "o"), "--mode", "thread",
+            "--no-progress")  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert "inputs truncated, decoded partially: 1 (listed in summary.json)" in p.stdout
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert 0 < s["frames_submitted"] < 18 and s["inputs_partial"] == [str(tmp_path / "cut.avi")]
 
 
 def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path, cli):

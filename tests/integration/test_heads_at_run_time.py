@@ -207,9 +207,9 @@ def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():
 
         with pytest.raises(ConfigError, match="unique; repeated: \\['seg'\\]"):
             eng.add_head({"name": "seg", "model": "tiny_seg"})
-        with pytest.raises(ConfigError, match="heads.2.priority"):
+        with pytest.raises(ConfigError, match="heads.det2.priority"):
             eng.add_head({**DET2, "priority": 101})
-        with pytest.raises(ConfigError, match="heads.2"):
+        with pytest.raises(ConfigError, match="heads.det2.no_such_field: unknown key"):
             eng.add_head("{name: det2, model: tiny_det, no_such_field: 1}")
         with pytest.raises(ValueError, match="a mapping"):
             eng.add_head("just text")

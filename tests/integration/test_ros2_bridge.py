@@ -668,7 +668,7 @@ def test_heads_added_and_removed_over_dds_get_and_lose_their_topics_and_bad_comm
             before = (core.engine.stats()["models"].keys(), list(core.topics), core.model_names)
             add.write(T.String_("{name: det3, model: tiny_det, no_such_field: 1}"))
             done = outcome()
-            assert not done["ok"] and done["head"] == "det3" and "heads.3" in done["message"], done
+            assert not done["ok"] and done["head"] == "det3" and "heads.det3.no_such_field" in done["message"], done
             remove.write(T.String_("nope"))
             done = outcome()
             assert not done["ok"] and "no head named 'nope'" in done["message"], done

@@ -260,7 +260,7 @@ def test_backend_options_is_a_strict_config_field():
     cfg = tiny("thread", "heads.depth.backend=compile", "heads.depth.backend_options={mode: max-autotune}")
     assert cfg.head("depth").backend_options == {"mode": "max-autotune"}
     assert cfg.head("seg").backend_options == {}
-    with pytest.raises(ConfigError, match=r"heads.0.backend_options"):
+    with pytest.raises(ConfigError, match=r"heads.depth.backend_options"):
         tiny("thread", "heads.depth.backend_options=[1, 2]")
 
 

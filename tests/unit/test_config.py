@@ -8,7 +8,7 @@ import typing
 import pytest
 from pydantic import BaseModel
 
-from tests_paths import ROOT
+from tests_paths import ROOT, TINY
 from vpengine.config import ConfigError, EngineConfig, dump_config, load_config
 
 CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
@@ -32,7 +32,18 @@ def test_unknown_key_names_the_path_and_the_accepted_keys():
     with pytest.raises(ConfigError) as e:
         load_config({"heads": [{"name": "d", "model": "tiny_depth", "rate": 5}]})
     msg = str(e.value)
-    assert "heads.0.rate: unknown key" in msg and "rate_hz" in msg and "postprocess" in msg
+    assert "heads.d.rate: unknown key" in msg and "rate_hz" in msg and "postprocess" in msg
+
+
+def test_an_error_names_a_list_item_by_its_name_as_set_takes_it_and_quotes_the_value_once():
+    with pytest.raises(ConfigError) as e:
+        load_config(TINY, ["heads.depth.rate_hz=fast", "cameras=[{name: front}, {name: rear.left}]"])
+    lines = str(e.value).splitlines()[1:]
+    assert lines[0].startswith("  cameras.1.name: ")  # a name with a dot is no path: the index stands
+    assert lines[1] == (
+        "  heads.depth.rate_hz: Value error, rate must be None (no limit) or a number of Hz from 0 to 10000 "
+        "(0 pauses), got 'fast'"
+    )
 
 
 def test_bad_values_name_field_value_and_what_is_accepted():
@@ -49,7 +60,7 @@ def test_bad_values_name_field_value_and_what_is_accepted():
     assert "mode: Input should be 'process' or 'thread' (got \"fiber\")" in msg
     assert "device" in msg and "'gpu0' is not one of: cpu, cuda, cuda:N" in msg
     assert "input.height: Input should be greater than or equal to 14 (got 5)" in msg
-    assert "heads.0.rate_hz" in msg and "got -3" in msg
+    assert "heads.d.rate_hz" in msg and "got -3" in msg
 
 
 def test_duplicate_and_reserved_head_names_fail():

@@ -283,7 +283,7 @@ def test_governor_caps_lanes_in_the_control_block_and_the_foundation_only_as_far
 def test_priorities_in_the_config_are_bounded_and_overridable():
     cfg = tiny("thread", "cameras=[{name: front}, {name: rear}]", "heads.depth.priority=5", "cameras.rear.priority=-3")
     assert cfg.head("depth").priority == 5 and cfg.cameras[1].priority == -3 and cfg.head("seg").priority == 0
-    with pytest.raises(ConfigError, match="heads.0.priority"):
+    with pytest.raises(ConfigError, match="heads.depth.priority"):
         tiny("thread", "heads.depth.priority=101")
 
 

@@ -23,6 +23,7 @@ from tests_paths import tiny
 from vpengine.bench.common import proc_stat
 from vpengine.config import ConfigError
 from vpengine.engine import Engine, EngineDeadError, EngineStartError
+from vpengine.models.base import ModelBuildError
 from vpengine.models.build import build_lock
 
 pytestmark = pytest.mark.timeout(300)
@@ -279,6 +280,8 @@ def test_no_seat_left_says_how_to_get_one():
     with Engine(two_heads("thread", "runtime.spare_heads=0")) as eng:
         with pytest.raises(RuntimeError, match="runtime.spare_heads is 0"):
             eng.add_head(DET2)
+        with pytest.raises(ModelBuildError, match="unknown head model 'tiny_dett'; known: "):  # the first thing wrong
+            eng.add_head({"name": "det2", "model": "tiny_dett"})
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
 
 

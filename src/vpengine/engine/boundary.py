@@ -323,8 +323,13 @@ class Boundary:
         if frame.size == 0:
             raise ValueError(f"expected {want}; got an empty array of shape {frame.shape}")
         if frame.ndim != 3 or frame.shape[2] != 3:
-            channels = frame.shape[2] if frame.ndim == 3 else "no channel axis"
-            raise ValueError(f"expected {want}; got shape {frame.shape} ({channels} channels)")
+            if frame.ndim == 2:
+                why = "a single-channel image: convert it, e.g. cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)"
+            elif frame.ndim == 3:
+                why = f"{frame.shape[2]} channels"
+            else:
+                why = f"{frame.ndim} dimensions"
+            raise ValueError(f"expected {want}; got shape {frame.shape} ({why})")
         if max(frame.shape[:2]) > self.max_side:
             raise ValueError(
                 f"expected {want}; got {frame.shape[1]}x{frame.shape[0]} (raise input.max_frame_side to allow it)"

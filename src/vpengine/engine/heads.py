@@ -22,6 +22,7 @@ import yaml
 
 from vpengine.config import EngineConfig, HeadConfig, load_config
 from vpengine.models.build import BuildCancelled
+from vpengine.models.registry import resolve
 from vpengine.models.weights import check_checkpoints
 from vpengine.runtime.lanes import Lanes, make_lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
@@ -100,6 +101,7 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             )
         if h.input_mode == "fifo":
             raise ValueError(f"head {h.name!r}: input_mode fifo is for heads configured at start; add it as latest")
+        resolve(h.model, "head")  # a model that does not exist is named before the room for it is counted
         seats = engine.lanes.seats
         if not seats:
             raise RuntimeError(

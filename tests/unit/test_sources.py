@@ -218,3 +218,60 @@ def test_what_a_pipeline_reads_has_a_default_on_every_source():
     stream = VideoSource("https://user:secret@example.com/v.mp4", FakeCamera(), live=False)
     assert stream.pace == "lockstep" and "secret" not in stream.describe()
     stream.close()
+
+
+# ------------------------------------------------------------------------------------------------ short videos
+def write_video(path, frames: int = 30) -> bytes:
+    """A small MJPG AVI of noise (every frame a full JPEG, so a cut one ends at a frame), its bytes returned."""
+    import cv2
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    w = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10, (64, 48))
+    assert w.isOpened()
+    for _ in range(frames):
+        w.write(rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    w.release()
+    return path.read_bytes()
+
+
+def test_a_video_cut_short_ends_with_a_warning_naming_it_and_is_listed_as_partial(tmp_path, caplog):
+    from vpengine.io.sources import open_source
+
+    data = write_video(tmp_path / "whole.avi")
+    (tmp_path / "cut.avi").write_bytes(data[: len(data) // 2])  # its header still announces 30 frames
+    with caplog.at_level("WARNING", logger="vpengine.sources"), open_source(str(tmp_path / "cut.avi")) as src:
+        assert len(src) == 30
+        n = len(list(src))
+    assert 0 < n < 28 and src.partial == [str(tmp_path / "cut.avi")]
+    (line,) = [r.getMessage() for r in caplog.records]
+    assert f"video '{tmp_path / 'cut.avi'}' ended after {n} of the 30 frames its header announces" in line
+
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="vpengine.sources"), open_source(str(tmp_path / "whole.avi")) as src:
+        assert len(list(src)) == 30
+    assert src.partial == [] and caplog.records == []
+
+
+class CountedClip(FakeCamera):
+    """A stand-in video file whose header announces ``announced`` frames."""
+
+    def __init__(self, announced: int, end_at: int) -> None:
+        super().__init__(end_at=end_at)
+        self.announced = announced
+        self.deliver(end_at + 1)  # a file: every frame there at once
+
+    def get(self, prop: int) -> float:
+        import cv2
+
+        return float(self.announced) if prop == cv2.CAP_PROP_FRAME_COUNT else super().get(prop)
+
+
+@pytest.mark.parametrize(("frames", "short"), [(40, False), (39, False), (38, False), (37, True), (0, True)])
+def test_a_video_is_short_only_when_it_ends_more_than_two_frames_before_its_header_count(frames, short, caplog):
+    # headers are approximate (Note [Short videos]): a frame or two missing is no damage
+    src = VideoSource("clip.mp4", CountedClip(announced=40, end_at=frames), live=False)
+    with caplog.at_level("WARNING", logger="vpengine.sources"):
+        assert len(list(src)) == frames
+    assert src.partial == (["clip.mp4"] if short else [])
+    assert (f"ended after {frames} of the 40 frames" in caplog.text) is short

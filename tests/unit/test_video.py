@@ -124,3 +124,24 @@ def test_a_video_is_written_by_a_process_without_a_stderr(tmp_path, monkeypatch)
     monkeypatch.setattr(os, "dup", no_stderr)
     write_frames(tmp_path / "v.mp4", (60, 80))
     assert len(read_back(tmp_path / "v.mp4")) == 3
+
+
+@pytest.mark.parametrize("name", ["v.gif", "v.ogv", "v.h264", "v"])
+def test_a_name_that_is_no_video_the_writer_makes_is_refused_naming_it_and_the_accepted_ones(tmp_path, name):
+    path = tmp_path / name
+    with pytest.raises(ValueError) as e:
+        video.VideoWriter(path, 10, (64, 48))
+    assert str(e.value) == (
+        f"video {str(path)!r}: cannot write a video as {repr(path.suffix) if path.suffix else 'no extension'}; "
+        "name it .mp4, .avi, .m4v, .mkv, .mov, .webm (browsers play .mp4 and .webm)"
+    )
+    assert not path.exists()
+
+
+@pytest.mark.parametrize("name", ["v.avi", "v.m4v", "v.mkv", "v.mov", "V.MP4"])
+@pytest.mark.parametrize("pyav", [True, False])
+def test_every_accepted_name_is_written_and_reads_back_with_pyav_or_opencv_alone(tmp_path, monkeypatch, name, pyav):
+    if not pyav:
+        monkeypatch.setitem(sys.modules, "av", None)
+    write_frames(tmp_path / name, (30, 40))
+    assert len(read_back(tmp_path / name)) == 3

@@ -104,7 +104,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--viz", action="store_true", help="also write pictures: depth with a colour bar, overlays, boxes")
     p.add_argument(
         "--video",
-        help="also write an annotated mp4: the input and every head side by side, one frame per frame",
+        help="also write an annotated mp4: the input and every head side by side, one frame per frame (.mp4, .avi, "
+        ".m4v, .mkv, .mov: H.264 where an encoder is there; .webm: VP8)",
     )
     p.add_argument("--mode", choices=["process", "thread"], help="override the config's mode")
     p.add_argument("--device", help="override the config's device (cpu, cuda, cuda:N)")
@@ -158,7 +159,7 @@ def format_summary(s: dict[str, Any]) -> str:
     if s.get("inputs_skipped"):
         lines.append(f"images skipped as unreadable: {len(s['inputs_skipped'])} (listed in summary.json)")
     if s.get("inputs_partial"):
-        lines.append(f"images truncated, decoded partially: {len(s['inputs_partial'])} (listed in summary.json)")
+        lines.append(f"inputs truncated, decoded partially: {len(s['inputs_partial'])} (listed in summary.json)")
     unwritten = {n: m["results_unwritten"] for n, m in s["models"].items() if m.get("results_unwritten")}
     if unwritten:
         lines.append(
@@ -225,6 +226,7 @@ def _unique(names: list[Any], flag: str) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from vpengine.io.video import check_name
     from vpengine.named_inputs import config_for_cameras
     from vpengine.pipeline.run import Pipeline, open_sources, video_paths
 
@@ -238,6 +240,7 @@ def main(args: argparse.Namespace) -> int:
         prepare_out_file(args.out_bag, False, "--out-bag", replaceable=False)
     videos = video_paths(args.video, cameras if len(cameras) > 1 else None) if args.video else {}
     for path in videos.values():
+        check_name(path, "--video")
         prepare_out_file(path, args.exist_ok, "--video")
     if args.out:
         prepare_out_dir(args.out, args.exist_ok)

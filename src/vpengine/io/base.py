@@ -44,7 +44,7 @@ class Source:
     missed: int = 0
     #: Inputs skipped as unreadable, each a dict naming it and why.
     skipped: Sequence[dict[str, Any]] = ()
-    #: Inputs decoded only in part (truncated images), by name.
+    #: Inputs decoded only in part (truncated images, videos that end short: Note [Short videos]), by name.
     partial: Sequence[str] = ()
     #: The exact input header of the frame a result came from, given the result and its frame's name (a bag's,
     #: Note [Output headers] in ``vpengine.ros2.core``); None: the source has no headers.

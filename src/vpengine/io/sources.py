@@ -33,6 +33,15 @@ SAMPLES = Path(__file__).resolve().parents[1] / "samples"
 IMAGE_EXTS = {".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp"}
 VIDEO_EXTS = {".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"}
 
+#: Note [Short videos]: a video file whose frames end early (cut off by a copy or a download, damaged) reads like a
+#: whole one: OpenCV's read just says there are no more frames. Its header's frame count (``CAP_PROP_FRAME_COUNT``)
+#: tells the two apart, but only roughly: it is the container's count where it keeps one (AVI, MP4) and otherwise
+#: the duration times the rate, rounded, which can be a frame or so off either way (rounding, a shorter last frame,
+#: leading frames the decoder drops before a keyframe). So a file is short when it ends more than this many frames
+#: before its count; a cut-off file ends far earlier. A variable-rate file without a count can still be estimated
+#: further off: its warning is then a false alarm, which beats a truncated file passing in silence.
+SHORT_VIDEO_SLACK = 2
+
 
 class SyntheticSource(Source):
     """Moving shapes on a gradient: deterministic, any size and rate, no files needed.
@@ -185,7 +194,8 @@ class VideoSource(Source):
     the seconds after which ``capture`` gives up on a frame, when it was opened with one (a stream); a source
     ended by it says so. ``what`` names the source in messages. ``first``: a frame already read from ``capture``
     (to check it delivers) and its stamp: a file yields it first, a live source drops it (stale by the time the frame
-    loop starts)."""
+    loop starts). A file that ends well before the frame count its header announces (a truncated or damaged file,
+    Note [Short videos]) ends with a warning and is listed in ``partial``."""
 
     def __init__(
         self,
@@ -214,6 +224,8 @@ class VideoSource(Source):
         self.read_timeout = read_timeout
         #: A camera's frames that a newer frame replaced before anyone took them (Note [Live capture]).
         self.missed = 0
+        #: This file, when it ended before the frames its header announced (Note [Short videos]).
+        self.partial: list[str] = []
         self._first = first
         if first is not None:
             self.height, self.width = first[0].shape[:2]
@@ -246,11 +258,21 @@ class VideoSource(Source):
             i += 1
 
     def _ended(self, frames: int, waited: float) -> None:
-        """Say why frames stopped coming, when that is news: a live source ending, or a stream's read timing out."""
+        """Say why frames stopped coming, when that is news: a live source ending, a stream's read timing out, or a
+        file ending short of the frames its header announced (Note [Short videos])."""
         if self.read_timeout is not None and waited >= 0.9 * self.read_timeout:
             log.warning("%s ended after %d frames: no frame came for %.0f s", self.what, frames, waited)
         elif self.live:
             log.warning("%s ended after %d frames: it stopped delivering", self.what, frames)
+        elif frames < self._n - SHORT_VIDEO_SLACK:
+            log.warning(
+                "%s ended after %d of the %d frames its header announces: the file is truncated or damaged "
+                "(listed in the summary's inputs_partial)",
+                self.what,
+                frames,
+                self._n,
+            )
+            self.partial.append(str(self.path))
 
     def _newest(self) -> Iterator[Frame]:
         """Note [Live capture]: a camera delivers frames at its own rate whether or not they are read. Read in the

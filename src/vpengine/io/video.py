@@ -15,7 +15,10 @@ against 24 ms for mp4v. So an mp4 is written, in this order, by:
    other threads' stderr, so it happens once, not per file);
 3. OpenCV's 'mp4v', with a warning that browsers will not play it and how to get H.264.
 
-A ``.webm`` name asks for WebM: VP8 through OpenCV (slow, as said). H.264 and 4:2:0 colour need an even width and
+A ``.webm`` name asks for WebM: VP8 through OpenCV (slow, as said). Any other name's extension picks the container
+of the H.264 (or 'mp4v'): only those in :data:`VIDEO_SUFFIXES`, which hold both, are taken. :func:`check_name`
+refuses the rest before a run starts: the writer opens at the first annotated frame, and FFmpeg's own refusal of,
+say, a ``.gif`` would come then, reading like a missing encoder. H.264 and 4:2:0 colour need an even width and
 height: the picture's size is rounded up to even numbers and :func:`fit` letterboxes it by a pixel.
 """
 
@@ -36,6 +39,22 @@ log = logging.getLogger("vpengine")
 
 #: What each writer writes, as :attr:`VideoWriter.codec` says it.
 H264, VP8, MP4V = "h264", "vp8", "mp4v"
+#: The file names a :class:`VideoWriter` writes, by extension (any case): ``.webm`` gets VP8, the others H.264 or
+#: 'mp4v' (Note [Browser video]); each was written and read back with PyAV and with OpenCV alone.
+VIDEO_SUFFIXES = (".mp4", ".avi", ".m4v", ".mkv", ".mov", ".webm")
+
+
+def check_name(path: str | Path, what: str = "video") -> Path:
+    """``path`` when its extension is one of :data:`VIDEO_SUFFIXES`; else ValueError, one line, naming it and the
+    accepted ones. ``what`` names the file in the message (e.g. ``--video``)."""
+    p = Path(path)
+    if p.suffix.lower() not in VIDEO_SUFFIXES:
+        ext = repr(p.suffix) if p.suffix else "no extension"
+        raise ValueError(
+            f"{what} {str(p)!r}: cannot write a video as {ext}; name it {', '.join(VIDEO_SUFFIXES)} "
+            "(browsers play .mp4 and .webm)"
+        )
+    return p
 
 
 def even_size(width: int, height: int) -> tuple[int, int]:
@@ -46,10 +65,10 @@ def even_size(width: int, height: int) -> tuple[int, int]:
 class VideoWriter:
     """Writes BGR uint8 pictures of one ``size`` (width, height; even numbers, :func:`even_size`) to ``path`` at
     ``fps`` with the first encoder that works (Note [Browser video]); :attr:`codec` says which. Raises OSError
-    naming the file when nothing can write it."""
+    naming the file when nothing can write it, ValueError (:func:`check_name`) when its extension is not a video."""
 
     def __init__(self, path: str | Path, fps: float, size: tuple[int, int]) -> None:
-        self.path = Path(path)
+        self.path = check_name(path)
         self.size = size
         if size != even_size(*size):
             raise ValueError(f"video size must be even numbers of pixels (even_size), got {size[0]}x{size[1]}")

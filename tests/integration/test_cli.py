@@ -429,3 +429,18 @@ def test_a_folder_of_mixed_sizes_gives_outputs_at_each_images_size(tmp_path, cli
     for i, size in enumerate(sizes):
         assert load_depth(tmp_path / "o" / "depth", f"im{i}").shape == size
         assert cv2.imread(str(tmp_path / "o" / "seg" / f"im{i}.png"), cv2.IMREAD_UNCHANGED).shape == size
+
+
+def test_a_run_with_frames_a_head_failed_on_ends_with_exit_status_3_naming_them(tmp_path, cli):
+    # every frame answered, the errors counted: the run goes to its end, and its exit status says so
+    p = cli(
+        "run", "-c", "tiny", "-s", "synthetic:64x64@30:8", "-o", str(tmp_path / "o"), "--mode", "thread", "--no-progress",
+        "--set", "heads.seg.model=helpers.faulty:FaultyHead", "--set", "heads.seg.options={raise_every: 2}",
+    )  # fmt: skip
+    assert p.returncode == 3, p.stderr
+    s = json.loads((tmp_path / "o" / "summary.json").read_text())
+    failed = s["models"]["seg"]["errors"]
+    assert failed >= 3 and s["models"]["depth"]["errors"] == 0 and s["frames_submitted"] == 8
+    assert f"vpengine run: frames a model failed on: seg {failed} (counted in summary.json" in p.stderr
+    p = cli("run", "-c", "tiny", "-s", "synthetic:64x64@30:3", "--mode", "thread", "--no-progress")
+    assert p.returncode == 0, p.stderr

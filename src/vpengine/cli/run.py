@@ -126,6 +126,10 @@ def run_served(pipe: Pipeline, serve: ServeOptions | None, report: Callable[[dic
     return summary
 
 
+#: The exit status of a run that went to its end with frames some model failed on (each counted in the summary)
+FRAMES_FAILED = 3
+
+
 def format_summary(s: dict[str, Any]) -> str:
     missed = f"; camera frames a newer one replaced: {s['source_missed']}" if s.get("source_missed") else ""
     stopped = "interrupted after " if s.get("interrupted") else ""
@@ -156,6 +160,8 @@ def format_summary(s: dict[str, Any]) -> str:
     for x in cameras.values():  # each camera's share, named by its lane's entry, as rate commands name it
         lines += [row(m["entry"], m) for m in x["models"].values()]
     lines.append("(latency: submit -> result for heads; model time for the foundation model)")
+    if s.get("pace") == "lockstep" and any(m["target_hz"] for m in s["models"].values()):
+        lines.append("(a target in lockstep is per second of the source's time; achieved is per second of the run)")
     if s.get("inputs_skipped"):
         lines.append(f"images skipped as unreadable: {len(s['inputs_skipped'])} (listed in summary.json)")
     if s.get("inputs_partial"):
@@ -288,7 +294,18 @@ def main(args: argparse.Namespace) -> int:
             video=args.video,
         )
         summary = run_served(pipe, serve, report)
-    return 130 if summary["interrupted"] else 0
+    if summary["interrupted"]:
+        return 130
+    failed = {n: m["errors"] for n, m in summary["models"].items() if m.get("errors")}
+    if failed:  # a script or a CI job sees it in the exit status, not only in the table
+        each = ", ".join(f"{n} {k}" for n, k in failed.items())
+        print(
+            f"vpengine run: frames a model failed on: {each} (counted in summary.json, the log says why); exit "
+            f"status {FRAMES_FAILED}",
+            file=sys.stderr,
+        )
+        return FRAMES_FAILED
+    return 0
 
 
 def _input_headers(sources: Mapping[str | None, Source]) -> Callable[[Result, str], Header] | None:

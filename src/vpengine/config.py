@@ -377,12 +377,16 @@ def _clip(text: str, limit: int = _SHOWN_CHARS) -> str:
 def _named_loc(loc: tuple[Any, ...], data: Any) -> str:
     """An error's place as a user writes it: a list item by its ``name`` where it has one (``heads.depth.rate_hz``,
     as ``--set`` takes it), else by its index."""
-    parts, node = [], data
+    parts: list[str] = []
+    node = data
     for p in loc:
         if isinstance(p, int) and isinstance(node, list) and 0 <= p < len(node):
+            names = [x.get("name") if isinstance(x, dict) else None for x in node]
             node = node[p]
-            name = node.get("name") if isinstance(node, dict) else None
-            parts.append(str(name) if isinstance(name, str) and name and "." not in name else str(p))
+            name = names[p]
+            # only a valid name that no other item has: --set would take anything else as another item, or none
+            usable = isinstance(name, str) and NAME_RE.match(name) is not None and names.count(name) == 1
+            parts.append(str(name) if usable else str(p))
         else:
             node = node.get(p) if isinstance(node, dict) else None
             parts.append(str(p))
@@ -401,7 +405,7 @@ def _format_validation_error(err: ValidationError, source: str, data: Any = None
             given = e.get("input")
             shown = _clip(json.dumps(given, default=str)) if not isinstance(given, dict) else "{...}"
             msg = _clip(e["msg"], 4 * _SHOWN_CHARS)
-            said = ", got " in msg  # a validator of ours that quotes the value already
+            said = e["type"] == "value_error" and ", got " in msg  # a validator of ours quoting the value already
             lines.append(f"  {loc}: {msg}" if said else f"  {loc}: {msg} (got {shown})")
     return "\n".join(lines)
 

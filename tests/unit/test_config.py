@@ -40,6 +40,12 @@ def test_an_error_names_a_list_item_by_its_name_as_set_takes_it_and_quotes_the_v
         load_config(TINY, ["heads.depth.rate_hz=fast", "cameras=[{name: front}, {name: rear.left}]"])
     lines = str(e.value).splitlines()[1:]
     assert lines[0].startswith("  cameras.1.name: ")  # a name with a dot is no path: the index stands
+    with pytest.raises(ConfigError) as e:  # nor is one that --set would read as an index
+        load_config(TINY, ["cameras=[{name: '1'}, {name: rear}]"])
+    assert str(e.value).splitlines()[1].startswith("  cameras.0.name: ")
+    with pytest.raises(ConfigError) as e:  # pydantic's own "got ..." is no quote of the value: it is given
+        load_config(TINY, ["input.height=14.5"])
+    assert str(e.value).splitlines()[1].endswith("got a number with a fractional part (got 14.5)")
     assert lines[1] == (
         "  heads.depth.rate_hz: Value error, rate must be None (no limit) or a number of Hz from 0 to 10000 "
         "(0 pauses), got 'fast'"

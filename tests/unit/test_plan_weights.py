@@ -178,13 +178,20 @@ def test_a_file_that_is_not_a_checkpoint_is_refused_in_a_line_with_the_reason_an
         assert "weights_only` set to `False`" not in msg and "file an issue" not in msg  # torch's advice: not ours
 
 
-def test_a_folder_named_as_checkpoint_is_refused_naming_the_files_in_it(empty_cache, tmp_path):
+def test_a_folder_named_as_checkpoint_is_refused_naming_the_files_in_it(empty_cache, tmp_path, monkeypatch):
     (tmp_path / "head.pth").write_bytes(b"x")
     (tmp_path / "notes.txt").write_text("not a checkpoint")
     with pytest.raises(CheckpointError) as e:
         Engine(user_head("DeclaredCheckpointHead", checkpoint=str(tmp_path)))
     line = str(e.value).splitlines()[1]
     assert line == f"mine: checkpoint {str(tmp_path)!r} is a folder: name the checkpoint file in it; in it: head.pth"
+
+    # a catalog name is the catalog's, whatever folder of that name is where the engine starts
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "depth_anything_v2_vits").mkdir()
+    with pytest.raises(CheckpointError) as e:
+        Engine(user_head("DeclaredCheckpointHead", checkpoint="depth_anything_v2_vits"))
+    assert "`vpengine weights fetch depth_anything_v2_vits`" in str(e.value) and "is a folder" not in str(e.value)
 
 
 def test_a_checkpoint_no_model_will_load_is_said_to_be_ignored(empty_cache, caplog, monkeypatch):
@@ -195,10 +202,13 @@ def test_a_checkpoint_no_model_will_load_is_said_to_be_ignored(empty_cache, capl
         Engine(cfg)  # planned
     said = [r.getMessage() for r in caplog.records if "mine.pth" in r.getMessage()]
     assert said == [
-        "mine: checkpoint '/data/runs/mine.pth' is set, but model 'helpers.models:TinyDepthHead' declares none to "
-        "load (Model.needed_checkpoint), so vpengine neither checks nor loads it: it is ignored unless the model's "
-        "own load_checkpoint reads it"
+        "mine: checkpoint '/data/runs/mine.pth' is set, but model 'helpers.models:TinyDepthHead' loads none (it "
+        "declares none in needed_checkpoint and has no load_checkpoint of its own): it is ignored"
     ]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="vpengine.weights"):  # one that reads it itself is left alone
+        Engine(user_head("OwnWeightsHead", checkpoint="/data/runs/mine.pth"))
+    assert not [r for r in caplog.records if "mine.pth" in r.getMessage()]
 
     # random weights win over a configured checkpoint: the warning that says so names it
     monkeypatch.setattr(weights, "_RANDOM_WARNED", set())

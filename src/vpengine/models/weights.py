@@ -102,16 +102,16 @@ def _locate(recipe: str, name: str) -> Path:
     path = Path(name).expanduser()
     if path.is_file():
         return path
+    cache = catalog.cache_dir()
+    entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
+    if entry is not None:
+        return cached_checkpoint(entry, cache)
     if path.is_dir():
         found = sorted(p.name for p in path.iterdir() if p.suffix in _FILE_SUFFIXES)
         inside = f"; in it: {', '.join(found[:5])}{' ...' if len(found) > 5 else ''}" if found else ""
         raise CheckpointError(
             f"checkpoint {str(path.absolute())!r} is a folder: name the checkpoint file in it{inside}"
         )
-    cache = catalog.cache_dir()
-    entry = catalog.find(name, cache)  # the cache may hold the user's custom entries
-    if entry is not None:
-        return cached_checkpoint(entry, cache)
     if path.suffix in _FILE_SUFFIXES or os.sep in name:
         raise CheckpointError(
             f"checkpoint file {str(path.absolute())!r} does not exist (and {name!r} is not a catalog name)"
@@ -139,13 +139,13 @@ def check_checkpoints(cfg: Any, models: Mapping[str, Model]) -> None:
             needed = model.needed_checkpoint(mcfg)
             if needed is not None:
                 _locate(mcfg.model, needed)
-            elif getattr(mcfg, "checkpoint", None):
-                # Nothing lost silently: a user who set a checkpoint expects it in use. A model that declares none
-                # may still read it in its own load_checkpoint, so this is said, not refused.
+            elif getattr(mcfg, "checkpoint", None) and type(model).load_checkpoint is Model.load_checkpoint:
+                # Nothing lost silently: a user who set a checkpoint expects it in use. A model with a
+                # load_checkpoint of its own may read it there (docs/models.md), so only one without is said to
+                # ignore it.
                 log.warning(
-                    "%s: checkpoint %r is set, but model %r declares none to load (Model.needed_checkpoint), so "
-                    "vpengine neither checks nor loads it: it is ignored unless the model's own load_checkpoint "
-                    "reads it",
+                    "%s: checkpoint %r is set, but model %r loads none (it declares none in needed_checkpoint and "
+                    "has no load_checkpoint of its own): it is ignored",
                     name,
                     str(mcfg.checkpoint),
                     mcfg.model,

@@ -412,11 +412,11 @@ class WorkerCore:
     def _check_window(self, lane: _Lane) -> None:
         """Note [Cameras]: a window as long as a camera's frame spacing lets a batch wait for that camera's *next*
         frame once this one's has run, up to a frame's time on every frame. Said once, when the spacing is known,
-        and only of a window set above the default: frames closer than the default's 5 ms are a file or a burst
-        handed in as fast as the models go, not a camera's spacing, and the advice would be the setting as it is."""
+        and only of a spacing of the default window's 5 ms or more: frames closer than that are a file or a burst
+        handed in as fast as the models go (a lockstep run), not a camera's, and the default window is the advice."""
         if self._window_said or len(lane.spacings) < SPACINGS or lane.interval > self.window:
             return
-        if self.window <= _DEFAULT_WINDOW_S:
+        if lane.interval < _DEFAULT_WINDOW_S:
             return
         self._window_said = True
         log.warning(
@@ -728,11 +728,13 @@ def input_keys(spec: WorkerSpec, in_ring: SlotRing) -> list[str]:
 
 
 def describe_exception(name: str, exc: BaseException) -> str:
-    """``name (pid P): Type: message`` and the traceback. A ModelBuildError raised for its own reason (no cause
-    chained: a missing or unreadable checkpoint, a model that does not fit its config) says what is wrong and the fix
-    in its message; its traceback would bury that line under vpengine's frames and repeat it, so it has none."""
+    """``name (pid P): Type: message`` and the traceback. A ModelBuildError raised for its own reason (no other error
+    chained to it, explicitly or while handling one: a missing or unreadable checkpoint, a model that does not fit
+    its config) says what is wrong and the fix in its message; its traceback would bury that line under vpengine's
+    frames and repeat it, so it has none."""
     head = f"{name} (pid {os.getpid()}): {type(exc).__name__}: {exc}"
-    if isinstance(exc, ModelBuildError) and exc.__cause__ is None:
+    alone = exc.__cause__ is None and (exc.__context__ is None or exc.__suppress_context__)
+    if isinstance(exc, ModelBuildError) and alone:
         return head
     tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
     return f"{head}\n{tb}"

@@ -473,6 +473,14 @@ def test_cli_export_without_the_onnx_extra_names_what_installs_it(tmp_path, caps
     err = capsys.readouterr().err
     assert "depth: ONNX export (dynamo) needs onnxscript, which is not installed: pip install 'vpengine[onnx]'" in err
 
+    def exporter_of_a_model_lacking_its_own_dependency(*args, **kwargs):  # no extra of ours installs it
+        raise ModuleNotFoundError("No module named 'my_site_dep'", name="my_site_dep")
+
+    monkeypatch.setattr(torch.onnx, "export", exporter_of_a_model_lacking_its_own_dependency)
+    assert cli(["export", "-c", str(TINY), "-m", "depth", "-o", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert "failed: ModuleNotFoundError: No module named 'my_site_dep'" in err and "vpengine[onnx]" not in err
+
 
 # ------------------------------------------------------------------------------------------ every recipe
 #: Options a recipe cannot be built without (it has no defaults for them), keyed by model class.

@@ -285,3 +285,17 @@ def test_a_user_model_not_found_says_where_python_looked_and_the_fix(tmp_path, m
         "No module named 'surely_not_installed_dep' (a module 'my_site_pkg.heads' imports: install it in this "
         "environment)"
     )
+
+    with pytest.raises(ModelBuildError) as e:  # the package is there, its module is not: a typo
+        registry.resolve("my_site_pkg.headz:MyHead", "head")
+    assert str(e.value).endswith(
+        f"No module named 'my_site_pkg.headz'; package 'my_site_pkg' (found at {tmp_path / 'my_site_pkg'!s}) has "
+        "no module 'headz'"
+    )
+    (tmp_path / "my_site_pkg" / "broken.py").write_text("def oops(:\n")
+    with pytest.raises(ModelBuildError) as e:  # its own code fails: said, with the error chained for its traceback
+        registry.resolve("my_site_pkg.broken:MyHead", "head")
+    assert "importing 'my_site_pkg.broken' failed: SyntaxError" in str(e.value)
+    assert isinstance(e.value.__cause__, SyntaxError)
+    with pytest.raises(ModelBuildError, match="a relative module; name it from its package"):
+        registry.resolve(".heads:MyHead", "head")

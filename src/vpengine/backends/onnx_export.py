@@ -201,8 +201,10 @@ def _export_onnx(
                 raise BackendError(f"{name}: unknown exporter {exporter!r}; accepted: 'dynamo', 'torchscript'")
     except BackendError:
         raise
-    except ModuleNotFoundError as e:  # the exporters import onnx and onnxscript only now
-        raise BackendError(
+    except ModuleNotFoundError as e:
+        if (e.name or "").partition(".")[0] not in ("onnx", "onnxscript", "onnxruntime"):
+            raise BackendError(f"{name}: ONNX export ({exporter}, opset {opset}) failed: {_short(e)}") from e
+        raise BackendError(  # the exporters import onnx and onnxscript only now
             f"{name}: ONNX export ({exporter}) needs {e.name or 'a module that is missing'}, which is not installed: "
             "pip install 'vpengine[onnx]'"
         ) from e

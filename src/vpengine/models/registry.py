@@ -7,6 +7,7 @@ A config names a recipe (``dinov2_vits14``, ``tiny_depth``) or points at any imp
 from __future__ import annotations
 
 import importlib
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -41,12 +42,16 @@ def _import(target: str) -> type[Model]:
     module, _, attr = target.partition(":")
     if not module or not attr:
         raise ModelBuildError(f"model {target!r}: expected 'package.module:Class'")
+    if module.startswith("."):
+        raise ModelBuildError(f"model {target!r}: a relative module; name it from its package ('package.module:Class')")
     try:
         obj = getattr(importlib.import_module(module), attr)
     except ModuleNotFoundError as e:
         raise ModelBuildError(f"model {target!r} cannot be imported: {e}{_import_hint(module, e)}") from None
     except (ImportError, AttributeError) as e:
         raise ModelBuildError(f"model {target!r} cannot be imported: {e}") from None
+    except Exception as e:  # the module's own code failed (a SyntaxError, an error at import): its traceback says where
+        raise ModelBuildError(f"model {target!r}: importing {module!r} failed: {type(e).__name__}: {e}") from e
     if not (isinstance(obj, type) and issubclass(obj, Model)):
         raise ModelBuildError(f"model {target!r} is not a vpengine.models.Model subclass")
     return obj
@@ -57,6 +62,11 @@ def _import_hint(module: str, e: ModuleNotFoundError) -> str:
     if not e.name or not (module == e.name or module.startswith(e.name + ".")):
         return f" (a module {module!r} imports: install it in this environment)"
     root = module.partition(".")[0]
+    if e.name != root:  # the package is there: it lacks the module (a typo, or not the package meant)
+        parent, _, child = e.name.rpartition(".")
+        found = getattr(sys.modules.get(parent), "__path__", None)
+        at = f" (found at {', '.join(found)})" if found else ""
+        return f"; package {parent!r}{at} has no module {child!r}"
     here = Path.cwd()
     if (here / root).is_dir() or (here / f"{root}.py").is_file():
         where = (

@@ -267,11 +267,27 @@ class CountedClip(FakeCamera):
         return float(self.announced) if prop == cv2.CAP_PROP_FRAME_COUNT else super().get(prop)
 
 
-@pytest.mark.parametrize(("frames", "short"), [(40, False), (39, False), (38, False), (37, True), (0, True)])
-def test_a_video_is_short_only_when_it_ends_more_than_two_frames_before_its_header_count(frames, short, caplog):
-    # headers are approximate (Note [Short videos]): a frame or two missing is no damage
-    src = VideoSource("clip.mp4", CountedClip(announced=40, end_at=frames), live=False)
+@pytest.mark.parametrize(
+    ("announced", "frames", "short"),
+    [(40, 40, False), (40, 39, False), (40, 38, False), (40, 37, True), (40, 0, True), (400, 380, False),
+     (400, 379, True)],
+)  # fmt: skip
+def test_a_video_is_short_only_when_it_ends_over_two_frames_and_5_percent_before_its_count(
+    announced, frames, short, caplog
+):
+    # headers are approximate (Note [Short videos]): a frame or two missing, or a few percent, is no damage
+    src = VideoSource("clip.mp4", CountedClip(announced=announced, end_at=frames), live=False)
     with caplog.at_level("WARNING", logger="vpengine.sources"):
         assert len(list(src)) == frames
     assert src.partial == (["clip.mp4"] if short else [])
-    assert (f"ended after {frames} of the 40 frames" in caplog.text) is short
+    assert (f"ended after {frames} of the {announced} frames" in caplog.text) is short
+
+
+def test_a_short_video_at_a_url_is_listed_without_its_password(caplog):
+    src = VideoSource(
+        "https://user:secret@example.com/clip.mp4", CountedClip(announced=40, end_at=10), live=False,
+        what="video 'https://user:***@example.com/clip.mp4'",
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="vpengine.sources"):
+        assert len(list(src)) == 10
+    assert src.partial == ["https://user:***@example.com/clip.mp4"] and "secret" not in caplog.text

@@ -136,6 +136,10 @@ def test_a_name_that_is_no_video_the_writer_makes_is_refused_naming_it_and_the_a
         "name it .mp4, .avi, .m4v, .mkv, .mov, .webm (browsers play .mp4 and .webm)"
     )
     assert not path.exists()
+    from vpengine.io.sinks import AnnotatedSink
+
+    with pytest.raises(ValueError, match="cannot write a video as"):  # at construction, not at the first frame
+        AnnotatedSink({}, video=path)
 
 
 @pytest.mark.parametrize("name", ["v.avi", "v.m4v", "v.mkv", "v.mov", "V.MP4"])

@@ -65,7 +65,7 @@ def next_run_dir(base: str | Path = "runs/predict") -> Path:
 
 
 def main(args: argparse.Namespace) -> int:
-    from vpengine.cli.run import engine_overrides, format_summary, parse_sources, run_served
+    from vpengine.cli.run import engine_overrides, exit_status, format_summary, parse_sources, run_served
     from vpengine.config import load_config
     from vpengine.io.sinks import AnnotatedSink, per_camera
     from vpengine.named_inputs import config_for_cameras
@@ -111,4 +111,4 @@ def main(args: argparse.Namespace) -> int:
             folder=False,
         )
         summary = run_served(pipe, serve, report)
-    return 130 if summary["interrupted"] else 0
+    return exit_status(summary, "predict")

@@ -244,9 +244,10 @@ def main(args: argparse.Namespace) -> int:
     # every output is checked before the engine starts (and before the source opens a camera)
     if args.out_bag:
         prepare_out_file(args.out_bag, False, "--out-bag", replaceable=False)
+    if args.video:
+        check_name(args.video, "--video")  # the name given, before a camera's name goes into it
     videos = video_paths(args.video, cameras if len(cameras) > 1 else None) if args.video else {}
     for path in videos.values():
-        check_name(path, "--video")
         prepare_out_file(path, args.exist_ok, "--video")
     if args.out:
         prepare_out_dir(args.out, args.exist_ok)
@@ -294,18 +295,26 @@ def main(args: argparse.Namespace) -> int:
             video=args.video,
         )
         summary = run_served(pipe, serve, report)
+    return exit_status(summary, "run")
+
+
+def exit_status(summary: dict[str, Any], command: str) -> int:
+    """A finished run's exit status: 130 interrupted; FRAMES_FAILED when a model failed on frames or its worker was
+    restarted, said in a last line on stderr, so that a script or a CI job sees it, not only the table; else 0."""
     if summary["interrupted"]:
         return 130
-    failed = {n: m["errors"] for n, m in summary["models"].items() if m.get("errors")}
-    if failed:  # a script or a CI job sees it in the exit status, not only in the table
-        each = ", ".join(f"{n} {k}" for n, k in failed.items())
-        print(
-            f"vpengine run: frames a model failed on: {each} (counted in summary.json, the log says why); exit "
-            f"status {FRAMES_FAILED}",
-            file=sys.stderr,
-        )
-        return FRAMES_FAILED
-    return 0
+    models = summary["models"]
+    failed = ", ".join(f"{n} {m['errors']}" for n, m in models.items() if m.get("errors"))
+    restarted = ", ".join(f"{n} {m['restarts']}" for n, m in models.items() if m.get("restarts"))
+    said = [f"frames a model failed on: {failed}"] if failed else []
+    said += [f"workers restarted: {restarted}"] if restarted else []
+    if not said:
+        return 0
+    print(
+        f"vpengine {command}: {'; '.join(said)} (counted in summary.json, the log says why); exit status {FRAMES_FAILED}",
+        file=sys.stderr,
+    )
+    return FRAMES_FAILED
 
 
 def _input_headers(sources: Mapping[str | None, Source]) -> Callable[[Result, str], Header] | None:

@@ -5,7 +5,7 @@ instead, and the summary covers them all)::
 
     DIR/summary.json            achieved rates, skipped/dropped frames, latency percentiles per model, results
                                 left unwritten (Note [Sink thread]), camera frames replaced (Note [Live capture]),
-                                input images skipped as unreadable or decoded partially
+                                inputs skipped as unreadable or decoded partially (images, videos that end short)
     DIR/<head>/<frame>.png      depth as 16-bit PNG (``depth_format="png16"``, the default; Note [Depth PNG]), with
     DIR/<head>/depth_scale.jsonl  one line per PNG: the offset and scale that give the depth back
     DIR/<head>/<frame>.npy      depth as float32 (``depth_format="npy"``: exact, about 12x the PNG's size)
@@ -32,7 +32,7 @@ import numpy as np
 
 from vpengine import visualize
 from vpengine.engine.results import Result
-from vpengine.io.video import VideoWriter, even_size
+from vpengine.io.video import VideoWriter, check_name, even_size
 
 DEPTH_FORMATS = ("png16", "npy")
 #: Pictures are JPEGs of this quality: a third of quality 95's size (OpenCV's default), no difference to the eye.
@@ -392,7 +392,7 @@ class AnnotatedSink(Sink):
             raise ValueError(f"video rate must be a number of Hz above 0, got {fps}")
         self.heads = dict(heads)
         self.pictures = None if pictures is None else Path(pictures)
-        self.video = None if video is None else Path(video)
+        self.video = None if video is None else check_name(video)  # refused now, not at the first frame
         self.fps = fps
         self.lag = lag
         self.frames_written = 0

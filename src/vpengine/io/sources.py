@@ -36,11 +36,13 @@ VIDEO_EXTS = {".avi", ".mp4", ".mkv", ".mov", ".webm", ".m4v", ".mpg", ".mpeg"}
 #: Note [Short videos]: a video file whose frames end early (cut off by a copy or a download, damaged) reads like a
 #: whole one: OpenCV's read just says there are no more frames. Its header's frame count (``CAP_PROP_FRAME_COUNT``)
 #: tells the two apart, but only roughly: it is the container's count where it keeps one (AVI, MP4) and otherwise
-#: the duration times the rate, rounded, which can be a frame or so off either way (rounding, a shorter last frame,
-#: leading frames the decoder drops before a keyframe). So a file is short when it ends more than this many frames
-#: before its count; a cut-off file ends far earlier. A variable-rate file without a count can still be estimated
-#: further off: its warning is then a false alarm, which beats a truncated file passing in silence.
+#: the duration times the rate, rounded, which can be a frame or so off either way (rounding, a shorter last frame),
+#: and a clip cut without re-encoding counts the frames before its first keyframe that the decoder drops. So a file
+#: is short when it ends more than SHORT_VIDEO_SLACK frames and more than SHORT_VIDEO_SHARE of its count early; a
+#: cut-off file ends far earlier. A variable-rate file, or a copy-cut clip of a long keyframe interval, can still be
+#: further off: the warning says "may be", and a false alarm beats a truncated file passing in silence.
 SHORT_VIDEO_SLACK = 2
+SHORT_VIDEO_SHARE = 0.05
 
 
 class SyntheticSource(Source):
@@ -264,15 +266,15 @@ class VideoSource(Source):
             log.warning("%s ended after %d frames: no frame came for %.0f s", self.what, frames, waited)
         elif self.live:
             log.warning("%s ended after %d frames: it stopped delivering", self.what, frames)
-        elif frames < self._n - SHORT_VIDEO_SLACK:
+        elif frames < self._n - max(SHORT_VIDEO_SLACK, SHORT_VIDEO_SHARE * self._n):
             log.warning(
-                "%s ended after %d of the %d frames its header announces: the file is truncated or damaged "
+                "%s ended after %d of the %d frames its header announces: the file may be truncated or damaged "
                 "(listed in the summary's inputs_partial)",
                 self.what,
                 frames,
                 self._n,
             )
-            self.partial.append(str(self.path))
+            self.partial.append(redact(str(self.path)))
 
     def _newest(self) -> Iterator[Frame]:
         """Note [Live capture]: a camera delivers frames at its own rate whether or not they are read. Read in the

@@ -155,7 +155,7 @@ def test_release_scripts_gpu_test_parts_run_every_gpu_test_once(tmp_path):
     assert len(parts) == 3 and all(parts), [len(x) for x in parts]
     every = subprocess.run(
         [sys.executable, "-m", "pytest", "-m", "gpu", "tests/gpu", "--collect-only", "-q", "-p", "no:cacheprovider"],
-        cwd=ROOT, capture_output=True, text=True, timeout=120,
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     expected = sorted(line for line in every.stdout.splitlines() if "::" in line)
     assert len(expected) > 50, every.stdout[-2000:] + every.stderr[-2000:]

@@ -20,6 +20,7 @@ def engine():
 
 BAD_FRAMES = [
     (np.zeros((120, 160), np.uint8), r"got shape \(120, 160\) \(a single-channel image: convert it, e.g. cv2"),
+    (np.zeros((120, 160, 1), np.uint8), r"got shape \(120, 160, 1\) \(a single-channel image: convert it"),
     (np.zeros((2, 120, 160, 3), np.uint8), r"got shape \(2, 120, 160, 3\) \(4 dimensions\)"),
     (np.zeros((120, 160, 4), np.uint8), r"got shape \(120, 160, 4\) \(4 channels\)"),
     (np.zeros((9000, 14, 3), np.uint8), r"got 14x9000 \(raise input.max_frame_side to allow it\)"),

@@ -323,7 +323,7 @@ class Boundary:
         if frame.size == 0:
             raise ValueError(f"expected {want}; got an empty array of shape {frame.shape}")
         if frame.ndim != 3 or frame.shape[2] != 3:
-            if frame.ndim == 2:
+            if frame.ndim == 2 or (frame.ndim == 3 and frame.shape[2] == 1):
                 why = "a single-channel image: convert it, e.g. cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR)"
             elif frame.ndim == 3:
                 why = f"{frame.shape[2]} channels"

@@ -230,8 +230,8 @@ def serve(
 
 #: What a 404 lists (docs/web.md says what each does)
 _PAGES = (
-    "GET / (the live view), /api/stats, /api/latest/<head>.jpg, /metrics; PUT /api/rate/<head>, "
-    "/api/priority/<head>; POST /api/heads; DELETE /api/heads/<name>"
+    "GET / (the live view), /api/stats, /api/latest/<head>.jpg, /metrics; PUT /api/rate/<model>, "
+    "/api/priority/<key>; POST /api/heads; DELETE /api/heads/<head>"
 )
 
 

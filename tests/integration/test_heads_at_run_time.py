@@ -173,6 +173,29 @@ def test_a_removal_the_monitor_is_too_busy_to_finish_returns_in_time_and_says_so
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
 
 
+@pytest.mark.parametrize("mode", ["thread", "process"])
+def test_a_mailbox_added_or_removed_while_the_engine_stops_does_not_break_the_stop(mode):
+    # a removal woken by stop() drops its head's mailbox while stop() wakes every mailbox (a CI run caught it)
+    eng = Engine(two_heads(mode)).start()
+    rings = eng._res.rings
+    assert eng._res.runner.rings is rings  # the runner wakes the engine's own dict
+
+    class Gone:  # what a head's removal or addition does to the dict, at the worst moment
+        def wake_all(self) -> None:
+            rings["late"] = Late()
+
+        def close(self) -> None:
+            pass
+
+    class Late(Gone):
+        def wake_all(self) -> None:
+            pass
+
+    rings["gone"] = Gone()
+    eng.stop()  # raised "dictionary changed size during iteration" before
+    assert eng._res.runner is None and not descendants()
+
+
 def test_a_removal_still_waiting_for_the_monitor_returns_when_the_engine_stops(monkeypatch):
     eng = Engine(two_heads("process", "runtime.stop_timeout_s=10")).start()
     runner = eng._res.runner

@@ -138,7 +138,7 @@ class _Resources:
         return forced
 
     def _unmap(self) -> None:
-        for ring in self.rings.values():
+        for ring in list(self.rings.values()):  # a head added or removed meanwhile changes the dict
             ring.close()
         self.rings = {}
         if self.control is not None:

@@ -455,7 +455,7 @@ class ProcessRunner(Runner):
             del self._children[name]
         with contextlib.suppress(OSError, ValueError):
             ch.conn.send(Stop())
-        for ring in self.rings.values():
+        for ring in list(self.rings.values()):  # a head added or removed meanwhile changes the dict
             ring.wake_all()
         _join_all([ch], self.cfg.runtime.stop_timeout_s)
         for end in (ch.proc.terminate, ch.proc.kill):
@@ -492,7 +492,7 @@ class ProcessRunner(Runner):
         with contextlib.suppress(OSError):
             self._wake()
         self.control.request_stop()
-        for ring in self.rings.values():
+        for ring in list(self.rings.values()):  # a head added or removed meanwhile changes the dict
             ring.wake_all()
         children = [(ch.names, ch) for ch in self._processes()]
         for _, ch in children:

@@ -314,7 +314,7 @@ class ThreadRunner(Runner):
             self._generation[name] += 1  # its loop ends at its next look
             self._hung.discard(name)
             thread = self._threads.pop(name, None)
-        for ring in self.rings.values():
+        for ring in list(self.rings.values()):  # a head added or removed meanwhile changes the dict
             ring.wake_all()  # a worker asleep on its mailbox looks now
         if thread is None:
             return []
@@ -336,7 +336,7 @@ class ThreadRunner(Runner):
             threads = list(self._threads.items())  # add() may launch one meanwhile
         self._abandon_adds()
         self.control.request_stop()
-        for ring in self.rings.values():
+        for ring in list(self.rings.values()):  # a head added or removed meanwhile changes the dict
             ring.wake_all()
         if self.handoffs.inline is not None:
             self.handoffs.inline.wake()  # an armed foundation worker disarms and sees the stop

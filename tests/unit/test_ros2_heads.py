@@ -146,7 +146,12 @@ def test_bad_head_commands_report_the_engines_error_and_change_nothing():
 
         add, remove = core.add_head, core.remove_head
         refused(add("{name: seg, model: tiny_seg}", hooks.open), "add_head", "seg", "repeated: ['seg']")
-        refused(add("{name: det2, model: tiny_det, no_such: 1}", hooks.open), "add_head", "det2", "heads.3")
+        refused(
+            add("{name: det2, model: tiny_det, no_such: 1}", hooks.open),
+            "add_head",
+            "det2",
+            "heads.det2.no_such: unknown key",
+        )
         refused(add("{name: det2, model: tiny_det, priority: 101}", hooks.open), "add_head", "det2", "priority")
         refused(add("just text", hooks.open), "add_head", None, "a mapping")
         refused(add("{name: [unclosed", hooks.open), "add_head", None, "")

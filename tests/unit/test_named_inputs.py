@@ -31,8 +31,11 @@ def test_a_name_is_a_camera_name_before_the_first_equals_sign():
 
 def test_sources_named_or_not(tmp_path):
     assert parse_sources(["synthetic"], []) == {None: ("synthetic", None)}
-    # unnamed, a later --source replaces an earlier one (as before several cameras)
-    assert parse_sources(["a.mcap", "b.mcap"], ["/t"]) == {None: ("b.mcap", "/t")}
+    # several unnamed ones would each be lost but one (a shell glob of images): refused, saying what to give
+    with pytest.raises(ValueError, match=r"^3 sources without camera names \('a.jpg', 'b.jpg', 'c.jpg'\): a run reads"):
+        parse_sources(["a.jpg", "b.jpg", "c.jpg"], [])
+    with pytest.raises(ValueError, match="one bag topic a camera; name each camera's: --topic NAME=TOPIC"):
+        parse_sources(["a.mcap"], ["/t", "/u"])
     assert parse_sources(["front=camera:0", "rear=bag.mcap"], ["rear=/rear/image"]) == {
         "front": ("camera:0", None),
         "rear": ("bag.mcap", "/rear/image"),

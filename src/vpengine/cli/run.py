@@ -189,17 +189,23 @@ def engine_overrides(args: argparse.Namespace) -> list[str]:
 
 def parse_sources(sources: Sequence[str], topics: Sequence[str]) -> dict[str | None, tuple[str, str | None]]:
     """``--source`` and ``--topic`` values -> camera name -> (source spec, bag topic); the key None is the one
-    unnamed source of a one-camera run (of several unnamed ones, the last, as an option given twice).
+    unnamed source of a one-camera run; several unnamed ones are refused (a shell glob of images would otherwise
+    lose all but one, silently).
     ``NAME=SPEC`` names a source's camera (a path that exists is never read as a name); ``--topic NAME=TOPIC`` gives camera NAME's bag topic, and with one unnamed bag source, several of
     them make one camera of each topic. ValueError naming what does not fit."""
     from vpengine.named_inputs import split_camera
 
     named = [(None, s) if Path(s).exists() else split_camera(s) for s in sources]
-    if not any(n for n, _ in named):
-        named = named[-1:]  # unnamed, a later --source replaces an earlier one, as any option's value
+    if len(named) > 1 and not any(n for n, _ in named):
+        shown = ", ".join(repr(s) for s in list(sources)[:3]) + (", ..." if len(sources) > 3 else "")
+        raise ValueError(
+            f"{len(sources)} sources without camera names ({shown}): a run reads one source per camera. For a "
+            "sequence of images give their folder or a quoted glob ('frames/*.jpg': quoted, the shell leaves it to "
+            "vpengine); for several cameras name each: NAME=SPEC (front=a.mp4 rear=b.mp4)"
+        )
     tops = [split_camera(t) for t in topics]
-    if not any(n for n, _ in tops):
-        tops = tops[-1:]
+    if len(tops) > 1 and not any(n for n, _ in tops):
+        raise ValueError(f"--topic {list(topics)}: one bag topic a camera; name each camera's: --topic NAME=TOPIC")
     if len(named) == 1 and named[0][0] is None:
         spec = named[0][1]
         if not any(n for n, _ in tops):  # today's one camera

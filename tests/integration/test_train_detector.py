@@ -9,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 import yaml
 
 pytestmark = pytest.mark.timeout(240)
@@ -247,3 +248,42 @@ def test_the_training_api_reports_each_epoch_to_its_caller_and_prints_nothing(tm
     assert [terms for _, _, _, terms in seen] == summary["epoch_losses"]
     assert capsys.readouterr().out == ""  # printing is the command's job
     assert (tmp_path / "h.pth").is_file() and (tmp_path / "h.train.json").is_file()
+
+
+def test_ctrl_c_during_training_writes_the_last_finished_epochs_head_and_says_so(tmp_path, capsys, monkeypatch):
+    from vpengine.cli.main import main
+    from vpengine.models.detection import FasterRCNNHead
+
+    img_dir, ann, _ = make_dataset(tmp_path, n=4)
+    cfg = write_config(tmp_path / "c.yaml")
+    out = tmp_path / "h.pth"
+    args = ["train", "detector", "-c", str(cfg), "--images", str(img_dir), "--annotations", str(ann), "--out",
+            str(out), "--epochs", "5", "--batch-size", "2", "--no-progress", "--threads", "1"]  # fmt: skip
+    real = FasterRCNNHead.losses
+    calls: list[int] = []
+    after_two: dict[str, torch.Tensor] = {}
+
+    def losses(self, *a, **k):  # two steps an epoch: Ctrl-C at the second step of epoch 3
+        calls.append(1)
+        if len(calls) == 5:  # epoch 3's first step: the weights are still epoch 2's
+            after_two.update({k: v.detach().clone() for k, v in self.state_dict().items()})
+        if len(calls) == 6:
+            raise KeyboardInterrupt
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(FasterRCNNHead, "losses", losses)
+    assert main(args) == 130
+    printed = capsys.readouterr().out
+    assert "epoch 2/5: loss" in printed and "epoch 3/5" not in printed
+    assert "interrupted after epoch 2 of 5: trained det" in printed and "(the weights of epoch 2)" in printed
+    saved = torch.load(out, weights_only=True)
+    assert saved.keys() == after_two.keys() and all(torch.equal(saved[k], after_two[k].cpu()) for k in saved)
+    log = json.loads((tmp_path / "h.train.json").read_text())
+    assert log["interrupted_after"] == 2 and len(log["epoch_loss"]) == 2 and log["epochs"] == 5
+
+    calls.clear()  # before any epoch ended: nothing written, and said
+    out.unlink()
+    monkeypatch.setattr(FasterRCNNHead, "losses", lambda self, *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    assert main(args) == 130
+    assert f"interrupted before the first epoch ended: nothing written to {out}" in capsys.readouterr().err
+    assert not out.exists()

@@ -5,13 +5,15 @@
     vpengine train detector --config CONFIG --images DIR --annotations COCO.json --out head.pth [--epochs 12 ...]
 
 The training itself is ``vpengine.models.training.train_detector``; this command parses its arguments, prints a
-line per epoch and, at the end, the ``heads:`` entry that runs the result.
+line per epoch and, at the end, the ``heads:`` entry that runs the result. Ctrl-C after an epoch has finished writes
+that epoch's head and exits 130; before, it writes nothing and says so.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import sys
 from typing import Any
 
 from vpengine.arguments import add_overrides_argument
@@ -83,7 +85,26 @@ def main(args: argparse.Namespace) -> int:
         overrides.append(f"device={args.device}")
     if args.random_weights:
         overrides.append("weights.random_weights=true")
-    s = train_detector(
+    try:
+        s = _train(train_detector, args, overrides)
+    except KeyboardInterrupt:
+        print(f"interrupted before the first epoch ended: nothing written to {args.out}", file=sys.stderr)
+        return 130
+    stopped = s["interrupted_after"]
+    print(
+        f"{f'interrupted after epoch {stopped} of {args.epochs}: ' if stopped else ''}trained "
+        f"{s['head_config']['name']} on {s['images']} images"
+        f"{' and their mirror images' if s['hflip'] else ''} ({len(s['class_names'])} classes) in "
+        f"{s['feature_s'] + s['train_s']:.1f} s: loss {s['epoch_loss'][0]:.4f} -> {s['epoch_loss'][-1]:.4f}; "
+        f"wrote {s['checkpoint']}{f' (the weights of epoch {stopped})' if stopped else ''}"
+    )
+    print("run it with this head entry in the config:")
+    print(yaml.safe_dump({"heads": [s["head_config"]]}, sort_keys=False), end="")
+    return 130 if stopped else 0
+
+
+def _train(train_detector: Any, args: argparse.Namespace, overrides: list[str]) -> dict[str, Any]:
+    return train_detector(
         args.config,
         args.images,
         args.annotations,
@@ -101,12 +122,3 @@ def main(args: argparse.Namespace) -> int:
         threads=args.threads,
         on_epoch=_print_epoch,
     )
-    print(
-        f"trained {s['head_config']['name']} on {s['images']} images"
-        f"{' and their mirror images' if s['hflip'] else ''} ({len(s['class_names'])} classes) in "
-        f"{s['feature_s'] + s['train_s']:.1f} s: loss {s['epoch_loss'][0]:.4f} -> {s['epoch_loss'][-1]:.4f}; "
-        f"wrote {s['checkpoint']}"
-    )
-    print("run it with this head entry in the config:")
-    print(yaml.safe_dump({"heads": [s["head_config"]]}, sort_keys=False), end="")
-    return 0

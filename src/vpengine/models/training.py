@@ -209,7 +209,9 @@ def train_detector(
     """Train the config's Faster R-CNN head on ``images`` + COCO ``annotations``; write the checkpoint ``out``.
 
     Returns the summary also written to ``<out stem>.train.json``: ``epoch_loss`` (mean total loss per epoch),
-    ``epoch_losses`` (each loss term per epoch), ``class_names``, ``head_config`` (the ``heads:`` entry to run it).
+    ``epoch_losses`` (each loss term per epoch), ``class_names``, ``head_config`` (the ``heads:`` entry to run it),
+    ``interrupted_after`` (None, or the epoch whose weights were written when a KeyboardInterrupt (Ctrl-C) ended the
+    training: the last one finished; one that comes before any epoch finished is raised, nothing written).
     ``config`` is an engine config or anything ``load_config`` accepts, with ``overrides`` applied; ``threads`` sets
     PyTorch's CPU threads for the duration of the call; ``progress`` shows progress bars; ``on_epoch`` is called
     after every epoch.
@@ -238,7 +240,7 @@ def train_detector(
         del fm  # only the cached features are needed from here on
         t_features = time.monotonic() - t0
         t1 = time.monotonic()
-        epoch_loss, epoch_terms = _fit(
+        epoch_loss, epoch_terms, interrupted = _fit(
             model, tokens, targets, device, epochs, lr, weight_decay, batch_size, seed, progress, on_epoch
         )
         t_train = time.monotonic() - t1
@@ -278,6 +280,7 @@ def train_detector(
         "train_s": t_train,
         "epoch_loss": epoch_loss,
         "epoch_losses": epoch_terms,
+        "interrupted_after": len(epoch_loss) if interrupted else None,
         "head_config": head_config,
     }
     (out.parent / f"{out.stem}.train.json").write_text(json.dumps(summary, indent=2))
@@ -345,8 +348,10 @@ def _fit(
     seed: int,
     progress: bool,
     on_epoch: EpochCallback | None,
-) -> tuple[list[float], list[dict[str, float]]]:
-    """AdamW with linear warm-up and cosine decay over cached features; mean losses per epoch."""
+) -> tuple[list[float], list[dict[str, float]], bool]:
+    """AdamW with linear warm-up and cosine decay over cached features; mean losses per epoch, and whether a
+    KeyboardInterrupt ended it after an epoch had finished: the model then holds that epoch's weights (hours of
+    training are not lost to a Ctrl-C; one before the first epoch's end is raised)."""
     n = len(tokens)
     steps_per_epoch = math.ceil(n / batch_size)
     total_steps = epochs * steps_per_epoch
@@ -363,45 +368,54 @@ def _fit(
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor)
     epoch_loss: list[float] = []
     epoch_terms: list[dict[str, float]] = []
+    finished: dict[str, Any] | None = None  # the weights as of the last finished epoch
     model.train()
-    with torch.random.fork_rng(devices=[]):
-        torch.manual_seed(seed)  # the order of images and torchvision's anchor/proposal sampling
-        for epoch in range(1, epochs + 1):
-            order = torch.randperm(n).tolist()
-            sums: dict[str, float] = {}
-            bar = tqdm(
-                range(steps_per_epoch),
-                desc=f"epoch {epoch}/{epochs}",
-                unit="step",
-                disable=not progress,
-                leave=False,
-            )
-            for step in bar:
-                idx = order[step * batch_size : (step + 1) * batch_size]
-                batch = torch.cat([tokens[i] for i in idx]).to(device)
-                tgt = [{k: v.to(device) for k, v in targets[i].items()} for i in idx]
-                losses = model.losses(batch, tgt)
-                loss = torch.stack(list(losses.values())).sum()
-                if not torch.isfinite(loss):
-                    terms = {k: round(v.item(), 4) for k, v in losses.items()}
-                    raise RuntimeError(
-                        f"loss became {loss.item()} at epoch {epoch} step {step + 1} ({terms}); "
-                        f"try a lower --lr than {lr}"
-                    )
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                torch.nn.utils.clip_grad_norm_(params, 10.0)
-                opt.step()
-                sched.step()
-                for k, v in losses.items():
-                    sums[k] = sums.get(k, 0.0) + v.item() * len(idx)
-                sums["loss"] = sums.get("loss", 0.0) + loss.item() * len(idx)
-                bar.set_postfix(loss=f"{loss.item():.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
-            bar.close()
-            means = {k: v / n for k, v in sums.items()}
-            epoch_loss.append(means.pop("loss"))
-            epoch_terms.append(means)
-            if on_epoch is not None:
-                on_epoch(epoch, epochs, epoch_loss[-1], means)
+    try:
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)  # the order of images and torchvision's anchor/proposal sampling
+            for epoch in range(1, epochs + 1):
+                order = torch.randperm(n).tolist()
+                sums: dict[str, float] = {}
+                bar = tqdm(
+                    range(steps_per_epoch),
+                    desc=f"epoch {epoch}/{epochs}",
+                    unit="step",
+                    disable=not progress,
+                    leave=False,
+                )
+                for step in bar:
+                    idx = order[step * batch_size : (step + 1) * batch_size]
+                    batch = torch.cat([tokens[i] for i in idx]).to(device)
+                    tgt = [{k: v.to(device) for k, v in targets[i].items()} for i in idx]
+                    losses = model.losses(batch, tgt)
+                    loss = torch.stack(list(losses.values())).sum()
+                    if not torch.isfinite(loss):
+                        terms = {k: round(v.item(), 4) for k, v in losses.items()}
+                        raise RuntimeError(
+                            f"loss became {loss.item()} at epoch {epoch} step {step + 1} ({terms}); "
+                            f"try a lower --lr than {lr}"
+                        )
+                    opt.zero_grad(set_to_none=True)
+                    loss.backward()
+                    torch.nn.utils.clip_grad_norm_(params, 10.0)
+                    opt.step()
+                    sched.step()
+                    for k, v in losses.items():
+                        sums[k] = sums.get(k, 0.0) + v.item() * len(idx)
+                    sums["loss"] = sums.get("loss", 0.0) + loss.item() * len(idx)
+                    bar.set_postfix(loss=f"{loss.item():.3f}", lr=f"{sched.get_last_lr()[0]:.2e}")
+                bar.close()
+                means = {k: v / n for k, v in sums.items()}
+                epoch_loss.append(means.pop("loss"))
+                epoch_terms.append(means)
+                finished = {k: v.detach().clone() for k, v in model.state_dict().items()}
+                if on_epoch is not None:
+                    on_epoch(epoch, epochs, epoch_loss[-1], means)
+    except KeyboardInterrupt:
+        if finished is None:
+            raise
+        model.load_state_dict(finished)  # a step of the epoch it ended may have run: the finished one's weights
+        model.eval()
+        return epoch_loss, epoch_terms, True
     model.eval()
-    return epoch_loss, epoch_terms
+    return epoch_loss, epoch_terms, False

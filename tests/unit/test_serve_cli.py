@@ -39,6 +39,21 @@ def test_serve_without_the_web_extra_names_the_extra_and_the_pip_command(monkeyp
     assert "'web'" in err and "pip install 'vpengine[web]'" in err, err
 
 
+def test_an_address_the_view_cannot_listen_at_is_refused_before_the_engine_starts(monkeypatch, capsys, tmp_path):
+    import socket
+
+    monkeypatch.setattr("vpengine.engine.Engine.start", lambda self: pytest.fail("the engine started"))
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = tmp_path / "out"
+        rc = main(["run", "-c", "tiny", "-s", "synthetic:64x48:2", "--serve", str(port), "-o", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and err.startswith(f"vpengine run: error: --serve 127.0.0.1:{port}: cannot listen there (")
+    assert not out.exists()  # nothing written that a second try would have to be told to replace
+
+
 def test_pace_help_says_what_each_pacing_does(capsys):
     with pytest.raises(SystemExit):
         build_parser().parse_args(["run", "--help"])

@@ -17,6 +17,7 @@ import contextlib
 import importlib.util
 import os
 import signal
+import socket
 import sys
 import threading
 from collections.abc import Callable, Iterator
@@ -92,7 +93,24 @@ def serve_options(args: argparse.Namespace) -> ServeOptions | None:
             f"--foxglove {args.foxglove}: Foxglove's WebSocket protocol has no authentication, so it is served on "
             "loopback only; forward the port to reach it from elsewhere (ssh -L)"
         )
+    for flag, address in (("--serve", web), ("--foxglove", fox)):
+        if address is not None:
+            _check_listen(flag, address)
     return ServeOptions(web, token, fox)
+
+
+def _check_listen(flag: str, address: tuple[str, int]) -> None:
+    """ValueError unless this process can listen at ``address`` now: a port in use, or an address that is not this
+    machine's, is said before the engine starts (a compiled GPU config takes minutes to), not after. The view binds
+    again when it starts; what takes the port in between is said then."""
+    host, port = address
+    try:
+        family, _, _, _, sockaddr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+        with socket.socket(family, socket.SOCK_STREAM) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the view's server does
+            s.bind(sockaddr)
+    except OSError as e:
+        raise ValueError(f"{flag} {host}:{port}: cannot listen there ({e})") from None
 
 
 @contextlib.contextmanager

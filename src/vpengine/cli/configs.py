@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -20,7 +21,14 @@ def main(args: argparse.Namespace) -> int:
         for name in configs.names():
             print(f"{name:{width}s}  {configs.describe(name)}")
         return 0
+    from vpengine.config import ConfigError, load_config
+
     path = configs.resolve(args.name)
     print(f"# {path}")
-    print(path.read_text(), end="")
+    print(path.read_text(), end="", flush=True)
+    try:  # shown as written, and said when it would not load (a file being written, a copy to edit)
+        load_config(path)
+    except ConfigError as e:
+        print(f"vpengine config show: {path} does not load: {e}", file=sys.stderr)
+        return 1
     return 0

@@ -403,6 +403,9 @@ def test_a_custom_url_entry_is_fetched_verified_and_found_by_name(server, env, c
         path = Path(capsys.readouterr().out.strip())
         assert path.read_bytes() == server.files["/ckpt/other.pth"] and path.name == "other.pth"
         assert catalog.find("my_head") is not None  # resolve_checkpoint sees it through the cache
+        assert cli(["weights", "list", "--json"]) == 0  # its digest is the user's word, not a published one
+        (row,) = [r for r in json.loads(capsys.readouterr().out)["entries"] if r["name"] == "my_head"]
+        assert row["digest"] == "pinned" and row["sha256"] == digest and row["cached"] == "yes"
 
 
 def test_path_of_an_uncached_entry_prints_it_and_fails(server, env, capsys):

@@ -122,9 +122,9 @@ def _cached_text(entry: Any, cache: Path) -> str:
 def _digest_kind(entry: Any, cache: Path) -> str:
     from vpengine.models import catalog
 
-    if entry.sha256 is not None:
+    if entry.sha256 is not None and entry.name in catalog.active():
         return "catalog"
-    return "pinned" if catalog.effective(entry, cache).sha256 else "none"
+    return "pinned" if catalog.effective(entry, cache).sha256 else "none"  # a custom entry's is the user's word
 
 
 def cmd_list(args: argparse.Namespace) -> int:
@@ -160,8 +160,9 @@ def cmd_list(args: argparse.Namespace) -> int:
             f"{r['digest']:7s}  {', '.join(r['recipes']) or '-'}"
         )
     print(
-        "(sha256: catalog = published digest, pinned = recorded by you, none = fetch needs --sha256 or "
-        "--trust-on-first-use)"
+        "(sha256: catalog = published digest; pinned = recorded by you (--sha256, or trusted on first use); none = "
+        "not known yet: a shipped HTTPS entry is trusted on first use, any other needs --sha256 or "
+        "--trust-on-first-use. cached: the file is there; `vpengine weights verify` checks it)"
     )
     return 0
 

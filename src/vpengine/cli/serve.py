@@ -93,24 +93,27 @@ def serve_options(args: argparse.Namespace) -> ServeOptions | None:
             f"--foxglove {args.foxglove}: Foxglove's WebSocket protocol has no authentication, so it is served on "
             "loopback only; forward the port to reach it from elsewhere (ssh -L)"
         )
-    for flag, address in (("--serve", web), ("--foxglove", fox)):
+    if web is not None and fox is not None and web == fox and web[1] != 0:
+        raise ValueError(f"--serve {args.serve} and --foxglove {args.foxglove}: one port cannot serve both views")
+    for flag, text, address in (("--serve", args.serve, web), ("--foxglove", getattr(args, "foxglove", None), fox)):
         if address is not None:
-            _check_listen(flag, address)
+            _check_listen(flag, text, address)
     return ServeOptions(web, token, fox)
 
 
-def _check_listen(flag: str, address: tuple[str, int]) -> None:
-    """ValueError unless this process can listen at ``address`` now: a port in use, or an address that is not this
-    machine's, is said before the engine starts (a compiled GPU config takes minutes to), not after. The view binds
-    again when it starts; what takes the port in between is said then."""
+def _check_listen(flag: str, text: str, address: tuple[str, int]) -> None:
+    """ValueError unless this process can listen at ``address`` (``text`` as given) now: a port in use, or an
+    address that is not this machine's, is said before the engine starts (a compiled GPU config takes minutes to),
+    not after. Bound as the view's server binds (web/server.py: IPv6 for a host with a colon, else IPv4, address
+    reuse on); it binds again when it starts, and what takes the port in between is said then."""
     host, port = address
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
     try:
-        family, _, _, _, sockaddr = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
         with socket.socket(family, socket.SOCK_STREAM) as s:
-            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the view's server does
-            s.bind(sockaddr)
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            s.bind((host, port))
     except OSError as e:
-        raise ValueError(f"{flag} {host}:{port}: cannot listen there ({e})") from None
+        raise ValueError(f"{flag} {text}: cannot listen there ({e})") from None
 
 
 @contextlib.contextmanager

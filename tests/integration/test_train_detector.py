@@ -285,5 +285,26 @@ def test_ctrl_c_during_training_writes_the_last_finished_epochs_head_and_says_so
     out.unlink()
     monkeypatch.setattr(FasterRCNNHead, "losses", lambda self, *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
     assert main(args) == 130
-    assert f"interrupted before the first epoch ended: nothing written to {out}" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert f"vpengine train detector: interrupted before the first epoch ended: nothing written to {out}" in err
     assert not out.exists()
+
+
+def test_the_training_api_writes_the_last_finished_epoch_and_still_raises_the_interrupt(tmp_path, monkeypatch):
+    # a script looping over trainings stops at a Ctrl-C, with what was trained written
+    from vpengine.models.detection import FasterRCNNHead
+    from vpengine.models.training import TrainingInterrupted, train_detector
+
+    img_dir, ann, _ = make_dataset(tmp_path, n=2)
+    cfg = write_config(tmp_path / "c.yaml")
+
+    def on_epoch(epoch, *_):
+        if epoch == 2:
+            monkeypatch.setattr(FasterRCNNHead, "losses", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+
+    with pytest.raises(TrainingInterrupted) as e:
+        train_detector(cfg, img_dir, ann, tmp_path / "h.pth", epochs=4, batch_size=2, progress=False, threads=1,
+                       on_epoch=on_epoch)  # fmt: skip
+    assert isinstance(e.value, KeyboardInterrupt) and e.value.summary["interrupted_after"] == 2
+    assert (tmp_path / "h.pth").is_file() and not list(tmp_path.glob(".*.part"))
+    assert json.loads((tmp_path / "h.train.json").read_text())["interrupted_after"] == 2

@@ -78,7 +78,7 @@ def _print_epoch(epoch: int, epochs: int, loss: float, terms: dict[str, float]) 
 def main(args: argparse.Namespace) -> int:
     import yaml
 
-    from vpengine.models.training import train_detector
+    from vpengine.models.training import TrainingInterrupted, train_detector
 
     overrides = list(args.overrides)
     if args.device:
@@ -87,8 +87,13 @@ def main(args: argparse.Namespace) -> int:
         overrides.append("weights.random_weights=true")
     try:
         s = _train(train_detector, args, overrides)
+    except TrainingInterrupted as e:
+        s = e.summary
     except KeyboardInterrupt:
-        print(f"interrupted before the first epoch ended: nothing written to {args.out}", file=sys.stderr)
+        print(
+            f"vpengine train detector: interrupted before the first epoch ended: nothing written to {args.out}",
+            file=sys.stderr,
+        )
         return 130
     stopped = s["interrupted_after"]
     print(

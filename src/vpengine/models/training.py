@@ -19,6 +19,7 @@ import contextlib
 import json
 import logging
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -210,8 +211,10 @@ def train_detector(
 
     Returns the summary also written to ``<out stem>.train.json``: ``epoch_loss`` (mean total loss per epoch),
     ``epoch_losses`` (each loss term per epoch), ``class_names``, ``head_config`` (the ``heads:`` entry to run it),
-    ``interrupted_after`` (None, or the epoch whose weights were written when a KeyboardInterrupt (Ctrl-C) ended the
-    training: the last one finished; one that comes before any epoch finished is raised, nothing written).
+    ``interrupted_after`` (None). A KeyboardInterrupt (Ctrl-C) after an epoch has finished writes that epoch's head
+    and summary (``interrupted_after``: its number) and raises :class:`TrainingInterrupted`, a KeyboardInterrupt
+    carrying the summary; one before writes nothing and goes on as it came. The files are replaced whole, never
+    left half-written.
     ``config`` is an engine config or anything ``load_config`` accepts, with ``overrides`` applied; ``threads`` sets
     PyTorch's CPU threads for the duration of the call; ``progress`` shows progress bars; ``on_epoch`` is called
     after every epoch.
@@ -248,9 +251,12 @@ def train_detector(
     out.parent.mkdir(parents=True, exist_ok=True)
     sd = {k: v.detach().to("cpu").contiguous() for k, v in model.state_dict().items()}
     if out.suffix == ".safetensors":
-        save_file(sd, str(out), metadata={"vpengine": "frcnn head", "classes": json.dumps(class_names)})
+        _replace(
+            out,
+            lambda p: save_file(sd, str(p), metadata={"vpengine": "frcnn head", "classes": json.dumps(class_names)}),
+        )
     else:
-        torch.save(sd, str(out))
+        _replace(out, lambda p: torch.save(sd, str(p)))
 
     options = dict(hcfg.options)
     backbone = ctx.upstream_meta.get("backbone")
@@ -283,8 +289,28 @@ def train_detector(
         "interrupted_after": len(epoch_loss) if interrupted else None,
         "head_config": head_config,
     }
-    (out.parent / f"{out.stem}.train.json").write_text(json.dumps(summary, indent=2))
+    _replace(out.parent / f"{out.stem}.train.json", lambda p: p.write_text(json.dumps(summary, indent=2)))
+    if interrupted:
+        raise TrainingInterrupted(summary)
     return summary
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """A Ctrl-C that ended a training after an epoch had finished: that epoch's head and summary were written."""
+
+    def __init__(self, summary: dict[str, Any]) -> None:
+        super().__init__(f"interrupted after epoch {summary['interrupted_after']}")
+        self.summary = summary
+
+
+def _replace(path: Path, write: Callable[[Path], Any]) -> None:
+    """``write`` into a file beside ``path``, then rename it over ``path``: a reader (or a Ctrl-C) never sees half."""
+    part = path.with_name(f".{path.name}.part")
+    try:
+        write(part)
+        os.replace(part, path)
+    finally:
+        part.unlink(missing_ok=True)
 
 
 def _cache_features(
@@ -308,7 +334,7 @@ def _cache_features(
     dropped = 0
     variants = (False, True) if hflip else (False,)
     bar = tqdm(total=len(samples) * len(variants), desc="features", unit="img", disable=not progress)
-    with torch.inference_mode():
+    with bar, torch.inference_mode():  # closed on a Ctrl-C too: what is printed next starts on a line of its own
         for s in samples:
             frame, fx, fy = read_frame(s.path, h, w, cfg.input.color, cfg.input.dtype)
             boxes = s.boxes * np.array([fx, fy, fx, fy], dtype=np.float32)
@@ -330,7 +356,6 @@ def _cache_features(
                     }
                 )
                 bar.update(1)
-    bar.close()
     if dropped:
         log.warning("%d boxes smaller than one pixel at %dx%d were dropped", dropped, w, h)
     return tokens, targets, dropped
@@ -368,7 +393,7 @@ def _fit(
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_factor)
     epoch_loss: list[float] = []
     epoch_terms: list[dict[str, float]] = []
-    finished: dict[str, Any] | None = None  # the weights as of the last finished epoch
+    finished: tuple[int, dict[str, Any]] | None = None  # the last finished epoch and its weights, set at once
     model.train()
     try:
         with torch.random.fork_rng(devices=[]):
@@ -408,13 +433,15 @@ def _fit(
                 means = {k: v / n for k, v in sums.items()}
                 epoch_loss.append(means.pop("loss"))
                 epoch_terms.append(means)
-                finished = {k: v.detach().clone() for k, v in model.state_dict().items()}
+                finished = (epoch, {k: v.detach().clone() for k, v in model.state_dict().items()})
                 if on_epoch is not None:
                     on_epoch(epoch, epochs, epoch_loss[-1], means)
     except KeyboardInterrupt:
         if finished is None:
             raise
-        model.load_state_dict(finished)  # a step of the epoch it ended may have run: the finished one's weights
+        done, weights = finished
+        del epoch_loss[done:], epoch_terms[done:]  # an interrupt may come between an epoch's losses and its weights
+        model.load_state_dict(weights)  # a step of the epoch it ended may have run: the finished one's weights
         model.eval()
         return epoch_loss, epoch_terms, True
     model.eval()

@@ -216,7 +216,7 @@ def test_configs_are_found_by_name_listed_and_shown_from_any_directory(tmp_path,
     (tmp_path / "bad.yaml").write_text("# mine\nmode: proces\n")
     p = cli("config", "show", str(tmp_path / "bad.yaml"), cwd=tmp_path)
     assert p.returncode == 1 and "# mine\nmode: proces" in p.stdout  # shown as written, and said not to load
-    assert "does not load: invalid configuration" in p.stderr and "mode: Input should be" in p.stderr
+    assert "vpengine config show: error: invalid configuration in" in p.stderr and "mode: Input should be" in p.stderr
     monkeypatch.chdir(tmp_path)  # the rest in this process: nothing here starts an engine
     from vpengine import configs
     from vpengine.cli.main import main

@@ -29,6 +29,6 @@ def main(args: argparse.Namespace) -> int:
     try:  # shown as written, and said when it would not load (a file being written, a copy to edit)
         load_config(path)
     except ConfigError as e:
-        print(f"vpengine config show: {path} does not load: {e}", file=sys.stderr)
+        print(f"vpengine config show: error: {e}", file=sys.stderr)
         return 1
     return 0

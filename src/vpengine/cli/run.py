@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="append",
         metavar="[NAME=]TOPIC",
         help="image topic of a bag source (sensor_msgs/Image or CompressedImage); NAME=TOPIC for camera NAME's "
-        "source, or repeated with one bag source: a camera per topic",
+        "source, or NAME=TOPIC repeated with one bag source: a camera per topic",
     )
     p.add_argument(
         "--strict",

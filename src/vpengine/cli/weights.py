@@ -119,10 +119,11 @@ def _cached_text(entry: Any, cache: Path) -> str:
     return {"cached": "yes", "missing": "no"}[state]
 
 
-def _digest_kind(entry: Any, cache: Path) -> str:
+def _digest_kind(entry: Any, cache: Path, listed: Any) -> str:
+    """How ``entry``'s digest is known; ``listed``: the active catalog (read once: $VPENGINE_CATALOG is files)."""
     from vpengine.models import catalog
 
-    if entry.sha256 is not None and entry.name in catalog.active():
+    if entry.sha256 is not None and entry.name in listed:
         return "catalog"
     return "pinned" if catalog.effective(entry, cache).sha256 else "none"  # a custom entry's is the user's word
 
@@ -133,6 +134,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
     cache = _cache()
     rows = []
+    listed = catalog.active()
     for e in _entries(cache):
         eff = catalog.effective(e, cache)
         rows.append(
@@ -142,7 +144,7 @@ def cmd_list(args: argparse.Namespace) -> int:
                 "licence": e.licence,
                 "cached": _cached_text(e, cache),
                 "sha256": eff.sha256,
-                "digest": _digest_kind(e, cache),
+                "digest": _digest_kind(e, cache, listed),
                 "recipes": list(e.recipes),
                 "url": shown_url(e.url),
                 "path": str(e.path(cache)),
@@ -160,9 +162,9 @@ def cmd_list(args: argparse.Namespace) -> int:
             f"{r['digest']:7s}  {', '.join(r['recipes']) or '-'}"
         )
     print(
-        "(sha256: catalog = published digest; pinned = recorded by you (--sha256, or trusted on first use); none = "
-        "not known yet: a shipped HTTPS entry is trusted on first use, any other needs --sha256 or "
-        "--trust-on-first-use. cached: the file is there; `vpengine weights verify` checks it)"
+        "(sha256: catalog = published digest (or $VPENGINE_CATALOG's); pinned = recorded by you (--sha256, or "
+        "trusted on first use); none = not known yet: a shipped HTTPS entry is trusted on first use, any other needs "
+        "--sha256 or --trust-on-first-use. cached: the file is there; `vpengine weights verify` checks it)"
     )
     return 0
 

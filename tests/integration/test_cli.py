@@ -341,11 +341,13 @@ def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, ca
             f"--video '{tmp_path / 'v.gif'}': cannot write a video as '.gif'; name it .mp4, .avi, .m4v, .mkv, .mov, "
             ".webm",
         ),
-        (["-s", "synthetic:64x64@0"], "synthetic source rate must be a number of Hz above 0, got 0.0"),
+        (["-s", "synthetic:64x64@30:3"], "2 sources without camera names ('synthetic:64x64@30:3', "),
     ]:
         assert main([*run, *args]) == 1
         err = capsys.readouterr().err
         assert err.startswith("vpengine run: error: ") and message in err and err.count("\n") == 1, err
+    assert main(["run", "-c", "tiny", "-s", "synthetic:64x64@0", "--no-progress"]) == 1
+    assert "synthetic source rate must be a number of Hz above 0, got 0.0" in capsys.readouterr().err
     assert not (tmp_path / "full" / "summary.json").exists()
     for option, value in [("--max-frames", "-1"), ("--max-frames", "0"), ("--fps", "0"), ("--fps", "-5"),
                           ("--fps", "nan"), ("--fps", "inf"), ("--save-every", "0")]:  # fmt: skip

@@ -19,6 +19,7 @@ from vpengine.models.tiny import TinyDepthHead, TinyHeadOptions, TinyViT, TinyVi
 #: the thread left building does not outlive the test. While it builds it holds models.build's ``build_lock``, which
 #: every build and plan of the process takes: the next tests' engines would time out waiting for it.
 BUILDS_RELEASED = threading.Event()
+BUILDS_STARTED = threading.Event()  # set when a slow build (build_s, not planning's) has begun waiting
 
 
 class FaultOptions(Options):
@@ -74,6 +75,7 @@ class FaultyHead(_Runs, TinyDepthHead):
         if fault.fail_build and not ctx.plan_only:
             raise RuntimeError("injected build failure")
         if fault.build_s and not ctx.plan_only:
+            BUILDS_STARTED.set()
             BUILDS_RELEASED.wait(fault.build_s)
         if fault.log_at_build and not ctx.plan_only:
             logging.getLogger("vpengine.faulty").warning("%s", fault.log_at_build)

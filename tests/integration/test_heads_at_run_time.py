@@ -389,10 +389,11 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
     outcome = []
     adder = threading.Thread(target=lambda: outcome.append(_raised(lambda: eng.add_head(slow))))
     adder.start()
+    # it builds (planning builds it too, on the meta device and at once: a stop then leaves no build behind)
     deadline = time.monotonic() + 60
-    while "model 'slow'" not in (build_lock.holder() or ""):  # it builds
+    while not faulty.BUILDS_STARTED.wait(0.05):
         assert adder.is_alive() and time.monotonic() < deadline, outcome
-        time.sleep(0.05)
+    assert "model 'slow'" in (build_lock.holder() or "")
     t = time.monotonic()
     eng.stop()
     adder.join(20)
@@ -415,6 +416,7 @@ def test_stop_while_a_head_warms_up_ends_the_add_at_once():
         assert not builders.count, "the released build never left"
     finally:
         faulty.BUILDS_RELEASED.clear()
+        faulty.BUILDS_STARTED.clear()
 
 
 def test_a_thread_mode_start_waiting_on_another_build_fails_naming_it_and_leaves_no_waiter():

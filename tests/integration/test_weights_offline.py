@@ -75,6 +75,18 @@ def test_unreachable_servers_give_one_line_per_file_without_retries(dead, env, m
     assert not list(env.rglob("*.pth*"))  # nothing half-written
 
 
+def test_an_unreachable_url_entry_is_told_the_command_that_fetches_it_again(dead, env, capsys):
+    # a --url entry is recorded only once fetched: the command to run next names its URL, and the digest given
+    url, digest = f"{dead}/mine.pth", "ab" * 32
+    with catalog.use(Catalog()):
+        assert cli(["weights", "fetch", "mine", "--url", url, "--sha256", digest]) == 1
+        err = capsys.readouterr().err
+        assert f"sha256 {digest} as you gave it: `vpengine weights fetch mine --url {url} --sha256 {digest}`" in err
+        assert cli(["weights", "fetch", "mine", "--url", url, "--trust-on-first-use"]) == 1
+        err = capsys.readouterr().err
+        assert f"`vpengine weights fetch mine --url {url} --trust-on-first-use` then records the digest" in err
+
+
 def test_offline_gives_one_line_per_file_and_makes_no_request(dead, env, capsys):
     cat = entries(dead)
     with catalog.use(Catalog(cat)):

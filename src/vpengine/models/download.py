@@ -157,7 +157,7 @@ def fetch(
                 with contextlib.suppress(OSError):
                     dest.parent.rmdir()  # only succeeds when empty: a failed fetch leaves nothing behind
                 if isinstance(e, Unreachable):
-                    raise Unreachable(e.host, e.why, place_hint(entry, cache)) from None
+                    raise Unreachable(e.host, e.why, place_hint(entry, cache, sha256)) from None
                 raise
             downloaded = True
             if expected is None:

@@ -176,21 +176,30 @@ def cached_checkpoint(entry: Entry, cache: str | Path, for_model: str | None = N
     return dest
 
 
-def place_hint(entry: Entry, cache: str | Path) -> str:
-    """Where to put the file of ``entry`` by hand and where to get it: ``place the file at P (download it ...)``."""
+def place_hint(entry: Entry, cache: str | Path, sha256: str | None = None) -> str:
+    """Where to put the file of ``entry`` by hand and where to get it: ``place the file at P (download it ...)``.
+    ``sha256``: a digest the user gave for it (``fetch --sha256``), which the command to run next repeats."""
     eff = catalog.effective(entry, cache)
     if eff.sha256 is not None:
         check = f"sha256 {eff.sha256}, {human_size(eff.size)}"
+    elif sha256 is not None:
+        check = f"sha256 {sha256} as you gave it: {_pin_command(entry, cache, sha256)} then checks and records it"
     else:
-        check = f"no sha256 is published: {_pin_command(entry)} then records the digest of the file you placed"
+        check = f"no sha256 is published: {_pin_command(entry, cache)} then records the digest of the file you placed"
     # The URL a fetch would use: with $HF_ENDPOINT set, the mirror, since huggingface.co may be out of reach
     return f"place the file at {entry.path(cache)} (download it from {catalog.shown_url(entry.source_url())}; {check})"
 
 
-def _pin_command(entry: Entry) -> str:
-    """The command that pins the digest of what is there now (Note [Trust on first use] in ``catalog.py``)."""
-    flag = "" if catalog.first_use_refusal(entry) is None else " --trust-on-first-use"
-    return f"`vpengine weights fetch {entry.name}{flag}`"
+def _pin_command(entry: Entry, cache: str | Path | None = None, sha256: str | None = None) -> str:
+    """The command that pins the digest of what is there now (Note [Trust on first use] in ``catalog.py``), or
+    checks it against ``sha256``. An entry no catalog knows yet (a ``--url`` one, recorded only once fetched) is
+    named with its URL again: by its name alone the command would not find it."""
+    flag = (
+        f" --sha256 {sha256}" if sha256 else "" if catalog.first_use_refusal(entry) is None else " --trust-on-first-use"
+    )
+    known = cache is None or catalog.find(entry.name, cache) is not None
+    url = "" if known else f" --url {catalog.shown_url(entry.url)}"
+    return f"`vpengine weights fetch {entry.name}{url}{flag}`"
 
 
 def missing_error(

@@ -115,3 +115,10 @@ def test_info_says_whether_the_fused_seg_kernel_runs_and_why_not(capsys):
         assert fused.startswith("not used: no CUDA device visible")
     assert cli(["info"]) == 0
     assert f"seg heads' fused upsample + argmax: {fused}" in capsys.readouterr().out
+
+
+def test_info_models_without_a_config_accounts_for_the_shipped_gpu_config(capsys):
+    # the built-in defaults have no head: a report of 0 heads saving 0 parameters says nothing
+    assert cli(["info", "--models", "--json"]) == 0
+    shown = json.loads(capsys.readouterr().out)
+    assert set(shown["models"]) == {"foundation", "depth", "seg", "det"} and shown["sharing"]["percent_fewer"] > 50

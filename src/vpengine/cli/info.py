@@ -12,6 +12,9 @@ from typing import Any
 
 from vpengine.arguments import add_overrides_argument
 
+#: What ``info --models`` accounts for without ``--config``
+MODELS_DEFAULT = "dinov2s_depth_seg_det"
+
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
@@ -21,7 +24,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         action="store_true",
         help="parameters per model of a config and what sharing the backbone saves (instead of the machine info)",
     )
-    p.add_argument("--config", "-c", help="engine config for --models (default: the built-in defaults)")
+    p.add_argument(
+        "--config",
+        "-c",
+        help=f"engine config for --models (default: {MODELS_DEFAULT}, the shipped GPU config: backbone and 3 heads)",
+    )
     add_overrides_argument(p, "foundation_model.model=dinov2_vitb14", "a config field for --models")
 
 
@@ -99,7 +106,8 @@ def models_main(args: argparse.Namespace) -> int:
     from vpengine.config import load_config
     from vpengine.models.accounting import format_report, parameter_report
 
-    report = parameter_report(load_config(args.config, args.overrides))
+    # without a config, the shipped one of backbone and heads: the built-in defaults have no head to account for
+    report = parameter_report(load_config(args.config or MODELS_DEFAULT, args.overrides))
     print(json.dumps(report, indent=2) if args.json else format_report(report))
     return 0
 

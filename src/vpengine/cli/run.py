@@ -126,10 +126,6 @@ def run_served(pipe: Pipeline, serve: ServeOptions | None, report: Callable[[dic
     return summary
 
 
-#: The exit status of a run that went to its end with frames some model failed on (each counted in the summary)
-FRAMES_FAILED = 3
-
-
 def format_summary(s: dict[str, Any]) -> str:
     missed = f"; camera frames a newer one replaced: {s['source_missed']}" if s.get("source_missed") else ""
     stopped = "interrupted after " if s.get("interrupted") else ""
@@ -302,6 +298,10 @@ def main(args: argparse.Namespace) -> int:
         )
         summary = run_served(pipe, serve, report)
     return exit_status(summary, "run")
+
+
+#: The exit status of a run that went to its end with frames some model failed on (each counted in the summary)
+FRAMES_FAILED = 3
 
 
 def exit_status(summary: dict[str, Any], command: str) -> int:

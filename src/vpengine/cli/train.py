@@ -86,7 +86,24 @@ def main(args: argparse.Namespace) -> int:
     if args.random_weights:
         overrides.append("weights.random_weights=true")
     try:
-        s = _train(train_detector, args, overrides)
+        s = train_detector(
+            args.config,
+            args.images,
+            args.annotations,
+            args.out,
+            head=args.head,
+            epochs=args.epochs,
+            lr=args.lr,
+            weight_decay=args.weight_decay,
+            batch_size=args.batch_size,
+            hflip=args.hflip,
+            init=args.init,
+            seed=args.seed,
+            overrides=overrides,
+            progress=not args.no_progress,
+            threads=args.threads,
+            on_epoch=_print_epoch,
+        )
     except TrainingInterrupted as e:
         s = e.summary
     except KeyboardInterrupt:
@@ -106,24 +123,3 @@ def main(args: argparse.Namespace) -> int:
     print("run it with this head entry in the config:")
     print(yaml.safe_dump({"heads": [s["head_config"]]}, sort_keys=False), end="")
     return 130 if stopped else 0
-
-
-def _train(train_detector: Any, args: argparse.Namespace, overrides: list[str]) -> dict[str, Any]:
-    return train_detector(
-        args.config,
-        args.images,
-        args.annotations,
-        args.out,
-        head=args.head,
-        epochs=args.epochs,
-        lr=args.lr,
-        weight_decay=args.weight_decay,
-        batch_size=args.batch_size,
-        hflip=args.hflip,
-        init=args.init,
-        seed=args.seed,
-        overrides=overrides,
-        progress=not args.no_progress,
-        threads=args.threads,
-        on_epoch=_print_epoch,
-    )

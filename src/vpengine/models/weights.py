@@ -194,9 +194,10 @@ def _pin_command(entry: Entry, cache: str | Path | None = None, sha256: str | No
     """The command that pins the digest of what is there now (Note [Trust on first use] in ``catalog.py``), or
     checks it against ``sha256``. An entry no catalog knows yet (a ``--url`` one, recorded only once fetched) is
     named with its URL again: by its name alone the command would not find it."""
-    flag = (
-        f" --sha256 {sha256}" if sha256 else "" if catalog.first_use_refusal(entry) is None else " --trust-on-first-use"
-    )
+    if sha256:
+        flag = f" --sha256 {sha256}"
+    else:
+        flag = "" if catalog.first_use_refusal(entry) is None else " --trust-on-first-use"
     known = cache is None or catalog.find(entry.name, cache) is not None
     url = "" if known else f" --url {catalog.shown_url(entry.url)}"
     return f"`vpengine weights fetch {entry.name}{url}{flag}`"

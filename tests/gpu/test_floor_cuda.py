@@ -1,5 +1,5 @@
 """The floor experiment's device times by batch size (``bench paper --experiments floor --floor-batches``) on CUDA:
-each model's device time and the models back to back, for batches of as many frames as an engine of that many
+each model's device time, the models back to back and batches pipelined, for batches of as many frames as an engine of that many
 cameras runs. Run on the GPU machine: ``pytest -m gpu tests/gpu/test_floor_cuda.py``."""
 
 from __future__ import annotations
@@ -26,6 +26,15 @@ def test_the_floor_gives_each_batch_sizes_device_times_and_a_frames_share():
     for got in out["by_batch"].values():
         assert set(got["device_ms"]) == {"foundation", "depth", "seg"}
         assert all(v > 0 for v in got["device_ms"].values()), got
+        # batches pipelined still run their backbones one after another on one stream: no faster than that
+        assert got["pipelined_ms"] >= 0.9 * got["device_ms"]["foundation"], got
+        assert got["batching_gain_at_most"] == pytest.approx(
+            got["separate_pipelined_ms_a_frame"] / got["pipelined_ms_a_frame"]
+        )
+    # one set of one frame alone is the batch of one pipelined
+    assert out["by_batch"]["1"]["separate_pipelined_ms_a_frame"] == pytest.approx(
+        out["by_batch"]["1"]["pipelined_ms"], rel=0.25
+    )
     one = out["by_batch"]["1"]  # the batch-of-one floor, not measured twice
     assert one["device_ms"] == out["device_ms"] and one["chained_ms"] == out["chained_ms"]["compute"]
     assert out["floor_sum_ms"] > 0 and out["thread"]["n"] == 5  # the engines as before

@@ -8,8 +8,11 @@ model that cannot be graph-captured (Faster R-CNN: NMS has data-dependent shapes
 included, so a floor with it is generous. Off CUDA there are no device times: only the engine's latencies.
 
 With ``--floor-batches`` (say 1,4,8) the same device times are also taken for batches of that many frames, as an
-engine of that many cameras runs them (Note [Cameras] in runtime/worker.py): each model alone and all back to back,
-and what a frame costs at that size. Against ``vpengine bench cameras``' frames per second they say how far a
+engine of that many cameras runs them (Note [Cameras] in runtime/worker.py): each model alone, all back to back, and
+batches pipelined (the next batch's backbone beside the last one's heads, each head on a stream of its own, frames up
+and results down included), and what a frame costs at that size; and as many sets of the models, one frame each,
+pipelined side by side as separate engines of one camera run them. The ratio of the two pipelined figures is what
+batching can buy at most. Against ``vpengine bench cameras``' frames per second they say how far a
 batched engine is from its device time, and what batching can buy at most.
 """
 
@@ -19,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from vpengine.bench.paper.harness import KINDS, Bench, InProcess, engines, lockstep, log
+from vpengine.bench.paper.harness import KINDS, Bench, InProcess, engines, lockstep, log, pipelined_ms
 
 
 def check_kinds(kinds: tuple[str, ...]) -> tuple[str, ...]:
@@ -41,16 +44,30 @@ def run(
     xfer = seq.transfer_times(imgs[0])
     chained = seq.chained_times(imgs[0])
     by_batch: dict[str, Any] = {}
+    # as many more sets of the models as the largest batch has frames, less one: N engines of one camera each
+    more = [InProcess(b, heads) for _ in range(max(batches, default=1) - 1)]
     for n in batches:
         times = dt if n == 1 else seq.device_times(imgs[0], batch=n)
         back_to_back = chained["compute"] if n == 1 else seq.back_to_back_ms(imgs[0], n)
-        by_batch[str(n)] = {"device_ms": times, "chained_ms": back_to_back, "chained_ms_a_frame": back_to_back / n}
+        pipelined = pipelined_ms([seq], imgs[0], n)
+        separate = pipelined_ms([seq, *more[: n - 1]], imgs[0], 1)
+        by_batch[str(n)] = {
+            "device_ms": times,
+            "chained_ms": back_to_back,
+            "chained_ms_a_frame": back_to_back / n,
+            "pipelined_ms": pipelined,
+            "pipelined_ms_a_frame": pipelined / n,
+            "separate_pipelined_ms_a_frame": separate / n,
+            "batching_gain_at_most": separate / pipelined,
+        }
         log(
             f"floor, a batch of {n}: "
             + ", ".join(f"{k} {v:.2f}" for k, v in times.items())
-            + f" ms; back to back {back_to_back:.2f} ms, {back_to_back / n:.2f} ms a frame"
+            + f" ms; back to back {back_to_back:.2f} ms, {back_to_back / n:.2f} ms a frame; pipelined (the models"
+            f" overlapping, transfers included) {pipelined:.2f} ms, {pipelined / n:.2f} ms a frame; {n} set{'s' * (n > 1)}"
+            f" of one frame side by side {separate / n:.2f} ms a frame: batching buys {separate / pipelined:.2f}x at most"
         )
-    del seq  # its models' memory goes before the engines start
+    del seq, more  # their models' memory goes before the engines start
     out: dict[str, Any] = {"heads": list(kinds), "device_ms": dt, "transfer_ms": xfer, "chained_ms": chained}
     if by_batch:
         out["by_batch"] = by_batch

@@ -348,6 +348,11 @@ class InProcess:
         with self.torch.inference_mode():
             return event_ms(self._frame(img, batch)["back_to_back"], n)
 
+    def pipelined_ms(self, img: np.ndarray, batch: int, n: int = 100) -> float:
+        """Device time (ms) a batch of ``batch`` copies of ``img`` takes when batches follow one another as fast as
+        the device takes them (CUDA only; ``pipelined_ms`` below)."""
+        return pipelined_ms([self], img, batch, n)
+
     def _frame(self, img: np.ndarray, batch: int = 1) -> dict[str, Any]:
         """What the timings above replay on a batch of ``batch`` copies of ``img``, built once a size: ``parts``
         (backbone, then each head: compiled executors replay their CUDA graphs, eager ones are captured here if they
@@ -381,6 +386,90 @@ class InProcess:
             "download": lambda: [d.copy_(t, non_blocking=True) for d, t in zip(down, outs)],
         }
         return self._frame_runs[batch]
+
+
+def pipelined_ms(sets: list[InProcess], img: np.ndarray, batch: int, n: int = 100) -> float:
+    """Device time (ms) a round takes in which every one of ``sets`` (the same models, built once each) runs a batch
+    of ``batch`` copies of ``img``, rounds following one another as fast as the device takes them with no host work
+    between (CUDA only). In each set a batch's frames go up and its backbone runs on one stream, its features are
+    copied into one of two buffers, then every head runs on a stream of its own and its outputs go down to
+    page-locked host memory, beside the next batch's backbone; the sets run side by side. Unlike the models back to
+    back, the models overlap as an engine's workers let them: one set of a batch of N frames is the most an engine of
+    N cameras could reach with these models, N sets of one frame the most N engines of one camera each could."""
+    torch = sets[0].torch
+    lines = [_Pipeline(seq, img, batch) for seq in sets]
+    main = torch.cuda.current_stream(sets[0].device)
+    with torch.inference_mode():
+        for i in range(10):  # warm-up
+            for line in lines:
+                line.issue(i)
+        torch.cuda.synchronize(sets[0].device)
+        start, end = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        start.record(main)
+        for line in lines:
+            line.after(main)
+        for i in range(n):
+            for line in lines:
+                line.issue(i)
+        for line in lines:
+            line.before(main)
+        end.record(main)
+        end.synchronize()
+    return start.elapsed_time(end) / n
+
+
+class _Pipeline:
+    """One set of models' batches, each issued on its streams to overlap the one before (``pipelined_ms``)."""
+
+    def __init__(self, seq: InProcess, img: np.ndarray, batch: int) -> None:
+        torch = self.torch = seq.torch
+        self.seq, self.f = seq, seq._frame(img, batch)
+        with torch.inference_mode():
+            feats = seq.fm({"frame": self.f["frames"]})
+            self.bufs = [{k: v.clone() for k, v in feats.items()} for _ in range(2)]
+            self.up = torch.cuda.Stream(seq.device)
+            self.streams = {name: torch.cuda.Stream(seq.device) for name in seq.heads}
+            self.downs = {
+                name: [torch.empty_like(t, device="cpu", pin_memory=True) for t in head(self._inputs(keys, 0)).values()]
+                for name, (head, keys) in seq.heads.items()
+            }
+        self.read = [[torch.cuda.Event() for _ in seq.heads] for _ in range(2)]  # its heads done with a buffer
+        self.done = {name: torch.cuda.Event() for name in seq.heads}
+
+    def _inputs(self, keys: list[str], j: int) -> dict[str, Any]:
+        return {k: self.bufs[j][k] for k in keys}
+
+    def issue(self, i: int) -> None:
+        torch, j = self.torch, i % 2
+        with torch.cuda.stream(self.up):
+            for ev in self.read[j]:  # the heads of two batches ago have read this buffer
+                self.up.wait_event(ev)
+            self.f["upload"]()
+            for k, v in self.seq.fm({"frame": self.f["frames"]}).items():
+                self.bufs[j][k].copy_(v, non_blocking=True)
+            ready = torch.cuda.Event()
+            ready.record(self.up)
+        for (name, (head, keys)), ev in zip(self.seq.heads.items(), self.read[j]):
+            s = self.streams[name]
+            with torch.cuda.stream(s):
+                s.wait_event(ready)
+                out = head(self._inputs(keys, j))
+                ev.record(s)
+                for d, t in zip(self.downs[name], out.values()):
+                    d.copy_(t, non_blocking=True)
+                self.done[name].record(s)
+
+    def after(self, stream: Any) -> None:
+        """Start no work before ``stream``'s."""
+        self.up.wait_stream(stream)
+        for s in self.streams.values():
+            s.wait_stream(stream)
+
+    def before(self, stream: Any) -> None:
+        """``stream`` waits for every batch issued."""
+        for ev in self.done.values():
+            stream.wait_event(ev)
+        stream.wait_stream(self.up)
 
 
 def _graphed(fn: Any, inputs: dict[str, Any], torch: Any) -> Any:

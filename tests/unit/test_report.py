@@ -171,6 +171,29 @@ def test_a_floor_row_gives_a_frames_share_of_each_batch_size_measured(tmp_path):
         "1.80 ms back to back on one stream; a frame back to back in a batch of 1: 1.80 ms, 2: 1.20 ms, 16: 1.00 ms; "
         "thread mode 3.00 ms submitted" in row
     )
+    assert "pipelined" not in row  # a file from before the pipelined floor
+
+
+def test_a_floor_row_gives_what_batching_can_buy_at_most(tmp_path):
+    f = _floor()
+    f["by_batch"] = {
+        str(n): {
+            "device_ms": {},
+            "chained_ms": 1.8 * n,
+            "chained_ms_a_frame": 1.8,
+            "pipelined_ms": 1.5 * n,
+            "pipelined_ms_a_frame": 1.5,
+            "separate_pipelined_ms_a_frame": sep,
+            "batching_gain_at_most": sep / 1.5,
+        }
+        for n, sep in ((1, 1.5), (4, 1.95))
+    }
+    _write(tmp_path, "paper_cuda_floor", "2026-01-01T00:00:00", floor=f)
+    (row,) = [line for line in table(collect(tmp_path)).splitlines() if "device-time floor" in line]
+    assert (
+        "pipelined, a batch against as many engines of one frame: 4: 1.50 against 1.95 ms (1.30x at most); "
+        "thread mode" in row
+    )
 
 
 def test_a_floor_off_cuda_has_no_floors_and_says_so(tmp_path):

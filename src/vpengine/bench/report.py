@@ -249,6 +249,17 @@ def _floor_row(f: dict[str, Any]) -> str:
                 + ", ".join(f"{n}: {b['chained_ms_a_frame']:.2f} ms" for n, b in batches)
                 + "; "
             )
+            gains = [(n, b) for n, b in batches if "batching_gain_at_most" in b and int(n) > 1]  # older files lack it
+            if gains:
+                floors += (
+                    "pipelined, a batch against as many engines of one frame: "
+                    + ", ".join(
+                        f"{n}: {b['pipelined_ms_a_frame']:.2f} against {b['separate_pipelined_ms_a_frame']:.2f} ms "
+                        f"({b['batching_gain_at_most']:.2f}x at most)"
+                        for n, b in gains
+                    )
+                    + "; "
+                )
     else:
         floors = "no device times off CUDA; "
 

@@ -359,3 +359,15 @@ def test_a_recorded_bag_holds_the_input_images_and_plays_back_as_a_source(tmp_pa
         run("-s", str(out), "--topic", "/vpengine/input/compressed", "--out-bag", str(again), "--mode", "thread") == 0
     )
     check_outputs(read_bag(again, "jazzy"))
+
+
+def test_a_bag_named_like_its_storage_file_is_refused_with_the_folder_to_give(tmp_path):
+    """A rosbag2 bag is a folder: ``x.mcap`` would become ``x.mcap/x.mcap.mcap``. The Python API refuses it as the
+    CLI does, before anything is written."""
+    from vpengine.io.bag import BagSink
+
+    for name, storage, written in (("x.mcap", "mcap", "x/x.mcap"), ("x.db3", "sqlite3", "x/x.db3")):
+        with pytest.raises(ValueError, match="a rosbag2 bag is a folder") as e:
+            BagSink(tmp_path / name, {}, storage=storage)
+        assert str(e.value).endswith(f"{str(tmp_path / 'x')!r} writes {tmp_path / written}")
+    assert list(tmp_path.iterdir()) == []

@@ -337,6 +337,15 @@ def test_outputs_and_arguments_are_checked_before_the_engine_starts(tmp_path, ca
         ),
         (["--out-bag", str(tmp_path / "bag")], "exists already; give a new name (never overwritten)"),
         (
+            ["--out-bag", str(tmp_path / "run.mcap")],
+            f"--out-bag '{tmp_path / 'run.mcap'}': a rosbag2 bag is a folder that holds its mcap file; give the "
+            f"folder's name: '{tmp_path / 'run'}' writes {tmp_path / 'run' / 'run'}.mcap",
+        ),
+        (
+            ["--out-bag", str(tmp_path / "run.db3"), "--bag-storage", "sqlite3"],
+            f"give the folder's name: '{tmp_path / 'run'}' writes {tmp_path / 'run' / 'run'}.db3",
+        ),
+        (
             ["--video", str(tmp_path / "v.gif")],
             f"--video '{tmp_path / 'v.gif'}': cannot write a video as '.gif'; name it .mp4, .avi, .m4v, .mkv, .mov, "
             ".webm",

@@ -245,6 +245,9 @@ def main(args: argparse.Namespace) -> int:
     serve = serve_options(args)
     # every output is checked before the engine starts (and before the source opens a camera)
     if args.out_bag:
+        from vpengine.io.bag import check_bag_name
+
+        check_bag_name(args.out_bag, args.bag_storage, "--out-bag")
         prepare_out_file(args.out_bag, False, "--out-bag", replaceable=False)
     if args.video:
         check_name(args.video, "--video")  # the name given, before a camera's name goes into it

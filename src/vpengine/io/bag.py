@@ -63,6 +63,21 @@ _HEADERS_KEPT = 4096
 #: Roles whose images are pictures to look at, written as JPEG (Note [Bag contents])
 PICTURE_ROLES = ("depth_color", "overlay")
 JPEG_FORMAT = "bgr8; jpeg compressed bgr8"  # image_transport's: BGR pixels, JPEG
+#: a storage's file suffix inside a bag's folder
+_SUFFIXES = {"mcap": ".mcap", "sqlite3": ".db3"}
+
+
+def check_bag_name(path: str | Path, storage: str = "mcap", what: str = "output bag") -> None:
+    """A rosbag2 bag is a folder holding ``metadata.yaml`` and its storage file (``NAME/NAME.mcap``): a path named
+    like a storage file (``run.mcap``, ``run.db3``) would make ``run.mcap/run.mcap.mcap``, so it is refused with
+    the folder name to give instead and the file that writes."""
+    p = Path(path)
+    if p.suffix.lower() in _SUFFIXES.values():
+        folder = p.with_suffix("")
+        raise ValueError(
+            f"{what} {str(p)!r}: a rosbag2 bag is a folder that holds its {storage} file; give the folder's name: "
+            f"{str(folder)!r} writes {folder / folder.name}{_SUFFIXES.get(storage, '')}"
+        )
 
 
 def _topic_list(conns: list[Any]) -> str:
@@ -295,6 +310,7 @@ class BagSink(Sink):
             raise ValueError(f"bag storage {storage!r} is not supported; accepted: {', '.join(STORAGES)}")
         if distro not in DISTROS:
             raise ValueError(f"ROS 2 distribution {distro!r} is not supported; accepted: {', '.join(DISTROS)}")
+        check_bag_name(path, storage)
         self.path = Path(path)
         if self.path.exists():
             raise ValueError(f"output bag {str(self.path)!r} exists already; bags are never overwritten")

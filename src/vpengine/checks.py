@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import numbers
 import operator
+from collections.abc import Callable
 from typing import Any
 
 #: Frame ids are stored as int64; the largest is kept free for the id after it (``submit`` without an id).
@@ -61,16 +62,18 @@ def timeout(value: Any, what: str = "timeout") -> float:
 MIN_PRIORITY, MAX_PRIORITY = -100, 100
 
 
-def priority(value: Any) -> int:
+def priority(value: Any, spell: Callable[[Any], str] = repr) -> int:
     """A priority (``Engine.set_priority``): an integer (Python or numpy, not a bool) from MIN_PRIORITY to
-    MAX_PRIORITY; higher is more important."""
+    MAX_PRIORITY; higher is more important. ``spell`` writes the value in the message as its door's caller wrote
+    it (``json.dumps`` for a JSON body: ``null``, ``"7"``)."""
     try:
         p = None if isinstance(value, bool) else operator.index(value)
     except TypeError:
         p = None
     if p is None or not MIN_PRIORITY <= p <= MAX_PRIORITY:
         raise ValueError(
-            f"priority must be an integer from {MIN_PRIORITY} to {MAX_PRIORITY} (higher: more important), got {value!r}"
+            f"priority must be an integer from {MIN_PRIORITY} to {MAX_PRIORITY} (higher: more important), "
+            f"got {spell(value)}"
         )
     return p
 
@@ -88,15 +91,17 @@ def priority_target(key: str) -> tuple[str | None, str | None]:
 MAX_RATE_HZ = 10_000.0
 
 
-def rate(model: str | None, value: Any) -> float | None:
+def rate(model: str | None, value: Any, spell: Callable[[Any], str] = repr) -> float | None:
     """The one check of a rate limit, for every door that takes one: None (no limit) or a real number from 0 (pause)
-    to :data:`MAX_RATE_HZ`. ``model`` names whose rate it is in the message (None: the caller's context does)."""
+    to :data:`MAX_RATE_HZ`. ``model`` names whose rate it is in the message (None: the caller's context does);
+    ``spell`` writes values as the door's caller writes them (``json.dumps``: ``null`` for None)."""
     if value is None:
         return None
     hz = _real(value)
     if hz is None or not 0 <= hz <= MAX_RATE_HZ:  # NaN compares False
         whose = "rate" if model is None else f"rate for {model!r}"
         raise ValueError(
-            f"{whose} must be None (no limit) or a number of Hz from 0 to {MAX_RATE_HZ:g} (0 pauses), got {value!r}"
+            f"{whose} must be {spell(None)} (no limit) or a number of Hz from 0 to {MAX_RATE_HZ:g} (0 pauses), "
+            f"got {spell(value)}"
         )
     return hz

@@ -1,6 +1,6 @@
 """One rate check for every door that takes a rate (``vpengine.checks.rate``): the config, ``Engine.set_rate``, the
 ROS 2 core's rate commands and the live view's ``PUT /api/rate``. Each refuses the same bad values with the same
-message, naming the value and the accepted range."""
+message, naming the value and the accepted range (the live view spells values as JSON does: null, "5")."""
 
 from __future__ import annotations
 
@@ -48,10 +48,11 @@ def test_set_rate_refuses_a_bad_rate_and_keeps_the_old_one(engine, bad, shown):
 
 @pytest.mark.parametrize(
     ("body", "shown"),
-    [(b'{"hz": NaN}', "nan"), (b'{"hz": -1}', "-1"), (b'{"hz": 10001}', "10001"), (b'{"hz": "5"}', "'5'")],
+    [(b'{"hz": NaN}', "NaN"), (b'{"hz": -1}', "-1"), (b'{"hz": 10001}', "10001"), (b'{"hz": "5"}', '"5"')],
 )
 def test_the_live_view_refuses_a_bad_rate(body, shown):
-    with pytest.raises(ValueError, match="rate for 'seg' " + ONE_MESSAGE + shown):
+    """The one message, its values spelled as the JSON body spells them."""
+    with pytest.raises(ValueError, match="rate for 'seg' " + ONE_MESSAGE.replace("None", "null") + shown):
         parse_rate(body, "seg")
 
 

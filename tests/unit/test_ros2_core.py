@@ -562,7 +562,7 @@ def test_core_priority_commands_reach_the_engine_and_bad_ones_change_nothing():
             ("nope", "5", "no head named 'nope'"),
             ("foundation", "5", "follows its heads'"),
             ("depth@nocam", "5", "not 'nocam'"),
-            ("@nocam", "5", "camera must be one of"),
+            ("@nocam", "5", r"a camera's priority \(no head named\) needs one of the cameras \[.*\], got 'nocam'"),
         ):
             with pytest.raises(ValueError, match=match):
                 core.set_priority(key, value)

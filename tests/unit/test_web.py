@@ -180,9 +180,10 @@ def test_a_rate_body_is_a_number_zero_or_null(body, hz):
 @pytest.mark.parametrize(
     ("body", "why"),
     [
-        (b"", "got None"),
+        (b"", "the body is empty"),
+        (b"null", "got null"),
         (b"5", "got 5"),
-        (b'{"rate": 5}', "got {'rate': 5}"),
+        (b'{"rate": 5}', 'got {"rate": 5}'),
         (b"{nope", "not JSON"),
     ],
 )
@@ -195,16 +196,16 @@ def test_a_bad_rate_body_says_what_is_accepted(body, why):
 @pytest.mark.parametrize(
     ("body", "why"),
     [
-        (b'{"hz": "5"}', "got '5'"),
-        (b'{"hz": true}', "got True"),
-        (b'{"hz": NaN}', "got nan"),
+        (b'{"hz": "5"}', 'got "5"'),
+        (b'{"hz": true}', "got true"),
+        (b'{"hz": NaN}', "got NaN"),
         (b'{"hz": -1}', "got -1"),
         (b'{"hz": 20000}', "got 20000"),
     ],
 )
 def test_a_bad_rate_gets_the_one_rate_message(body, why):
     with pytest.raises(
-        ValueError, match=r"rate for 'seg' must be None \(no limit\) or a number of Hz from 0 to 10000"
+        ValueError, match=r"rate for 'seg' must be null \(no limit\) or a number of Hz from 0 to 10000"
     ) as e:
         parse_rate(body, "seg")
     assert why in str(e.value)
@@ -213,15 +214,20 @@ def test_a_bad_rate_gets_the_one_rate_message(body, why):
 def test_a_priority_body_is_an_integer_in_range_and_a_bad_one_says_what_is_accepted():
     assert parse_priority(b'{"priority": 10}') == 10 and parse_priority(b'{"priority": -100}') == -100
     for body, why in (
-        (b"", "got None"),
+        (b"", "the body is empty"),
         (b"7", "got 7"),
         (b"{nope", "not JSON"),
-        (b'{"prio": 7}', "got {'prio': 7}"),
+        (b'{"prio": 7}', 'got {"prio": 7}'),
     ):
         with pytest.raises(ValueError, match=r'\{"priority": P\} with P an integer from -100 to 100') as e:
             parse_priority(body)
         assert why in str(e.value)
-    for body, why in ((b'{"priority": 101}', "101"), (b'{"priority": 1.5}', "1.5"), (b'{"priority": "7"}', "'7'")):
+    for body, why in (
+        (b'{"priority": 101}', "101"),
+        (b'{"priority": 1.5}', "1.5"),
+        (b'{"priority": "7"}', '"7"'),
+        (b'{"priority": null}', "null"),
+    ):
         with pytest.raises(ValueError, match=f"priority must be an integer from -100 to 100.*got {why}"):
             parse_priority(body)
 
@@ -281,8 +287,8 @@ def test_put_rate_sets_it_and_answers_the_rate_now(view, engine):
     [
         ("depth", b'{"hz": -2}', "from 0 to 10000 (0 pauses), got -2"),
         ("nope", b'{"hz": 1}', "no model named 'nope'"),
-        ("depth", b'{"hz": "fast"}', "got 'fast'"),
-        ("depth", b"", "got None"),
+        ("depth", b'{"hz": "fast"}', 'got "fast"'),
+        ("depth", b"", "the body is empty"),
     ],
 )
 def test_a_bad_rate_or_model_is_a_400_with_the_reason(view, engine, model, body, reason):
@@ -307,8 +313,9 @@ def test_put_priority_sets_a_heads_a_lanes_or_a_cameras_and_answers_it(view, eng
     [
         ("depth", b'{"priority": 101}', 400, "from -100 to 100 (higher: more important), got 101"),
         ("depth", b'{"priority": 2.5}', 400, "got 2.5"),
-        ("depth", b'{"priority": "high"}', 400, "got 'high'"),
-        ("depth", b"", 400, "got None"),
+        ("depth", b'{"priority": "high"}', 400, 'got "high"'),
+        ("depth", b'{"priority": null}', 400, "got null"),
+        ("depth", b"", 400, "the body is empty"),
         ("depth@nocam", b'{"priority": 1}', 400, "got 'nocam'"),
         ("nope", b'{"priority": 1}', 404, "no head named 'nope'"),
     ],

@@ -383,8 +383,8 @@ class Governor:
         if head is None:
             if camera not in self.lanes.cameras:
                 raise ValueError(
-                    f"set_priority(None, ...) sets a camera's priority: camera must be one of "
-                    f"{list(self.lanes.cameras)}, got {camera!r}"
+                    f"a camera's priority (no head named) needs one of the cameras {list(self.lanes.cameras)}, "
+                    f"got {camera!r}"
                 )
             entries, field = self._camera_entries(camera), "camera_priority"
         elif head == "foundation":

@@ -88,28 +88,38 @@ def _json_safe(v: Any) -> Any:
     return str(v)
 
 
+def _json(value: Any) -> str:
+    """``value`` as JSON writes it (``null``, ``true``, ``"5"``): how a message about a body names what it held."""
+    try:
+        return json.dumps(value)
+    except (TypeError, ValueError):  # pragma: no cover - a parsed body holds JSON values only
+        return repr(value)
+
+
 def _field(body: bytes, key: str, want: str) -> Any:
     """``key`` of a JSON object body; ValueError saying what is accepted (``want``)."""
+    if not body.strip():
+        raise ValueError(f"expected {want}; the body is empty")
     try:
-        doc = json.loads(body or b"null")
+        doc = json.loads(body)
     except (ValueError, UnicodeDecodeError):
         raise ValueError(f"expected {want}; the body is not JSON") from None
     if not isinstance(doc, dict) or key not in doc:
-        raise ValueError(f"expected {want}; got {doc!r}"[:300])
+        raise ValueError(f"expected {want}; got {_json(doc)}"[:300])
     return doc[key]
 
 
 def parse_rate(body: bytes, model: str) -> float | None:
     """The ``hz`` of a ``PUT /api/rate/<model>`` body; ValueError saying what is accepted."""
     want = f'a JSON object {{"hz": RATE}} with RATE a number from 0 to {checks.MAX_RATE_HZ:g} (0 pauses) or null (no limit)'
-    return checks.rate(model, _field(body, "hz", want))
+    return checks.rate(model, _field(body, "hz", want), spell=_json)
 
 
 def parse_priority(body: bytes) -> int:
     """The ``priority`` of a ``PUT /api/priority/<key>`` body; ValueError saying what is accepted."""
     lo, hi = checks.MIN_PRIORITY, checks.MAX_PRIORITY
     want = f'a JSON object {{"priority": P}} with P an integer from {lo} to {hi} (higher: more important)'
-    return checks.priority(_field(body, "priority", want))
+    return checks.priority(_field(body, "priority", want), spell=_json)
 
 
 class WebServer:

@@ -631,3 +631,28 @@ def test_weights_list_shows_no_login_or_token_of_an_entrys_url(env, capsys):
     (row,) = [r for r in json.loads(out)["entries"] if r["name"] == "mine"]
     assert row["url"] == "https://mirror.example/ckpt/model.pth?token=***"
     assert "s3cret" not in out and "robot" not in out and "abc123" not in out
+
+
+def test_fetch_config_names_a_checkpoint_nothing_fetches_and_fetches_the_rest(server, env, capsys, tmp_path):
+    """A head's checkpoint that is neither a file nor a catalog name cannot be fetched and would stop the engine's
+    start: `fetch --config` says so in the build's words (exit 1) and still fetches the config's catalog files."""
+    entry = make_entry(server)
+    missing = tmp_path / "runs" / "det" / "head.pt"
+    cfg = load_config(
+        "configs/tiny.yaml",
+        [f"foundation_model.checkpoint={entry.name}", f"heads.depth.checkpoint={missing}"],
+    )
+    cfg_file = env.parent / "engine.json"
+    cfg_file.write_text(cfg.model_dump_json())
+    with catalog.use(Catalog([entry])):
+        assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 1
+        out, err = capsys.readouterr()
+        assert f"{entry.name}: downloaded" in out
+        assert err == (
+            f"vpengine weights fetch: depth: checkpoint file '{missing}' does not exist "
+            f"(and '{missing}' is not a catalog name)\n"
+        )
+        missing.parent.mkdir(parents=True)
+        missing.write_bytes(b"a file now")  # a local file: nothing to fetch, nothing to say
+        assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 0
+        assert capsys.readouterr().err == ""

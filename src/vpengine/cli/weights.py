@@ -197,9 +197,15 @@ def cmd_fetch(args: argparse.Namespace) -> int:
             if entry.name not in names:
                 names.add(entry.name)
                 wanted.append((entry.name, entry))
-        if len(wanted) == len(args.names):
+        # a checkpoint that is neither a file nor a catalog name: nothing fetches it, and the engine would not start
+        missing = download.unresolvable(cfg)
+        for line in missing:
+            print(f"vpengine weights fetch: {line}", file=sys.stderr)
+        if len(wanted) == len(args.names) and not missing:
             print(f"{args.config} loads no catalog checkpoint (files, random weights or none)")
-    failed = 0
+    else:
+        missing = []
+    failed = len(missing)
     unreachable: dict[str, download.Unreachable] = {}  # host -> how it failed: one wait per host, not per file
     for name, entry in wanted:
         try:

@@ -36,6 +36,7 @@ from vpengine.models.weights import (
     CheckpointError,
     byte_progress,
     check_file,
+    locate_checkpoint,
     missing_error,
     place_hint,
     sha256_file,
@@ -430,6 +431,25 @@ def checkpoints(cfg: Any) -> list[tuple[str, Entry]]:
         if entry is not None:
             found.append((name, entry))
     return found
+
+
+def unresolvable(cfg: Any) -> list[str]:
+    """A line per model of an engine config whose configured ``checkpoint`` is neither an existing file nor a
+    catalog name: nothing fetches it, and the model would not load it. Each line is the error its build would give
+    (a missing file, a folder, an unknown name), starting with the model's name."""
+    if cfg.weights.random_weights:
+        return []
+    cache = catalog.cache_dir()
+    lines = []
+    for name, mcfg in [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)]:
+        given = mcfg.checkpoint
+        if not given or Path(given).expanduser().is_file() or catalog.find(given, cache) is not None:
+            continue
+        try:
+            locate_checkpoint(name, mcfg.model, str(given))
+        except CheckpointError as e:
+            lines.append(str(e))
+    return lines
 
 
 def prefetch(cfg: Any, progress: bool = True) -> list[Path]:

@@ -23,6 +23,7 @@ import http.client
 import logging
 import os
 import shutil
+import threading
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -221,6 +222,40 @@ def _discard(path: Path, hub: HubFile | None) -> None:
         shutil.rmtree(path.parent / ".cache", ignore_errors=True)
 
 
+#: Seconds without an answer after which a request says it is still waiting (Note [A server that says nothing])
+SLOW_ANSWER_S = 10.0
+
+
+@contextlib.contextmanager
+def _said_if_slow(name: str, url: str, timeout: float) -> Iterator[None]:
+    """Note [A server that says nothing]
+    ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+    A server (a mirror, a proxy) can take the connection and then send nothing; the request then waits for the whole
+    ``--timeout`` (60 s) before it fails, and meanwhile nothing on the terminal moves. So a request for the answer's
+    headers that has not had one after SLOW_ANSWER_S says once that it is waiting, for whom and for how long at most.
+    Only the wait for the headers: once a body flows, its progress bar moves, and a body that stalls fails at the
+    next read's timeout."""
+    if timeout <= SLOW_ANSWER_S:
+        yield
+        return
+    timer = threading.Timer(
+        SLOW_ANSWER_S,
+        lambda: log.warning(
+            "%s: %s has not answered for %g s; waiting up to %g s (--timeout)",
+            name,
+            catalog.url_host(url),
+            SLOW_ANSWER_S,
+            timeout,
+        ),
+    )
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
 def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: float, force: bool) -> Path:
     """Fetch a Hub file into ``dest``'s directory through huggingface_hub; returns where it landed."""
     from huggingface_hub import get_hf_file_metadata, hf_hub_download, hf_hub_url
@@ -234,7 +269,8 @@ def _from_hub(entry: Entry, hub: HubFile, dest: Path, progress: bool, timeout: f
     # Why a probe first: with no network, hf_hub_download retries five times over half a minute and logs every try
     # (twice, through its handler and ours); one request without retries says at once whether the Hub answers.
     try:
-        get_hf_file_metadata(url, timeout=timeout, library_name="vpengine", library_version=__version__)
+        with _said_if_slow(entry.name, url, timeout):
+            get_hf_file_metadata(url, timeout=timeout, library_name="vpengine", library_version=__version__)
     except HfHubHTTPError:
         pass  # the Hub answered (not found, gated, ...): hf_hub_download below says what, in its words
     except Exception as e:  # DNS, refused, TLS, timeout: whatever the HTTP client of this version raises
@@ -304,7 +340,8 @@ def _from_url(entry: Entry, dest: Path, progress: bool, timeout: float) -> Path:
     if offset:
         headers["Range"] = f"bytes={offset}-"
     try:
-        resp = urllib.request.urlopen(urllib.request.Request(entry.url, headers=headers), timeout=timeout)
+        with _said_if_slow(entry.name, entry.url, timeout):
+            resp = urllib.request.urlopen(urllib.request.Request(entry.url, headers=headers), timeout=timeout)
     except urllib.error.HTTPError as e:
         e.close()  # it holds the response's socket
         if e.code == 416 and offset:  # nothing left to send: the partial file is checked as it is

@@ -64,8 +64,9 @@ def run(
             f"floor, a batch of {n}: "
             + ", ".join(f"{k} {v:.2f}" for k, v in times.items())
             + f" ms; back to back {back_to_back:.2f} ms, {back_to_back / n:.2f} ms a frame; pipelined (the models"
-            f" overlapping, transfers included) {pipelined:.2f} ms, {pipelined / n:.2f} ms a frame; {n} set{'s' * (n > 1)}"
-            f" of one frame side by side {separate / n:.2f} ms a frame: batching buys {separate / pipelined:.2f}x at most"
+            f" overlapping, transfers included) {pipelined:.2f} ms, {pipelined / n:.2f} ms a frame;"
+            f" {n} set{'s' * (n > 1)} of one frame side by side {separate / n:.2f} ms a frame:"
+            f" batching buys {separate / pipelined:.2f}x at most"
         )
     del seq, more  # their models' memory goes before the engines start
     out: dict[str, Any] = {"heads": list(kinds), "device_ms": dt, "transfer_ms": xfer, "chained_ms": chained}

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
-import os
 import sys
 
 # subcommand -> module with add_arguments(parser) and main(args) -> int
@@ -30,9 +29,6 @@ COMMANDS = {
     "mps": ("vpengine.cli.mps", "start, stop or check a CUDA MPS control daemon (private pipe directory)"),
     "ros2": ("vpengine.cli.ros2", "the engine on a ROS 2 graph through a CycloneDDS bridge"),
 }
-
-#: FFmpeg's AV_LOG_FATAL: its log level for the CLI's video reads without -v
-_AV_LOG_FATAL = 8
 
 # top-level module of an optional dependency -> the extra that installs it
 EXTRAS = {
@@ -92,11 +88,6 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     if level > logging.INFO:  # a start that takes long says where it is (Note [Start progress])
         logging.getLogger("vpengine.start").setLevel(logging.INFO)
-        # FFmpeg's own line for each damaged packet of a video or stream ("[h264 @ 0x...] error while decoding MB")
-        # goes straight to descriptor 2, through the progress bar, naming no file; it conceals the damage and the
-        # frame still comes. Fatal errors only, unless -v or the user's own OPENCV_FFMPEG_LOGLEVEL; read by OpenCV
-        # when it first opens a video, so set before any source opens.
-        os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", str(_AV_LOG_FATAL))
     try:
         return int(importlib.import_module(args._module).main(args) or 0)
     except KeyboardInterrupt:

@@ -634,13 +634,19 @@ def test_weights_list_shows_no_login_or_token_of_an_entrys_url(env, capsys):
 
 
 def test_fetch_config_names_a_checkpoint_nothing_fetches_and_fetches_the_rest(server, env, capsys, tmp_path):
-    """A head's checkpoint that is neither a file nor a catalog name cannot be fetched and would stop the engine's
-    start: `fetch --config` says so in the build's words (exit 1) and still fetches the config's catalog files."""
+    """A checkpoint a model needs (``needed_checkpoint``) that is neither a file nor a catalog name cannot be fetched
+    and would stop the engine's start: `fetch --config` says so in the start's words (exit 1) and still fetches the
+    config's catalog files. One set for a model that declares none is ignored by the engine, and by fetch too."""
     entry = make_entry(server)
-    missing = tmp_path / "runs" / "det" / "head.pt"
+    missing = tmp_path / "runs" / "depth" / "head.pt"
     cfg = load_config(
         "configs/tiny.yaml",
-        [f"foundation_model.checkpoint={entry.name}", f"heads.depth.checkpoint={missing}"],
+        [
+            f"foundation_model.checkpoint={entry.name}",
+            "heads.depth.model=helpers.models:DeclaredCheckpointHead",
+            f"heads.depth.checkpoint={missing}",
+            f"heads.seg.checkpoint={tmp_path / 'ignored.pt'}",  # tiny_seg declares none: the engine ignores it
+        ],
     )
     cfg_file = env.parent / "engine.json"
     cfg_file.write_text(cfg.model_dump_json())
@@ -698,5 +704,8 @@ def test_a_server_that_takes_the_connection_and_says_nothing_is_named_while_it_i
             s.close()
         listener.close()
     said = [r.getMessage() for r in caplog.records]
-    assert said == [f"silent_model: 127.0.0.1:{port} has not answered for 0.3 s; waiting up to 1.5 s (--timeout)"]
+    assert said == [
+        f"silent_model: 127.0.0.1:{port} has not answered for 0.3 s; waiting up to 1.5 s for it (the timeout; "
+        "`weights fetch --timeout`)"
+    ]
     assert held  # the connection was taken: a wait for an answer, not for a connection

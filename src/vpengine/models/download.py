@@ -231,7 +231,7 @@ def _said_if_slow(name: str, url: str, timeout: float) -> Iterator[None]:
     """Note [A server that says nothing]
     ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
     A server (a mirror, a proxy) can take the connection and then send nothing; the request then waits for the whole
-    ``--timeout`` (60 s) before it fails, and meanwhile nothing on the terminal moves. So a request for the answer's
+    timeout (60 s by default) before it fails, and meanwhile nothing on the terminal moves. So a request for the answer's
     headers that has not had one after SLOW_ANSWER_S says once that it is waiting, for whom and for how long at most.
     Only the wait for the headers: once a body flows, its progress bar moves, and a body that stalls fails at the
     next read's timeout."""
@@ -241,7 +241,7 @@ def _said_if_slow(name: str, url: str, timeout: float) -> Iterator[None]:
     timer = threading.Timer(
         SLOW_ANSWER_S,
         lambda: log.warning(
-            "%s: %s has not answered for %g s; waiting up to %g s (--timeout)",
+            "%s: %s has not answered for %g s; waiting up to %g s for it (the timeout; `weights fetch --timeout`)",
             name,
             catalog.url_host(url),
             SLOW_ANSWER_S,
@@ -471,21 +471,29 @@ def checkpoints(cfg: Any) -> list[tuple[str, Entry]]:
 
 
 def unresolvable(cfg: Any) -> list[str]:
-    """A line per model of an engine config whose configured ``checkpoint`` is neither an existing file nor a
-    catalog name: nothing fetches it, and the model would not load it. Each line is the error its build would give
-    (a missing file, a folder, an unknown name), starting with the model's name."""
+    """A line per model of an engine config whose checkpoint is neither an existing file nor a catalog name: nothing
+    fetches it, and the engine would not start. Asked as the engine asks (each planned model's
+    :meth:`Model.needed_checkpoint`; a checkpoint a model declares none for is not needed), and each line is the one
+    the engine's start would give, starting with the model's name. A config that does not plan gives that error."""
     if cfg.weights.random_weights:
         return []
+    from vpengine.runtime.plan import make_plan
+
+    try:
+        plan = make_plan(cfg)
+    except Exception as e:  # the engine would stop here too, with this message
+        return [f"the config does not plan, so the engine would not start: {e}"]
     cache = catalog.cache_dir()
     lines = []
-    for name, mcfg in [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)]:
-        given = mcfg.checkpoint
-        if not given or Path(given).expanduser().is_file() or catalog.find(given, cache) is not None:
-            continue
+    for name, model in {"foundation": plan.foundation, **plan.heads}.items():
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
         try:
-            locate_checkpoint(name, mcfg.model, str(given))
+            needed = model.needed_checkpoint(mcfg)
+            if needed is None or Path(needed).expanduser().is_file() or catalog.find(needed, cache) is not None:
+                continue
+            locate_checkpoint(name, mcfg.model, str(needed))
         except CheckpointError as e:
-            lines.append(str(e))
+            lines.append(str(e) if str(e).startswith(f"{name}: ") else f"{name}: {e}")
     return lines
 
 

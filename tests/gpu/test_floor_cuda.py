@@ -1,6 +1,6 @@
 """The floor experiment's device times by batch size (``bench paper --experiments floor --floor-batches``) on CUDA:
 each model's device time, the models back to back and batches pipelined, for batches of as many frames as an engine of that many
-cameras runs. Run on the GPU machine: ``pytest -m gpu tests/gpu/test_floor_cuda.py``."""
+cameras runs, and the pipelined batches' outputs. Run on the GPU machine: ``pytest -m gpu tests/gpu/test_floor_cuda.py``."""
 
 from __future__ import annotations
 
@@ -28,13 +28,7 @@ def test_the_floor_gives_each_batch_sizes_device_times_and_a_frames_share():
         assert all(v > 0 for v in got["device_ms"].values()), got
         # batches pipelined still run their backbones one after another on one stream: no faster than that
         assert got["pipelined_ms"] >= 0.9 * got["device_ms"]["foundation"], got
-        assert got["batching_gain_at_most"] == pytest.approx(
-            got["separate_pipelined_ms_a_frame"] / got["pipelined_ms_a_frame"]
-        )
-    # one set of one frame alone is the batch of one pipelined
-    assert out["by_batch"]["1"]["separate_pipelined_ms_a_frame"] == pytest.approx(
-        out["by_batch"]["1"]["pipelined_ms"], rel=0.25
-    )
+        assert got["separate_pipelined_ms_a_frame"] > 0 and got["batching_gain"] > 0, got
     one = out["by_batch"]["1"]  # the batch-of-one floor, not measured twice
     assert one["device_ms"] == out["device_ms"] and one["chained_ms"] == out["chained_ms"]["compute"]
     assert out["floor_sum_ms"] > 0 and out["thread"]["n"] == 5  # the engines as before
@@ -59,3 +53,35 @@ def test_a_batch_runs_each_frame_as_a_batch_of_one_does(monkeypatch):
             assert torch.allclose(three[k][i : i + 1], v, rtol=1e-3, atol=1e-3), k
     assert seq.device_times(img, n=5, batch=3)["foundation"] > 0
     assert seq._frame_runs[3]["frames"].shape[0] == 3  # what was timed read three frames
+
+
+def test_batches_pipelined_give_each_frame_the_outputs_a_run_alone_gives():
+    """What the pipelined floor times is the models' real work on the right data: three frames in turn through two
+    feature buffers (so a head that read a buffer before the backbone's copy, or after the next one, would see another
+    frame's features), and the outputs of the last batch are those of its frame run alone."""
+    import numpy as np
+    import torch
+
+    from vpengine.bench.paper.harness import _Pipeline
+
+    b = Bench.load(TINY, OVERRIDES, frames=1)
+    seq = InProcess(b, [b.head("depth", "depth"), b.head("seg", "seg")], max_batch=2)
+    imgs = [b.images(1)[0] // (k + 1) for k in range(3)]  # three different frames
+    line = _Pipeline(seq, imgs, 2)
+    with torch.inference_mode():
+        line.after(torch.cuda.current_stream())
+        for i in range(8):  # the last batch, 7, is frame 1
+            line.issue(i)
+        line.before(torch.cuda.current_stream())
+        torch.cuda.synchronize()
+        got = {name: [d.clone() for d in downs] for name, downs in line.downs.items()}
+        x = torch.from_numpy(np.stack([imgs[1]] * 2)).cuda()
+        feats = {k: v.clone() for k, v in seq.fm({"frame": x}).items()}
+        for name, (head, keys) in seq.heads.items():
+            want = [t.cpu() for t in head({k: feats[k] for k in keys}).values()]
+            for g, w in zip(got[name], want, strict=True):
+                assert torch.allclose(g.float(), w.float(), rtol=1e-4, atol=1e-4), name
+        other = torch.from_numpy(np.stack([imgs[0]] * 2)).cuda()  # and not those of another frame
+        feats0 = seq.fm({"frame": other})
+        head, keys = seq.heads["depth"]
+        assert not torch.allclose(got["depth"][0], head({k: feats0[k] for k in keys})["depth"].cpu())

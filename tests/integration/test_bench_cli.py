@@ -302,3 +302,16 @@ def test_resources_reports_how_long_each_engine_took_to_start(tmp_path, cli):
     (row,) = json.loads((tmp_path / "resources_gpu.json").read_text())["rows"]
     assert row["mode"] == "thread" and row["heads"] == 1 and 0 < row["start_s"] < 300
     assert f"started in {row['start_s']:.1f} s" in p.stdout
+
+
+def test_the_pipelined_floor_refuses_more_sets_than_torchs_stream_pool_keeps_apart():
+    """More sets side by side than PyTorch's pool has streams for would share streams and run one after another,
+    timing a schedule that is not the one claimed: refused, naming the count, before anything runs."""
+    from tests_paths import TINY
+    from vpengine.bench.paper.harness import STREAM_POOL, Bench, InProcess, pipelined_ms
+
+    b = Bench.load(TINY, ["mode=thread", "device=cpu"], frames=1)
+    seq = InProcess(b, [b.head("depth", "depth"), b.head("seg", "seg")])
+    sets = STREAM_POOL // 3 + 1  # three models a set
+    with pytest.raises(ValueError, match=f"{sets} sets of 3 models need {3 * sets} CUDA streams side by side"):
+        pipelined_ms([seq] * sets, b.images(1), 1)

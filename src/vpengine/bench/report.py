@@ -234,8 +234,9 @@ def _memory(flat: bool | None) -> str:
 
 def _floor_row(f: dict[str, Any]) -> str:
     """A floor run: the engine's mean frame in each mode, submitted and written in place, and where the device times
-    were measured (CUDA) the three floors and how far over the summed one each mean is, and a frame's share of a
-    batch's back-to-back device time for each batch size measured."""
+    were measured (CUDA) the three floors and how far over the summed one each mean is, a frame's share of a
+    batch's back-to-back device time for each batch size measured, and for each batch of several frames a frame's
+    share pipelined against as many sets of one frame side by side, and their ratio (what batching buys there)."""
     heads = "+".join(f.get("heads") or [k for k in f["device_ms"] if k != "foundation"])
     if "floor_sum_ms" in f:
         floors = (
@@ -249,13 +250,13 @@ def _floor_row(f: dict[str, Any]) -> str:
                 + ", ".join(f"{n}: {b['chained_ms_a_frame']:.2f} ms" for n, b in batches)
                 + "; "
             )
-            gains = [(n, b) for n, b in batches if "batching_gain_at_most" in b and int(n) > 1]  # older files lack it
+            gains = [(n, b) for n, b in batches if "batching_gain" in b and int(n) > 1]  # older files lack it
             if gains:
                 floors += (
                     "pipelined, a batch against as many engines of one frame: "
                     + ", ".join(
                         f"{n}: {b['pipelined_ms_a_frame']:.2f} against {b['separate_pipelined_ms_a_frame']:.2f} ms "
-                        f"({b['batching_gain_at_most']:.2f}x at most)"
+                        f"(batching {b['batching_gain']:.2f}x)"
                         for n, b in gains
                     )
                     + "; "

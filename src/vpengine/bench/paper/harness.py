@@ -348,11 +348,6 @@ class InProcess:
         with self.torch.inference_mode():
             return event_ms(self._frame(img, batch)["back_to_back"], n)
 
-    def pipelined_ms(self, img: np.ndarray, batch: int, n: int = 100) -> float:
-        """Device time (ms) a batch of ``batch`` copies of ``img`` takes when batches follow one another as fast as
-        the device takes them (CUDA only; ``pipelined_ms`` below)."""
-        return pipelined_ms([self], img, batch, n)
-
     def _frame(self, img: np.ndarray, batch: int = 1) -> dict[str, Any]:
         """What the timings above replay on a batch of ``batch`` copies of ``img``, built once a size: ``parts``
         (backbone, then each head: compiled executors replay their CUDA graphs, eager ones are captured here if they
@@ -388,18 +383,34 @@ class InProcess:
         return self._frame_runs[batch]
 
 
-def pipelined_ms(sets: list[InProcess], img: np.ndarray, batch: int, n: int = 100) -> float:
+#: PyTorch hands out streams from a pool of this many per device and priority, round robin: more at once would share
+STREAM_POOL = 32
+
+
+def pipelined_ms(sets: list[InProcess], imgs: list[np.ndarray], batch: int, n: int = 100) -> float:
     """Device time (ms) a round takes in which every one of ``sets`` (the same models, built once each) runs a batch
-    of ``batch`` copies of ``img``, rounds following one another as fast as the device takes them with no host work
-    between (CUDA only). In each set a batch's frames go up and its backbone runs on one stream, its features are
-    copied into one of two buffers, then every head runs on a stream of its own and its outputs go down to
-    page-locked host memory, beside the next batch's backbone; the sets run side by side. Unlike the models back to
-    back, the models overlap as an engine's workers let them: one set of a batch of N frames is the most an engine of
-    N cameras could reach with these models, N sets of one frame the most N engines of one camera each could."""
+    of ``batch`` frames (``imgs`` in turn, each copied ``batch`` times), rounds following one another as fast as the
+    device takes them (CUDA only). In each set a batch's frames go up and its backbone runs on one stream, its
+    features are copied into one of two buffers, then every head runs on a stream of its own and its outputs go down
+    to page-locked host memory, beside the next batch's backbone; the sets run side by side. Compiled models replay
+    their CUDA graphs; an eager one runs as it is (its launch gaps and any host synchronisation included).
+
+    Unlike the models back to back, the models overlap as an engine's workers let them, with none of an engine's host
+    work: one set on a batch of N frames is what an engine of N cameras would take at this schedule, N sets of one
+    frame what N engines of one camera each would. A schedule, not a proof of the best one: the backbone runs at
+    most one batch ahead of the heads (two buffers), and the sets are launched from one thread."""
     torch = sets[0].torch
-    lines = [_Pipeline(seq, img, batch) for seq in sets]
+    streams = len(sets) * (1 + len(sets[0].heads))
+    if streams > STREAM_POOL:
+        raise ValueError(
+            f"{len(sets)} sets of {1 + len(sets[0].heads)} models need {streams} CUDA streams side by side; PyTorch's "
+            f"pool has {STREAM_POOL} (more would share streams and run one after another): fewer frames"
+        )
+    lines = [_Pipeline(seq, imgs, batch) for seq in sets]
     main = torch.cuda.current_stream(sets[0].device)
     with torch.inference_mode():
+        for line in lines:
+            line.after(main)  # their set-up ran on this stream
         for i in range(10):  # warm-up
             for line in lines:
                 line.issue(i)
@@ -419,16 +430,22 @@ def pipelined_ms(sets: list[InProcess], img: np.ndarray, batch: int, n: int = 10
 
 
 class _Pipeline:
-    """One set of models' batches, each issued on its streams to overlap the one before (``pipelined_ms``)."""
+    """One set of models' batches, each issued on its streams to overlap the one before (``pipelined_ms``):
+    ``issue(i)`` runs batch ``i`` on frame ``imgs[i % len(imgs)]``; ``downs`` holds each head's last outputs."""
 
-    def __init__(self, seq: InProcess, img: np.ndarray, batch: int) -> None:
+    def __init__(self, seq: InProcess, imgs: list[np.ndarray], batch: int) -> None:
+        from vpengine.backends.streams import lend
+
         torch = self.torch = seq.torch
-        self.seq, self.f = seq, seq._frame(img, batch)
+        self.seq = seq
         with torch.inference_mode():
-            feats = seq.fm({"frame": self.f["frames"]})
+            self.hosts = [torch.from_numpy(np.stack([img] * batch)).pin_memory() for img in imgs]
+            self.frames = torch.empty_like(self.hosts[0], device=seq.device)
+            self.frames.copy_(self.hosts[0])
+            feats = seq.fm({"frame": self.frames})
             self.bufs = [{k: v.clone() for k, v in feats.items()} for _ in range(2)]
-            self.up = torch.cuda.Stream(seq.device)
-            self.streams = {name: torch.cuda.Stream(seq.device) for name in seq.heads}
+            self.up = lend(self, seq.device)
+            self.streams = {name: lend(self, seq.device) for name in seq.heads}
             self.downs = {
                 name: [torch.empty_like(t, device="cpu", pin_memory=True) for t in head(self._inputs(keys, 0)).values()]
                 for name, (head, keys) in seq.heads.items()
@@ -442,10 +459,11 @@ class _Pipeline:
     def issue(self, i: int) -> None:
         torch, j = self.torch, i % 2
         with torch.cuda.stream(self.up):
+            self.frames.copy_(self.hosts[i % len(self.hosts)], non_blocking=True)
+            feats = self.seq.fm({"frame": self.frames})
             for ev in self.read[j]:  # the heads of two batches ago have read this buffer
                 self.up.wait_event(ev)
-            self.f["upload"]()
-            for k, v in self.seq.fm({"frame": self.f["frames"]}).items():
+            for k, v in feats.items():
                 self.bufs[j][k].copy_(v, non_blocking=True)
             ready = torch.cuda.Event()
             ready.record(self.up)

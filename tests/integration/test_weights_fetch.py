@@ -635,8 +635,8 @@ def test_weights_list_shows_no_login_or_token_of_an_entrys_url(env, capsys):
 
 def test_fetch_config_names_a_checkpoint_nothing_fetches_and_fetches_the_rest(server, env, capsys, tmp_path):
     """A checkpoint a model needs (``needed_checkpoint``) that is neither a file nor a catalog name cannot be fetched
-    and would stop the engine's start: `fetch --config` says so in the start's words (exit 1) and still fetches the
-    config's catalog files. One set for a model that declares none is ignored by the engine, and by fetch too."""
+    and would stop the engine's start: `fetch --config` says so in the start's words and fetches the config's catalog
+    files (exit 0: the file may be made later, as the shipped config's detector is trained after its fetch). One set for a model that declares none is ignored by the engine, and by fetch too."""
     entry = make_entry(server)
     missing = tmp_path / "runs" / "depth" / "head.pt"
     cfg = load_config(
@@ -651,11 +651,11 @@ def test_fetch_config_names_a_checkpoint_nothing_fetches_and_fetches_the_rest(se
     cfg_file = env.parent / "engine.json"
     cfg_file.write_text(cfg.model_dump_json())
     with catalog.use(Catalog([entry])):
-        assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 1
+        assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 0  # it may be made later
         out, err = capsys.readouterr()
         assert f"{entry.name}: downloaded" in out
         assert err == (
-            f"vpengine weights fetch: depth: checkpoint file '{missing}' does not exist "
+            f"vpengine weights fetch: WARNING: not fetched, depth: checkpoint file '{missing}' does not exist "
             f"(and '{missing}' is not a catalog name)\n"
         )
         missing.parent.mkdir(parents=True)

@@ -472,7 +472,7 @@ def checkpoints(cfg: Any) -> list[tuple[str, Entry]]:
 
 def unresolvable(cfg: Any) -> list[str]:
     """A line per model of an engine config whose checkpoint is neither an existing file nor a catalog name: nothing
-    fetches it, and the engine would not start. Asked as the engine asks (each planned model's
+    fetches it, and the engine will not start until it is there. Asked as the engine asks (each planned model's
     :meth:`Model.needed_checkpoint`; a checkpoint a model declares none for is not needed), and each line is the one
     the engine's start would give, starting with the model's name. A config that does not plan gives that error."""
     if cfg.weights.random_weights:
@@ -482,7 +482,7 @@ def unresolvable(cfg: Any) -> list[str]:
     try:
         plan = make_plan(cfg)
     except Exception as e:  # the engine would stop here too, with this message
-        return [f"the config does not plan, so the engine would not start: {e}"]
+        return [f"the config does not plan, so its local checkpoints were not checked: {e}"]
     cache = catalog.cache_dir()
     lines = []
     for name, model in {"foundation": plan.foundation, **plan.heads}.items():

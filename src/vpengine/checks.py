@@ -39,6 +39,20 @@ def frame_id(value: Any) -> int | None:
     return fid
 
 
+def names(value: Any, what: str) -> list[str] | None:
+    """A list of names an API call takes (``heads=``, ``overrides=``): None, one str (a list of one), or a list or
+    tuple of str; not an empty one, which would name nothing (None is the default: all of them)."""
+    if value is None:
+        return None
+    if isinstance(value, str):
+        return [value]
+    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
+        raise TypeError(f"{what} must be a list of str (or one str), got {value!r}")
+    if not value:
+        raise ValueError(f"{what}=[] names nothing; leave it out (None) for all")
+    return list(value)
+
+
 def timestamp(value: Any) -> float | None:
     """A capture time in seconds: None (now) or a finite real number."""
     if value is None:

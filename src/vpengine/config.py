@@ -585,7 +585,10 @@ def _syntax_error(e: json.JSONDecodeError | yaml.YAMLError, text: str) -> str:
 def load_config(
     source: str | Path | dict[str, Any] | EngineConfig | None = None, overrides: list[str] | None = None
 ) -> EngineConfig:
-    """Load and validate a config from a YAML/JSON file, a dict or an EngineConfig, then apply dotted overrides."""
+    """Load and validate a config from a YAML/JSON file, a dict or an EngineConfig, then apply dotted overrides
+    (a list of ``key.path=value``, or one such str)."""
+    if isinstance(overrides, str):  # one override, not its characters
+        overrides = [overrides]
     if isinstance(source, EngineConfig):
         if not overrides:
             return source

@@ -109,3 +109,34 @@ def test_a_tensor_that_requires_grad_is_a_value_error(engine):
         engine.submit(t)
     fid = engine.submit(torch.from_numpy(frame(6)))
     assert set(engine.wait(fid, timeout=10)) == {"depth", "seg", "det"}
+
+
+@pytest.mark.parametrize("bad", ["abc", 0.5, True, np.float64(1.0)], ids=repr)
+def test_wait_checks_its_frame_id_as_submit_does(engine, bad):
+    with pytest.raises(ValueError, match="frame_id must be an integer, got ") as e:
+        engine.wait(bad)
+    assert repr(bad) in str(e.value)
+
+
+def test_wait_for_a_cancelled_frame_slots_id_says_so(engine):
+    with engine.frame_slot() as slot:
+        slot.cancel()
+    with pytest.raises(ValueError, match="frame_id is None: no frame was submitted"):
+        engine.wait(slot.frame_id)
+
+
+def test_one_head_name_is_a_list_of_one_and_a_bad_one_says_what_is_taken(engine):
+    fid = engine.submit(frame(0))
+    assert set(engine.wait(fid, heads="depth")) == {"depth"}  # not the characters of 'depth'
+    for bad in ([], ["depth", 3]):
+        with pytest.raises((ValueError, TypeError), match=r"heads"):
+            engine.wait(fid, heads=bad)
+    with pytest.raises(TypeError, match=r"a head is named by a str, got \['depth'\]"):
+        engine.latest(["depth"])
+    assert all(r.head == "seg" for r in engine.results(0.0, heads="seg"))
+
+
+def test_one_override_is_a_list_of_one():
+    from vpengine.config import load_config
+
+    assert load_config("tiny", "mode=process").mode == "process"

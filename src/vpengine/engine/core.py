@@ -487,6 +487,7 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results] in results.py).
         """
         self._require_running()
+        heads = checks.names(heads, "heads")
         return self._outbox.results(checks.timeout(timeout), heads, copy, lambda: self._state == "running")
 
     @_fenced
@@ -505,8 +506,10 @@ class Engine:
         borrowed, not copied, while a lease is free (Note [Borrowed results] in results.py).
         """
         self._require_running()
-        timeout = checks.timeout(timeout)
-        known = self._origins.get(int(frame_id))
+        timeout, heads = checks.timeout(timeout), checks.names(heads, "heads")
+        if frame_id is None:  # what a cancelled frame_slot's frame_id is
+            raise ValueError("frame_id is None: no frame was submitted (a frame_slot that was cancelled has none)")
+        known = self._origins.get(checks.frame_id(frame_id))  # type: ignore[arg-type]
         if known is None:
             raise ValueError(f"frame id {frame_id} was not submitted (or is older than the last {_ORIGINS_KEPT})")
         origin, camera = known

@@ -291,6 +291,8 @@ class Outbox:
             self.lanes = lanes
 
     def head(self, head: str) -> str:
+        if not isinstance(head, str):
+            raise TypeError(f"a head is named by a str, got {head!r}")
         if head not in self.heads:
             raise KeyError(f"no head named {head!r}; heads: {list(self.heads)}")
         return head

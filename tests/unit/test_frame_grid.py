@@ -104,12 +104,27 @@ def test_the_readme_frame_slot_snippet_on_the_street_video(engine):
 def test_a_writer_that_reallocates_instead_of_writing_into_the_slot_is_refused(engine):
     cap = cv2.VideoCapture(str(MEDIA / "vtest.avi"))
     before = engine.stats()["engine"]["submitted"]
-    refused = pytest.raises(ValueError, match=r"written into a new 768x576 array, not into the 160x120 slot")
+    refused = pytest.raises(
+        ValueError,
+        match=r"the frame written is \(576, 768, 3\) uint8, the slot \(120, 160, 3\) uint8: a writer that cannot "
+        r"write into the slot allocated a new array, and nothing reached the slot; open the slot with frame_slot\(size",
+    )
     with refused, engine.frame_slot() as slot:  # the models' size, not the video's
         _, slot.array = cap.read(image=slot.array)
     assert engine.stats()["engine"]["submitted"] == before  # nothing (no zero frame) went in
     refused = pytest.raises(ValueError, match=r"the frame written is \(60, 160, 3\) uint8, the slot \(120, 160, 3\)")
     with refused, engine.frame_slot() as slot:
         slot.array = slot.array[:60]  # same memory, another shape
+    # the same size but another dtype: not a size to change (the reason a reviewer found misnamed)
+    dtype = pytest.raises(ValueError, match=r"\(120, 160, 3\) float32, the slot \(120, 160, 3\) uint8: .*slot$")
+    with dtype, engine.frame_slot() as slot:
+        slot.array = slot.array.astype(np.float32)
+    # the same shape and dtype, another array: written elsewhere
+    elsewhere = pytest.raises(ValueError, match=r"written into another 160x120 uint8 array, not into the slot")
+    with elsewhere, engine.frame_slot() as slot:
+        slot.array = slot.array.copy()
+    for bad in ("640x480", (1, 2, 3), (10.7, 20.2), (True, 5)):
+        with pytest.raises(ValueError, match=r"frame_slot size must be \(height, width\) in integer pixels"):
+            engine.frame_slot(size=bad)
     fid = engine.submit(frame(1))
     assert set(engine.wait(fid, timeout=5)) == {"depth", "seg", "det"}

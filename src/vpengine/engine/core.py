@@ -40,6 +40,7 @@ from __future__ import annotations
 import collections
 import functools
 import logging
+import numbers
 import os
 import shutil
 import threading
@@ -373,7 +374,10 @@ class Engine:
         if size is None and cam_cfg is not None and cam_cfg.height and cam_cfg.width:
             size = (cam_cfg.height, cam_cfg.width)
         if size is not None:
-            h, w = (int(v) for v in size)
+            hw = tuple(size) if isinstance(size, (tuple, list)) else ()
+            if len(hw) != 2 or any(isinstance(v, bool) or not isinstance(v, numbers.Integral) for v in hw):
+                raise ValueError(f"frame_slot size must be (height, width) in integer pixels, got {size!r}")
+            h, w = (int(v) for v in hw)
             if not (0 < h <= self.boundary.max_side and 0 < w <= self.boundary.max_side):
                 raise ValueError(
                     f"frame_slot size {size!r}: height and width must be 1..{self.boundary.max_side} (input.max_frame_side)"

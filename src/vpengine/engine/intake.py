@@ -52,21 +52,22 @@ class FrameSlot:
         arr = self._array
         if arr is None:
             raise RuntimeError("a FrameSlot's array exists only inside its with-block")
-        if not isinstance(value, np.ndarray) or value.__array_interface__["data"][0] != arr.ctypes.data:
-            got = (
-                f"{value.shape[1]}x{value.shape[0]}"
-                if isinstance(value, np.ndarray) and value.ndim >= 2
-                else (type(value).__name__)
-            )
-            raise ValueError(
-                f"the frame was written into a new {got} array, not into the {arr.shape[1]}x{arr.shape[0]} slot "
-                f"(a writer allocates one when the sizes differ): open the slot with frame_slot(size=(height, width)) "
-                "of your frames"
-            )
+        if not isinstance(value, np.ndarray):
+            raise ValueError(f"slot.array takes the slot's own array back, got a {type(value).__name__}")
         if value.shape != arr.shape or value.dtype != arr.dtype:
+            size = (
+                "; open the slot with frame_slot(size=(height, width)) of your frames"
+                if value.ndim >= 2 and value.shape[:2] != arr.shape[:2]
+                else ""
+            )
             raise ValueError(
-                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: open the slot "
-                "with frame_slot(size=(height, width)) of your frames"
+                f"the frame written is {value.shape} {value.dtype}, the slot {arr.shape} {arr.dtype}: a writer that "
+                f"cannot write into the slot allocated a new array, and nothing reached the slot{size}"
+            )
+        if value.__array_interface__["data"][0] != arr.ctypes.data:
+            raise ValueError(
+                f"the frame was written into another {value.shape[1]}x{value.shape[0]} {value.dtype} array, not into "
+                "the slot: write into slot.array itself (cap.read(image=slot.array), np.copyto(slot.array, frame))"
             )
 
     def cancel(self) -> None:

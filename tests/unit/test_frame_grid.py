@@ -77,10 +77,17 @@ def test_results_of_another_size_reuse_the_arrays_a_caller_let_go(engine, hw):
     np.testing.assert_array_equal(held, kept)  # held: never reused
 
 
-def test_borrowed_results_of_another_size_are_copies_in_the_frame_grid(engine):
-    fid = engine.submit(frame(2, 240, 320))
-    r = engine.wait(fid, copy=False, timeout=5)["depth"]
-    assert not r.borrowed and r["depth"].shape == (240, 320)
+def test_borrowed_results_of_another_size_are_copies_in_the_frame_grid_said_once_a_head(engine, caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING, "vpengine"):
+        for _ in range(2):
+            fid = engine.submit(frame(2, 240, 320))
+            r = engine.wait(fid, copy=False, timeout=5)["depth"]
+            assert not r.borrowed and r["depth"].shape == (240, 320)
+    said = [m for m in caplog.messages if "copy=False results are copies" in m]
+    assert sorted(m.split(":")[0] for m in said) == ["depth", "det", "seg"], said  # once a head, not once a frame
+    assert "the frame (320x240) is not the models' input size" in said[0]
     fid = engine.submit(frame(2))
     assert engine.wait(fid, copy=False, timeout=5)["depth"].borrowed
 

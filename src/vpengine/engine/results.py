@@ -22,6 +22,7 @@ from __future__ import annotations
 import collections
 import concurrent.futures
 import functools
+import logging
 import sys
 import threading
 import time
@@ -42,6 +43,8 @@ from vpengine.runtime.lanes import Lanes
 from vpengine.runtime.plan import LEASES
 from vpengine.runtime.supervisor import EngineDeadError
 from vpengine.transport.ring import Accept, RingReader, SlotInfo, SlotRing
+
+log = logging.getLogger("vpengine")
 
 _RECYCLED_PER_OUTPUT = 2  # host arrays kept per (head, camera, output) for reuse once the user has let go of them
 
@@ -267,6 +270,7 @@ class Outbox:
         self._pool: concurrent.futures.ThreadPoolExecutor | None = None
         self._host_outputs = _HostOutputs()
         self._numpy_heads: dict[str, bool] = {}  # head -> its outputs are handed out as numpy arrays
+        self._told_not_lent: set[str] = set()  # heads whose copy=False results were copied for their grid, said once
 
     def add_head(self, name: str, model: Model, ring: SlotRing, lanes: Lanes) -> None:
         """Serve the results of a head added at run time (Note [Heads at run time] in runtime/lanes.py)."""
@@ -452,8 +456,22 @@ class Outbox:
         numpy = self._numpy_heads.get(head)
         if numpy is None:  # a head's outputs are host arrays, or not, in every slot
             numpy = self._numpy_heads[head] = all(_numpy_output(t) for t in slot.tensors.values())
-        if not numpy or self._grid_change(head, slot) is not None:
-            return None  # outputs mapped to another grid are not the slot's: nothing to lend
+        if not numpy:
+            return None
+        change = self._grid_change(head, slot)
+        if change is not None:  # outputs mapped to another grid are not the slot's: nothing to lend
+            if head not in self._told_not_lent:
+                self._told_not_lent.add(head)
+                h, w = change.frame_hw
+                log.warning(
+                    "%s: copy=False results are copies: the frame (%dx%d) is not the models' input size, so its "
+                    "outputs are mapped to the frame's grid in new arrays (output.grid: native would lend them in "
+                    "the models' grid)",
+                    head,
+                    w,
+                    h,
+                )
+            return None
         return self.leases.borrow(head, slot)
 
     def _grid_change(self, head: str, slot: SlotInfo) -> Placement | None:

@@ -135,3 +135,31 @@ def test_a_writer_that_reallocates_instead_of_writing_into_the_slot_is_refused(e
             engine.frame_slot(size=bad)
     fid = engine.submit(frame(1))
     assert set(engine.wait(fid, timeout=5)) == {"depth", "seg", "det"}
+
+
+def test_plot_draws_rgb_and_float_frames_as_bgr_pictures_and_native_results_in_the_frames_grid():
+    """Result.plot draws a BGR uint8 picture whatever the input's colour order and dtype, and a result kept in the
+    models' grid (output.grid: native) is drawn where it lies on the frame, not stretched or in a corner."""
+    img = frame(3, 240, 320)
+    with Engine(tiny("thread")) as bgr:
+        want = bgr.predict(img)["det"].plot()  # the default input: BGR uint8
+    rgb_img = np.ascontiguousarray(img[..., ::-1])
+    with Engine(tiny("thread", "input.color=rgb")) as rgb:
+        r = rgb.predict(rgb_img)["det"]
+        np.testing.assert_array_equal(r.image, img)  # the picture is BGR
+    with Engine(tiny("thread", "input.dtype=float32")) as flt:
+        pic = flt.predict(img.astype(np.float32) / 255)["det"].plot()  # drew nothing before: cv2 refused float
+        assert pic.dtype == np.uint8 and pic.shape == (240, 320, 3)
+        with pytest.raises(ValueError, match=r"with values 0..1; got values up to 255 \(divide by 255\)"):
+            flt.submit(img.astype(np.float32))
+    grids = [f"heads.{h}.output.grid=native" for h in ("depth", "seg")]
+    wide = frame(4, 180, 320)  # 16:9 into the models' 4:3: letterboxed, so stretching is not mapping
+    with Engine(tiny("thread", *grids)) as native:
+        out = native.predict(wide)
+        for head in ("depth", "seg"):
+            assert out[head][next(iter(out[head].outputs))].shape == (120, 160)  # kept in the models' grid
+            with Engine(tiny("thread")) as framed:
+                drawn = framed.predict(wide)[head].plot()
+            # drawn in the frame's grid, as the same head's frame-grid result is
+            assert np.abs(out[head].plot().astype(int) - drawn.astype(int)).mean() < 8, head
+    assert want.shape == (240, 320, 3)

@@ -336,9 +336,21 @@ class Boundary:
             )
         if frame.dtype != self.dtype:
             raise ValueError(f"expected {want}; got dtype {frame.dtype}")
-        if frame.dtype.kind == "f" and not np.isfinite(frame).all():
-            raise ValueError(f"expected {want} with finite values; got NaN or inf")
+        if frame.dtype.kind == "f":
+            hi = float(frame.max())  # NaN if any is (and inf if any is): one pass, no mask
+            if not np.isfinite(hi) or not np.isfinite(float(frame.min())):
+                raise ValueError(f"expected {want} with finite values; got NaN or inf")
+            if hi > 2.0:  # a float frame is 0..1: this one is 0..255, its /255 forgotten
+                raise ValueError(f"expected {want} with values 0..1; got values up to {hi:g} (divide by 255)")
         return frame
+
+    def picture(self, frame: np.ndarray) -> np.ndarray:
+        """A checked frame as the BGR uint8 picture ``Result.plot`` draws on (frames may be RGB, or float32
+        0..1)."""
+        pic = frame
+        if pic.dtype != np.uint8:
+            pic = (np.clip(pic, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        return np.ascontiguousarray(pic[..., ::-1]) if self.color == "rgb" else pic
 
     def placement(self, frame_hw: tuple[int, int]) -> Placement:
         p = self._placements.get(frame_hw)

@@ -527,9 +527,9 @@ class Engine:
         limit holds the frame back (on ``timestamp``, default now) is left out, as with ``wait``."""
         fid = self.submit(image, timestamp=timestamp, camera=camera)
         results = self.wait(fid, timeout=timeout)
-        frame = self.boundary.check(image)
+        picture = self.boundary.picture(self.boundary.check(image))  # BGR uint8, as Result.plot draws
         for r in results.values():
-            r.image = frame
+            r.image = picture
         return results
 
     # ------------------------------------------------------------------------------------------ control

@@ -213,12 +213,17 @@ class Result:
     grid: str = "frame"
     #: Where the frame lies in the models' input grid; maps native outputs to the frame's grid.
     placement: Placement | None = None
-    #: The frame itself, for results of ``Engine.predict`` (others: None; the engine keeps no frames).
+    #: The frame as a BGR uint8 picture (the frame itself for the default input: BGR uint8), for results of
+    #: ``Engine.predict`` (others: None; the engine keeps no frames).
     image: np.ndarray | None = None
     #: The head's metadata (kind, labels, palette), for drawing.
     info: dict[str, Any] = field(default_factory=dict, repr=False)
     #: The camera the frame came from (Note [Cameras] in runtime/worker.py).
     camera: str = DEFAULT_CAMERA
+    #: For a result in the native grid: its outputs mapped to the frame's grid, as ``plot`` draws them.
+    _in_frame_grid: Callable[[dict[str, Any], Placement | None], dict[str, Any]] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     def __getitem__(self, key: str) -> Any:
         return self.outputs[key]
@@ -231,7 +236,8 @@ class Result:
         frame = self.image if image is None else image
         if frame is None and self.info.get("kind") == "detection":
             frame = np.zeros((*self.frame_size, 3), np.uint8)
-        return draw_result(frame, self, self.info, self.head)
+        outputs = self.outputs if self._in_frame_grid is None else self._in_frame_grid(self.outputs, self.placement)
+        return draw_result(frame, outputs, self.info, self.head)
 
 
 class Outbox:
@@ -529,6 +535,7 @@ class Outbox:
             placement=p,
             info=self.heads[head].meta,
             camera=self.lanes.cameras[slot.tag],
+            _in_frame_grid=functools.partial(self.boundary.to_frame, head) if head in self.boundary.native else None,
         )
 
     def _copy_out(self, pinned: list[tuple[str, SlotInfo]], copy: bool = True) -> dict[str, Result]:

@@ -59,7 +59,9 @@ class InputConfig(_Strict):
     )
     color: Literal["bgr", "rgb"] = Field("bgr", description="Channel order of submitted frames (OpenCV gives BGR).")
     dtype: Literal["uint8", "float32"] = Field(
-        "uint8", description="Pixel type: uint8 0..255, or float32 0..1 (checked for NaN/inf at submit)."
+        "uint8",
+        description="Pixel type: uint8 0..255, or float32 0..1 (NaN, inf and values past 2, a /255 forgotten, are "
+        "refused at submit).",
     )
 
 

@@ -62,6 +62,9 @@ def test_run_on_the_street_video_writes_every_heads_outputs_and_a_summary(tmp_pa
 
     depth = load_depth(out / "depth", "000020")  # a 16-bit PNG and its scale (Note [Depth PNG])
     assert depth.shape == (576, 768) and depth.dtype == np.float32 and np.isfinite(depth).all()
+    np.testing.assert_array_equal(load_depth(out / "depth", 20), depth)  # a video frame's number names it too
+    with pytest.raises(KeyError, match=r"no depth of frame '000021' in .* \(3 frames: '000000', '000020', '000040'\)"):
+        load_depth(out / "depth", 21)
     assert sorted(p.name for p in (out / "depth").glob("*.png")) == [f"{i:06d}.png" for i in (0, 20, 40)]
     assert not s["interrupted"] and s["inputs_skipped"] == []
     import cv2

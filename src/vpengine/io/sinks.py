@@ -222,11 +222,14 @@ def decode_depth_png(png: np.ndarray, offset: float, scale: float) -> np.ndarray
     return d
 
 
-def load_depth(head_dir: str | Path, frame: str) -> np.ndarray:
+def load_depth(head_dir: str | Path, frame: str | int) -> np.ndarray:
     """Depth of ``frame`` as written by :class:`FolderSink` to ``head_dir``: the ``.npy`` file, or the 16-bit PNG
-    decoded with its line of ``depth_scale.jsonl``."""
+    decoded with its line of ``depth_scale.jsonl``. ``frame``: the file's name without its suffix (an image's own
+    name, a video's frame as ``000042``), or a video frame's number (42)."""
     import cv2
 
+    if isinstance(frame, (int, np.integer)) and not isinstance(frame, bool):
+        frame = f"{int(frame):06d}"
     d = Path(head_dir)
     if (d / f"{frame}.npy").is_file():
         return np.load(d / f"{frame}.npy")
@@ -234,7 +237,11 @@ def load_depth(head_dir: str | Path, frame: str) -> np.ndarray:
         lines = [json.loads(line) for line in f]
     rec = next((r for r in reversed(lines) if r["frame"] == frame), None)
     if rec is None:
-        raise KeyError(f"no depth of frame {frame!r} in {str(d / 'depth_scale.jsonl')!r}")
+        some = ", ".join(repr(r["frame"]) for r in lines[:3])
+        raise KeyError(
+            f"no depth of frame {frame!r} in {str(d / 'depth_scale.jsonl')!r} ({len(lines)} frames: {some}"
+            f"{' ...' if len(lines) > 3 else ''})"
+        )
     png = cv2.imread(str(d / f"{frame}.png"), cv2.IMREAD_UNCHANGED)
     if png is None:
         raise FileNotFoundError(f"cannot read depth image {str(d / f'{frame}.png')!r}")

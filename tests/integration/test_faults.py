@@ -176,6 +176,8 @@ def test_hung_head_is_killed_and_restarted_by_the_hang_timeout(tmp_path, restart
         pump(e, 3, heads=("depth",))
         wait_for(lambda: e.stats()["models"]["seg"]["crashes"] >= 1, timeout=20, what="hang detected")
         wait_for(lambda: e.stats()["models"]["seg"]["restarts"] >= 1, timeout=20, what="restart")
+        # stats() keeps why, as thread mode's does
+        assert "seg's process stopped: killed by signal 9: seg hung for" in e.stats()["models"]["seg"]["last_error"]
 
 
 def test_start_failure_reports_the_childs_traceback_and_leaves_nothing(tmp_path):

@@ -98,6 +98,8 @@ def test_a_model_that_hangs_takes_its_process_down_and_both_come_back(restart_ba
         wait_for(restarted, timeout=40, what="the group restarted")
         models = e.stats()["models"]
         assert models["seg"]["crashes"] >= 1 and models["depth"]["crashes"] >= 1 and models["det"]["crashes"] == 0
+        for name in ("seg", "depth"):  # each says why its process stopped, depth for seg's hang
+            assert "hung for" in models[name]["last_error"] and "process stopped" in models[name]["last_error"]
         assert pids(e)["det"] == before["det"]
         wait_for(lambda: pids(e)["depth"] == pids(e)["seg"] != before["depth"], what="one new process for both")
 

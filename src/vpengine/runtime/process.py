@@ -415,6 +415,8 @@ class ProcessRunner(Runner):
     def _on_first_exit(self, names: tuple[str, ...], reason: str) -> None:
         first, others = names[0], names[1:]
         if not self._stopping:
+            for name in names:  # stats()' last_error says why, as thread mode's does (a hang, a signal, an exit)
+                self.control.set_error(name, f"{first}'s process stopped: {reason}")
             for name in others:
                 self.control.add(name, "crashes")
         self._on_exit(first, crashed=True, reason=reason)

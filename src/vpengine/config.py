@@ -316,19 +316,20 @@ class EngineConfig(_Strict):
     def _unique_heads(self) -> EngineConfig:
         names = [h.name for h in self.heads]
         dup = sorted({n for n in names if names.count(n) > 1})
+        # each message starts with where it is, as a field's does (the formatter prints these without a location)
         if dup:
-            raise ValueError(f"head names must be unique; repeated: {dup}")
+            raise ValueError(f"heads: head names must be unique; repeated: {dup}")
         if "foundation" in names:
-            raise ValueError("'foundation' is reserved for the foundation model; rename that head")
+            raise ValueError("heads: 'foundation' is reserved for the foundation model; rename that head")
         cams = [c.name for c in self.cameras]
         dup = sorted({n for n in cams if cams.count(n) > 1})
         if dup:
-            raise ValueError(f"camera names must be unique; repeated: {dup}")
+            raise ValueError(f"cameras: camera names must be unique; repeated: {dup}")
         for h in self.heads:
             unknown = [c for c in h.cameras or [] if c not in self.camera_names()]
             if unknown or h.cameras == []:
                 raise ValueError(
-                    f"head {h.name!r}: cameras {h.cameras} must be some of the cameras {self.camera_names()}"
+                    f"heads.{h.name}.cameras: {h.cameras} must be some of the cameras {self.camera_names()}"
                 )
         return self
 
@@ -407,6 +408,9 @@ def _format_validation_error(err: ValidationError, source: str, data: Any = None
             given = e.get("input")
             shown = _clip(json.dumps(given, default=str)) if not isinstance(given, dict) else "{...}"
             msg = _clip(e["msg"], 4 * _SHOWN_CHARS)
+            if e["type"] == "value_error" and not e["loc"]:  # a check across fields: its message says where
+                lines.append(f"  {msg.removeprefix('Value error, ')}")
+                continue
             said = e["type"] == "value_error" and ", got " in msg  # a validator of ours quoting the value already
             lines.append(f"  {loc}: {msg}" if said else f"  {loc}: {msg} (got {shown})")
     return "\n".join(lines)

@@ -70,8 +70,12 @@ def test_bad_values_name_field_value_and_what_is_accepted():
 
 
 def test_duplicate_and_reserved_head_names_fail():
-    with pytest.raises(ConfigError, match=r"repeated: \['d'\]"):
+    with pytest.raises(ConfigError) as e:
         load_config({"heads": [{"name": "d", "model": "tiny_depth"}, {"name": "d", "model": "tiny_seg"}]})
+    # where, as a field's error says it, and neither pydantic's "Value error," nor the whole config quoted
+    assert str(e.value) == "invalid configuration:\n  heads: head names must be unique; repeated: ['d']"
+    with pytest.raises(ConfigError, match=r"^invalid configuration:\n  heads.d.cameras: \['back'\] must be some of"):
+        load_config({"heads": [{"name": "d", "model": "tiny_depth", "cameras": ["back"]}]})
     with pytest.raises(ConfigError, match="'foundation' is reserved"):
         load_config({"heads": [{"name": "foundation", "model": "tiny_depth"}]})
     with pytest.raises(ConfigError, match="must start with a letter"):

@@ -11,6 +11,7 @@ if TYPE_CHECKING:
     from vpengine.engine import Engine, EngineDeadError, EngineStartError, FrameSlot, Result
 
 __all__ = [
+    "ConfigError",
     "Engine",
     "EngineConfig",
     "EngineDeadError",
@@ -26,7 +27,7 @@ def __getattr__(name: str) -> Any:  # lazy: `import vpengine` stays light for wo
         from vpengine.engine import core as engine
 
         return getattr(engine, name)
-    if name in ("EngineConfig", "load_config"):
+    if name in ("ConfigError", "EngineConfig", "load_config"):
         from vpengine import config
 
         return getattr(config, name)

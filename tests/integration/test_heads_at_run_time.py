@@ -23,7 +23,6 @@ from tests_paths import tiny
 from vpengine.bench.common import proc_stat
 from vpengine.config import ConfigError
 from vpengine.engine import Engine, EngineDeadError, EngineStartError
-from vpengine.models.base import ModelBuildError
 from vpengine.models.build import build_lock
 
 pytestmark = pytest.mark.timeout(300)
@@ -237,10 +236,16 @@ def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():
             eng.add_head("{name: det2, model: tiny_det, no_such_field: 1}")
         with pytest.raises(ValueError, match="a mapping"):
             eng.add_head("just text")
-        with pytest.raises(ValueError, match="input_mode fifo"):
+        with pytest.raises(ConfigError, match="input_mode fifo"):
             eng.add_head({**DET2, "input_mode": "fifo"})
         with pytest.raises(EngineStartError, match="injected build failure"):
             eng.add_head({"name": "bad", "model": "helpers.faulty:FaultyHead", "options": {"fail_build": True}})
+        # what cannot be built is an EngineStartError, whatever raised it: a user class without from_config, a
+        # checkpoint the head needs and does not have
+        with pytest.raises(EngineStartError, match="head 'bad' cannot be added: NotImplementedError: "):
+            eng.add_head({"name": "bad", "model": "vpengine.models.base:Model"})
+        with pytest.raises(EngineStartError, match="head 'det2' cannot be added: .*checkpoint"):
+            eng.add_head({"name": "det2", "model": "helpers.models:DeclaredCheckpointHead", "checkpoint": "/no.pt"})
         unchanged()
         with pytest.raises(KeyError, match="no head named 'nope'; heads: \\['depth', 'seg'\\]"):
             eng.remove_head("nope")
@@ -303,7 +308,7 @@ def test_no_seat_left_says_how_to_get_one():
     with Engine(two_heads("thread", "runtime.spare_heads=0")) as eng:
         with pytest.raises(RuntimeError, match="runtime.spare_heads is 0"):
             eng.add_head(DET2)
-        with pytest.raises(ModelBuildError, match="unknown head model 'tiny_dett'; known: "):  # the first thing wrong
+        with pytest.raises(ConfigError, match="heads.det2.model: unknown head model 'tiny_dett'; known: "):  # first
             eng.add_head({"name": "det2", "model": "tiny_dett"})
         assert set(eng.wait(eng.submit(frame(0)), timeout=30)) == {"depth", "seg"}
 

@@ -20,13 +20,14 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from vpengine.config import EngineConfig, HeadConfig, load_config
+from vpengine.config import ConfigError, EngineConfig, HeadConfig, load_config
+from vpengine.models.base import ModelBuildError
 from vpengine.models.build import BuildCancelled
 from vpengine.models.registry import resolve
 from vpengine.models.weights import check_checkpoints
 from vpengine.runtime.lanes import Lanes, make_lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
-from vpengine.runtime.supervisor import EngineDeadError
+from vpengine.runtime.supervisor import EngineDeadError, EngineStartError
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotRing
 
@@ -57,7 +58,7 @@ def _head_data(head: HeadConfig | dict[str, Any] | str) -> dict[str, Any]:
     if isinstance(head, str):
         data = yaml.safe_load(head)
         if not isinstance(data, dict):
-            raise ValueError(f"a head's config is a mapping (name: ..., model: ...); got {head!r}")
+            raise ConfigError(f"a head's config is a mapping (name: ..., model: ...); got {head!r}")
         return data
     if isinstance(head, dict):
         return dict(head)
@@ -95,13 +96,16 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
         h = cfg.heads[-1]
         names = cfg.process_mates(h.name)[:-1]  # the new head comes last
         if names:
-            raise ValueError(
+            raise ConfigError(
                 f"head {h.name!r}: process {h.process!r} is the running process of {names}; a head added at run "
                 "time gets a process of its own (process: null, or a name no model has)"
             )
         if h.input_mode == "fifo":
-            raise ValueError(f"head {h.name!r}: input_mode fifo is for heads configured at start; add it as latest")
-        resolve(h.model, "head")  # a model that does not exist is named before the room for it is counted
+            raise ConfigError(f"head {h.name!r}: input_mode fifo is for heads configured at start; add it as latest")
+        try:  # a model that does not exist is named before the room for it is counted
+            resolve(h.model, "head")
+        except ModelBuildError as e:  # its model field names no model: the config's error
+            raise ConfigError(f"heads.{h.name}.model: {e}") from None
         seats = engine.lanes.seats
         if not seats:
             raise RuntimeError(
@@ -111,10 +115,15 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
         lanes = make_lanes(cfg, seats[1:])
         try:  # waits for the build lock while other builds run: not past a stop (Note [One build at a time])
             plan = replace(make_plan(cfg, cancelled=lambda: res.runner is None or res.runner.stopping), lanes=lanes)
+            model = plan.heads[h.name]
+            check_checkpoints(cfg, {h.name: model})
         except BuildCancelled:
             raise EngineDeadError(f"engine stopped while {h.name} was being added") from None
-        model = plan.heads[h.name]
-        check_checkpoints(cfg, {h.name: model})
+        except (ConfigError, EngineStartError, EngineDeadError):
+            raise
+        except Exception as e:  # it cannot be built (a user class's own error included): one type, as documented
+            why = str(e) if isinstance(e, ModelBuildError) else f"{type(e).__name__}: {e}"
+            raise EngineStartError(f"head {h.name!r} cannot be added: {why}") from None
         box = next(m for m in mailboxes(plan, cfg.mode == "process") if m["name"] == f"out.{h.name}")
         check_preallocation([box])
         control, runner, governor = res.control, res.runner, res.governor

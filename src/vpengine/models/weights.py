@@ -156,7 +156,7 @@ def check_checkpoints(cfg: Any, models: Mapping[str, Model]) -> None:
         lines = [f"{', '.join(names)}: {msg}" for msg, names in problems.items()]
         raise CheckpointError(
             f"{len(lines)} checkpoint(s) not available, so no worker was started (the engine downloads nothing; "
-            "--random-weights runs without checkpoints):\n" + "\n".join(lines)
+            "--random-weights or weights.random_weights: true runs without them):\n" + "\n".join(lines)
         )
 
 

@@ -88,6 +88,9 @@ def test_check_outputs_wants_one_leading_batch_dimension_on_every_output():
         r"batch of 2; got torch.float32\[3, 4, 5\].*count: declared int32\[\] per frame, so int32\[2\]",
     ):
         check_outputs("h", spec, good, batch=2)
+    with pytest.raises(ModelBuildError, match=r"output_spec: depth: declared") as e:  # nothing missing, not said
+        check_outputs("h", spec, {**good, "depth": torch.zeros(3, 4, 5)}, batch=2)
+    assert "missing" not in str(e.value)
     with pytest.raises(ModelBuildError, match=r"depth: .*got torch.float32\[4, 5\]"):  # one frame, unbatched
         check_outputs("h", spec, {"depth": torch.zeros(4, 5), "count": torch.zeros(4, dtype=torch.int32)})
     with pytest.raises(ModelBuildError, match=r"count: .*for a batch of 3; got torch.int32\[2\]"):

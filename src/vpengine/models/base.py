@@ -269,6 +269,5 @@ def check_outputs(name: str, spec: SpecDict, outputs: dict[str, torch.Tensor], b
         )
     ]
     if missing or bad:
-        raise ModelBuildError(
-            f"{name}: outputs differ from the declared output_spec: missing {missing}; {bad} ({assumed})"
-        )
+        wrong = ([f"missing {missing}"] if missing else []) + bad
+        raise ModelBuildError(f"{name}: outputs differ from the declared output_spec: {'; '.join(wrong)} ({assumed})")

@@ -472,9 +472,43 @@ def _load_yaml(text: str, where: str) -> Any:
         if node is None:
             return None
         _check_size(node, _node_items, where)
+        _check_unique_keys(node, where)
         return loader.construct_document(node)
     finally:
         loader.dispose()
+
+
+def _check_unique_keys(root: Any, where: str) -> None:
+    """Refuse a mapping that names a key twice: YAML keeps the last silently, so a second ``heads:`` block pasted
+    below the first would drop every head above it. Named with both lines."""
+    seen: set[int] = set()
+    stack = [root]
+    while stack:
+        node = stack.pop()
+        if id(node) in seen:
+            continue
+        seen.add(id(node))
+        if isinstance(node, yaml.MappingNode):
+            first: dict[Any, int] = {}
+            for key, _ in node.value:
+                if isinstance(key, yaml.ScalarNode) and key.value != "<<":
+                    line = key.start_mark.line + 1
+                    if key.value in first:
+                        raise ConfigError(
+                            f"config file {where}: key {key.value!r} is given twice in one mapping (lines "
+                            f"{first[key.value]} and {line}); YAML would keep only the last: merge them"
+                        )
+                    first[key.value] = line
+        stack.extend(_node_items(node) or [])
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``json.loads``' object hook: a JSON object that names a key twice is refused, as in YAML."""
+    keys = [k for k, _ in pairs]
+    twice = sorted({k for k in keys if keys.count(k) > 1})
+    if twice:
+        raise ConfigError(f"key {twice[0]!r} is given twice in one JSON object; only the last would count: merge them")
+    return dict(pairs)
 
 
 def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] | None:
@@ -556,7 +590,9 @@ def load_raw(path: str | Path) -> dict[str, Any]:
             f"config file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start}); expected {kind}"
         ) from None
     try:
-        data = json.loads(text) if kind == "JSON" else _load_yaml(text, repr(str(path)))
+        data = (
+            json.loads(text, object_pairs_hook=_unique_pairs) if kind == "JSON" else _load_yaml(text, repr(str(path)))
+        )
     except (json.JSONDecodeError, yaml.YAMLError) as e:
         raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_syntax_error(e, text)}") from None
     except RecursionError:

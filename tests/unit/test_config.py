@@ -211,3 +211,26 @@ def test_process_mates_are_the_models_naming_one_process_in_process_mode_only():
     assert cfg.process_mates("det") == cfg.process_mates("foundation") == ["foundation", "det"]
     assert cfg.process_mates("seg") == ["seg"] and cfg.process_mates("depth") == ["depth"]
     assert tiny("thread", "heads.det.process=p", "foundation_model.process=p").process_mates("det") == ["det"]
+
+
+def test_a_key_given_twice_is_refused_with_both_lines(tmp_path):
+    """YAML keeps the last of a repeated key silently: a second heads block pasted below the first dropped every
+    head above it. JSON's objects likewise."""
+    f = tmp_path / "twice.yaml"
+    f.write_text(
+        "heads:\n  - {name: depth, model: tiny_depth}\n  - {name: seg, model: tiny_seg, rate_hz: 5, rate_hz: 50}\n"
+    )
+    with pytest.raises(ConfigError, match=r"key 'rate_hz' is given twice in one mapping \(lines 3 and 3\)"):
+        load_config(f)
+    f.write_text(
+        "heads:\n  - {name: depth, model: tiny_depth}\n# added later\nheads:\n  - {name: det, model: tiny_det}\n"
+    )
+    with pytest.raises(ConfigError, match=rf"config file '{f}': key 'heads' is given twice .*\(lines 1 and 4\)"):
+        load_config(f)
+    j = tmp_path / "twice.json"
+    j.write_text('{"device": "cpu", "device": "cuda"}')
+    with pytest.raises(ConfigError, match="key 'device' is given twice in one JSON object"):
+        load_config(j)
+    f.write_text("a: &x {k: 1}\nfoundation_model: {model: tiny_vit}\nheads: [{name: d, model: tiny_depth}]\n")
+    with pytest.raises(ConfigError, match="a: unknown key"):  # an anchor used once: no false alarm, the real error
+        load_config(f)

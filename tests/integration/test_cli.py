@@ -108,6 +108,23 @@ def test_run_with_the_synthetic_source_needs_no_files(tmp_path, cli):
     assert written > 0 and written + depth["results_unwritten"] == depth["results_received"]
 
 
+def test_a_realtime_run_waits_for_a_slow_heads_frames_in_flight_at_the_end(tmp_path, cli):
+    """Note [The frames in flight at the end]: a head slower than the end's poll of the results (here 0.6 s a frame)
+    still answers every frame it took, and the summary counts it; it used to be left behind with 0 runs."""
+    opts = json.dumps({"sleep_ms": 600})
+    p = cli(
+        "run", "-c", "configs/tiny.yaml", "-s", "synthetic:160x120@30:3", "--no-progress", "--mode", "thread",
+        "--set", "heads.seg.model=helpers.faulty:FaultyHead", "--set", f"heads.seg.options={opts}",
+        "-o", str(tmp_path),
+    )  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    s = json.loads((tmp_path / "summary.json").read_text())
+    fm, seg = s["models"]["foundation"], s["models"]["seg"]
+    assert fm["runs"] + fm["skipped"] == 3 and fm["runs"] >= 1
+    assert seg["runs"] >= 1 and seg["runs"] + seg["skipped"] + seg["dropped"] == fm["runs"], (fm, seg)
+    assert seg["results_received"] == seg["runs"]
+
+
 def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_is_submitted_or_counted(
     tmp_path,
 ):

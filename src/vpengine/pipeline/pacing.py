@@ -36,6 +36,7 @@ class Feed:
     self_paced: bool  # a live camera without --fps: it delivers at its own rate (Note [Live capture])
     frames: Iterator[Frame]
     submitted: int = 0
+    last_fid: int | None = None  # the frame id of its last frame submitted
 
 
 @dataclass

@@ -197,12 +197,20 @@ class Pipeline:
             return
         self.engine.results(0)  # start the result stream before the first frame
         realtime(loop)
-        deadline = time.monotonic() + 2.0  # let in-flight frames finish
-        while time.monotonic() < deadline and not stop.is_set():
-            res = self.engine.results(timeout=0.2)
-            self._handle(res)
-            if not res:
-                break
+        # Note [The frames in flight at the end]
+        # ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+        # The run ends once every head has answered each camera's last frame (ran it, or skipped it as newest-wins or
+        # a rate limit would): every earlier frame is answered by then too, and the stream holds every output. A
+        # quiet poll of the stream is no sign of the end: a model slower than the poll was left behind, its frames
+        # in no count. Ctrl-C still ends the wait at once.
+        for feed in self.feeds:
+            while feed.last_fid is not None and not stop.is_set():
+                try:
+                    self.engine.wait(feed.last_fid, timeout=0.5)
+                    break
+                except TimeoutError:
+                    self._handle(self.engine.results(0))  # keep the stream drained meanwhile
+        self._handle(self.engine.results(0))
 
     def _frames(self, camera: str | None, source: Source) -> Iterator[Frame]:
         """``source``'s frames for the frame loop: in lockstep read ahead on a thread of their own, so that the
@@ -227,6 +235,7 @@ class Pipeline:
         self.frames.add(fid, frame.name or f"{fid:06d}", frame.image)
         self.engine.submit(frame.image, frame_id=fid, timestamp=stamp, camera=feed.camera)
         feed.submitted += 1
+        feed.last_fid = fid
         return fid
 
     def _handle(self, results: Iterable[Result]) -> None:

@@ -125,12 +125,24 @@ def summarize(pipe: Pipeline, interrupted: bool, wall: float, stats: dict[str, A
 
 
 def write_summary(out_dir: str | Path, summary: dict[str, Any]) -> None:
-    """``out_dir/summary.json`` (made with its folder); numbers that are not finite become null."""
+    """``out_dir/summary.json`` (made with its folder): valid JSON, so numbers that are not finite (a latency of no
+    run is NaN) become null and numpy's numbers plain ones."""
     Path(out_dir).mkdir(parents=True, exist_ok=True)
-    (Path(out_dir) / "summary.json").write_text(json.dumps(summary, indent=2, default=_json_default))
+    text = json.dumps(_plain(summary), indent=2, allow_nan=False, default=str)
+    (Path(out_dir) / "summary.json").write_text(text)
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, float) and not math.isfinite(o):
-        return None
-    return str(o)
+def _plain(o: Any) -> Any:
+    """``o`` with its floats finite or None and numpy scalars as Python's (``json.dumps`` writes NaN otherwise, and a
+    numpy float is a float to it)."""
+    if isinstance(o, dict):
+        return {k: _plain(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_plain(v) for v in o]
+    if isinstance(o, (bool, np.bool_)):
+        return bool(o)
+    if isinstance(o, (int, np.integer)):
+        return int(o)
+    if isinstance(o, (float, np.floating)):
+        return float(o) if math.isfinite(o) else None
+    return o

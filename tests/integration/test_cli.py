@@ -125,6 +125,15 @@ def test_a_realtime_run_waits_for_a_slow_heads_frames_in_flight_at_the_end(tmp_p
     assert seg["results_received"] == seg["runs"]
 
 
+def test_a_config_for_float_frames_runs_on_files_whose_frames_are_uint8(tmp_path, cli):
+    """input.dtype (and input.color) say how the API's callers hand frames in; the CLI's sources give uint8 BGR (or
+    RGB) frames whatever the config says, and the run takes them as they are."""
+    p = cli("run", "-c", "tiny", "-s", "synthetic:160x120@30:3", "--no-progress", "--mode", "thread",
+            "--set", "input.dtype=float32", "-o", str(tmp_path))  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert json.loads((tmp_path / "summary.json").read_text())["frames_submitted"] == 3
+
+
 def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_is_submitted_or_counted(
     tmp_path,
 ):

@@ -94,7 +94,9 @@ class Pipeline:
         if len(colors) != 1:
             raise ValueError(f"the sources deliver frames in different channel orders ({sorted(colors)})")
         # frames of any size go in as they are (Note [Frame grid] in engine/boundary.py): the pipeline resizes nothing itself
-        self.config = config_for_cameras(config, names, [f"input.color={colors.pop()}"])
+        # the sources deliver uint8 frames in their own channel order: the config's input says how the API's callers
+        # hand theirs in, not how a file or camera does
+        self.config = config_for_cameras(config, names, [f"input.color={colors.pop()}", "input.dtype=uint8"])
         self.pace = pace or ("realtime" if any(s.pace == "realtime" for s in self.sources.values()) else "lockstep")
         if self.pace not in ("realtime", "lockstep"):
             raise ValueError(f"pace must be 'realtime' or 'lockstep', got {self.pace!r}")

@@ -252,3 +252,20 @@ def test_a_build_error_wrapping_another_keeps_the_traceback_of_its_cause():
     assert text.splitlines()[0].endswith("ModelBuildError: mine: from_config failed")
     assert "Traceback" in text and "in user_code" in text  # where the user's bug is
     assert describe_exception("mine", ModelBuildError("mine: no such recipe")).count("\n") == 0
+
+
+def test_a_missing_relative_checkpoint_says_it_was_taken_from_the_current_folder(tmp_path, monkeypatch):
+    """The same config finds its file from one folder and not from another: a missing relative path says where it
+    was looked for and why (the current folder, not the config's)."""
+    from vpengine.models.weights import CheckpointError, locate_checkpoint
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(CheckpointError) as e:
+        locate_checkpoint("det", "frcnn_dinov2_lite", "runs/det/head.pth")
+    assert str(e.value) == (
+        f"det: checkpoint file '{tmp_path / 'runs/det/head.pth'}' does not exist (and 'runs/det/head.pth' is not a "
+        "catalog name; a relative path is taken from the current folder, not the config's)"
+    )
+    with pytest.raises(CheckpointError) as e:
+        locate_checkpoint("det", "frcnn_dinov2_lite", str(tmp_path / "head.pth"))
+    assert "current folder" not in str(e.value)

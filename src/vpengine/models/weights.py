@@ -113,8 +113,9 @@ def _locate(recipe: str, name: str) -> Path:
             f"checkpoint {str(path.absolute())!r} is a folder: name the checkpoint file in it{inside}"
         )
     if path.suffix in _FILE_SUFFIXES or os.sep in name:
+        relative = "" if path.is_absolute() else "; a relative path is taken from the current folder, not the config's"
         raise CheckpointError(
-            f"checkpoint file {str(path.absolute())!r} does not exist (and {name!r} is not a catalog name)"
+            f"checkpoint file {str(path.absolute())!r} does not exist (and {name!r} is not a catalog name{relative})"
         )
     raise CheckpointError(
         f"checkpoint {name!r} is neither an existing file nor a catalog name (`vpengine weights list` shows the "

@@ -128,7 +128,8 @@ class ModelConfig(_Strict):
     @field_validator("rate_hz", mode="before")
     @classmethod
     def _rate(cls, v: Any) -> float | None:
-        return checks.rate(None, v)  # before pydantic's coercion: the same values as every other door
+        # before pydantic's coercion: the same values as every other door, spelled as a config writes them (null)
+        return checks.rate(None, v, spell=json.dumps)
 
 
 class FoundationModelConfig(ModelConfig):

@@ -47,8 +47,8 @@ def test_an_error_names_a_list_item_by_its_name_as_set_takes_it_and_quotes_the_v
         load_config(TINY, ["input.height=14.5"])
     assert str(e.value).splitlines()[1].endswith("got a number with a fractional part (got 14.5)")
     assert lines[1] == (
-        "  heads.depth.rate_hz: Value error, rate must be None (no limit) or a number of Hz from 0 to 10000 "
-        "(0 pauses), got 'fast'"
+        "  heads.depth.rate_hz: Value error, rate must be null (no limit) or a number of Hz from 0 to 10000 "
+        '(0 pauses), got "fast"'
     )
 
 

@@ -24,9 +24,12 @@ def engine():
         yield e
 
 
-@pytest.mark.parametrize(("yaml", "shown"), [(".nan", "nan"), ("-1", "-1"), ("10001", "10001"), ("'5'", "'5'")])
+@pytest.mark.parametrize(
+    ("yaml", "shown"), [(".nan", "NaN"), ("-1", "-1"), ("10001", "10001"), ("'5'", '"5"'), ("None", '"None"')]
+)
 def test_the_config_refuses_a_bad_rate(yaml, shown):
-    with pytest.raises(ConfigError, match=ONE_MESSAGE + shown) as e:
+    """The one message, spelled as a config is written: null for no limit (YAML's None is a string)."""
+    with pytest.raises(ConfigError, match=ONE_MESSAGE.replace("None", "null") + shown) as e:
         tiny("thread", f"heads.seg.rate_hz={yaml}")
     assert ".rate_hz:" in str(e.value)
 

@@ -90,6 +90,13 @@ def test_info_models_prints_the_report_as_json_and_text(capsys):
         assert name in text and f"{m['params']:,d}" in text
 
 
+def test_a_config_or_an_override_implies_models_rather_than_being_ignored(capsys):
+    assert cli(["info", "-c", str(TINY), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == json.loads(json.dumps(parameter_report(load_config(TINY))))
+    assert cli(["info", "--set", "bogus=1"]) == 1  # a typo is refused, not dropped
+    assert "bogus" in capsys.readouterr().err
+
+
 def test_info_models_applies_overrides(capsys):
     assert cli(["info", "--models", "-c", str(TINY), "--set", "foundation_model.options.embed_dim=64", "--json"]) == 0
     shown = json.loads(capsys.readouterr().out)

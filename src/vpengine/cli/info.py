@@ -27,7 +27,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--config",
         "-c",
-        help=f"engine config for --models (default: {MODELS_DEFAULT}, the shipped GPU config: backbone and 3 heads)",
+        help=f"engine config for --models, which it implies (default: {MODELS_DEFAULT}, the shipped GPU config: "
+        "backbone and 3 heads)",
     )
     add_overrides_argument(p, "foundation_model.model=dinov2_vitb14", "a config field for --models")
 
@@ -113,7 +114,8 @@ def models_main(args: argparse.Namespace) -> int:
 
 
 def main(args: argparse.Namespace) -> int:
-    if getattr(args, "models", False):
+    # a config or an override is for the parameter accounting: given, it is asked for (not ignored)
+    if getattr(args, "models", False) or args.config or args.overrides:
         return models_main(args)
     info = collect()
     if args.json:

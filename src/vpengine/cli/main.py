@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
+import os
 import sys
 
 # subcommand -> module with add_arguments(parser) and main(args) -> int
@@ -93,6 +95,10 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except BrokenPipeError:  # the reader went away (`| head`): nothing more to say, and no traceback for it
+        with contextlib.suppress(OSError):  # the interpreter's flush at exit would fail again
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # as a program killed by SIGPIPE: 128 + 13
     except ModuleNotFoundError as e:
         top = (e.name or "").partition(".")[0]
         extra = EXTRAS.get(top)

@@ -95,6 +95,21 @@ class ModelConfig(_Strict):
         "{mode: max-autotune, cudagraphs: true}; onnx: {opset: 18, providers: [CUDAExecutionProvider]}.",
     )
     precision: Precision | None = Field(None, description="fp32 | fp16 | bf16; null: the engine's precision.")
+
+    @field_validator("backend_options")
+    @classmethod
+    def _backend_options(cls, v: dict[str, Any], info: Any) -> dict[str, Any]:
+        """Checked with the config, not in a worker after the processes are started."""
+        from vpengine.backends.options import BackendError, parse_options
+
+        backend = info.data.get("backend")
+        if backend is not None:  # else the backend's own error says what is wrong
+            try:
+                parse_options(backend, v, "")
+            except BackendError as e:
+                raise ValueError(str(e).removeprefix(": ")) from None
+        return v
+
     cpu_threads: int = Field(
         1,
         ge=1,
@@ -412,7 +427,8 @@ def _format_validation_error(err: ValidationError, source: str, data: Any = None
             if e["type"] == "value_error" and not e["loc"]:  # a check across fields: its message says where
                 lines.append(f"  {msg.removeprefix('Value error, ')}")
                 continue
-            said = e["type"] == "value_error" and ", got " in msg  # a validator of ours quoting the value already
+            # a validator of ours quoting the value already; a mapping's "{...}" says nothing
+            said = (e["type"] == "value_error" and ", got " in msg) or isinstance(given, dict)
             lines.append(f"  {loc}: {msg}" if said else f"  {loc}: {msg} (got {shown})")
     return "\n".join(lines)
 

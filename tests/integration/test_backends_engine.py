@@ -10,7 +10,8 @@ import pytest
 from helpers.frames import frame
 from helpers.groups import INDUCTOR
 from tests_paths import tiny
-from vpengine.engine import Engine, EngineStartError
+from vpengine.config import ConfigError
+from vpengine.engine import Engine
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -81,11 +82,11 @@ def test_onnx_foundation_and_compiled_head_match_an_all_eager_engine(mode, all_e
         assert abs(g["det"]["count"] - w["det"]["count"]) <= 1, f"det frame {i}"
 
 
-def test_bad_backend_options_fail_the_start_naming_the_accepted_ones():
-    cfg = tiny("thread", "heads.seg.backend=compile", "heads.seg.backend_options={cuda_graph: false}")
+def test_bad_backend_options_fail_the_config_naming_the_accepted_ones():
+    """With the config, before any worker starts (they used to fail in each worker, with a traceback)."""
     with pytest.raises(
-        EngineStartError,
-        match=r"seg: bad backend_options for backend 'compile': unknown key "
+        ConfigError,
+        match=r"heads.seg.backend_options: Value error, bad backend_options for backend 'compile': unknown key "
         r"'cuda_graph' \(accepted: compiler, cudagraphs, fullgraph, mode, slot_bound, warmup_iters\)",
     ):
-        Engine(cfg).start()
+        tiny("thread", "heads.seg.backend=compile", "heads.seg.backend_options={cuda_graph: false}")

@@ -234,3 +234,15 @@ def test_a_key_given_twice_is_refused_with_both_lines(tmp_path):
     f.write_text("a: &x {k: 1}\nfoundation_model: {model: tiny_vit}\nheads: [{name: d, model: tiny_depth}]\n")
     with pytest.raises(ConfigError, match="a: unknown key"):  # an anchor used once: no false alarm, the real error
         load_config(f)
+
+
+def test_a_backend_option_typo_is_a_config_error_not_a_worker_traceback():
+    """backend_options were checked in each worker after the processes started, with a traceback; the config's
+    load now names the field, the backend and what it accepts."""
+    with pytest.raises(ConfigError) as e:
+        load_config(TINY, ["heads.depth.backend=compile", "heads.depth.backend_options.mod=x"])
+    assert str(e.value).splitlines()[1] == (
+        "  heads.depth.backend_options: Value error, bad backend_options for backend 'compile': unknown key 'mod' "
+        "(accepted: compiler, cudagraphs, fullgraph, mode, slot_bound, warmup_iters)"
+    )
+    assert load_config(TINY, ["heads.depth.backend=compile", "heads.depth.backend_options.mode=default"])

@@ -23,7 +23,7 @@ import pytest
 from helpers.frames import frame
 from helpers.waiting import alive, wait_for
 from tests_paths import ROOT, tiny
-from vpengine.engine import Engine
+from vpengine.engine import Engine, EngineStartError
 from vpengine.runtime import supervisor
 
 pytestmark = pytest.mark.timeout(120)
@@ -349,7 +349,7 @@ def test_the_frame_a_worker_died_on_is_answered_so_wait_does_not_wait_for_it(tmp
 # ------------------------------------------------------------------------------------- 15: logging.file
 @pytest.mark.parametrize("mode", ["process", "thread"])
 def test_logging_file_gets_the_engines_and_the_workers_records(tmp_path, mode):
-    log = tmp_path / "engine.log"
+    log = tmp_path / "logs" / "engine.log"  # its folder is made
     opts = json.dumps({"log_at_build": "hello from the seg worker"})
     with Engine(tiny(mode, heads(f"seg:{opts}"), f"logging.file={log}", "logging.level=INFO")) as e:
         e.wait(e.submit(frame(0)), timeout=20)
@@ -358,3 +358,10 @@ def test_logging_file_gets_the_engines_and_the_workers_records(tmp_path, mode):
     assert "hello from the seg worker" in text
     if mode == "process":
         assert "WARNING [seg] vpengine.faulty: hello from the seg worker" in text
+
+
+def test_a_logging_file_that_cannot_be_written_names_the_field(tmp_path):
+    (tmp_path / "file").write_text("")
+    bad = tmp_path / "file" / "engine.log"  # under a file: no folder can be made
+    with pytest.raises(EngineStartError, match=rf"logging.file '{bad}' cannot be written: "):
+        Engine(tiny("thread", f"logging.file={bad}")).start()

@@ -72,7 +72,12 @@ def log_to_file(path: str, level: str, source: str) -> logging.Handler:
     """Send vpengine's log records at ``level`` and above to ``path`` too (appended; every worker process of an
     engine appends to the same file, a line per record). ``source`` names the writer in each line. The vpengine
     logger is lowered to ``level`` if it would drop such records before they reach the file."""
-    handler = logging.FileHandler(Path(path).expanduser(), mode="a", encoding="utf-8")
+    file = Path(path).expanduser()
+    try:
+        file.parent.mkdir(parents=True, exist_ok=True)
+        handler = logging.FileHandler(file, mode="a", encoding="utf-8")
+    except OSError as e:
+        raise EngineStartError(f"logging.file {str(file)!r} cannot be written: {e.strerror or e}") from None
     handler.setLevel(level)
     handler.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s [{source}] %(name)s: %(message)s"))
     logger = logging.getLogger("vpengine")

@@ -193,3 +193,20 @@ def test_lifecycle_stop_is_idempotent_and_a_stopped_engine_says_so():
     with pytest.raises(EngineDeadError, match="stopped"):
         e.rate("depth")
     assert e.stats() == {"engine": {"state": "stopped"}}
+
+
+def test_fp16_models_on_a_cpu_are_warned_about(caplog):
+    """PyTorch runs fp16 slowly on a CPU (the shipped GPU config run with --device cpu took seconds a frame)."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, "vpengine"):
+        Engine(tiny("thread", "precision=fp16", "heads.seg.precision=fp32"))  # planned only
+    said = [m for m in caplog.messages if "fp16 on the CPU" in m]
+    assert said == [
+        "foundation, depth, det run in fp16 on the CPU, which PyTorch does slowly (float32 is the CPU's); "
+        "precision: fp32 (or --set precision=fp32) for a CPU run"
+    ]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, "vpengine"):
+        Engine(tiny("thread"))
+    assert not [m for m in caplog.messages if "fp16" in m]

@@ -147,6 +147,21 @@ class _Resources:
             self.control = None
 
 
+def _say_half_precision_on_cpu(cfg: EngineConfig) -> None:
+    """A warning for fp16 models on a CPU: PyTorch's CPU kernels are float32's, and a ViT in fp16 there takes
+    seconds a frame (the shipped GPU config run with --device cpu does). ONNX models say it themselves."""
+    if torch.device(cfg.device).type != "cpu":
+        return
+    models = [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)]
+    half = [name for name, m in models if (m.precision or cfg.precision) == "fp16" and m.backend != "onnx"]
+    if half:
+        log.warning(
+            "%s run in fp16 on the CPU, which PyTorch does slowly (float32 is the CPU's); precision: fp32 (or "
+            "--set precision=fp32) for a CPU run",
+            ", ".join(half),
+        )
+
+
 class Engine:
     """One foundation model shared by many heads. See the module docstring for a tour."""
 
@@ -158,6 +173,7 @@ class Engine:
         self.config = load_config(config, overrides)
         self.plan: Plan = make_plan(self.config)
         check_checkpoints(self.config, {"foundation": self.plan.foundation, **self.plan.heads})  # before any worker
+        _say_half_precision_on_cpu(self.config)
         self._res = _Resources()
         self._finalizer = weakref.finalize(self, _Resources.close, self._res)
         self._state = "planned"

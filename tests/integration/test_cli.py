@@ -134,6 +134,15 @@ def test_a_config_for_float_frames_runs_on_files_whose_frames_are_uint8(tmp_path
     assert json.loads((tmp_path / "summary.json").read_text())["frames_submitted"] == 3
 
 
+def test_a_models_row_over_several_cameras_sums_its_lanes_targets_as_it_sums_their_rates(cli):
+    p = cli("run", "-c", "tiny", "-s", "front=synthetic:160x120@30:3", "-s", "rear=synthetic:160x120@30:3",
+            "--no-progress", "--mode", "thread", "--set", "heads.depth.rate_hz=5")  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    rows = {ln.split()[0]: ln.split()[1] for ln in p.stdout.splitlines() if ln.startswith(("depth", "seg"))}
+    assert rows["depth@front"] == rows["depth@rear"] == "5" and rows["depth"] == "10", p.stdout
+    assert rows["seg"] == "max"
+
+
 def test_a_camera_faster_than_the_loop_gives_its_newest_frames_and_every_frame_is_submitted_or_counted(
     tmp_path,
 ):

@@ -144,15 +144,21 @@ def format_summary(s: dict[str, Any]) -> str:
     def f(v: Any) -> str:
         return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else f"{v:.1f}"
 
-    def row(name: str, m: dict[str, Any]) -> str:
+    def row(name: str, m: dict[str, Any], target: float | None = None) -> str:
         lat = m.get("e2e_latency_ms") or m["latency_ms"]
-        tgt = "max" if m["target_hz"] is None else f"{m['target_hz']:g}"
+        target = m["target_hz"] if target is None else target
+        tgt = "max" if target is None else f"{target:g}"
         return (
             f"{name:{w}s} {tgt:>7s} {m['achieved_hz']:9.1f} {m['runs']:6d} {m['skipped']:8d} "
             f"{m['dropped']:8d} {m['errors']:6d} {f(lat['p50']):>8s} {f(lat['p99']):>8s}"
         )
 
-    lines += [row(name, m) for name, m in s["models"].items()]
+    def total_target(name: str, m: dict[str, Any]) -> float | None:
+        """A model's target over all its cameras, as its achieved rate is summed over them: each lane's summed."""
+        lanes = [x["models"][name]["target_hz"] for x in cameras.values() if name in x["models"]]
+        return sum(lanes) if lanes and None not in lanes else m["target_hz"]
+
+    lines += [row(name, m, total_target(name, m)) for name, m in s["models"].items()]
     for x in cameras.values():  # each camera's share, named by its lane's entry, as rate commands name it
         lines += [row(m["entry"], m) for m in x["models"].values()]
     lines.append("(latency: submit -> result for heads; model time for the foundation model)")

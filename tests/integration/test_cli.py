@@ -102,6 +102,11 @@ def test_run_with_the_synthetic_source_needs_no_files(tmp_path, cli):
     assert seg["target_hz"] == 10 and 10 <= seg["runs"] <= 10 * s["wall_s"] + 2, (seg, s["wall_s"])
     fm = s["models"]["foundation"]
     assert fm["runs"] + fm["skipped"] == 60
+    # the config as it ran, overrides applied, loads again as a config
+    from vpengine.config import load_config
+
+    used = load_config(s["config_used"])
+    assert used.head("seg").rate_hz == 10 and used.mode == "thread" and used.name == s["config"]
     # a live source never waits for the writer (Note [Sink thread]); a result it could not write is counted
     depth = s["models"]["depth"]
     written = len(list((tmp_path / "depth").glob("*.png")))

@@ -81,6 +81,9 @@ def summarize(pipe: Pipeline, interrupted: bool, wall: float, stats: dict[str, A
     submitted = sum(f.submitted for f in pipe.feeds)
     summary: dict[str, Any] = {
         "config": pipe.config.name,
+        # the config as it ran, --set overrides and the CLI's own (cameras, mode, device) applied: `vpengine run -c`
+        # takes this back (a file holding it) to run the same engine again
+        "config_used": pipe.config.model_dump(mode="json"),
         "source": ", ".join(s.describe() if c is None else f"{c}={s.describe()}" for c, s in sources.items()),
         "pace": pipe.pace,
         "in_flight": pipe.in_flight,  # lockstep: rounds of frames at once (Note [Frames in flight])

@@ -210,3 +210,16 @@ def test_fp16_models_on_a_cpu_are_warned_about(caplog):
     with caplog.at_level(logging.WARNING, "vpengine"):
         Engine(tiny("thread"))
     assert not [m for m in caplog.messages if "fp16" in m]
+
+
+def test_a_postprocess_block_a_model_never_reads_is_said_to_be_ignored(caplog):
+    """A typo'd or misplaced postprocess block ran without a word; said once, while planning."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, "vpengine"):
+        Engine(tiny("thread", "heads.seg.postprocess.outptu=both"))
+    said = [m for m in caplog.messages if "postprocess" in m]
+    assert said == [
+        "seg: postprocess ['outptu'] is set, but model 'tiny_seg' reads no postprocess options (of the zoo's, the "
+        "depth heads do): it is ignored"
+    ]

@@ -71,6 +71,8 @@ class BuildContext:
     plan_only: bool = False
     #: Recipe defaults merged under the user's options.
     defaults: dict[str, Any] = field(default_factory=dict)
+    #: Whether the recipe read its ``postprocess`` block (``postprocess_options``): one it never reads is ignored.
+    postprocess_read: bool = field(default=False, repr=False)
 
     @property
     def precision(self) -> str:
@@ -101,6 +103,7 @@ class BuildContext:
             raise ModelBuildError(f"{self.name} ({self.cfg.model}): bad options: {problems}") from None
 
     def postprocess_options(self, cls: type[Options]) -> Any:
+        self.postprocess_read = True
         raw = getattr(self.cfg, "postprocess", {}) or {}
         try:
             return cls.model_validate(raw)

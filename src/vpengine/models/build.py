@@ -141,6 +141,15 @@ def build_model(
     what = f"model {name!r} of engine {cfg.name!r}"
     with build_lock.held(what, cfg.runtime.ready_timeout_s, cancelled), torch.device("meta" if plan_only else device):
         model = cls.from_config(ctx)
+    given = getattr(mcfg, "postprocess", None)
+    if plan_only and given and not ctx.postprocess_read:  # said once, while planning: nothing lost silently
+        log.warning(
+            "%s: postprocess %s is set, but model %r reads no postprocess options (of the zoo's, the depth heads do): it is "
+            "ignored",
+            name,
+            sorted(given),
+            mcfg.model,
+        )
     if not plan_only:
         model.load_checkpoint(ctx)
         model.eval().requires_grad_(False)

@@ -91,11 +91,16 @@ def main(argv: list[str] | None = None) -> int:
     if level > logging.INFO:  # a start that takes long says where it is (Note [Start progress])
         logging.getLogger("vpengine.start").setLevel(logging.INFO)
     try:
-        return int(importlib.import_module(args._module).main(args) or 0)
+        code = int(importlib.import_module(args._module).main(args) or 0)
+        sys.stdout.flush()  # here, where a reader gone away is caught below, not at the interpreter's exit
+        return code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:  # the reader went away (`| head`): nothing more to say, and no traceback for it
+    except BrokenPipeError:
+        if not _stdout_gone():
+            raise  # another pipe (a worker's, a socket): a failure of its own
+        # the reader of the output went away (`| head`): nothing more to say, and no traceback for it
         with contextlib.suppress(OSError):  # the interpreter's flush at exit would fail again
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 141  # as a program killed by SIGPIPE: 128 + 13
@@ -115,6 +120,17 @@ def main(argv: list[str] | None = None) -> int:
             raise
         print(f"vpengine {args.command}: error: {e}", file=sys.stderr)
         return 1
+
+
+def _stdout_gone() -> bool:
+    """Whether standard output's reader went away: its flush fails as the pipe is broken."""
+    try:
+        sys.stdout.flush()
+    except BrokenPipeError:
+        return True
+    except (OSError, ValueError):
+        return False
+    return False
 
 
 if __name__ == "__main__":

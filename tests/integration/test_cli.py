@@ -130,6 +130,22 @@ def test_a_realtime_run_waits_for_a_slow_heads_frames_in_flight_at_the_end(tmp_p
     assert seg["results_received"] == seg["runs"]
 
 
+def test_the_end_of_a_realtime_run_waits_a_bounded_time_and_names_the_heads_it_leaves(cli, monkeypatch, caplog):
+    """Note [The frames in flight at the end]: a head slower than END_WAIT_S is left with a warning naming it."""
+    import logging
+
+    from vpengine.pipeline import run as pipeline_run
+
+    monkeypatch.setattr(pipeline_run, "END_WAIT_S", 0.2)
+    opts = json.dumps({"sleep_ms": 2500})
+    with caplog.at_level(logging.WARNING, "vpengine.run"):
+        p = cli("run", "-c", "configs/tiny.yaml", "-s", "synthetic:160x120@30:2", "--no-progress", "--mode", "thread",
+                "--set", "heads.seg.model=helpers.faulty:FaultyHead", "--set", f"heads.seg.options={opts}")  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    said = [m for m in caplog.messages if m.startswith("stopped waiting for the frames in flight after 0 s: ")]
+    assert len(said) == 1 and "no output from ['seg']" in said[0], caplog.messages
+
+
 def test_a_config_for_float_frames_runs_on_files_whose_frames_are_uint8(tmp_path, cli):
     """input.dtype (and input.color) say how the API's callers hand frames in; the CLI's sources give uint8 BGR (or
     RGB) frames whatever the config says, and the run takes them as they are."""

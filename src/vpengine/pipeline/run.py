@@ -59,6 +59,9 @@ FRAMES_KEPT = 64
 #: Frames a lockstep run reads ahead of the loop, per source (Note [Read ahead]): enough to cover a slow decode
 #: (a keyframe) while the loop writes a round of frames and waits for the oldest in flight.
 READ_AHEAD = 4
+#: Seconds a realtime run waits at its end for the frames in flight (Note [The frames in flight at the end]): a
+#: minute of a model's frames, at seconds a frame, before it gives up on a head and says so
+END_WAIT_S = 60.0
 
 
 class Pipeline:
@@ -179,8 +182,7 @@ class Pipeline:
                     Feed(camera, s, 1.0 / (self.fps or s.fps or 30.0), self.fps is None and s.live, frames)
                 )
             with ctrl_c() as stop:
-                self._feed(stop)
-                interrupted = stop.is_set()
+                interrupted = self._feed(stop)
             wall = time.monotonic() - t_start
             stats = self.engine.stats()
         finally:
@@ -190,28 +192,41 @@ class Pipeline:
             write_summary(self.out_dir, summary)
         return summary
 
-    def _feed(self, stop: threading.Event) -> None:
+    def _feed(self, stop: threading.Event) -> bool:
+        """Every frame in, and its results handled; whether a stop (Ctrl-C) cut the frames short."""
         loop = FrameLoop(
             self.feeds, self.max_frames, stop, self._submit, self.engine, self._handle, self._progressed, self.in_flight
         )
         if self.pace == "lockstep":
             lockstep(loop)
-            return
+            return stop.is_set()
         self.engine.results(0)  # start the result stream before the first frame
         realtime(loop)
-        # Note [The frames in flight at the end]
-        # ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
-        # The run ends once every head has answered each camera's last frame (ran it, or skipped it as newest-wins or
-        # a rate limit would): every earlier frame is answered by then too, and the stream holds every output. A
-        # quiet poll of the stream is no sign of the end: a model slower than the poll was left behind, its frames
-        # in no count. Ctrl-C still ends the wait at once.
+        interrupted = stop.is_set()  # a Ctrl-C in the wait below ends the wait, not the frames: all went in
+        self._answer_the_last(stop)
+        return interrupted
+
+    def _answer_the_last(self, stop: threading.Event) -> None:
+        """Note [The frames in flight at the end]
+        ~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~~
+        A realtime run ends once every head has answered each camera's last frame (ran it, or skipped it as
+        newest-wins or a rate limit would): every earlier frame is answered by then too, and the stream holds every
+        output. A quiet poll of the stream is no sign of the end: a model slower than the poll was left behind, its
+        frames in no count. The wait is bounded (END_WAIT_S; then a warning names the heads still working, and their
+        frames in flight are in no count), and a Ctrl-C ends it within half a second."""
+        deadline = time.monotonic() + END_WAIT_S
         for feed in self.feeds:
             while feed.last_fid is not None and not stop.is_set():
                 try:
-                    self.engine.wait(feed.last_fid, timeout=0.5)
+                    self.engine.wait(feed.last_fid, timeout=0.5, copy=False)
                     break
-                except TimeoutError:
+                except ValueError:  # so long ago that the engine no longer keeps it: answered long since
+                    break
+                except TimeoutError as e:
                     self._handle(self.engine.results(0))  # keep the stream drained meanwhile
+                    if time.monotonic() > deadline:
+                        log.warning("stopped waiting for the frames in flight after %.0f s: %s", END_WAIT_S, e)
+                        break
         self._handle(self.engine.results(0))
 
     def _frames(self, camera: str | None, source: Source) -> Iterator[Frame]:

@@ -144,7 +144,7 @@ class ModelConfig(_Strict):
     @classmethod
     def _rate(cls, v: Any) -> float | None:
         # before pydantic's coercion: the same values as every other door, spelled as a config writes them (null)
-        return checks.rate(None, v, spell=json.dumps)
+        return checks.rate(None, v, spell=lambda x: json.dumps(x, default=str))  # a YAML date is no JSON
 
 
 class FoundationModelConfig(ModelConfig):

@@ -709,3 +709,11 @@ def test_a_server_that_takes_the_connection_and_says_nothing_is_named_while_it_i
         "`weights fetch --timeout`)"
     ]
     assert held  # the connection was taken: a wait for an answer, not for a connection
+
+
+def test_fetch_config_fails_for_a_config_the_engine_could_not_start(env, capsys, tmp_path):
+    cfg_file = tmp_path / "typo.yaml"
+    cfg_file.write_text("foundation_model: {model: tiny_vit}\nheads: [{name: depth, model: tiny_deph}]\n")
+    assert cli(["weights", "fetch", "--config", str(cfg_file), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith(f"vpengine weights fetch: {cfg_file}: the engine would not start: ") and "tiny_deph" in err

@@ -246,3 +246,8 @@ def test_a_backend_option_typo_is_a_config_error_not_a_worker_traceback():
         "(accepted: compiler, cudagraphs, fullgraph, mode, slot_bound, warmup_iters)"
     )
     assert load_config(TINY, ["heads.depth.backend=compile", "heads.depth.backend_options.mode=default"])
+
+
+def test_a_rate_yaml_reads_as_a_date_is_refused_in_the_one_message():
+    with pytest.raises(ConfigError, match=r"heads.depth.rate_hz: .*must be null \(no limit\).*got \"2024-01-01\""):
+        load_config(TINY, ["heads.depth.rate_hz=2024-01-01"])

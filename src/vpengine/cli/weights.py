@@ -200,12 +200,19 @@ def cmd_fetch(args: argparse.Namespace) -> int:
         # a checkpoint that is neither a file nor a catalog name: nothing fetches it, and the engine will not start
         # without it. Said, not failed: the config's own order may make it later (the shipped config's detector is
         # trained after its other files are fetched)
-        missing = download.unresolvable(cfg)
+        try:
+            missing = download.unresolvable(cfg)
+            planned = True
+        except Exception as e:  # the engine's start would stop here too: the config is wrong, whatever is fetched
+            print(f"vpengine weights fetch: {args.config}: the engine would not start: {e}", file=sys.stderr)
+            missing, planned = [], False
         for line in missing:
             print(f"vpengine weights fetch: WARNING: not fetched, {line}", file=sys.stderr)
-        if len(wanted) == len(args.names) and not missing:
+        if len(wanted) == len(args.names) and not missing and planned:
             print(f"{args.config} loads no catalog checkpoint (files, random weights or none)")
-    failed = 0
+    else:
+        planned = True
+    failed = 0 if planned else 1
     unreachable: dict[str, download.Unreachable] = {}  # host -> how it failed: one wait per host, not per file
     for name, entry in wanted:
         try:

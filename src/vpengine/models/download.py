@@ -474,15 +474,13 @@ def unresolvable(cfg: Any) -> list[str]:
     """A line per model of an engine config whose checkpoint is neither an existing file nor a catalog name: nothing
     fetches it, and the engine will not start until it is there. Asked as the engine asks (each planned model's
     :meth:`Model.needed_checkpoint`; a checkpoint a model declares none for is not needed), and each line is the one
-    the engine's start would give, starting with the model's name. A config that does not plan gives that error."""
+    the engine's start would give, starting with the model's name. A config that does not plan raises the error the
+    engine's start would."""
     if cfg.weights.random_weights:
         return []
     from vpengine.runtime.plan import make_plan
 
-    try:
-        plan = make_plan(cfg)
-    except Exception as e:  # the engine would stop here too, with this message
-        return [f"the config does not plan, so its local checkpoints were not checked: {e}"]
+    plan = make_plan(cfg)
     cache = catalog.cache_dir()
     lines = []
     for name, model in {"foundation": plan.foundation, **plan.heads}.items():

@@ -395,27 +395,31 @@ class ProcessRunner(Runner):
                     reason = describe_exit(ch.proc.returncode)
                     if ch.error:
                         reason += ": " + ch.error.strip().splitlines()[-1]
+                    # its own report (a worker's loop that raised) is in its last_error already, whole
+                    reported = ch.error is not None and not ch.killed
                     ch.close()
                     ch.handled = True
                     # a worker leaves by itself only at stop: any exit now is a crash, exit code 0 included
-                    self._on_process_exit(ch.names, reason)
+                    self._on_process_exit(ch.names, reason, reported)
             self._check_hangs()
 
-    def _on_process_exit(self, names: tuple[str, ...], reason: str) -> None:
+    def _on_process_exit(self, names: tuple[str, ...], reason: str, reported: bool = False) -> None:
         """A worker process is gone, and every model it ran (Note [Process groups]): each is cleaned up after and
-        counted a crash; the first decides for all whether and when they restart (one process, one decision)."""
+        counted a crash; the first decides for all whether and when they restart (one process, one decision).
+        ``reported``: the first model's worker wrote why into its last_error before it left."""
         for name in names[1:]:
             self._cleanup_after(name)
-        self._on_first_exit(names, reason)
+        self._on_first_exit(names, reason, reported)
 
     def _launch_failed(self, name: str, reason: str) -> None:
         """A restart could not launch ``name``'s process: a crash of every model it runs, decided by the first."""
         self._on_first_exit(self._members(name), reason)
 
-    def _on_first_exit(self, names: tuple[str, ...], reason: str) -> None:
+    def _on_first_exit(self, names: tuple[str, ...], reason: str, reported: bool = False) -> None:
         first, others = names[0], names[1:]
         if not self._stopping:
-            for name in names:  # stats()' last_error says why, as thread mode's does (a hang, a signal, an exit)
+            # stats()' last_error says why (a hang, a signal, an exit), unless the worker's own report is there
+            for name in others if reported else names:
                 self.control.set_error(name, f"{first}'s process stopped: {reason}")
             for name in others:
                 self.control.add(name, "crashes")

@@ -480,7 +480,7 @@ def _node_items(node: Any) -> Any:
     return list(node.value) if isinstance(node, yaml.SequenceNode) else None
 
 
-def _load_yaml(text: str, where: str) -> Any:
+def _load_yaml(text: str, where: str, subject: str | None = None) -> Any:
     """``yaml.safe_load``, refusing documents that would expand past the bounds (checked on the parsed nodes,
     where aliases are still shared, before any Python object is built)."""
     loader = yaml.SafeLoader(text)
@@ -489,13 +489,13 @@ def _load_yaml(text: str, where: str) -> Any:
         if node is None:
             return None
         _check_size(node, _node_items, where)
-        _check_unique_keys(node, where)
+        _check_unique_keys(node, subject or f"config file {where}")
         return loader.construct_document(node)
     finally:
         loader.dispose()
 
 
-def _check_unique_keys(root: Any, where: str) -> None:
+def _check_unique_keys(root: Any, subject: str) -> None:
     """Refuse a mapping that names a key twice: YAML keeps the last silently, so a second ``heads:`` block pasted
     below the first would drop every head above it. Named with both lines."""
     seen: set[int] = set()
@@ -512,7 +512,7 @@ def _check_unique_keys(root: Any, where: str) -> None:
                     line = key.start_mark.line + 1
                     if key.value in first:
                         raise ConfigError(
-                            f"config file {where}: key {key.value!r} is given twice in one mapping (lines "
+                            f"{subject}: key {key.value!r} is given twice in one mapping (lines "
                             f"{first[key.value]} and {line}); YAML would keep only the last: merge them"
                         )
                     first[key.value] = line

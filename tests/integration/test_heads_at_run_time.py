@@ -236,6 +236,10 @@ def test_bad_requests_are_refused_and_leave_the_engine_as_it_was():
             eng.add_head("{name: det2, model: tiny_det, no_such_field: 1}")
         with pytest.raises(ValueError, match="a mapping"):
             eng.add_head("just text")
+        with pytest.raises(ConfigError, match="this one does not parse"):  # the live view's 400, not a 500
+            eng.add_head("{name: det2, model: [tiny_det")
+        with pytest.raises(ConfigError, match=r"the head's config: key 'name' is given twice in one mapping"):
+            eng.add_head("{name: det2, model: tiny_det, name: det3}")
         with pytest.raises(ConfigError, match="input_mode fifo"):
             eng.add_head({**DET2, "input_mode": "fifo"})
         with pytest.raises(EngineStartError, match="injected build failure"):

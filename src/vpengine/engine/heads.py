@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from vpengine.config import ConfigError, EngineConfig, HeadConfig, load_config
+from vpengine.config import ConfigError, EngineConfig, HeadConfig, _load_yaml, load_config
 from vpengine.models.base import ModelBuildError
 from vpengine.models.build import BuildCancelled
 from vpengine.models.registry import resolve
@@ -56,7 +56,10 @@ def _head_data(head: HeadConfig | dict[str, Any] | str) -> dict[str, Any]:
     if isinstance(head, HeadConfig):
         return head.model_dump(mode="json", exclude_unset=True)
     if isinstance(head, str):
-        data = yaml.safe_load(head)
+        try:  # the config file's loader: a key given twice is refused here too
+            data = _load_yaml(head, "the head's config", "the head's config")
+        except yaml.YAMLError as e:
+            raise ConfigError(f"a head's config is YAML (or JSON) text; this one does not parse: {e}") from None
         if not isinstance(data, dict):
             raise ConfigError(f"a head's config is a mapping (name: ..., model: ...); got {head!r}")
         return data
@@ -104,8 +107,10 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             raise ConfigError(f"head {h.name!r}: input_mode fifo is for heads configured at start; add it as latest")
         try:  # a model that does not exist is named before the room for it is counted
             resolve(h.model, "head")
-        except ModelBuildError as e:  # its model field names no model: the config's error
-            raise ConfigError(f"heads.{h.name}.model: {e}") from None
+        except ModelBuildError as e:
+            if e.__cause__ is not None:  # the user's module itself failed as it was imported: its own error
+                raise EngineStartError(f"head {h.name!r} cannot be added: {e}") from e
+            raise ConfigError(f"heads.{h.name}.model: {e}") from None  # its model field names no model
         seats = engine.lanes.seats
         if not seats:
             raise RuntimeError(
@@ -121,9 +126,10 @@ def _add_head(engine: Engine, head: HeadConfig | dict[str, Any] | str) -> str:
             raise EngineDeadError(f"engine stopped while {h.name} was being added") from None
         except (ConfigError, EngineStartError, EngineDeadError):
             raise
-        except Exception as e:  # it cannot be built (a user class's own error included): one type, as documented
-            why = str(e) if isinstance(e, ModelBuildError) else f"{type(e).__name__}: {e}"
-            raise EngineStartError(f"head {h.name!r} cannot be added: {why}") from None
+        except ModelBuildError as e:  # a reason of its own, in one line (a missing checkpoint, bad options)
+            raise EngineStartError(f"head {h.name!r} cannot be added: {e}") from e.__cause__
+        except Exception as e:  # a user class's own error: its traceback says where
+            raise EngineStartError(f"head {h.name!r} cannot be added: {type(e).__name__}: {e}") from e
         box = next(m for m in mailboxes(plan, cfg.mode == "process") if m["name"] == f"out.{h.name}")
         check_preallocation([box])
         control, runner, governor = res.control, res.runner, res.governor

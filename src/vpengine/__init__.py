@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING, Any
 from vpengine._version import __version__ as __version__
 
 if TYPE_CHECKING:
-    from vpengine.config import EngineConfig, load_config
+    from vpengine.config import ConfigError, EngineConfig, load_config
     from vpengine.engine import Engine, EngineDeadError, EngineStartError, FrameSlot, Result
 
 __all__ = [

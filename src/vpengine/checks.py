@@ -40,17 +40,18 @@ def frame_id(value: Any) -> int | None:
 
 
 def names(value: Any, what: str) -> list[str] | None:
-    """A list of names an API call takes (``heads=``, ``overrides=``): None, one str (a list of one), or a list or
-    tuple of str; not an empty one, which would name nothing (None is the default: all of them)."""
+    """The names an API call takes (``heads=``): None, one str (a list of one), or any collection of str (a list,
+    tuple, set, dict keys); not an empty one, which would name nothing (None is the default: all of them)."""
     if value is None:
         return None
     if isinstance(value, str):
         return [value]
-    if not isinstance(value, (list, tuple)) or not all(isinstance(v, str) for v in value):
-        raise TypeError(f"{what} must be a list of str (or one str), got {value!r}")
-    if not value:
+    items = None if isinstance(value, (bytes, bytearray)) or not hasattr(value, "__iter__") else list(value)
+    if items is None or not all(isinstance(v, str) for v in items):
+        raise ValueError(f"{what} must be names (str), one or several, got {value!r}")
+    if not items:
         raise ValueError(f"{what}=[] names nothing; leave it out (None) for all")
-    return list(value)
+    return items
 
 
 def timestamp(value: Any) -> float | None:

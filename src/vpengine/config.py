@@ -60,8 +60,9 @@ class InputConfig(_Strict):
     color: Literal["bgr", "rgb"] = Field("bgr", description="Channel order of submitted frames (OpenCV gives BGR).")
     dtype: Literal["uint8", "float32"] = Field(
         "uint8",
-        description="Pixel type: uint8 0..255, or float32 0..1 (NaN, inf and values past 2, a /255 forgotten, are "
-        "refused at submit).",
+        description="Pixel type: uint8 0..255, or float32 0..1 (submit refuses NaN, inf and values past 2, a /255 "
+        "forgotten; a frame_slot's frame, written in place, is not checked). The CLI and ROS 2 take their sources' "
+        "uint8 frames whatever it says.",
     )
 
 
@@ -614,6 +615,10 @@ def load_raw(path: str | Path) -> dict[str, Any]:
         raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_syntax_error(e, text)}") from None
     except RecursionError:
         raise ConfigError(f"config file {str(path)!r} nests too deeply to parse") from None
+    except ConfigError as e:
+        if kind == "JSON":  # a key given twice: its object hook knows no file (nor lines)
+            raise ConfigError(f"config file {str(path)!r}: {e}") from None
+        raise
     if data is None:
         data = {}
     if not isinstance(data, dict):

@@ -636,7 +636,8 @@ def test_weights_list_shows_no_login_or_token_of_an_entrys_url(env, capsys):
 def test_fetch_config_names_a_checkpoint_nothing_fetches_and_fetches_the_rest(server, env, capsys, tmp_path):
     """A checkpoint a model needs (``needed_checkpoint``) that is neither a file nor a catalog name cannot be fetched
     and would stop the engine's start: `fetch --config` says so in the start's words and fetches the config's catalog
-    files (exit 0: the file may be made later, as the shipped config's detector is trained after its fetch). One set for a model that declares none is ignored by the engine, and by fetch too."""
+    files (exit 0: the file may be made later, as the shipped config's detector is trained after its fetch). One
+    set for a model that declares none is ignored by the engine, and by fetch too."""
     entry = make_entry(server)
     missing = tmp_path / "runs" / "depth" / "head.pt"
     cfg = load_config(

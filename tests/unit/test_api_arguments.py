@@ -128,10 +128,12 @@ def test_wait_for_a_cancelled_frame_slots_id_says_so(engine):
 def test_one_head_name_is_a_list_of_one_and_a_bad_one_says_what_is_taken(engine):
     fid = engine.submit(frame(0))
     assert set(engine.wait(fid, heads="depth")) == {"depth"}  # not the characters of 'depth'
-    for bad in ([], ["depth", 3]):
-        with pytest.raises((ValueError, TypeError), match=r"heads"):
-            engine.wait(fid, heads=bad)
-    with pytest.raises(TypeError, match=r"a head is named by a str, got \['depth'\]"):
+    with pytest.raises(ValueError, match=r"^heads=\[\] names nothing; leave it out \(None\) for all$"):
+        engine.wait(fid, heads=[])
+    with pytest.raises(ValueError, match=r"^heads must be names \(str\), one or several, got \['depth', 3\]$"):
+        engine.wait(fid, heads=["depth", 3])
+    assert set(engine.wait(fid, heads={"depth", "seg"})) == {"depth", "seg"}  # any collection of names
+    with pytest.raises(ValueError, match=r"a head is named by a str, got \['depth'\]"):
         engine.latest(["depth"])
     assert all(r.head == "seg" for r in engine.results(0.0, heads="seg"))
 

@@ -229,7 +229,7 @@ def test_a_key_given_twice_is_refused_with_both_lines(tmp_path):
         load_config(f)
     j = tmp_path / "twice.json"
     j.write_text('{"device": "cpu", "device": "cuda"}')
-    with pytest.raises(ConfigError, match="key 'device' is given twice in one JSON object"):
+    with pytest.raises(ConfigError, match=rf"config file '{j}': key 'device' is given twice in one JSON object"):
         load_config(j)
     f.write_text("a: &x {k: 1}\nfoundation_model: {model: tiny_vit}\nheads: [{name: d, model: tiny_depth}]\n")
     with pytest.raises(ConfigError, match="a: unknown key"):  # an anchor used once: no false alarm, the real error

@@ -80,6 +80,8 @@ def test_results_of_another_size_reuse_the_arrays_a_caller_let_go(engine, hw):
 def test_borrowed_results_of_another_size_are_copies_in_the_frame_grid_said_once_a_head(engine, caplog):
     import logging
 
+    engine._outbox._told_not_lent.clear()  # whatever another test of this module's engine did first
+
     with caplog.at_level(logging.WARNING, "vpengine"):
         for _ in range(2):
             fid = engine.submit(frame(2, 240, 320))
@@ -131,8 +133,11 @@ def test_a_writer_that_reallocates_instead_of_writing_into_the_slot_is_refused(e
     with elsewhere, engine.frame_slot() as slot:
         slot.array = slot.array.copy()
     for bad in ("640x480", (1, 2, 3), (10.7, 20.2), (True, 5)):
-        with pytest.raises(ValueError, match=r"frame_slot size must be \(height, width\) in integer pixels"):
+        with pytest.raises(ValueError, match=r"frame_slot size must be \(height, width\) in whole pixels"):
             engine.frame_slot(size=bad)
+    with engine.frame_slot(size=(240.0, 320.0)) as slot:  # as OpenCV's CAP_PROP_FRAME_HEIGHT gives a size
+        assert slot.array.shape == (240, 320, 3)
+        slot.cancel()
     fid = engine.submit(frame(1))
     assert set(engine.wait(fid, timeout=5)) == {"depth", "seg", "det"}
 

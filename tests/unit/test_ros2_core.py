@@ -815,3 +815,16 @@ def test_the_control_loop_keeps_its_schedule_and_applies_a_command_at_once(caplo
     assert len(refreshed) == len(published)
     with pytest.raises(ValueError, match="period must be > 0 s, got 0"):
         ControlLoop(core, published.append, commands.wait, period_s=0)  # type: ignore[arg-type]
+
+
+def test_a_config_for_float_frames_takes_images_from_a_topic():
+    """Images decode to uint8 frames: input.dtype is for the API's callers, as in the CLI's runs."""
+    core = Ros2Core(tiny("thread", "input.dtype=float32"))
+    assert core.config.input.dtype == "uint8"
+    core.start()
+    try:
+        assert core.handle_image(image_msg(frame(0), "bgr8")) is not None
+        _poll_until(core, _answered(core, 1))
+    finally:
+        core.stop()
+    assert core.counters["submitted"] == 1

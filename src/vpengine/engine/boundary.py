@@ -337,7 +337,7 @@ class Boundary:
         if frame.dtype != self.dtype:
             raise ValueError(f"expected {want}; got dtype {frame.dtype}")
         if frame.dtype.kind == "f":
-            hi = float(frame.max())  # NaN if any is (and inf if any is): one pass, no mask
+            hi = float(frame.max())  # NaN if any is (and inf if any is): no mask made
             if not np.isfinite(hi) or not np.isfinite(float(frame.min())):
                 raise ValueError(f"expected {want} with finite values; got NaN or inf")
             if hi > 2.0:  # a float frame is 0..1: this one is 0..255, its /255 forgotten

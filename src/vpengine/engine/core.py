@@ -391,8 +391,11 @@ class Engine:
             size = (cam_cfg.height, cam_cfg.width)
         if size is not None:
             hw = tuple(size) if isinstance(size, (tuple, list)) else ()
-            if len(hw) != 2 or any(isinstance(v, bool) or not isinstance(v, numbers.Integral) for v in hw):
-                raise ValueError(f"frame_slot size must be (height, width) in integer pixels, got {size!r}")
+            whole = (  # a whole float passes: OpenCV's CAP_PROP_FRAME_HEIGHT is one
+                isinstance(v, numbers.Integral) or (isinstance(v, float) and v.is_integer()) for v in hw
+            )
+            if len(hw) != 2 or any(isinstance(v, bool) for v in hw) or not all(whole):
+                raise ValueError(f"frame_slot size must be (height, width) in whole pixels, got {size!r}")
             h, w = (int(v) for v in hw)
             if not (0 < h <= self.boundary.max_side and 0 < w <= self.boundary.max_side):
                 raise ValueError(

@@ -229,8 +229,9 @@ class Result:
         return self.outputs[key]
 
     def plot(self, image: np.ndarray | None = None) -> np.ndarray:
-        """This result drawn as a BGR uint8 picture at its frame's size: on ``image`` (or the predicted frame,
-        ``self.image``) when given, else on its own (depth colours with a bar, class colours, boxes on black)."""
+        """This result drawn as a BGR uint8 picture at its frame's size: on ``image`` (a BGR uint8 picture of the
+        frame) when given, else on the predicted frame (``self.image``), else on its own (depth colours with a bar,
+        class colours, boxes on black)."""
         from vpengine.visualize import draw_result
 
         frame = self.image if image is None else image
@@ -302,7 +303,7 @@ class Outbox:
 
     def head(self, head: str) -> str:
         if not isinstance(head, str):
-            raise TypeError(f"a head is named by a str, got {head!r}")
+            raise ValueError(f"a head is named by a str, got {head!r}")
         if head not in self.heads:
             raise KeyError(f"no head named {head!r}; heads: {list(self.heads)}")
         return head

@@ -117,7 +117,10 @@ class Ros2Core:
 
         if input_size not in ("config", "first"):
             raise ValueError(f"input_size must be 'config' or 'first', got {input_size!r}")
-        self.config = config_for_cameras(config, list(cameras) if cameras else None, list(overrides), "input topics")
+        # images on a topic decode to uint8 frames: the config's input.dtype is for the API's callers (as in the CLI)
+        self.config = config_for_cameras(
+            config, list(cameras) if cameras else None, [*overrides, "input.dtype=uint8"], "input topics"
+        )
         self.namespace = normalize_namespace(namespace)
         self.input_size = input_size
         planner = self._new_engine(self.config)  # planned only: head metadata without starting anything

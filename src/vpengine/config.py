@@ -97,20 +97,6 @@ class ModelConfig(_Strict):
     )
     precision: Precision | None = Field(None, description="fp32 | fp16 | bf16; null: the engine's precision.")
 
-    @field_validator("backend_options")
-    @classmethod
-    def _backend_options(cls, v: dict[str, Any], info: Any) -> dict[str, Any]:
-        """Checked with the config, not in a worker after the processes are started."""
-        from vpengine.backends.options import BackendError, parse_options
-
-        backend = info.data.get("backend")
-        if backend is not None:  # else the backend's own error says what is wrong
-            try:
-                parse_options(backend, v, "")
-            except BackendError as e:
-                raise ValueError(str(e).removeprefix(": ")) from None
-        return v
-
     cpu_threads: int = Field(
         1,
         ge=1,
@@ -481,9 +467,10 @@ def _node_items(node: Any) -> Any:
     return list(node.value) if isinstance(node, yaml.SequenceNode) else None
 
 
-def _load_yaml(text: str, where: str, subject: str | None = None) -> Any:
+def load_yaml(text: str, where: str, subject: str | None = None) -> Any:
     """``yaml.safe_load``, refusing documents that would expand past the bounds (checked on the parsed nodes,
-    where aliases are still shared, before any Python object is built)."""
+    where aliases are still shared, before any Python object is built) and mappings that give a key twice.
+    ``where`` names the text in a bounds error, ``subject`` (default: the config file ``where``) in a key's."""
     loader = yaml.SafeLoader(text)
     try:
         node = loader.get_single_node()
@@ -549,7 +536,7 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] |
 def parse_value(text: str) -> Any:
     """A command-line value: YAML scalars and lists (``5``, ``null``, ``true``, ``[1, 2]``), else the string."""
     try:
-        return _load_yaml(text, "a command-line override")
+        return load_yaml(text, "a command-line override", "a command-line override")
     except yaml.YAMLError:
         return text
     except RecursionError:
@@ -608,9 +595,7 @@ def load_raw(path: str | Path) -> dict[str, Any]:
             f"config file {str(path)!r} is not UTF-8 text ({e.reason} at byte {e.start}); expected {kind}"
         ) from None
     try:
-        data = (
-            json.loads(text, object_pairs_hook=_unique_pairs) if kind == "JSON" else _load_yaml(text, repr(str(path)))
-        )
+        data = json.loads(text, object_pairs_hook=_unique_pairs) if kind == "JSON" else load_yaml(text, repr(str(path)))
     except (json.JSONDecodeError, yaml.YAMLError) as e:
         raise ConfigError(f"config file {str(path)!r} is not valid {kind}: {_syntax_error(e, text)}") from None
     except RecursionError:

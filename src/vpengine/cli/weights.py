@@ -201,7 +201,7 @@ def cmd_fetch(args: argparse.Namespace) -> int:
         # without it. Said, not failed: the config's own order may make it later (the shipped config's detector is
         # trained after its other files are fetched)
         try:
-            missing = download.unresolvable(cfg)
+            missing = unresolvable(cfg)
             planned = True
         except Exception as e:  # the engine's start would stop here too: the config is wrong, whatever is fetched
             print(f"vpengine weights fetch: {args.config}: the engine would not start: {e}", file=sys.stderr)
@@ -334,3 +334,30 @@ def main(args: argparse.Namespace) -> int:
             del os.environ["VPENGINE_CACHE"]
         else:
             os.environ["VPENGINE_CACHE"] = before
+
+
+def unresolvable(cfg: Any) -> list[str]:
+    """A line per model of an engine config whose checkpoint is neither an existing file nor a catalog name: nothing
+    fetches it, and the engine will not start until it is there. Asked as the engine asks (each planned model's
+    :meth:`Model.needed_checkpoint`; a checkpoint a model declares none for is not needed), and each line is the one
+    the engine's start would give, starting with the model's name. A config that does not plan raises the error the
+    engine's start would."""
+    if cfg.weights.random_weights:
+        return []
+    from vpengine.models import catalog
+    from vpengine.models.weights import CheckpointError, locate_checkpoint
+    from vpengine.runtime.plan import make_plan
+
+    plan = make_plan(cfg)
+    cache = catalog.cache_dir()
+    lines = []
+    for name, model in {"foundation": plan.foundation, **plan.heads}.items():
+        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        try:
+            needed = model.needed_checkpoint(mcfg)
+            if needed is None or Path(needed).expanduser().is_file() or catalog.find(needed, cache) is not None:
+                continue
+            locate_checkpoint(name, mcfg.model, str(needed))
+        except CheckpointError as e:
+            lines.append(str(e) if str(e).startswith(f"{name}: ") else f"{name}: {e}")
+    return lines

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import yaml
 
-from vpengine.config import ConfigError, EngineConfig, HeadConfig, _load_yaml, load_config
+from vpengine.config import ConfigError, EngineConfig, HeadConfig, load_config, load_yaml
 from vpengine.models.base import ModelBuildError
 from vpengine.models.build import BuildCancelled
 from vpengine.models.registry import resolve
@@ -57,7 +57,7 @@ def _head_data(head: HeadConfig | dict[str, Any] | str) -> dict[str, Any]:
         return head.model_dump(mode="json", exclude_unset=True)
     if isinstance(head, str):
         try:  # the config file's loader: a key given twice is refused here too
-            data = _load_yaml(head, "the head's config", "the head's config")
+            data = load_yaml(head, "the head's config", "the head's config")
         except yaml.YAMLError as e:
             raise ConfigError(f"a head's config is YAML (or JSON) text; this one does not parse: {e}") from None
         if not isinstance(data, dict):

@@ -37,7 +37,6 @@ from vpengine.models.weights import (
     CheckpointError,
     byte_progress,
     check_file,
-    locate_checkpoint,
     missing_error,
     place_hint,
     sha256_file,
@@ -468,31 +467,6 @@ def checkpoints(cfg: Any) -> list[tuple[str, Entry]]:
         if entry is not None:
             found.append((name, entry))
     return found
-
-
-def unresolvable(cfg: Any) -> list[str]:
-    """A line per model of an engine config whose checkpoint is neither an existing file nor a catalog name: nothing
-    fetches it, and the engine will not start until it is there. Asked as the engine asks (each planned model's
-    :meth:`Model.needed_checkpoint`; a checkpoint a model declares none for is not needed), and each line is the one
-    the engine's start would give, starting with the model's name. A config that does not plan raises the error the
-    engine's start would."""
-    if cfg.weights.random_weights:
-        return []
-    from vpengine.runtime.plan import make_plan
-
-    plan = make_plan(cfg)
-    cache = catalog.cache_dir()
-    lines = []
-    for name, model in {"foundation": plan.foundation, **plan.heads}.items():
-        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
-        try:
-            needed = model.needed_checkpoint(mcfg)
-            if needed is None or Path(needed).expanduser().is_file() or catalog.find(needed, cache) is not None:
-                continue
-            locate_checkpoint(name, mcfg.model, str(needed))
-        except CheckpointError as e:
-            lines.append(str(e) if str(e).startswith(f"{name}: ") else f"{name}: {e}")
-    return lines
 
 
 def prefetch(cfg: Any, progress: bool = True) -> list[Path]:

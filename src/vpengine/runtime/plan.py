@@ -62,7 +62,22 @@ def make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None = None) ->
         raise EngineStartError(str(e)) from None
 
 
+def check_backend_options(cfg: EngineConfig) -> None:
+    """Every model's ``backend_options`` as its backend takes them: checked while planning, in the parent, not in
+    each worker after the processes started (where a typo came with the worker's traceback). ConfigError naming
+    the field, the backend and the keys it takes."""
+    from vpengine.backends.options import BackendError, parse_options
+    from vpengine.config import ConfigError
+
+    for where, m in [("foundation_model", cfg.foundation_model), *((f"heads.{h.name}", h) for h in cfg.heads)]:
+        try:
+            parse_options(m.backend, m.backend_options, f"{where}.backend_options")
+        except BackendError as e:
+            raise ConfigError(str(e)) from None
+
+
 def _make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None) -> Plan:
+    check_backend_options(cfg)
     device = torch.device(cfg.device)
     frame_spec = {"frame": TensorSpec((cfg.input.height, cfg.input.width, 3), cfg.input.dtype)}
     fm = build_model(cfg, "foundation", "foundation", frame_spec, {}, device, plan_only=True, cancelled=cancelled)

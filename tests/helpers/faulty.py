@@ -37,7 +37,8 @@ class FaultOptions(Options):
     stall_ms: float = 0.0
     fail_build: bool = False
     build_s: float = 0.0  # building takes this long (a head that compiles), or until BUILDS_RELEASED is set
-    log_at_build: str | None = None  # log this (WARNING, logger vpengine.faulty) when built
+    log_at_build: str | None = None  # log this (at log_at_build_level, logger vpengine.faulty) when built
+    log_at_build_level: str = "WARNING"
 
 
 class _Runs:
@@ -78,7 +79,9 @@ class FaultyHead(_Runs, TinyDepthHead):
             BUILDS_STARTED.set()
             BUILDS_RELEASED.wait(fault.build_s)
         if fault.log_at_build and not ctx.plan_only:
-            logging.getLogger("vpengine.faulty").warning("%s", fault.log_at_build)
+            logging.getLogger("vpengine.faulty").log(
+                logging.getLevelName(fault.log_at_build_level), "%s", fault.log_at_build
+            )
         return cls(ctx, fault)
 
     def forward(self, inputs):

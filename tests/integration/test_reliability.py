@@ -360,6 +360,30 @@ def test_logging_file_gets_the_engines_and_the_workers_records(tmp_path, mode):
         assert "WARNING [seg] vpengine.faulty: hello from the seg worker" in text
 
 
+def test_a_worker_process_shows_on_the_terminal_what_its_parent_shows_and_the_file_gets_the_configs_level(
+    tmp_path, capfd
+):
+    """A CLI run without -v shows warnings; a worker process showed every INFO line of the config's logging.level
+    (the compile backend's, for one) while the engine's own were held back. The file still gets INFO."""
+    import logging
+
+    log = tmp_path / "engine.log"
+    opts = json.dumps({"log_at_build": "an INFO line from the seg worker", "log_at_build_level": "INFO"})
+    root = logging.getLogger()
+    before = root.level
+    try:
+        for shown in (logging.WARNING, logging.INFO):  # as the CLI sets it without and with -v
+            root.setLevel(shown)
+            capfd.readouterr()
+            with Engine(tiny("process", heads(f"seg:{opts}"), f"logging.file={log}")) as e:
+                e.wait(e.submit(frame(0)), timeout=20)
+            err = capfd.readouterr().err
+            assert ("an INFO line from the seg worker" in err) == (shown == logging.INFO), err[-2000:]
+    finally:
+        root.setLevel(before)
+    assert log.read_text().count("INFO [seg] vpengine.faulty: an INFO line from the seg worker") == 2
+
+
 def test_a_logging_file_that_cannot_be_written_names_the_field(tmp_path):
     (tmp_path / "file").write_text("")
     bad = tmp_path / "file" / "engine.log"  # under a file: no folder can be made

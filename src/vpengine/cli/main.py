@@ -87,8 +87,15 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     level = logging.WARNING if args.verbose == 0 else logging.INFO if args.verbose == 1 else logging.DEBUG
+    had = list(logging.getLogger().handlers)
     logging.basicConfig(level=level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    if level > logging.INFO:  # a start that takes long says where it is (Note [Start progress])
+    # the terminal shows what -v asks for, and a long start's progress (Note [Start progress]); logging.file may
+    # lower the vpengine logger for its own sake, and its records must not reach the terminal through that. Only
+    # on the handler made here (a host program's, or a test runner's, are theirs)
+    for handler in logging.getLogger().handlers:
+        if handler not in had:
+            handler.addFilter(lambda r, level=level: r.levelno >= level or r.name == "vpengine.start")
+    if level > logging.INFO:
         logging.getLogger("vpengine.start").setLevel(logging.INFO)
     try:
         code = int(importlib.import_module(args._module).main(args) or 0)

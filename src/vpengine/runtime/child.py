@@ -43,7 +43,11 @@ def main(fd: int, parent_pid: int) -> None:
     except (EOFError, OSError):
         os._exit(2)
     names = "+".join(s.name for s in specs)
-    logging.basicConfig(level=log_level, format=f"%(asctime)s %(levelname)s [{names}] %(name)s: %(message)s")
+    # its stderr shows what the parent's terminal shows (a CLI run without -v: warnings), logging.file what the
+    # config asks; the handler's own level keeps the file's lower level off the terminal
+    logging.basicConfig(level=init.terminal_level, format=f"%(asctime)s %(levelname)s [{names}] %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:
+        handler.setLevel(init.terminal_level)
 
     from vpengine.runtime.control import ControlBlock
     from vpengine.runtime.prepare import prepare_worker

@@ -307,7 +307,16 @@ class ProcessRunner(Runner):
         if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
             proc.kill()
             raise PermissionError(f"worker {name}: socket peer has uid {uid}")
-        conn.send(Init(specs[0], self.cfg.logging.level, self.cfg.logging.file, more=tuple(specs[1:])))
+        terminal = max(logging.getLogger().getEffectiveLevel(), logging.getLevelName(self.cfg.logging.level))
+        conn.send(
+            Init(
+                specs[0],
+                self.cfg.logging.level,
+                self.cfg.logging.file,
+                more=tuple(specs[1:]),
+                terminal_level=logging.getLevelName(terminal),
+            )
+        )
         send_fds(conn, fds)
         child = _Child(proc, conn, names)
         for n in names:

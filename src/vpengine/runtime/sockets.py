@@ -58,9 +58,10 @@ class Init:
     """Parent -> worker, first: what to run (the fds of its rings follow, Note [Child lifecycle])."""
 
     spec: WorkerSpec
-    log_level: str
+    log_level: str  # logging.level: what goes to logging.file
     log_file: str | None
     more: tuple[WorkerSpec, ...] = ()  # the other models of its process (Note [Process groups] in process.py)
+    terminal_level: str = "WARNING"  # what goes to its stderr: no more than the parent shows of its own
 
 
 @dataclass(frozen=True)

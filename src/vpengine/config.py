@@ -261,7 +261,9 @@ class RuntimeConfig(_Strict):
 
 class LoggingConfig(_Strict):
     level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
-        "INFO", description="The least severe log messages written: DEBUG, INFO, WARNING or ERROR."
+        "INFO",
+        description="The least severe log messages written to logging.file: DEBUG, INFO, WARNING or ERROR (the "
+        "terminal shows what the program's own logging does: the CLI's -v; worker processes' lines likewise).",
     )
     file: str | None = Field(None, description="Also log to this file.")
 

@@ -8,6 +8,7 @@ by its ``name`` or its index).
 
 from __future__ import annotations
 
+import difflib
 import json
 import re
 from pathlib import Path
@@ -408,7 +409,9 @@ def _format_validation_error(err: ValidationError, source: str, data: Any = None
         if e["type"] == "extra_forbidden":
             parent = _model_at(EngineConfig, e["loc"][:-1])
             accepted = sorted(parent.model_fields) if parent else []
-            lines.append(f"  {loc}: unknown key (accepted here: {', '.join(accepted)})")
+            near = difflib.get_close_matches(str(e["loc"][-1]), accepted, n=1, cutoff=0.75)
+            guess = f"did you mean {near[0]!r}? " if near else ""
+            lines.append(f"  {loc}: unknown key ({guess}accepted here: {', '.join(accepted)})")
         else:
             given = e.get("input")
             shown = _clip(json.dumps(given, default=str)) if not isinstance(given, dict) else "{...}"

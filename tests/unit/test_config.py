@@ -254,3 +254,11 @@ def test_a_backend_option_typo_is_a_config_error_not_a_worker_traceback():
 def test_a_rate_yaml_reads_as_a_date_is_refused_in_the_one_message():
     with pytest.raises(ConfigError, match=r"heads.depth.rate_hz: .*must be null \(no limit\).*got \"2024-01-01\""):
         load_config(TINY, ["heads.depth.rate_hz=2024-01-01"])
+
+
+def test_an_unknown_key_close_to_a_known_one_is_guessed():
+    with pytest.raises(ConfigError) as e:
+        load_config(TINY, ["heads.depth.rate_hx=5", "runtime.nonsense=1"])
+    lines = str(e.value).splitlines()
+    assert lines[1].startswith("  heads.depth.rate_hx: unknown key (did you mean 'rate_hz'? accepted here: ")
+    assert lines[2].startswith("  runtime.nonsense: unknown key (accepted here: ")  # nothing close: no guess

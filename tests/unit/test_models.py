@@ -140,9 +140,12 @@ def test_same_recipe_gives_same_weights_in_every_build():
 
 
 def test_unknown_model_names_the_known_ones():
-    with pytest.raises(ModelBuildError, match=r"unknown head model 'tiny_dpth'; known: .*tiny_depth"):
+    # the field that names it, as a config error names its field
+    with pytest.raises(
+        ModelBuildError, match=r"^heads.depth.model: unknown head model 'tiny_dpth'; known: .*tiny_depth"
+    ):
         make_plan(tiny("process", "heads.depth.model=tiny_dpth"))
-    with pytest.raises(ModelBuildError, match="is a head model and cannot be used as a foundation"):
+    with pytest.raises(ModelBuildError, match="^foundation_model.model: model 'tiny_depth' is a head model and cannot"):
         make_plan(tiny("process", "foundation_model.model=tiny_depth"))
     with pytest.raises(ModelBuildError, match="cannot be imported"):
         make_plan(tiny("process", "heads.depth.model=nowhere.mod:Thing"))

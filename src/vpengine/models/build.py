@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from vpengine.config import EngineConfig
-from vpengine.models.base import BuildContext, Model, Role
+from vpengine.models.base import BuildContext, Model, ModelBuildError, Role
 from vpengine.models.registry import resolve
 from vpengine.specs import SpecDict, TensorSpec
 
@@ -136,7 +136,13 @@ def build_model(
     config's ``runtime.ready_timeout_s`` after its last step, and not once ``cancelled()``.
     """
     mcfg = cfg.model(name)
-    cls, defaults = resolve(mcfg.model, role)
+    try:
+        cls, defaults = resolve(mcfg.model, role)
+    except ModelBuildError as e:
+        if e.__cause__ is not None:  # the user's module failed as it was imported: its traceback says where
+            raise
+        where = "foundation_model" if role == "foundation" else f"heads.{name}"
+        raise ModelBuildError(f"{where}.model: {e}") from None  # which field names the model
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
     what = f"model {name!r} of engine {cfg.name!r}"
     with build_lock.held(what, cfg.runtime.ready_timeout_s, cancelled), torch.device("meta" if plan_only else device):

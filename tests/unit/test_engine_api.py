@@ -223,3 +223,15 @@ def test_a_postprocess_block_a_model_never_reads_is_said_to_be_ignored(caplog):
         "seg: postprocess ['outptu'] is set, but model 'tiny_seg' reads no postprocess options (of the zoo's, the "
         "depth heads do): it is ignored"
     ]
+
+
+def test_a_config_that_starts_with_nothing_coming_out_says_so(caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING, "vpengine"):
+        Engine(tiny("thread", "heads=[]", "foundation_model.rate_hz=0"))
+    assert [m for m in caplog.messages if "no heads" in m or "starts paused" in m] == [
+        "the config has no heads: the foundation model runs on each frame and no result comes out",
+        "foundation_model.rate_hz is 0: the engine starts paused, and no frame runs until set_rate('foundation', "
+        "...) raises it",
+    ]

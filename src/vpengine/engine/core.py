@@ -162,6 +162,19 @@ def _say_half_precision_on_cpu(cfg: EngineConfig) -> None:
         )
 
 
+def _say_what_will_not_run(cfg: EngineConfig) -> None:
+    """Warnings for a config that starts with nothing coming out: no heads (an empty file, heads: []), or a paused
+    foundation model (rate_hz: 0), which every head waits for. Legal (heads are added, rates set at run time), but
+    a run of such a config otherwise ends with zeros and no word why."""
+    if not cfg.heads:
+        log.warning("the config has no heads: the foundation model runs on each frame and no result comes out")
+    if cfg.foundation_model.rate_hz == 0:
+        log.warning(
+            "foundation_model.rate_hz is 0: the engine starts paused, and no frame runs until "
+            "set_rate('foundation', ...) raises it"
+        )
+
+
 class Engine:
     """One foundation model shared by many heads. See the module docstring for a tour."""
 
@@ -174,6 +187,7 @@ class Engine:
         self.plan: Plan = make_plan(self.config)
         check_checkpoints(self.config, {"foundation": self.plan.foundation, **self.plan.heads})  # before any worker
         _say_half_precision_on_cpu(self.config)
+        _say_what_will_not_run(self.config)
         self._res = _Resources()
         self._finalizer = weakref.finalize(self, _Resources.close, self._res)
         self._state = "planned"

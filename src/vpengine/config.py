@@ -504,9 +504,10 @@ def _check_unique_keys(root: Any, subject: str) -> None:
                 if isinstance(key, yaml.ScalarNode) and key.value != "<<":
                     line = key.start_mark.line + 1
                     if key.value in first:
+                        lines = "" if first[key.value] == line == 1 else f" (lines {first[key.value]} and {line})"
                         raise ConfigError(
-                            f"{subject}: key {key.value!r} is given twice in one mapping (lines "
-                            f"{first[key.value]} and {line}); YAML would keep only the last: merge them"
+                            f"{subject}: key {key.value!r} is given twice in one mapping{lines}; YAML would keep "
+                            "only the last: merge them"
                         )
                     first[key.value] = line
         stack.extend(_node_items(node) or [])
@@ -538,10 +539,11 @@ def _model_at(model: type[BaseModel], loc: tuple[Any, ...]) -> type[BaseModel] |
     return model
 
 
-def parse_value(text: str) -> Any:
-    """A command-line value: YAML scalars and lists (``5``, ``null``, ``true``, ``[1, 2]``), else the string."""
+def parse_value(text: str, subject: str = "a command-line override") -> Any:
+    """A command-line value: YAML scalars and lists (``5``, ``null``, ``true``, ``[1, 2]``), else the string.
+    ``subject`` names it in an error (a key given twice in a mapping)."""
     try:
-        return load_yaml(text, "a command-line override", "a command-line override")
+        return load_yaml(text, "a command-line override", subject)
     except yaml.YAMLError:
         return text
     except RecursionError:
@@ -566,9 +568,9 @@ def apply_override(data: dict[str, Any], dotted: str) -> None:
             raise ConfigError(f"override {dotted!r}: {'.'.join(parts[: i + 1])} is a value, not a section")
     last = parts[-1]
     if isinstance(node, list):
-        node[_list_index(node, last, path)] = parse_value(raw)
+        node[_list_index(node, last, path)] = parse_value(raw, f"override {dotted!r}")
     else:
-        node[last] = parse_value(raw)
+        node[last] = parse_value(raw, f"override {dotted!r}")
 
 
 def _list_index(items: list[Any], key: str, where: str) -> int:

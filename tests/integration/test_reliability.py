@@ -382,6 +382,20 @@ def test_a_worker_process_shows_on_the_terminal_what_its_parent_shows_and_the_fi
     finally:
         root.setLevel(before)
     assert log.read_text().count("INFO [seg] vpengine.faulty: an INFO line from the seg worker") == 2
+    assert logging.getLogger("vpengine").level == logging.NOTSET  # the file's lowering is undone at stop
+
+
+def test_logging_level_is_the_files_and_hides_no_warning_from_the_terminal(tmp_path, capfd):
+    """logging.level: ERROR keeps the file small; a worker process's warnings still reach the terminal, as a
+    thread-mode worker's do."""
+    opts = json.dumps({"log_at_build": "a warning from the seg worker"})
+    capfd.readouterr()
+    with Engine(
+        tiny("process", heads(f"seg:{opts}"), f"logging.file={tmp_path / 'e.log'}", "logging.level=ERROR")
+    ) as e:
+        e.wait(e.submit(frame(0)), timeout=20)
+    assert "a warning from the seg worker" in capfd.readouterr().err
+    assert "a warning from the seg worker" not in (tmp_path / "e.log").read_text()
 
 
 def test_a_logging_file_that_cannot_be_written_names_the_field(tmp_path):

@@ -262,3 +262,11 @@ def test_an_unknown_key_close_to_a_known_one_is_guessed():
     lines = str(e.value).splitlines()
     assert lines[1].startswith("  heads.depth.rate_hx: unknown key (did you mean 'rate_hz'? accepted here: ")
     assert lines[2].startswith("  runtime.nonsense: unknown key (accepted here: ")  # nothing close: no guess
+
+
+def test_a_key_given_twice_in_a_set_value_names_the_override():
+    with pytest.raises(
+        ConfigError,
+        match=r"^override 'heads.depth.options=\{seed: 1, seed: 2\}': key 'seed' is given twice in one mapping; YAML",
+    ):
+        load_config(TINY, ["heads.depth.options={seed: 1, seed: 2}"])

@@ -27,7 +27,9 @@ def main(args: argparse.Namespace) -> int:
     print(f"# {path}")
     print(path.read_text(), end="", flush=True)
     try:  # shown as written, and said when it would not load (a file being written, a copy to edit)
-        load_config(path)
+        from vpengine.runtime.plan import check_backend_options
+
+        check_backend_options(load_config(path))  # checked while planning, where the backends are imported
     except ConfigError as e:
         print(f"vpengine config show: error: {e}", file=sys.stderr)
         return 1

@@ -70,7 +70,7 @@ from vpengine.runtime.gpu import CudaSetup, prepare_cuda, worker_env
 from vpengine.runtime.handoff import Handoffs
 from vpengine.runtime.lanes import Lanes
 from vpengine.runtime.plan import Plan, check_preallocation, mailboxes, make_plan
-from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, log_to_file
+from vpengine.runtime.supervisor import EngineDeadError, EngineStartError, Runner, close_log_file, log_to_file
 from vpengine.runtime.worker import WorkerSpec
 from vpengine.transport.ring import SlotInfo, SlotRing
 
@@ -129,8 +129,7 @@ class _Resources:
                 self.fence.hold_until_gone(thread)
             self.runner = None
         if self.log_file is not None:
-            logging.getLogger("vpengine").removeHandler(self.log_file)
-            self.log_file.close()
+            close_log_file(self.log_file)
             self.log_file = None
         for d in self.dirs:
             shutil.rmtree(d, ignore_errors=True)

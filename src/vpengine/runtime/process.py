@@ -307,14 +307,14 @@ class ProcessRunner(Runner):
         if uid != os.getuid():  # pragma: no cover - we created the socketpair ourselves
             proc.kill()
             raise PermissionError(f"worker {name}: socket peer has uid {uid}")
-        terminal = max(logging.getLogger().getEffectiveLevel(), logging.getLevelName(self.cfg.logging.level))
         conn.send(
             Init(
                 specs[0],
                 self.cfg.logging.level,
                 self.cfg.logging.file,
                 more=tuple(specs[1:]),
-                terminal_level=logging.getLevelName(terminal),
+                # its terminal shows what ours does (the CLI's -v); logging.level is the file's
+                terminal_level=logging.getLogger().getEffectiveLevel(),
             )
         )
         send_fds(conn, fds)

@@ -61,7 +61,7 @@ class Init:
     log_level: str  # logging.level: what goes to logging.file
     log_file: str | None
     more: tuple[WorkerSpec, ...] = ()  # the other models of its process (Note [Process groups] in process.py)
-    terminal_level: str = "WARNING"  # what goes to its stderr: no more than the parent shows of its own
+    terminal_level: int = 30  # what goes to its stderr (logging's number, WARNING): what the parent's terminal shows
 
 
 @dataclass(frozen=True)

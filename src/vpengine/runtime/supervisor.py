@@ -81,10 +81,20 @@ def log_to_file(path: str, level: str, source: str) -> logging.Handler:
     handler.setLevel(level)
     handler.setFormatter(logging.Formatter(f"%(asctime)s %(levelname)s [{source}] %(name)s: %(message)s"))
     logger = logging.getLogger("vpengine")
+    handler.level_before = logger.level  # type: ignore[attr-defined]  # restored by close_log_file
     if logger.getEffectiveLevel() > handler.level:
         logger.setLevel(handler.level)
     logger.addHandler(handler)
     return handler
+
+
+def close_log_file(handler: logging.Handler) -> None:
+    """Undo ``log_to_file``: the handler removed and closed, and the vpengine logger's level as it was (a host
+    program's logging is its own again once the engine stops)."""
+    logger = logging.getLogger("vpengine")
+    logger.removeHandler(handler)
+    logger.setLevel(getattr(handler, "level_before", logger.level))
+    handler.close()
 
 
 class StartWait:

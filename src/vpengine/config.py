@@ -334,8 +334,9 @@ class EngineConfig(_Strict):
         for h in self.heads:
             unknown = [c for c in h.cameras or [] if c not in self.camera_names()]
             if unknown or h.cameras == []:
+                none = "" if self.cameras else f" (the config has no cameras: its one camera is {DEFAULT_CAMERA!r})"
                 raise ValueError(
-                    f"heads.{h.name}.cameras: {h.cameras} must be some of the cameras {self.camera_names()}"
+                    f"heads.{h.name}.cameras: {h.cameras} must be some of the cameras {self.camera_names()}{none}"
                 )
         return self
 
@@ -562,8 +563,8 @@ def apply_override(data: dict[str, Any], dotted: str) -> None:
     for i, part in enumerate(parts[:-1]):
         if isinstance(node, list):
             node = node[_list_index(node, part, ".".join(parts[: i + 1]))]
-        else:
-            node = node.setdefault(part, {})
+        else:  # the lists of named entries are lists even when the config has none yet (cameras.rear.priority)
+            node = node.setdefault(part, [] if node is data and part in _NAMED_LISTS else {})
         if not isinstance(node, (dict, list)):
             raise ConfigError(f"override {dotted!r}: {'.'.join(parts[: i + 1])} is a value, not a section")
     last = parts[-1]
@@ -571,6 +572,10 @@ def apply_override(data: dict[str, Any], dotted: str) -> None:
         node[_list_index(node, last, path)] = parse_value(raw, f"override {dotted!r}")
     else:
         node[last] = parse_value(raw, f"override {dotted!r}")
+
+
+#: The config's top-level lists whose entries --set names (heads.depth.rate_hz, cameras.rear.priority)
+_NAMED_LISTS = ("heads", "cameras")
 
 
 def _list_index(items: list[Any], key: str, where: str) -> int:
@@ -583,6 +588,12 @@ def _list_index(items: list[Any], key: str, where: str) -> int:
         if isinstance(item, dict) and item.get("name") == key:
             return i
     names = [item.get("name") for item in items if isinstance(item, dict)]
+    if not names:
+        section = where.split(".")[0]
+        raise ConfigError(
+            f"override path {where}: the config has no {section} (so none named {key!r}); add it first, e.g. "
+            f"--set '{section}=[{{name: {key}}}]'"
+        )
     raise ConfigError(f"override path {where}: no entry named {key!r}; names: {names}")
 
 

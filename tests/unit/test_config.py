@@ -270,3 +270,17 @@ def test_a_key_given_twice_in_a_set_value_names_the_override():
         match=r"^override 'heads.depth.options=\{seed: 1, seed: 2\}': key 'seed' is given twice in one mapping; YAML",
     ):
         load_config(TINY, ["heads.depth.options={seed: 1, seed: 2}"])
+
+
+def test_a_camera_named_in_an_override_or_a_head_of_a_config_without_cameras_says_there_are_none():
+    """--set cameras.rear.priority=-1 (docs/config.md's example) on a config without cameras said "cameras: Input
+    should be a valid list"; a head's unknown camera named the hidden default camera without a word."""
+    with pytest.raises(ConfigError) as e:
+        load_config(TINY, ["cameras.rear.priority=-1"])
+    assert str(e.value) == (
+        "override path cameras.rear: the config has no cameras (so none named 'rear'); add it first, e.g. "
+        "--set 'cameras=[{name: rear}]'"
+    )
+    assert load_config(TINY, ["cameras=[{name: rear}]", "cameras.rear.priority=-1"]).cameras[0].priority == -1
+    with pytest.raises(ConfigError, match=r"\(the config has no cameras: its one camera is 'camera'\)"):
+        load_config(TINY, ["heads.depth.cameras=[rear]"])

@@ -235,3 +235,13 @@ def test_a_config_that_starts_with_nothing_coming_out_says_so(caplog):
         "foundation_model.rate_hz is 0: the engine starts paused, and no frame runs until set_rate('foundation', "
         "...) raises it",
     ]
+
+
+def test_process_groups_in_thread_mode_are_said_to_mean_nothing(caplog):
+    import logging
+
+    with caplog.at_level(logging.WARNING, "vpengine"):
+        Engine(tiny("thread", "heads.depth.process=heads", "heads.seg.process=heads"))
+    assert "depth, seg: process is for process mode; in thread mode every model shares this process already" in (
+        caplog.messages
+    )

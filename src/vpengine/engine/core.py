@@ -164,9 +164,18 @@ def _say_half_precision_on_cpu(cfg: EngineConfig) -> None:
 def _say_what_will_not_run(cfg: EngineConfig) -> None:
     """Warnings for a config that starts with nothing coming out: no heads (an empty file, heads: []), or a paused
     foundation model (rate_hz: 0), which every head waits for. Legal (heads are added, rates set at run time), but
-    a run of such a config otherwise ends with zeros and no word why."""
+    a run of such a config otherwise ends with zeros and no word why. And for process groups in thread mode, which
+    mean nothing there."""
     if not cfg.heads:
         log.warning("the config has no heads: the foundation model runs on each frame and no result comes out")
+    grouped = [
+        name for name, m in [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)] if m.process
+    ]
+    if cfg.mode == "thread" and grouped:
+        log.warning(
+            "%s: process is for process mode; in thread mode every model shares this process already",
+            ", ".join(grouped),
+        )
     if cfg.foundation_model.rate_hz == 0:
         log.warning(
             "foundation_model.rate_hz is 0: the engine starts paused, and no frame runs until "

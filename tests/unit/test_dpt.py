@@ -363,7 +363,10 @@ def test_device_colormap_scales_each_frame_of_a_batch_by_its_own_range():
 def test_bad_options_and_postprocess_are_named():
     with pytest.raises(ModelBuildError, match=r"set options.size \(one of s, b, l\) or both options.features"):
         build_head((28, 28), (2, 2), 32, options={"size": None})
-    with pytest.raises(ModelBuildError, match=r"bad options: size: Input should be 's', 'b' or 'l'"):
+    with pytest.raises(
+        ModelBuildError,
+        match=r"bad options for .*: heads\.\w+\.options\.size: Input should be 's', 'b' or 'l' \(got 'x'\)",
+    ):
         build_head((28, 28), (2, 2), 32, options={"size": "x"})
     with pytest.raises(ModelBuildError, match=r"bad postprocess options: output: .*accepted: cmap, output"):
         build_head((28, 28), (2, 2), 32, postprocess={"output": "jet"})

@@ -276,7 +276,9 @@ def test_bad_options_are_named():
         build_head((28, 42), (2, 3), 32, model="dinov2_linear_voc2012_s", options={"num_classes": 20})
     with pytest.raises(ModelBuildError, match=r"set options.dataset \(ade20k or voc2012\) or options.num_classes"):
         build_head((28, 42), (2, 3), 32, options={"dataset": None})
-    with pytest.raises(ModelBuildError, match=r"bad options: .*accepted: dataset, num_classes, size, upsample"):
+    with pytest.raises(
+        ModelBuildError, match=r"options\.layers: unknown key \(accepted: dataset, num_classes, size, upsample"
+    ):
         build_head((28, 42), (2, 3), 32, options={"layers": 4})
     cfg = head_config((28, 42))
     specs, _ = upstream((2, 3), 32)

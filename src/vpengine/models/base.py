@@ -90,17 +90,26 @@ class BuildContext:
     def input_hw(self) -> tuple[int, int]:
         return self.engine.input.height, self.engine.input.width
 
+    @property
+    def where(self) -> str:
+        """This model's place in the config, as a config error names it: ``foundation_model`` or ``heads.NAME``."""
+        return "foundation_model" if self.role == "foundation" else f"heads.{self.name}"
+
     def options(self, cls: type[Options]) -> Any:
         merged = {**self.defaults, **self.cfg.options}
         try:
             return cls.model_validate(merged)
         except ValidationError as e:
-            problems = "; ".join(
-                f"{'.'.join(map(str, err['loc'])) or 'options'}: {err['msg']}"
-                + (f" (accepted: {', '.join(sorted(cls.model_fields))})" if err["type"] == "extra_forbidden" else "")
-                for err in e.errors()
-            )
-            raise ModelBuildError(f"{self.name} ({self.cfg.model}): bad options: {problems}") from None
+            problems = []
+            for err in e.errors():
+                loc = ".".join([f"{self.where}.options", *map(str, err["loc"])])
+                if err["type"] == "extra_forbidden":
+                    problems.append(f"{loc}: unknown key (accepted: {', '.join(sorted(cls.model_fields))})")
+                else:
+                    msg = str(err["msg"]).removeprefix("Value error, ")
+                    got = "" if ", got " in msg else f" (got {err.get('input')!r})"
+                    problems.append(f"{loc}: {msg}{got}")
+            raise ModelBuildError(f"bad options for {self.cfg.model!r}: {'; '.join(problems)}") from None
 
     def postprocess_options(self, cls: type[Options]) -> Any:
         self.postprocess_read = True

@@ -126,7 +126,8 @@ def run_served(pipe: Pipeline, serve: ServeOptions | None, report: Callable[[dic
     return summary
 
 
-def format_summary(s: dict[str, Any]) -> str:
+def format_summary(s: dict[str, Any], listed: bool = True) -> str:
+    """The run's summary table and notes; ``listed``: summary.json was written (with --out), where the notes point."""
     missed = f"; camera frames a newer one replaced: {s['source_missed']}" if s.get("source_missed") else ""
     stopped = "interrupted after " if s.get("interrupted") else ""
     flight = f", {s['in_flight']} frames a camera in flight" if s.get("in_flight", 1) > 1 else ""
@@ -164,10 +165,15 @@ def format_summary(s: dict[str, Any]) -> str:
     lines.append("(latency: submit -> result for heads; model time for the foundation model)")
     if s.get("pace") == "lockstep" and any(m["target_hz"] for m in s["models"].values()):
         lines.append("(a target in lockstep is per second of the source's time; achieved is per second of the run)")
-    if s.get("inputs_skipped"):
-        lines.append(f"images skipped as unreadable: {len(s['inputs_skipped'])} (listed in summary.json)")
+    where = "listed in summary.json" if listed else "-o DIR lists them in its summary.json"
+    skipped = s.get("inputs_skipped") or []
+    images = [x for x in skipped if "message" not in x]
+    if images:
+        lines.append(f"images skipped as unreadable: {len(images)} ({where})")
+    if len(skipped) > len(images):  # a bag's messages that are no image it can read (docs/ros2.md)
+        lines.append(f"bad messages skipped: {len(skipped) - len(images)} ({where})")
     if s.get("inputs_partial"):
-        lines.append(f"inputs truncated, decoded partially: {len(s['inputs_partial'])} (listed in summary.json)")
+        lines.append(f"inputs truncated, decoded partially: {len(s['inputs_partial'])} ({where})")
     unwritten = {n: m["results_unwritten"] for n, m in s["models"].items() if m.get("results_unwritten")}
     if unwritten:
         lines.append(
@@ -282,7 +288,7 @@ def main(args: argparse.Namespace) -> int:
             factories.append(bag_sink)
 
         def report(summary: dict[str, Any]) -> None:
-            print(format_summary(summary))
+            print(format_summary(summary, listed=args.out is not None))
             if args.out:
                 print(f"outputs and summary.json in {args.out}")
             for path in videos.values():

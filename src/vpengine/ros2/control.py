@@ -25,8 +25,8 @@ UNLIMITED_WORDS = ("max", "none", "null", "unlimited", "inf", "-1")
 
 # ------------------------------------------------------------------------------------------- rate commands
 def parse_rate(text: str) -> float | None:
-    """A rate from a command: Hz as a number >= 0 (``"5"``, ``"2.5"``; ``"0"`` pauses), or ``max`` / ``none`` /
-    ``unlimited`` / ``inf`` / ``-1`` for no limit. Raises ValueError naming the bad value and what is accepted."""
+    """A rate from a command: Hz as a number from 0 to checks.MAX_RATE_HZ (``"5"``, ``"2.5"``; ``"0"`` pauses), or
+    one of UNLIMITED_WORDS for no limit. Raises ValueError naming the bad value and what is accepted."""
     t = str(text).strip().lower()
     if t in UNLIMITED_WORDS:
         return None
@@ -34,10 +34,10 @@ def parse_rate(text: str) -> float | None:
         hz = float(t)
     except ValueError:
         hz = math.nan
-    if not math.isfinite(hz) or hz < 0:
+    if not math.isfinite(hz) or not 0 <= hz <= checks.MAX_RATE_HZ:
         raise ValueError(
-            f"rate {text!r} is not a rate; accepted: a number of Hz >= 0 (0 pauses) or one of "
-            f"{', '.join(UNLIMITED_WORDS)} (no limit)"
+            f"rate {text!r} is not a rate; accepted: a number of Hz from 0 to {checks.MAX_RATE_HZ:g} (0 pauses) or "
+            f"one of {', '.join(UNLIMITED_WORDS)} (no limit)"
         )
     return hz
 
@@ -60,8 +60,11 @@ def parse_rate_command(
     KeyValue ``{key: model, value: rate}``, :func:`parse_rate`) or a number as services carry it
     (:func:`numeric_rate`). ``key`` may be ``model@camera``: that model's rate for one of ``cameras`` alone
     (:func:`model_at` splits it)."""
-    model_at(key, models, cameras)
-    return str(key).strip(), parse_rate(value) if isinstance(value, str) else numeric_rate(value)
+    model, _ = model_at(key, models, cameras)
+    hz = parse_rate(value) if isinstance(value, str) else numeric_rate(value)
+    # the one rate check, spelled as a ROS 2 command writes "no limit" (none): a service's number past the cap
+    checks.rate(model, hz, spell=lambda v: "none" if v is None else repr(v))
+    return str(key).strip(), hz
 
 
 def model_at(key: str, models: Sequence[str], cameras: Sequence[str] = ()) -> tuple[str, str | None]:

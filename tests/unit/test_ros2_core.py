@@ -689,23 +689,34 @@ def test_rejections_log_the_first_of_each_reason_and_count_the_rest():
     logger.addHandler(Catch())
     now = [0.0]
     r = Rejections("bad", logger, every_s=10.0, recent_s=5.0, clock=lambda: now[0])
-    for t in range(30):  # one a second, alternating reasons
+    for t in range(30):  # one a second, alternating reasons, each reason's text the same
         now[0] = float(t)
-        r.add("a" if t % 2 else "b", f"text {t}")
+        r.add("a" if t % 2 else "b", f"text {'a' if t % 2 else 'b'}")
     assert r.counts == {"a": 15, "b": 15} and r.total == 30
     assert logged == [
-        "bad (b): text 0",
-        "bad (a): text 1",
-        "bad (b; 6 in all, 4 not logged since the last line): text 10",
-        "bad (a; 6 in all, 4 not logged since the last line): text 11",
-        "bad (b; 11 in all, 4 not logged since the last line): text 20",
-        "bad (a; 11 in all, 4 not logged since the last line): text 21",
+        "bad (b): text b",
+        "bad (a): text a",
+        "bad (b; 6 in all, 4 not logged since the last line): text b",
+        "bad (a; 6 in all, 4 not logged since the last line): text a",
+        "bad (b; 11 in all, 4 not logged since the last line): text b",
+        "bad (a; 11 in all, 4 not logged since the last line): text a",
     ]
     assert r.recent() == ["a", "b"]
     now[0] = 33.5
     assert r.recent() == ["a"]  # b's newest was at 28 s
     now[0] = 40.0
     assert r.recent() == []
+    # another text of a reason within its window is said at once (a second encoding), up to DISTINCT_TEXTS of them:
+    # a text that changes with every message cannot flood the log
+    logged.clear()
+    for t, text in enumerate(["'bgra8'", "'mono16'", "'mono16'", "'yuv'", "'rgba16'", "'x'"], start=100):
+        now[0] = float(t)
+        r.add("encoding", f"encoding {text} is not supported")
+    assert logged == [
+        "bad (encoding): encoding 'bgra8' is not supported",
+        "bad (encoding): encoding 'mono16' is not supported",
+        "bad (encoding): encoding 'yuv' is not supported",
+    ]
 
 
 def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_are_warnings(monkeypatch, caplog):

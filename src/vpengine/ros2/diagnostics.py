@@ -122,12 +122,18 @@ def camera_status(
 
 
 # ------------------------------------------------------------------------------------------------ rejections
+#: Different texts of one reason logged at once within its window (a second and a third encoding), at most: past
+#: them a reason's lines are one per window again, so a text that changes with every message cannot flood the log
+DISTINCT_TEXTS = 3
+
+
 class Rejections:
     """Note [Rejection log]: bad inputs are counted and logged per reason, never one line per frame, never only once.
 
     The first rejection of each reason (:attr:`InputError.reason`: encoding, short_data, step, malformed ...) is
-    logged at once with its full text, so a different later failure is never hidden behind the first one; after
-    that each reason logs at most one line per ``every_s`` seconds, saying how many were not logged. ``recent()``
+    logged at once with its full text, and so is a different text of the same reason (up to DISTINCT_TEXTS in a
+    window), so a different later failure is never hidden behind the first one; after that each reason logs at most
+    one line per ``every_s`` seconds, saying how many were not logged. ``recent()``
     names the reasons seen in the last ``recent_s`` seconds: the interface status in /diagnostics warns while it is
     not empty and so goes back to OK once good frames have flowed that long, instead of warning for the rest of the
     run. ``where`` starts each line (what was rejected, and by whom). Thread-safe; ``clock`` is for tests.
@@ -147,6 +153,7 @@ class Rejections:
         self._last: dict[str, float] = {}  # reason -> time of its newest rejection
         self._logged: dict[str, float] = {}  # reason -> time of its newest log line
         self._unlogged: collections.Counter[str] = collections.Counter()
+        self._texts: dict[str, set[str]] = {}  # reason -> the texts logged in its current window
         self._lock = threading.Lock()
 
     def add(self, reason: str, text: str) -> None:
@@ -155,13 +162,22 @@ class Rejections:
             self.counts[reason] += 1
             self._last[reason] = now
             logged = self._logged.get(reason)
-            if logged is not None and now - logged < self.every_s:
-                self._unlogged[reason] += 1
-                return
-            self._logged[reason] = now
-            more, self._unlogged[reason] = self._unlogged[reason], 0
+            if logged is not None and now - logged < self.every_s:  # within its window
+                seen = self._texts[reason]
+                if text in seen or len(seen) >= DISTINCT_TEXTS:
+                    self._unlogged[reason] += 1
+                    return
+                seen.add(text)  # another failure of this reason (a second encoding): said at once, as a first is
+                plain = True
+            else:  # a new window
+                plain = logged is None
+                self._logged[reason] = now
+                self._texts[reason] = {text}
+            more = 0 if plain else self._unlogged[reason]
+            if not plain:
+                self._unlogged[reason] = 0
             total = self.counts[reason]
-        if logged is None:
+        if plain:
             self._log.warning("%s (%s): %s", self.where, reason, text)
         else:
             self._log.warning(

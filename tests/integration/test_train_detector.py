@@ -201,6 +201,12 @@ def test_coco_loader_maps_category_ids_to_labels_and_skips_crowd(tmp_path):
         (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), "is not [x, y, w, h]"),
         (lambda d: d.pop("categories"), "not COCO detection JSON"),
         (lambda d: d["images"][1].pop("file_name"), "images[1]"),
+        # two categories of one id: every box of it would be trained as the other class
+        (lambda d: d["categories"][1].update(id=d["categories"][0]["id"]), "categories give the id 7 more than once"),
+        (lambda d: d["categories"][1].update(name=d["categories"][0]["name"]), "give the name box more than once"),
+        # corners for width and height, a NaN: refused naming the annotation, not dropped as "smaller than a pixel"
+        (lambda d: d["annotations"][0].update(bbox=[100, 100, -50, -50]), "with a width and height above 0"),
+        (lambda d: d["annotations"][0].update(bbox=[float("nan"), 1, 2, 3]), "with a width and height above 0"),
     ],
 )
 def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, message):
@@ -215,6 +221,30 @@ def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, messa
     assert main([*args, "--out", str(tmp_path / "h.pth")]) == 1
     assert message in capsys.readouterr().err
     assert not (tmp_path / "h.pth").exists()
+
+
+@pytest.mark.parametrize(
+    ("out", "message"),
+    [
+        ("folder", "is a folder; name the checkpoint file to write"),
+        ("head.onnx", "a checkpoint is written as .safetensors or as a PyTorch file (.pth, .pt)"),
+        ("file/head.pth", "cannot be written"),
+    ],
+)
+def test_train_refuses_an_out_it_cannot_write_before_any_work(tmp_path, capsys, monkeypatch, out, message):
+    """An --out that is a folder, of a suffix no checkpoint has, or under a file was found after the training (the
+    epochs lost, a traceback): refused before the backbone is built."""
+    from vpengine.cli.main import main
+    from vpengine.models import training
+
+    img_dir, ann, _ = make_dataset(tmp_path, n=2)
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "file").write_text("")
+    monkeypatch.setattr(training, "load_coco", lambda *a: pytest.fail("reached the dataset"))
+    cfg = write_config(tmp_path / "c.yaml")
+    args = ["train", "detector", "-c", str(cfg), "--images", str(img_dir), "--annotations", str(ann)]
+    assert main([*args, "--out", str(tmp_path / out)]) == 1
+    assert message in capsys.readouterr().err
 
 
 def test_train_refuses_a_head_whose_classes_differ_from_the_annotations(tmp_path):
@@ -308,3 +338,11 @@ def test_the_training_api_writes_the_last_finished_epoch_and_still_raises_the_in
     assert isinstance(e.value, KeyboardInterrupt) and e.value.summary["interrupted_after"] == 2
     assert (tmp_path / "h.pth").is_file() and not list(tmp_path.glob(".*.part"))
     assert json.loads((tmp_path / "h.train.json").read_text())["interrupted_after"] == 2
+
+
+def test_a_negative_weight_decay_is_refused_before_the_features(tmp_path, monkeypatch):
+    from vpengine.models import training
+
+    monkeypatch.setattr(training, "load_coco", lambda *a: pytest.fail("reached the dataset"))
+    with pytest.raises(ValueError, match=r"weight_decay must be a number >= 0, got -1.0"):
+        training.train_detector("tiny", tmp_path, tmp_path / "a.json", tmp_path / "h.pth", weight_decay=-1.0)

@@ -20,6 +20,7 @@ import json
 import logging
 import math
 import os
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -57,12 +58,34 @@ class Sample:
     labels: np.ndarray  # int64[n]
 
 
+def _writable_out(out: Path) -> Path:
+    """``out`` as a checkpoint file to write: not a folder, its folder made and writable, a suffix that says how it
+    is written (``.safetensors``, else a PyTorch file: ``.pth``/``.pt``). ValueError naming the path otherwise."""
+    if out.is_dir() or str(out).endswith(("/", os.sep)):
+        raise ValueError(
+            f"--out {str(out)!r} is a folder; name the checkpoint file to write, e.g. {str(out / 'head.pth')!r}"
+        )
+    if out.suffix not in (".safetensors", ".pth", ".pt"):
+        raise ValueError(
+            f"--out {str(out)!r}: a checkpoint is written as .safetensors or as a PyTorch file (.pth, .pt); name it so"
+        )
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=out.parent):
+            pass
+    except OSError as e:
+        raise ValueError(f"--out {str(out)!r} cannot be written: {e.strerror or e}") from None
+    return out
+
+
 def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], list[Sample]]:
     """Class names (in category-id order) and one :class:`Sample` per image of a COCO detection file.
 
     Crowd annotations are skipped (as COCO training does); images without boxes stay, as negatives.
     """
     path, root = Path(annotations), Path(images)
+    if path.is_dir():
+        raise FileNotFoundError(f"annotations {str(path)!r} is a folder; give the COCO JSON file in it")
     if not path.is_file():
         raise FileNotFoundError(f"annotations {str(path)!r} do not exist")
     if not root.is_dir():
@@ -83,6 +106,11 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
     cats = sorted(data["categories"], key=lambda c: c["id"])
     if not cats:
         raise ValueError(f"annotations {str(path)!r} define no categories")
+    for field in ("id", "name"):  # two categories of one id (or name): boxes would be trained as the wrong class
+        values = [c[field] for c in cats]
+        twice = sorted({str(v) for v in values if values.count(v) > 1})
+        if twice:
+            raise ValueError(f"{path.name}: categories give the {field} {', '.join(twice)} more than once")
     names = [str(c["name"]) for c in cats]
     label_of = {c["id"]: i for i, c in enumerate(cats)}
     per_image: dict[Any, list[tuple[list[float], int]]] = {im["id"]: [] for im in data["images"]}
@@ -99,6 +127,11 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
         bbox = a.get("bbox")
         if not (isinstance(bbox, list) and len(bbox) == 4 and all(isinstance(v, (int, float)) for v in bbox)):
             raise ValueError(f"{path.name}: annotation {a.get('id')} bbox {bbox!r} is not [x, y, w, h]")
+        if not all(math.isfinite(v) for v in bbox) or bbox[2] <= 0 or bbox[3] <= 0:
+            raise ValueError(
+                f"{path.name}: annotation {a.get('id')} bbox {bbox!r} is not [x, y, w, h] with a width and height "
+                "above 0 (COCO's boxes are x, y, width, height, not two corners)"
+            )
         per_image[a["image_id"]].append((bbox, label_of[a["category_id"]]))
     samples = []
     for im in data["images"]:
@@ -221,7 +254,9 @@ def train_detector(
     """
     if epochs < 1 or batch_size < 1 or not lr > 0:
         raise ValueError(f"epochs ({epochs}) and batch_size ({batch_size}) must be >= 1 and lr ({lr}) > 0")
-    out = Path(out)
+    if not (math.isfinite(weight_decay) and weight_decay >= 0):
+        raise ValueError(f"weight_decay must be a number >= 0, got {weight_decay}")
+    out = _writable_out(Path(out))  # before any work: a run of hours must not end on a path it cannot write
     class_names, samples = load_coco(annotations, images)
     raw = load_config(config, overrides).model_dump(mode="json")
     head_name = _select_head(raw, head, class_names)

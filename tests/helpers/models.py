@@ -134,3 +134,18 @@ class DeclaredCheckpointHead(TinyDepthHead):
         path = resolve_checkpoint(ctx, self)
         if path is not None:
             apply_state_dict(self, read_state_dict(path), str(path), ctx.name)
+
+
+class RaisingHead(TinyDepthHead):
+    """A user head whose own code fails as it is built (a feature key it expected)."""
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext) -> Any:
+        raise KeyError("patch.7")
+
+
+class NoSuperInitHead(TinyDepthHead):
+    """A user head whose __init__ forgot super().__init__()."""
+
+    def __init__(self, ctx: BuildContext, opts: Any) -> None:
+        pass

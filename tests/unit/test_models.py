@@ -309,3 +309,12 @@ def test_a_user_model_not_found_says_where_python_looked_and_the_fix(tmp_path, m
     assert isinstance(e.value.__cause__, SyntaxError)
     with pytest.raises(ModelBuildError, match="a relative module; name it from its package"):
         registry.resolve(".heads:MyHead", "head")
+
+
+def test_a_user_heads_own_error_at_build_names_the_head_and_keeps_its_traceback():
+    with pytest.raises(ModelBuildError) as e:
+        make_plan(tiny("thread", "heads.depth.model=helpers.models:RaisingHead"))
+    assert str(e.value) == "heads.depth (helpers.models:RaisingHead): building it raised KeyError: 'patch.7'"
+    assert isinstance(e.value.__cause__, KeyError)  # the traceback of where it raised is kept
+    with pytest.raises(ModelBuildError, match=r"^heads.depth \(helpers.models:NoSuperInitHead\): .*super\(\).__init__"):
+        make_plan(tiny("thread", "heads.depth.model=helpers.models:NoSuperInitHead"))

@@ -145,8 +145,19 @@ def build_model(
         raise ModelBuildError(f"{where}.model: {e}") from None  # which field names the model
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
     what = f"model {name!r} of engine {cfg.name!r}"
+    where = f"{'foundation_model' if role == 'foundation' else f'heads.{name}'} ({mcfg.model})"
     with build_lock.held(what, cfg.runtime.ready_timeout_s, cancelled), torch.device("meta" if plan_only else device):
-        model = cls.from_config(ctx)
+        try:
+            model = cls.from_config(ctx)
+        except ModelBuildError:
+            raise
+        except Exception as e:  # a user class's own error: which model raised it, and its traceback
+            raise ModelBuildError(f"{where}: building it raised {type(e).__name__}: {e}") from e
+    if not all(isinstance(getattr(model, a, None), dict) for a in ("input_spec", "output_spec", "meta")):
+        raise ModelBuildError(
+            f"{where}: the model built has no input_spec, output_spec and meta; does its __init__ call "
+            "super().__init__() first?"
+        )
     given = getattr(mcfg, "postprocess", None)
     if plan_only and given and not ctx.postprocess_read:  # said once, while planning: nothing lost silently
         log.warning(

@@ -330,3 +330,20 @@ def test_a_cameras_file_gives_its_stream_and_throughput_rows_against_the_targets
     assert report.main(argparse.Namespace(results=str(tmp_path), baseline=None)) == 0
     assert "Machine: NVIDIA H100 80GB HBM3" in (tmp_path / "summary.md").read_text()
     assert [d.__name__ for d in report._panels(collect(tmp_path))] == ["_cameras"]
+
+
+def test_a_folder_with_nothing_the_report_reads_says_what_it_reads_and_what_is_there(tmp_path, capsys):
+    """bench report over a folder of another bench's files (hop_cpu.json) or of run folders wrote an empty summary
+    without a word; it says so, on the terminal and in the summary."""
+    import argparse
+
+    from vpengine.bench.report import main
+
+    (tmp_path / "hop_cpu.json").write_text("{}")
+    (tmp_path / "run1").mkdir()
+    (tmp_path / "run1" / "paper_cpu.json").write_text("{}")
+    assert main(argparse.Namespace(results=str(tmp_path), out=str(tmp_path / "o"), baseline=None)) == 0
+    err = capsys.readouterr().err
+    assert err.startswith("vpengine bench report: WARNING: No results this report reads here (paper_*.json")
+    assert "its JSON files: hop_cpu.json; folders with results below it: run1 (give one as --results)." in err
+    assert "its JSON files: hop_cpu.json" in (tmp_path / "o" / "summary.md").read_text()

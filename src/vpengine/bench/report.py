@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -505,9 +506,23 @@ def main(args: argparse.Namespace) -> int:
     if not folder.is_dir():
         raise ValueError(f"--results {args.results!r} is not a folder")
     r = collect(folder)
+    read = {"resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"}
+    unread = None
+    if not _all_runs(r) and not read & {p.name for p in folder.iterdir()}:
+        # nothing it reads: say what it reads and what is there, on the terminal and in the summary
+        here = sorted(p.name for p in folder.glob("*.json"))
+        below = sorted({p.parent.name for p in folder.glob("*/*.json")})
+        unread = (
+            "No results this report reads here (paper_*.json, cameras_*.json, resources_gpu*.json, "
+            "hop_cuda_vits-1080p.json)"
+            + (f"; its JSON files: {', '.join(here[:6])}{' ...' if len(here) > 6 else ''}" if here else "")
+            + (f"; folders with results below it: {', '.join(below[:6])} (give one as --results)" if below else "")
+            + "."
+        )
+        print(f"vpengine bench report: WARNING: {unread}", file=sys.stderr)
     machines = sorted({machine_label(run["machine"]) for run in _all_runs(r)})
     md = [f"# vpengine benchmarks: {folder.name}", ""]
-    md += [f"Machine: {m}" for m in machines] or ["No results in this folder."]
+    md += [f"Machine: {m}" for m in machines] or [unread or "No results in this folder."]
     md += ["", table(r)]
     if args.baseline:
         md += [

@@ -210,12 +210,34 @@ def plane(x: Any, hw: tuple[int, int] | None = None) -> np.ndarray:
     return a
 
 
+#: The outputs each kind of head is drawn and written from, any one set of them (Note [Kinds and outputs]): a depth
+#: head's map, or only its colour picture (postprocess output: colormap)
+KIND_OUTPUTS = {
+    "depth": ({"depth"}, {"depth_color"}),
+    "segmentation": ({"classes"},),
+    "detection": ({"boxes", "scores", "labels"},),
+}
+
+
+def has_kind_outputs(kind: str, outputs: set[str]) -> bool:
+    """Whether ``outputs`` hold what a head of ``kind`` is drawn and written from (any kind not listed: yes)."""
+    return any(need <= outputs for need in KIND_OUTPUTS.get(kind, (set(),)))
+
+
 def head_kind(info: Mapping[str, Any]) -> str:
     """What a head produces, from its metadata (``kind``) or its output names: depth, segmentation, detection or
-    generic."""
-    if info.get("kind"):
-        return str(info["kind"])
+    generic.
+
+    Note [Kinds and outputs]
+    ~~~~~~~~~~~~~~~~~~~~~~~~
+    A kind is drawn and written from its outputs of fixed names (KIND_OUTPUTS). A head whose ``meta["kind"]`` says
+    one without those outputs (a user head modelled on a zoo head, its map named ``mask``) is taken by its output
+    names instead, so its outputs are written as a generic head's (``.npz``) rather than lost or crashing the run's
+    writer; planning warns of it."""
     outs = set(info.get("outputs", {}))
+    declared = info.get("kind")
+    if declared and (not outs or has_kind_outputs(str(declared), outs)):
+        return str(declared)
     if "depth" in outs:
         return "depth"
     if "classes" in outs:

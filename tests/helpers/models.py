@@ -11,7 +11,7 @@ from typing import Any, ClassVar
 import torch
 
 from vpengine.models.base import BuildContext, Model
-from vpengine.models.tiny import TinyDepthHead, TinyDetHead, TinyHeadOptions, TinyViT
+from vpengine.models.tiny import TinyDepthHead, TinyDetHead, TinyHeadOptions, TinySegHead, TinyViT
 from vpengine.models.weights import apply_state_dict, configured_or_default, read_state_dict, resolve_checkpoint
 from vpengine.specs import TensorSpec
 
@@ -149,3 +149,15 @@ class NoSuperInitHead(TinyDepthHead):
 
     def __init__(self, ctx: BuildContext, opts: Any) -> None:
         pass
+
+
+class MaskSegHead(TinySegHead):
+    """A user segmentation head modelled on a zoo head, its class map named ``mask`` (not ``classes``)."""
+
+    def __init__(self, ctx: BuildContext, opts: Any) -> None:
+        super().__init__(ctx, opts)
+        self.output_spec = {"mask": self.output_spec["classes"]}
+        self.meta = {**self.meta, "output_grid": {"mask": "labels"}}
+
+    def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        return {"mask": super().forward(inputs)["classes"]}

@@ -146,6 +146,19 @@ def test_the_end_of_a_realtime_run_waits_a_bounded_time_and_names_the_heads_it_l
     assert len(said) == 1 and "no output from ['seg']" in said[0], caplog.messages
 
 
+def test_a_head_whose_kind_lacks_its_outputs_is_written_as_a_generic_heads(tmp_path, cli, caplog):
+    """Note [Kinds and outputs]: a segmentation head whose map is named mask (not classes) crashed the run's writer
+    (KeyError 'classes', no summary.json); its outputs are written as .npz and planning says why."""
+    import logging
+
+    with caplog.at_level(logging.WARNING, "vpengine.plan"):
+        p = cli("run", "-c", "tiny", "-s", "synthetic:160x120@30:3", "--no-progress", "--mode", "thread",
+                "--set", "heads.seg.model=helpers.models:MaskSegHead", "-o", str(tmp_path))  # fmt: skip
+    assert p.returncode == 0, p.stderr
+    assert (tmp_path / "summary.json").is_file() and len(list((tmp_path / "seg").glob("*.npz"))) == 3
+    assert any("seg: meta['kind'] is 'segmentation'" in m and "['mask']" in m for m in caplog.messages)
+
+
 def test_a_config_for_float_frames_runs_on_files_whose_frames_are_uint8(tmp_path, cli):
     """input.dtype (and input.color) say how the API's callers hand frames in; the CLI's sources give uint8 BGR (or
     RGB) frames whatever the config says, and the run takes them as they are."""

@@ -253,7 +253,8 @@ def output_kinds(meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int
     bad = {k: v for k, v in declared.items() if v not in GRID_KINDS or k not in spec}
     if bad:
         raise ValueError(
-            f"meta['grid'] {bad}: each key must be an output ({', '.join(spec)}) and each kind one of {GRID_KINDS}"
+            f"meta['output_grid'] {bad}: each key must be an output ({', '.join(spec) or 'none'}) and each kind one of "
+            f"{GRID_KINDS}"
         )
     kinds: dict[str, GridKind] = {}
     for k, s in spec.items():
@@ -264,6 +265,14 @@ def output_kinds(meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int
         elif k == "boxes" and len(s.shape) == 2 and s.shape[1] == 4:
             kinds[k] = "boxes"
     return kinds
+
+
+def _output_kinds(head: str, meta: dict[str, Any], spec: SpecDict, canvas_hw: tuple[int, int]) -> dict[str, GridKind]:
+    """``output_kinds`` of head ``head``, its name in the error."""
+    try:
+        return output_kinds(meta, spec, canvas_hw)
+    except ValueError as e:
+        raise ValueError(f"head {head!r}: {e}") from None
 
 
 class Boundary:
@@ -288,14 +297,14 @@ class Boundary:
             mean = mean[::-1]
         # the padding is the normalisation mean: zero once normalised
         self.pad = (mean * 255).round().astype(self.dtype) if self.dtype == np.uint8 else mean.astype(self.dtype)
-        self.kinds = {h: output_kinds(meta, spec, self.canvas_hw) for h, (meta, spec) in heads.items()}
+        self.kinds = {h: _output_kinds(h, meta, spec, self.canvas_hw) for h, (meta, spec) in heads.items()}
         self.native = {h.name for h in cfg.heads if h.output.grid == "native"}
         self._placements: dict[tuple[int, int], Placement] = {}
         self._pad_row = np.tile(self.pad, (self.canvas_hw[1], 1))  # one canvas row of pad pixels
 
     def add_head(self, name: str, meta: dict[str, Any], spec: SpecDict, native: bool) -> None:
         """A head added at run time: how its outputs map to a frame's grid (``native``: output.grid native)."""
-        self.kinds = {**self.kinds, name: output_kinds(meta, spec, self.canvas_hw)}
+        self.kinds = {**self.kinds, name: _output_kinds(name, meta, spec, self.canvas_hw)}
         self.native = self.native | {name} if native else self.native - {name}
 
     def remove_head(self, name: str) -> None:

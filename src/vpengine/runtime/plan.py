@@ -62,6 +62,22 @@ def make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None = None) ->
         raise EngineStartError(str(e)) from None
 
 
+def _say_a_kind_without_its_outputs(name: str, model: Model) -> None:
+    """Note [Kinds and outputs] in visualize.py: a head whose meta["kind"] names outputs it does not have."""
+    from vpengine.visualize import KIND_OUTPUTS, has_kind_outputs
+
+    kind = model.meta.get("kind")
+    if kind in KIND_OUTPUTS and not has_kind_outputs(str(kind), set(model.output_spec)):
+        log.warning(
+            "%s: meta['kind'] is %r, whose pictures and files are made from the outputs %s, but it has %s: it is "
+            "drawn and written as a generic head (.npz); name its outputs so, or leave kind out",
+            name,
+            kind,
+            " or ".join(str(sorted(n)) for n in KIND_OUTPUTS[str(kind)]),
+            sorted(model.output_spec),
+        )
+
+
 def check_backend_options(cfg: EngineConfig) -> None:
     """Every model's ``backend_options`` as its backend takes them: checked while planning, in the parent, not in
     each worker after the processes started (where a typo came with the worker's traceback). ConfigError naming
@@ -91,6 +107,7 @@ def _make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None) -> Plan:
     refused: list[str] = []
     for h in cfg.heads:
         model = build_model(cfg, h.name, "head", fm.output_spec, fm.meta, device, plan_only=True, cancelled=cancelled)
+        _say_a_kind_without_its_outputs(h.name, model)
         for k, spec in model.input_spec.items():
             if k not in fm.output_spec:
                 raise ModelBuildError(

@@ -110,6 +110,8 @@ def main(args: argparse.Namespace) -> int:
     if args.random_weights:
         overrides.append("weights.random_weights=true")
     cfg = load_config(args.config, overrides)
+    if Path(args.out).exists() and not Path(args.out).is_dir():  # before the export, not a traceback after it
+        raise ValueError(f"--out {args.out!r} is a file; give a folder (made if missing) for NAME.onnx and NAME.json")
     m = export_model(cfg, args.model, args.out, args.precision, args.opset, args.exporter, not args.no_verify)
     path = Path(args.out) / m["file"]
     size = sum(p.stat().st_size for p in path.parent.glob(f"{path.name}*")) / 1e6

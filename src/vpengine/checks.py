@@ -97,6 +97,8 @@ def priority_target(key: str) -> tuple[str | None, str | None]:
     """Whose priority a door's key names (the ROS 2 set_priority topic, the live view's ``/api/priority/<key>``), as
     ``Engine.set_priority`` takes it -> (head, camera): ``head`` (all its cameras), ``head@camera`` (that camera's
     lane only) or ``@camera`` (the camera's own priority: head None). The engine checks the names."""
+    if not str(key).strip():
+        raise ValueError("the priority's key is empty; give HEAD, HEAD@CAMERA or @CAMERA")
     head, at, camera = str(key).strip().partition("@")
     return head or None, camera if at else None
 

@@ -231,13 +231,13 @@ def head_kind(info: Mapping[str, Any]) -> str:
     Note [Kinds and outputs]
     ~~~~~~~~~~~~~~~~~~~~~~~~
     A kind is drawn and written from its outputs of fixed names (KIND_OUTPUTS). A head whose ``meta["kind"]`` says
-    one without those outputs (a user head modelled on a zoo head, its map named ``mask``) is taken by its output
-    names instead, so its outputs are written as a generic head's (``.npz``) rather than lost or crashing the run's
-    writer; planning warns of it."""
+    one without those outputs (a user head modelled on a zoo head, its map named ``mask``) is a generic head, so its
+    outputs are written as ``.npz`` rather than lost or crashing the run's writer; planning warns of it. A head that
+    declares no kind is taken by its output names."""
     outs = set(info.get("outputs", {}))
     declared = info.get("kind")
-    if declared and (not outs or has_kind_outputs(str(declared), outs)):
-        return str(declared)
+    if declared:  # with the outputs it is made from (or none known to check): that kind; without them: generic
+        return str(declared) if not outs or has_kind_outputs(str(declared), outs) else "generic"
     if "depth" in outs:
         return "depth"
     if "classes" in outs:

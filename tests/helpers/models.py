@@ -161,3 +161,11 @@ class MaskSegHead(TinySegHead):
 
     def forward(self, inputs: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
         return {"mask": super().forward(inputs)["classes"]}
+
+
+class ReturnsNothingHead(TinyDepthHead):
+    """A user head whose from_config forgot its return."""
+
+    @classmethod
+    def from_config(cls, ctx: BuildContext) -> Any:
+        super().from_config(ctx)

@@ -203,10 +203,9 @@ def test_coco_loader_maps_category_ids_to_labels_and_skips_crowd(tmp_path):
         (lambda d: d["images"][1].pop("file_name"), "images[1]"),
         # two categories of one id: every box of it would be trained as the other class
         (lambda d: d["categories"][1].update(id=d["categories"][0]["id"]), "categories give the id 7 more than once"),
-        (lambda d: d["categories"][1].update(name=d["categories"][0]["name"]), "give the name box more than once"),
         # corners for width and height, a NaN: refused naming the annotation, not dropped as "smaller than a pixel"
-        (lambda d: d["annotations"][0].update(bbox=[100, 100, -50, -50]), "with a width and height above 0"),
-        (lambda d: d["annotations"][0].update(bbox=[float("nan"), 1, 2, 3]), "with a width and height above 0"),
+        (lambda d: d["annotations"][0].update(bbox=[100, 100, -50, -50]), "with a width and height of 0 or more"),
+        (lambda d: d["annotations"][0].update(bbox=[float("nan"), 1, 2, 3]), "with a width and height of 0 or more"),
     ],
 )
 def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, message):
@@ -227,8 +226,9 @@ def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, messa
     ("out", "message"),
     [
         ("folder", "is a folder; name the checkpoint file to write"),
-        ("head.onnx", "a checkpoint is written as .safetensors or as a PyTorch file (.pth, .pt)"),
+        ("head.ONNX", "a checkpoint is written as .safetensors or as a PyTorch file (.pth, .pt)"),
         ("file/head.pth", "cannot be written"),
+        ("new/", "is a folder; name the checkpoint file to write"),
     ],
 )
 def test_train_refuses_an_out_it_cannot_write_before_any_work(tmp_path, capsys, monkeypatch, out, message):
@@ -243,8 +243,10 @@ def test_train_refuses_an_out_it_cannot_write_before_any_work(tmp_path, capsys, 
     monkeypatch.setattr(training, "load_coco", lambda *a: pytest.fail("reached the dataset"))
     cfg = write_config(tmp_path / "c.yaml")
     args = ["train", "detector", "-c", str(cfg), "--images", str(img_dir), "--annotations", str(ann)]
-    assert main([*args, "--out", str(tmp_path / out)]) == 1
+    given = str(tmp_path / out) + ("/" if out.endswith("/") else "")
+    assert main([*args, "--out", given]) == 1
     assert message in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()  # nothing made for a refused run
 
 
 def test_train_refuses_a_head_whose_classes_differ_from_the_annotations(tmp_path):

@@ -464,7 +464,9 @@ def test_cli_export_errors_name_the_accepted_values(tmp_path, capsys):
     assert not list(tmp_path.iterdir())
     (tmp_path / "afile").write_text("")
     assert cli(["export", "-c", str(TINY), "-m", "depth", "-o", str(tmp_path / "afile")]) == 1
-    assert f"--out '{tmp_path / 'afile'}' is a file; give a folder" in capsys.readouterr().err
+    assert f"--out '{tmp_path / 'afile'}': cannot make the folder for NAME.onnx: " in capsys.readouterr().err
+    assert cli(["export", "-c", str(TINY), "-m", "depth", "-o", str(tmp_path / "afile" / "sub")]) == 1
+    assert "cannot make the folder for NAME.onnx: " in capsys.readouterr().err
 
 
 def test_cli_export_without_the_onnx_extra_names_what_installs_it(tmp_path, capsys, monkeypatch):

@@ -318,3 +318,5 @@ def test_a_user_heads_own_error_at_build_names_the_head_and_keeps_its_traceback(
     assert isinstance(e.value.__cause__, KeyError)  # the traceback of where it raised is kept
     with pytest.raises(ModelBuildError, match=r"^heads.depth \(helpers.models:NoSuperInitHead\): .*super\(\).__init__"):
         make_plan(tiny("thread", "heads.depth.model=helpers.models:NoSuperInitHead"))
+    with pytest.raises(ModelBuildError, match=r"from_config returned a NoneType, not the model built"):
+        make_plan(tiny("thread", "heads.depth.model=helpers.models:ReturnsNothingHead"))

@@ -1,7 +1,7 @@
 """One rate check for every door that takes a rate (``vpengine.checks.rate``): the config, ``Engine.set_rate``, the
 ROS 2 core's rate commands and the live view's ``PUT /api/rate``. Each refuses the same bad values with the same
 message, naming the value and the accepted range, spelled as its door writes values (the config and the live
-view: null, "5"; ROS 2: none; its set_rate topic's text names its own words for no limit)."""
+view: null, "5"; a ROS 2 service's number: a negative number or inf; its set_rate topic's text names its own words)."""
 
 from __future__ import annotations
 
@@ -69,8 +69,10 @@ def test_a_ros2_rate_above_the_cap_gets_the_one_message_and_is_counted():
         # text, as the set_rate topic carries it: the topic's own message, with the range and its words for no limit
         with pytest.raises(ValueError, match=r"rate '10001' is not a rate; accepted: a number of Hz from 0 to 10000"):
             core.set_rate("seg", "10001")
-        # a number, as services and parameters carry it: the one message, "no limit" spelled as ROS 2 writes it
-        with pytest.raises(ValueError, match="rate for 'depth' " + ONE_MESSAGE.replace("None", "none") + "20000.0"):
+        # a number, as services and parameters carry it: the one message, "no limit" spelled as a number says it
+        with pytest.raises(
+            ValueError, match="rate for 'depth' " + ONE_MESSAGE.replace("None", "a negative number or inf") + "20000.0"
+        ):
             core.set_rate("depth", 20000.0)
         assert core.counters["rate_commands_rejected"] == 2 and core.counters["rate_commands"] == 0
         assert core.engine.rate("seg") is None and core.engine.rate("depth") is None  # tiny: unlimited, unchanged

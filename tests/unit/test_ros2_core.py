@@ -717,6 +717,17 @@ def test_rejections_log_the_first_of_each_reason_and_count_the_rest():
         "bad (encoding): encoding 'mono16' is not supported",
         "bad (encoding): encoding 'yuv' is not supported",
     ]
+    # texts that differ only in a number (which message, how many bytes) are one failure: one line a window
+    logged.clear()
+    for t in range(200, 240):
+        now[0] = float(t)
+        r.add("malformed", f"bag 'b', message {t}: not a valid sensor_msgs/msg/Image ({t % 7 + 30} bytes)")
+    assert [line.split(":")[0] for line in logged] == [
+        "bad (malformed)",
+        "bad (malformed; 11 in all, 9 not logged since the last line)",
+        "bad (malformed; 21 in all, 9 not logged since the last line)",
+        "bad (malformed; 31 in all, 9 not logged since the last line)",
+    ]
 
 
 def test_a_matched_publisher_that_delivers_nothing_and_a_small_receive_buffer_are_warnings(monkeypatch, caplog):

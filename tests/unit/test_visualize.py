@@ -221,3 +221,15 @@ def test_a_box_of_zero_width_or_height_is_not_drawn_and_has_no_caption():
     np.testing.assert_array_equal(out, image)
     one = draw_detections(image, np.array([[10, 10, 30, 40]], np.float32), np.ones(1), np.zeros(1, np.int32))
     assert (one != image).any()  # a real box still is
+
+
+def test_a_declared_kind_without_its_outputs_is_generic_not_another_kind():
+    """Note [Kinds and outputs]: a detection head whose labels are named classes is no segmentation head (its 1-D
+    classes drawn or written as a map crashed); a head with no kind is taken by its output names."""
+    from vpengine.visualize import head_kind
+
+    assert head_kind({"kind": "detection", "outputs": {"boxes": 0, "scores": 0, "classes": 0}}) == "generic"
+    assert head_kind({"kind": "segmentation", "outputs": {"mask": 0}}) == "generic"
+    assert head_kind({"kind": "depth", "outputs": {"depth_color": 0}}) == "depth"  # its picture alone: still depth
+    assert head_kind({"kind": "detection"}) == "detection"  # no outputs known to check
+    assert head_kind({"outputs": {"classes": 0}}) == "segmentation"  # no kind: by its names

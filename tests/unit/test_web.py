@@ -289,7 +289,7 @@ def test_put_rate_sets_it_and_answers_the_rate_now(view, engine):
         ("nope", b'{"hz": 1}', "no model named 'nope'"),
         ("depth", b'{"hz": "fast"}', 'got "fast"'),
         ("depth", b"", "the body is empty"),
-        ("depth", b'{"hz": 5, "x": 1}', '"x" is no field of it'),
+        ("depth", b'{"hz": 5, "x": 1}', '"x" is no field of this body'),
     ],
 )
 def test_a_bad_rate_or_model_is_a_400_with_the_reason(view, engine, model, body, reason):
@@ -316,8 +316,8 @@ def test_put_priority_sets_a_heads_a_lanes_or_a_cameras_and_answers_it(view, eng
         ("depth", b'{"priority": 2.5}', 400, "got 2.5"),
         ("depth", b'{"priority": "high"}', 400, 'got "high"'),
         ("depth", b'{"priority": null}', 400, "got null"),
-        ("depth", b'{"priority": 3, "prio": 4}', 400, '"prio" is no field of it'),
-        ("", b'{"priority": 3}', 400, "the key is empty; give HEAD, HEAD@CAMERA or @CAMERA"),
+        ("depth", b'{"priority": 3, "prio": 4}', 400, '"prio" is no field of this body'),
+        ("", b'{"priority": 3}', 400, "the priority's key is empty; give HEAD, HEAD@CAMERA or @CAMERA"),
         ("depth", b"", 400, "the body is empty"),
         ("depth@nocam", b'{"priority": 1}', 400, "got 'nocam'"),
         ("nope", b'{"priority": 1}', 404, "no head named 'nope'"),

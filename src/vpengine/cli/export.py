@@ -65,6 +65,10 @@ def export_model(
     names = cfg.model_names()
     if name not in names:
         raise ValueError(f"--model {name!r} is not a model of this config; accepted: {', '.join(names)}")
+    try:  # before the export, not a traceback after it: a file in the way, a folder that cannot be written
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        raise ValueError(f"--out {str(out_dir)!r}: cannot make the folder for NAME.onnx: {e.strerror or e}") from None
     if precision is not None:
         where = "foundation_model" if name == "foundation" else f"heads.{name}"
         cfg = load_config(cfg, [f"{where}.precision={precision}"])
@@ -110,8 +114,6 @@ def main(args: argparse.Namespace) -> int:
     if args.random_weights:
         overrides.append("weights.random_weights=true")
     cfg = load_config(args.config, overrides)
-    if Path(args.out).exists() and not Path(args.out).is_dir():  # before the export, not a traceback after it
-        raise ValueError(f"--out {args.out!r} is a file; give a folder (made if missing) for NAME.onnx and NAME.json")
     m = export_model(cfg, args.model, args.out, args.precision, args.opset, args.exporter, not args.no_verify)
     path = Path(args.out) / m["file"]
     size = sum(p.stat().st_size for p in path.parent.glob(f"{path.name}*")) / 1e6

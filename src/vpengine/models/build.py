@@ -153,6 +153,8 @@ def build_model(
             raise
         except Exception as e:  # a user class's own error: which model raised it, and its traceback
             raise ModelBuildError(f"{where}: building it raised {type(e).__name__}: {e}") from e
+    if not isinstance(model, Model):
+        raise ModelBuildError(f"{where}: from_config returned a {type(model).__name__}, not the model built")
     if not all(isinstance(getattr(model, a, None), dict) for a in ("input_spec", "output_spec", "meta")):
         raise ModelBuildError(
             f"{where}: the model built has no input_spec, output_spec and meta; does its __init__ call "

@@ -20,7 +20,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -58,23 +57,28 @@ class Sample:
     labels: np.ndarray  # int64[n]
 
 
-def _writable_out(out: Path) -> Path:
-    """``out`` as a checkpoint file to write: not a folder, its folder made and writable, a suffix that says how it
-    is written (``.safetensors``, else a PyTorch file: ``.pth``/``.pt``). ValueError naming the path otherwise."""
-    if out.is_dir() or str(out).endswith(("/", os.sep)):
+#: Suffixes of files that are no checkpoint: an --out named so is a slip (a .pth, .pt, .bin or .ckpt is a PyTorch file)
+_NOT_CHECKPOINTS = (".onnx", ".json", ".yaml", ".yml", ".npz", ".npy", ".png", ".jpg", ".txt")
+
+
+def _writable_out(given: str | Path) -> Path:
+    """``given`` as a checkpoint file to write, checked before any work: not a folder, not named like another kind
+    of file, and in a folder that is or can be made writable. ValueError naming the path otherwise. Nothing is made
+    here: a run refused later leaves no folder behind."""
+    out = Path(given)
+    if out.is_dir() or str(given).endswith(("/", os.sep)):
         raise ValueError(
-            f"--out {str(out)!r} is a folder; name the checkpoint file to write, e.g. {str(out / 'head.pth')!r}"
+            f"--out {str(given)!r} is a folder; name the checkpoint file to write, e.g. {str(out / 'head.pth')!r}"
         )
-    if out.suffix not in (".safetensors", ".pth", ".pt"):
+    if out.suffix.lower() in _NOT_CHECKPOINTS:
         raise ValueError(
             f"--out {str(out)!r}: a checkpoint is written as .safetensors or as a PyTorch file (.pth, .pt); name it so"
         )
-    try:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryFile(dir=out.parent):
-            pass
-    except OSError as e:
-        raise ValueError(f"--out {str(out)!r} cannot be written: {e.strerror or e}") from None
+    folder = out.parent.absolute()
+    while not folder.exists():  # the nearest folder that exists: where the missing ones would be made
+        folder = folder.parent
+    if not folder.is_dir() or not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"--out {str(out)!r} cannot be written: {str(folder)!r} is not a writable folder")
     return out
 
 
@@ -106,11 +110,14 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
     cats = sorted(data["categories"], key=lambda c: c["id"])
     if not cats:
         raise ValueError(f"annotations {str(path)!r} define no categories")
-    for field in ("id", "name"):  # two categories of one id (or name): boxes would be trained as the wrong class
-        values = [c[field] for c in cats]
-        twice = sorted({str(v) for v in values if values.count(v) > 1})
-        if twice:
-            raise ValueError(f"{path.name}: categories give the {field} {', '.join(twice)} more than once")
+    ids = [c["id"] for c in cats]  # two categories of one id: every box of it would be trained as the other class
+    twice = sorted({str(v) for v in ids if ids.count(v) > 1})
+    if twice:
+        raise ValueError(f"{path.name}: categories give the id {', '.join(twice)} more than once")
+    names_seen = [str(c["name"]) for c in cats]
+    same = sorted({n for n in names_seen if names_seen.count(n) > 1})
+    if same:  # labels follow ids, so training is right; the detections' names would not tell the classes apart
+        log.warning("%s: categories give the name %s to more than one id", path.name, ", ".join(same))
     names = [str(c["name"]) for c in cats]
     label_of = {c["id"]: i for i, c in enumerate(cats)}
     per_image: dict[Any, list[tuple[list[float], int]]] = {im["id"]: [] for im in data["images"]}
@@ -127,10 +134,10 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
         bbox = a.get("bbox")
         if not (isinstance(bbox, list) and len(bbox) == 4 and all(isinstance(v, (int, float)) for v in bbox)):
             raise ValueError(f"{path.name}: annotation {a.get('id')} bbox {bbox!r} is not [x, y, w, h]")
-        if not all(math.isfinite(v) for v in bbox) or bbox[2] <= 0 or bbox[3] <= 0:
+        if not all(math.isfinite(v) for v in bbox) or bbox[2] < 0 or bbox[3] < 0:  # 0: dropped and counted below
             raise ValueError(
-                f"{path.name}: annotation {a.get('id')} bbox {bbox!r} is not [x, y, w, h] with a width and height "
-                "above 0 (COCO's boxes are x, y, width, height, not two corners)"
+                f"{path.name}: annotation {a.get('id')} bbox {bbox!r} is not [x, y, w, h] with a width and height of "
+                "0 or more (COCO's boxes are x, y, width, height, not two corners)"
             )
         per_image[a["image_id"]].append((bbox, label_of[a["category_id"]]))
     samples = []
@@ -256,7 +263,7 @@ def train_detector(
         raise ValueError(f"epochs ({epochs}) and batch_size ({batch_size}) must be >= 1 and lr ({lr}) > 0")
     if not (math.isfinite(weight_decay) and weight_decay >= 0):
         raise ValueError(f"weight_decay must be a number >= 0, got {weight_decay}")
-    out = _writable_out(Path(out))  # before any work: a run of hours must not end on a path it cannot write
+    out = _writable_out(out)  # before any work: a run of hours must not end on a path it cannot write
     class_names, samples = load_coco(annotations, images)
     raw = load_config(config, overrides).model_dump(mode="json")
     head_name = _select_head(raw, head, class_names)

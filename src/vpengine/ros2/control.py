@@ -60,10 +60,10 @@ def parse_rate_command(
     KeyValue ``{key: model, value: rate}``, :func:`parse_rate`) or a number as services carry it
     (:func:`numeric_rate`). ``key`` may be ``model@camera``: that model's rate for one of ``cameras`` alone
     (:func:`model_at` splits it)."""
-    model, _ = model_at(key, models, cameras)
+    model_at(key, models, cameras)
     hz = parse_rate(value) if isinstance(value, str) else numeric_rate(value)
-    # the one rate check, spelled as a ROS 2 command writes "no limit" (none): a service's number past the cap
-    checks.rate(model, hz, spell=lambda v: "none" if v is None else repr(v))
+    # the one rate check, "no limit" spelled as a service's number writes it: a number past the cap
+    checks.rate(str(key).strip(), hz, spell=lambda v: "a negative number or inf" if v is None else repr(v))
     return str(key).strip(), hz
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import collections
 import logging
 import math
+import re
 import threading
 import time
 from collections.abc import Callable, Mapping
@@ -125,6 +126,7 @@ def camera_status(
 #: Different texts of one reason logged at once within its window (a second and a third encoding), at most: past
 #: them a reason's lines are one per window again, so a text that changes with every message cannot flood the log
 DISTINCT_TEXTS = 3
+_DIGITS = re.compile(r"\d+")
 
 
 class Rejections:
@@ -162,20 +164,20 @@ class Rejections:
             self.counts[reason] += 1
             self._last[reason] = now
             logged = self._logged.get(reason)
+            said = _DIGITS.sub("N", text)  # what it says, not which message or how many bytes
             if logged is not None and now - logged < self.every_s:  # within its window
                 seen = self._texts[reason]
-                if text in seen or len(seen) >= DISTINCT_TEXTS:
+                if said in seen or len(seen) >= DISTINCT_TEXTS:
                     self._unlogged[reason] += 1
                     return
-                seen.add(text)  # another failure of this reason (a second encoding): said at once, as a first is
+                seen.add(said)  # another failure of this reason (a second encoding): said at once, as a first is
                 plain = True
             else:  # a new window
                 plain = logged is None
                 self._logged[reason] = now
-                self._texts[reason] = {text}
+                self._texts[reason] = {said}
             more = 0 if plain else self._unlogged[reason]
-            if not plain:
-                self._unlogged[reason] = 0
+            self._unlogged[reason] = 0  # "not logged since the last line": from this line on
             total = self.counts[reason]
         if plain:
             self._log.warning("%s (%s): %s", self.where, reason, text)

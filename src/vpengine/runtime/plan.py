@@ -62,12 +62,17 @@ def make_plan(cfg: EngineConfig, cancelled: Callable[[], bool] | None = None) ->
         raise EngineStartError(str(e)) from None
 
 
+_KINDS_SAID: set[tuple[str, str, tuple[str, ...]]] = set()
+
+
 def _say_a_kind_without_its_outputs(name: str, model: Model) -> None:
     """Note [Kinds and outputs] in visualize.py: a head whose meta["kind"] names outputs it does not have."""
     from vpengine.visualize import KIND_OUTPUTS, has_kind_outputs
 
     kind = model.meta.get("kind")
-    if kind in KIND_OUTPUTS and not has_kind_outputs(str(kind), set(model.output_spec)):
+    said = (name, str(kind), tuple(sorted(model.output_spec)))
+    if kind in KIND_OUTPUTS and not has_kind_outputs(str(kind), set(model.output_spec)) and said not in _KINDS_SAID:
+        _KINDS_SAID.add(said)  # once a process: every plan (an add_head's of the whole config too) builds it again
         log.warning(
             "%s: meta['kind'] is %r, whose pictures and files are made from the outputs %s, but it has %s: it is "
             "drawn and written as a generic head (.npz); name its outputs so, or leave kind out",

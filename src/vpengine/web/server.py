@@ -108,7 +108,7 @@ def _field(body: bytes, key: str, want: str) -> Any:
         raise ValueError(f"expected {want}; got {_json(doc)}"[:300])
     other = sorted(k for k in doc if k != key)
     if other:  # a typo beside the key (or a field meant for another call) is not dropped silently
-        raise ValueError(f"expected {want}; got {_json(doc)}, whose {_json(other[0])} is no field of it"[:300])
+        raise ValueError(f"{_json(other[0])} is no field of this body; expected {want}; got {_json(doc)}"[:300])
     return doc[key]
 
 
@@ -401,11 +401,10 @@ class _Handler(BaseHTTPRequestHandler):
 
     def _put_priority(self, key: str, body: bytes) -> None:
         eng = self._engine()
-        if not key.strip():
-            raise _HttpError(
-                HTTPStatus.BAD_REQUEST, "PUT /api/priority/<key>: the key is empty; give HEAD, HEAD@CAMERA or @CAMERA"
-            )
-        head, camera = checks.priority_target(key)
+        try:
+            head, camera = checks.priority_target(key)
+        except ValueError as e:  # an empty key
+            raise _HttpError(HTTPStatus.BAD_REQUEST, str(e)) from None
         try:
             priority = parse_priority(body)
             eng.set_priority(head, priority, camera=camera)

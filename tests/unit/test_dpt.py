@@ -368,7 +368,10 @@ def test_bad_options_and_postprocess_are_named():
         match=r"bad options for .*: heads\.\w+\.options\.size: Input should be 's', 'b' or 'l' \(got 'x'\)",
     ):
         build_head((28, 28), (2, 2), 32, options={"size": "x"})
-    with pytest.raises(ModelBuildError, match=r"bad postprocess options: output: .*accepted: cmap, output"):
+    with pytest.raises(
+        ModelBuildError,
+        match=r"bad postprocess options for .*: heads\.\w+\.postprocess\.output: .*accepted: cmap, output",
+    ):
         build_head((28, 28), (2, 2), 32, postprocess={"output": "jet"})
     with pytest.raises(ModelBuildError, match=r"cmap: .*unknown colormap 'nope'; accepted: Spectral_r"):
         build_head((28, 28), (2, 2), 32, postprocess={"output": "both", "cmap": "nope"})

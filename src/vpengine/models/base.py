@@ -117,9 +117,13 @@ class BuildContext:
         try:
             return cls.model_validate(raw)
         except ValidationError as e:
-            problems = "; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
+            problems = "; ".join(
+                f"{'.'.join([f'{self.where}.postprocess', *map(str, err['loc'])])}: "
+                f"{str(err['msg']).removeprefix('Value error, ')}"
+                for err in e.errors()
+            )
             raise ModelBuildError(
-                f"{self.name} ({self.cfg.model}): bad postprocess options: {problems} "
+                f"bad postprocess options for {self.cfg.model!r}: {problems} "
                 f"(accepted: {', '.join(sorted(cls.model_fields))})"
             ) from None
 

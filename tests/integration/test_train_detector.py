@@ -201,6 +201,8 @@ def test_coco_loader_maps_category_ids_to_labels_and_skips_crowd(tmp_path):
         (lambda d: d["annotations"][0].update(bbox=[1, 2, 3]), "is not [x, y, w, h]"),
         (lambda d: d.pop("categories"), "not COCO detection JSON"),
         (lambda d: d["images"][1].pop("file_name"), "images[1]"),
+        # an image no reader takes: found before the features of the others, not after them
+        (lambda d: d["images"][1].update(file_name="corrupt.png"), "image 'corrupt.png' is no image OpenCV reads"),
         # two categories of one id: every box of it would be trained as the other class
         (lambda d: d["categories"][1].update(id=d["categories"][0]["id"]), "categories give the id 7 more than once"),
         # corners for width and height, a NaN: refused naming the annotation, not dropped as "smaller than a pixel"
@@ -212,6 +214,7 @@ def test_train_cli_reports_bad_annotations_by_name(tmp_path, capsys, edit, messa
     from vpengine.cli.main import main
 
     img_dir, ann, _ = make_dataset(tmp_path, n=2)
+    (img_dir / "corrupt.png").write_bytes(b"not an image" * 10)
     data = json.loads(ann.read_text())
     edit(data)
     ann.write_text(json.dumps(data))

@@ -56,6 +56,10 @@ def _runs(files: list[tuple[str, dict[str, Any]]], key: str) -> list[dict[str, A
     return sorted(runs, key=lambda x: (x["date"], x["file"]))
 
 
+#: The files of benchmarks other than the paper's and cameras' that the report reads, by name
+OTHER_FILES = ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json")
+
+
 def collect(folder: Path) -> dict[str, Any]:
     """``{key}_all``: every run of each experiment, oldest first; ``{key}``: the run the figure draws (the newest,
     for E1 and E2 the one with the most head counts, for E5 the longest stream); other benchmarks' files by name."""
@@ -70,7 +74,7 @@ def collect(folder: Path) -> dict[str, Any]:
             out[key] = max(out[f"{key}_all"], key=lambda x: (len(x["rows"]), x["date"]))
     if out["E5_all"]:
         out["E5"] = max(out["E5_all"], key=lambda x: (x["frames"], x["date"]))
-    for name in ("resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"):
+    for name in OTHER_FILES:
         path = folder / name
         if path.exists():
             out[name] = json.loads(path.read_text())
@@ -506,15 +510,15 @@ def main(args: argparse.Namespace) -> int:
     if not folder.is_dir():
         raise ValueError(f"--results {args.results!r} is not a folder")
     r = collect(folder)
-    read = {"resources_gpu.json", "resources_gpu_mps-required.json", "hop_cuda_vits-1080p.json"}
     unread = None
-    if not _all_runs(r) and not read & {p.name for p in folder.iterdir()}:
+    if not _all_runs(r) and not set(OTHER_FILES) & {p.name for p in folder.iterdir()}:
         # nothing it reads: say what it reads and what is there, on the terminal and in the summary
         here = sorted(p.name for p in folder.glob("*.json"))
-        below = sorted({p.parent.name for p in folder.glob("*/*.json")})
+        below = sorted(
+            {p.parent.name for pattern in ("*/paper_*.json", "*/cameras_*.json") for p in folder.glob(pattern)}
+        )
         unread = (
-            "No results this report reads here (paper_*.json, cameras_*.json, resources_gpu*.json, "
-            "hop_cuda_vits-1080p.json)"
+            f"No results this report reads here (paper_*.json, cameras_*.json, {', '.join(OTHER_FILES)})"
             + (f"; its JSON files: {', '.join(here[:6])}{' ...' if len(here) > 6 else ''}" if here else "")
             + (f"; folders with results below it: {', '.join(below[:6])} (give one as --results)" if below else "")
             + "."

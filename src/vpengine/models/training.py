@@ -145,6 +145,8 @@ def load_coco(annotations: str | Path, images: str | Path) -> tuple[list[str], l
         file = root / im["file_name"]
         if not file.is_file():
             raise FileNotFoundError(f"{path.name}: image {im['file_name']!r} not found in {str(root)!r}")
+        if not cv2.haveImageReader(str(file)):  # its header, now: not after hours of the earlier images' features
+            raise ValueError(f"{path.name}: image {im['file_name']!r} is no image OpenCV reads ({str(file)!r})")
         anns = per_image[im["id"]]
         boxes = np.array([[x, y, x + w, y + h] for (x, y, w, h), _ in anns], dtype=np.float32).reshape(-1, 4)
         labels = np.array([lab for _, lab in anns], dtype=np.int64)

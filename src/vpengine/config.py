@@ -362,6 +362,12 @@ class EngineConfig(_Strict):
         """The foundation model's config (``foundation``) or a head's."""
         return self.foundation_model if name == "foundation" else self.head(name)
 
+    @staticmethod
+    def model_path(name: str) -> str:
+        """Where model ``name`` stands in a config, as errors and ``--set`` name it: ``foundation_model`` or
+        ``heads.NAME``."""
+        return "foundation_model" if name == "foundation" else f"heads.{name}"
+
     def process_mates(self, name: str) -> list[str]:
         """The models that share model ``name``'s worker process, ``name`` included, foundation first and the heads
         in order (Note [Process groups] in runtime/process.py); ``[name]`` alone in thread mode or when it names no

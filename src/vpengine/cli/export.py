@@ -70,7 +70,7 @@ def export_model(
     except OSError as e:
         raise ValueError(f"--out {str(out_dir)!r}: cannot make the folder for NAME.onnx: {e.strerror or e}") from None
     if precision is not None:
-        where = "foundation_model" if name == "foundation" else f"heads.{name}"
+        where = cfg.model_path(name)
         cfg = load_config(cfg, [f"{where}.precision={precision}"])
     precision = cfg.model(name).precision or cfg.precision
     check_onnx_precision(precision, name)

@@ -135,8 +135,8 @@ def _stdout_gone() -> bool:
         sys.stdout.flush()
     except BrokenPipeError:
         return True
-    except (OSError, ValueError):
-        return False
+    except (OSError, ValueError):  # closed, or another failure: not a reader gone
+        pass
     return False
 
 

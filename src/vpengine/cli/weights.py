@@ -352,7 +352,7 @@ def unresolvable(cfg: Any) -> list[str]:
     cache = catalog.cache_dir()
     lines = []
     for name, model in {"foundation": plan.foundation, **plan.heads}.items():
-        mcfg = cfg.foundation_model if name == "foundation" else cfg.head(name)
+        mcfg = cfg.model(name)
         try:
             needed = model.needed_checkpoint(mcfg)
             if needed is None or Path(needed).expanduser().is_file() or catalog.find(needed, cache) is not None:

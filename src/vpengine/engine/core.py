@@ -151,7 +151,7 @@ def _say_half_precision_on_cpu(cfg: EngineConfig) -> None:
     seconds a frame (the shipped GPU config run with --device cpu does). ONNX models say it themselves."""
     if torch.device(cfg.device).type != "cpu":
         return
-    models = [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)]
+    models = [(name, cfg.model(name)) for name in cfg.model_names()]
     half = [name for name, m in models if (m.precision or cfg.precision) == "fp16" and m.backend != "onnx"]
     if half:
         log.warning(
@@ -168,9 +168,7 @@ def _say_what_will_not_run(cfg: EngineConfig) -> None:
     mean nothing there."""
     if not cfg.heads:
         log.warning("the config has no heads: the foundation model runs on each frame and no result comes out")
-    grouped = [
-        name for name, m in [("foundation", cfg.foundation_model), *((h.name, h) for h in cfg.heads)] if m.process
-    ]
+    grouped = [name for name in cfg.model_names() if cfg.model(name).process]
     if cfg.mode == "thread" and grouped:
         log.warning(
             "%s: process is for process mode; in thread mode every model shares this process already",

@@ -93,7 +93,7 @@ class BuildContext:
     @property
     def where(self) -> str:
         """This model's place in the config, as a config error names it: ``foundation_model`` or ``heads.NAME``."""
-        return "foundation_model" if self.role == "foundation" else f"heads.{self.name}"
+        return self.engine.model_path("foundation" if self.role == "foundation" else self.name)
 
     def options(self, cls: type[Options]) -> Any:
         merged = {**self.defaults, **self.cfg.options}

@@ -141,11 +141,10 @@ def build_model(
     except ModelBuildError as e:
         if e.__cause__ is not None:  # the user's module failed as it was imported: its traceback says where
             raise
-        where = "foundation_model" if role == "foundation" else f"heads.{name}"
-        raise ModelBuildError(f"{where}.model: {e}") from None  # which field names the model
+        raise ModelBuildError(f"{cfg.model_path(name)}.model: {e}") from None  # which field names the model
     ctx = BuildContext(role, name, mcfg, cfg, upstream, upstream_meta, device, plan_only, defaults)
     what = f"model {name!r} of engine {cfg.name!r}"
-    where = f"{'foundation_model' if role == 'foundation' else f'heads.{name}'} ({mcfg.model})"
+    where = f"{ctx.where} ({mcfg.model})"
     with build_lock.held(what, cfg.runtime.ready_timeout_s, cancelled), torch.device("meta" if plan_only else device):
         try:
             model = cls.from_config(ctx)

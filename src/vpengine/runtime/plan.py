@@ -90,9 +90,10 @@ def check_backend_options(cfg: EngineConfig) -> None:
     from vpengine.backends.options import BackendError, parse_options
     from vpengine.config import ConfigError
 
-    for where, m in [("foundation_model", cfg.foundation_model), *((f"heads.{h.name}", h) for h in cfg.heads)]:
+    for name in cfg.model_names():
+        m = cfg.model(name)
         try:
-            parse_options(m.backend, m.backend_options, f"{where}.backend_options")
+            parse_options(m.backend, m.backend_options, f"{cfg.model_path(name)}.backend_options")
         except BackendError as e:
             raise ConfigError(str(e)) from None
 
